@@ -1,0 +1,154 @@
+#include "trocar_docking/cpp/kdl_bridge.h"
+
+#include <limits>
+#include <stdexcept>
+
+#include <kdl/frames.hpp>
+#include <kdl/tree.hpp>
+#include <kdl_parser/kdl_parser.hpp>
+#include <urdf_parser/urdf_parser.h>
+
+namespace trocar_docking {
+
+KdlChain::KdlChain(KDL::Chain chain, std::vector<std::string> names, std::vector<double> lower,
+                   std::vector<double> upper, std::vector<double> velocity,
+                   std::vector<double> effort)
+    : chain_(std::move(chain)),
+      names_(std::move(names)),
+      lower_(std::move(lower)),
+      upper_(std::move(upper)),
+      velocity_(std::move(velocity)),
+      effort_(std::move(effort)) {}
+
+size_t KdlChain::n_joints() const { return chain_.getNrOfJoints(); }
+
+static rust::Vec<double> to_vec(const std::vector<double>& v) {
+  rust::Vec<double> out;
+  out.reserve(v.size());
+  for (double x : v) out.push_back(x);
+  return out;
+}
+
+rust::Vec<rust::String> KdlChain::joint_names() const {
+  rust::Vec<rust::String> out;
+  for (const auto& n : names_) out.push_back(rust::String(n));
+  return out;
+}
+rust::Vec<double> KdlChain::lower() const { return to_vec(lower_); }
+rust::Vec<double> KdlChain::upper() const { return to_vec(upper_); }
+rust::Vec<double> KdlChain::velocity() const { return to_vec(velocity_); }
+rust::Vec<double> KdlChain::effort() const { return to_vec(effort_); }
+
+static void write_pose(const KDL::Frame& f, rust::Slice<double> pose) {
+  pose[0] = f.p.x();
+  pose[1] = f.p.y();
+  pose[2] = f.p.z();
+  for (int i = 0; i < 9; ++i) pose[3 + i] = f.M.data[i];
+}
+
+void KdlChain::fk(rust::Slice<const double> q, rust::Slice<double> pose) const {
+  KDL::Frame t = KDL::Frame::Identity();
+  unsigned j = 0;
+  for (const auto& seg : chain_.segments) {
+    if (seg.getJoint().getType() != KDL::Joint::None) {
+      t = t * seg.pose(q[j++]);
+    } else {
+      t = t * seg.getFrameToTip();
+    }
+  }
+  write_pose(t, pose);
+}
+
+void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose,
+                           rust::Slice<double> jac) const {
+  // One pass down the chain: store each joint's axis (angular rows) and origin (linear
+  // rows) in the base frame, then turn the origins into lever arms once the tip is known.
+  KDL::Frame t = KDL::Frame::Identity();
+  unsigned j = 0;
+  double* J = jac.data();
+  for (const auto& seg : chain_.segments) {
+    const KDL::Joint& joint = seg.getJoint();
+    if (joint.getType() == KDL::Joint::None) {
+      t = t * seg.getFrameToTip();
+      continue;
+    }
+    const KDL::Vector axis = t.M * joint.JointAxis();
+    const KDL::Vector origin = t * joint.JointOrigin();
+    double* c = J + 6 * j;
+    const bool prismatic = joint.getType() >= KDL::Joint::TransAxis;
+    c[0] = origin.x();
+    c[1] = origin.y();
+    c[2] = origin.z();
+    c[3] = axis.x();
+    c[4] = axis.y();
+    c[5] = axis.z();
+    if (prismatic) c[0] = std::numeric_limits<double>::quiet_NaN();  // marker, fixed below
+    t = t * seg.pose(q[j]);
+    ++j;
+  }
+  write_pose(t, pose);
+  const double px = t.p.x(), py = t.p.y(), pz = t.p.z();
+  for (unsigned k = 0; k < j; ++k) {
+    double* c = J + 6 * k;
+    const double ax = c[3], ay = c[4], az = c[5];
+    if (c[0] != c[0]) {  // prismatic: linear column is the axis, no angular part
+      c[0] = ax;
+      c[1] = ay;
+      c[2] = az;
+      c[3] = c[4] = c[5] = 0.0;
+      continue;
+    }
+    const double rx = px - c[0], ry = py - c[1], rz = pz - c[2];
+    c[0] = ay * rz - az * ry;
+    c[1] = az * rx - ax * rz;
+    c[2] = ax * ry - ay * rx;
+  }
+}
+
+std::unique_ptr<KdlChain> kdl_chain_from_urdf(rust::Str urdf_xml, rust::Str base, rust::Str tip) {
+  const std::string xml(urdf_xml);
+  urdf::ModelInterfaceSharedPtr model;
+  try {
+    model = urdf::parseURDF(xml);
+  } catch (const std::exception& e) {
+    throw std::runtime_error(std::string("malformed URDF: ") + e.what());
+  }
+  if (!model) throw std::runtime_error("malformed URDF: urdfdom could not parse it");
+  KDL::Tree tree;
+  if (!kdl_parser::treeFromUrdfModel(*model, tree))
+    throw std::runtime_error("URDF could not be turned into a KDL tree");
+  const std::string b(base), t(tip);
+  if (tree.getSegments().count(b) == 0 && tree.getRootSegment()->first != b)
+    throw std::runtime_error("unknown base link '" + b + "'");
+  if (tree.getSegments().count(t) == 0) throw std::runtime_error("unknown tip link '" + t + "'");
+  KDL::Chain chain;
+  if (!tree.getChain(b, t, chain))
+    throw std::runtime_error("no chain from '" + b + "' to '" + t + "'");
+  std::vector<std::string> names;
+  std::vector<double> lower, upper, velocity, effort;
+  const double inf = std::numeric_limits<double>::infinity();
+  for (const auto& seg : chain.segments) {
+    const KDL::Joint& joint = seg.getJoint();
+    if (joint.getType() == KDL::Joint::None) continue;
+    // A chain walked towards the root would invert joints; refuse it rather than lie.
+    auto uj = model->getJoint(joint.getName());
+    if (!uj) throw std::runtime_error("joint '" + joint.getName() + "' not found in URDF");
+    if (uj->child_link_name != seg.getName())
+      throw std::runtime_error("chain from '" + b + "' to '" + t +
+                               "' runs against joint directions; base must be an ancestor of tip");
+    names.push_back(joint.getName());
+    if (uj->limits && uj->type != urdf::Joint::CONTINUOUS) {
+      lower.push_back(uj->limits->lower);
+      upper.push_back(uj->limits->upper);
+    } else {
+      lower.push_back(-inf);
+      upper.push_back(inf);
+    }
+    velocity.push_back(uj->limits && uj->limits->velocity > 0 ? uj->limits->velocity : inf);
+    effort.push_back(uj->limits && uj->limits->effort > 0 ? uj->limits->effort : inf);
+  }
+  return std::make_unique<KdlChain>(std::move(chain), std::move(names), std::move(lower),
+                                    std::move(upper), std::move(velocity), std::move(effort));
+}
+
+}  // namespace trocar_docking

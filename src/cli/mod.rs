@@ -1,0 +1,41 @@
+//! The offline command-line tool `trocar_docking`: one subcommand per file in this module.
+
+use clap::{Parser, Subcommand};
+
+pub mod fk;
+pub mod urdf;
+
+/// Errors a subcommand reports to the user (printed, exit code 1).
+pub type CliResult = Result<(), Box<dyn std::error::Error + Send + Sync>>;
+
+/// trocar_docking: autonomous endoscope-to-trocar docking for the KUKA LBR Med.
+#[derive(Debug, Parser)]
+#[command(name = "trocar_docking", version, about)]
+pub struct Cli {
+    /// The subcommand.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// The subcommands.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Forward kinematics and Jacobian of a URDF chain.
+    Fk(fk::FkArgs),
+    /// Write the URDF of an LBR Med with an endoscope.
+    Urdf(urdf::UrdfArgs),
+    /// Print the versions of the C++ libraries linked.
+    Versions,
+}
+
+/// Run the parsed command line.
+pub fn run(cli: Cli) -> CliResult {
+    match cli.command {
+        Command::Fk(a) => fk::run(&a),
+        Command::Urdf(a) => urdf::run(&a),
+        Command::Versions => {
+            println!("{}", crate::ffi::vision::ffi::vision_backend_versions());
+            Ok(())
+        }
+    }
+}
