@@ -6,6 +6,7 @@
 //! (KDL, ViSP, OpenCV) behind safe Rust; `ros` holds only topic and parameter glue.
 #![warn(missing_docs)]
 
+pub mod bench;
 pub mod cli;
 pub mod ffi;
 pub mod kinematics;

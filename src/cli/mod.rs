@@ -2,6 +2,7 @@
 
 use clap::{Parser, Subcommand};
 
+pub mod bench;
 pub mod fk;
 pub mod urdf;
 
@@ -20,6 +21,8 @@ pub struct Cli {
 /// The subcommands.
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Time the hot paths (latency statistics, `--json`).
+    Bench(bench::BenchArgs),
     /// Forward kinematics and Jacobian of a URDF chain.
     Fk(fk::FkArgs),
     /// Write the URDF of an LBR Med with an endoscope.
@@ -31,6 +34,7 @@ pub enum Command {
 /// Run the parsed command line.
 pub fn run(cli: Cli) -> CliResult {
     match cli.command {
+        Command::Bench(a) => bench::run(&a),
         Command::Fk(a) => fk::run(&a),
         Command::Urdf(a) => urdf::run(&a),
         Command::Versions => {

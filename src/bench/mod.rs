@@ -1,0 +1,87 @@
+//! Timing harness behind `trocar_docking bench`: one suite per file, each returning
+//! [`SuiteReport`]s of latency statistics. Benchmarks, not tests, check the performance
+//! targets (criterion benches in `benches/` measure the same code paths).
+
+use std::time::Instant;
+
+pub mod kinematics;
+
+/// Latency statistics of repeated runs of one operation, in microseconds.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct LatencyStats {
+    /// Number of samples.
+    pub samples: usize,
+    /// Median, µs.
+    pub median_us: f64,
+    /// 90th percentile, µs.
+    pub p90_us: f64,
+    /// 99th percentile, µs.
+    pub p99_us: f64,
+    /// Maximum, µs.
+    pub max_us: f64,
+    /// Mean, µs.
+    pub mean_us: f64,
+}
+
+impl LatencyStats {
+    /// Statistics of `samples_us` (µs); `None` when there are no finite samples.
+    pub fn from_samples(samples_us: &[f64]) -> Option<Self> {
+        let mut v: Vec<f64> = samples_us.iter().copied().filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
+            return None;
+        }
+        v.sort_by(f64::total_cmp);
+        let q = |p: f64| v[(((v.len() - 1) as f64) * p).round() as usize];
+        Some(Self {
+            samples: v.len(),
+            median_us: q(0.5),
+            p90_us: q(0.9),
+            p99_us: q(0.99),
+            max_us: v[v.len() - 1],
+            mean_us: v.iter().sum::<f64>() / v.len() as f64,
+        })
+    }
+}
+
+/// One benchmarked operation: its name, latency, and extra figures (iterations, errors…).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct SuiteReport {
+    /// Operation name, e.g. `fk_jacobian_med7`.
+    pub name: String,
+    /// Latency statistics.
+    pub latency: LatencyStats,
+    /// Extra named figures.
+    pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+/// Time `f` once per element of `inputs` (after `warmup` untimed calls), in µs per call.
+pub fn time_each<T, R>(inputs: &[T], warmup: usize, mut f: impl FnMut(&T) -> R) -> Vec<f64> {
+    for x in inputs.iter().cycle().take(warmup.min(inputs.len() * 10)) {
+        std::hint::black_box(f(x));
+    }
+    inputs
+        .iter()
+        .map(|x| {
+            let t0 = Instant::now();
+            std::hint::black_box(f(x));
+            t0.elapsed().as_secs_f64() * 1e6
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn percentiles_of_known_samples() {
+        let v: Vec<f64> = (1..=100).map(f64::from).collect();
+        let s = LatencyStats::from_samples(&v).unwrap();
+        assert_eq!(s.samples, 100);
+        assert_eq!(s.max_us, 100.0);
+        assert!((s.median_us - 50.0).abs() <= 1.0);
+        assert!((s.p99_us - 99.0).abs() <= 1.0);
+        assert!((s.mean_us - 50.5).abs() < 1e-12);
+        assert!(LatencyStats::from_samples(&[f64::NAN]).is_none());
+    }
+}
