@@ -9,10 +9,13 @@
 //! Parameters are plain serde structs with defaults, read from `config/sim.yaml`.
 
 pub mod arm;
+pub mod baseline;
 pub mod contact;
 pub mod noise;
 pub mod scenario;
 pub mod torque;
+pub mod trial;
+pub mod trials;
 pub mod trocar;
 pub mod world;
 
