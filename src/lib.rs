@@ -10,5 +10,6 @@ pub mod bench;
 pub mod cli;
 pub mod ffi;
 pub mod kinematics;
+pub mod plot;
 pub mod robot_model;
 pub mod sim;
