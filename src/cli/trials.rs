@@ -12,7 +12,7 @@ use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
 use crate::kinematics::{Kinematics, LbrKinematics};
 use crate::robot_model::{LbrModel, ToolParams};
-use crate::sim::config::{SimConfig, DEFAULT_PATH};
+use crate::sim::config::SimConfig;
 use crate::sim::noise::NoiseModel;
 use crate::sim::trial::TrialResult;
 use crate::sim::trials::{run_arm, ArmReport, ArmSummary, PolicyFactory, Stats};
@@ -77,8 +77,7 @@ fn arm_label(ff: bool) -> &'static str {
 fn load_config(a: &TrialsArgs) -> Result<SimConfig, Box<dyn std::error::Error + Send + Sync>> {
     let mut c = match &a.config {
         Some(p) => SimConfig::from_file(p)?,
-        None if Path::new(DEFAULT_PATH).exists() => SimConfig::from_file(Path::new(DEFAULT_PATH))?,
-        None => SimConfig::default(),
+        None => SimConfig::load_default()?,
     };
     if let Some(n) = a.noise {
         c.sim.measurement.model = n;

@@ -29,6 +29,17 @@ impl SimConfig {
         Ok(c)
     }
 
+    /// `config/sim.yaml` when it exists (relative to the working directory), else the
+    /// built-in defaults.
+    pub fn load_default() -> Result<Self, SimError> {
+        let p = Path::new(DEFAULT_PATH);
+        if p.exists() {
+            Self::from_file(p)
+        } else {
+            Ok(Self::default())
+        }
+    }
+
     /// Read a file.
     pub fn from_file(path: &Path) -> Result<Self, SimError> {
         let s = std::fs::read_to_string(path).map_err(|e| SimError::Input(format!("{}: {e}", path.display())))?;
