@@ -132,7 +132,7 @@ pub fn box_plot(path: &Path, title: &str, y_desc: &str, groups: &[(String, Vec<f
         .flat_map(|(_, v)| v.last())
         .fold(1e-3, |a, &b| f64::max(a, b))
         * 1.1;
-    let root = BitMapBackend::new(path, (200 + 180 * groups.len() as u32, 500)).into_drawing_area();
+    let root = BitMapBackend::new(path, (300 + 200 * groups.len() as u32, 500)).into_drawing_area();
     root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
     let n = groups.len();
     let mut chart = ChartBuilder::on(&root)
