@@ -15,7 +15,7 @@ fn kin() -> Result<Arc<dyn Kinematics>, String> {
 
 fn run(cfg: &SimConfig, ff: bool, threads: usize) -> ArmReport {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-    let seeds: Vec<u64> = (10..14).collect();
+    let seeds: Vec<u64> = (10..16).collect();
     let factory = trocar_docking::sim::policy::factory(cfg, ff);
     let done = std::sync::atomic::AtomicUsize::new(0);
     let tick = || {
@@ -36,7 +36,27 @@ fn same_seeds_same_numbers_in_parallel() {
         // Debug text compares NaN (no successes yet) as equal, and every bit of each float.
         assert_eq!(format!("{:?}", a.summary), format!("{:?}", b.summary));
         assert_eq!(format!("{:?}", a.trials), format!("{:?}", b.trials));
-        assert_eq!(a.summary.trials, 4);
+        assert_eq!(a.summary.trials, 6);
         assert!(a.trials.iter().all(|t| t.time_s > 0.0 || !t.reason.is_empty()));
     }
+}
+
+#[test]
+fn force_feedback_lowers_contact_forces_under_calibration_bias() {
+    let mut cfg = SimConfig::load_default().unwrap();
+    cfg.trial.timeout_s = 12.0;
+    cfg.sim.measurement.bias_position_m = 0.003;
+    cfg.sim.measurement.bias_rotation_rad = 0.035;
+    let no_ff = run(&cfg, false, 2);
+    let ff = run(&cfg, true, 2);
+    let m = |r: &ArmReport| r.trials.iter().map(|t| t.m_true).sum::<f64>();
+    let peak = |r: &ArmReport| r.summary.max_force_true_n;
+    assert!(no_ff.summary.successes >= 5 && ff.summary.successes >= 5);
+    assert!(
+        m(&ff) < 0.7 * m(&no_ff),
+        "M with FF {} vs without {}",
+        m(&ff),
+        m(&no_ff)
+    );
+    assert!(peak(&ff) < peak(&no_ff));
 }

@@ -48,7 +48,7 @@ fn baseline_docks_without_noise_and_runs_are_reproducible() {
     };
     let run = |seed| {
         let mut w = SimWorld::new(&p, kin.clone(), seed).unwrap();
-        let mut b = Baseline::new(tp.goal_depth_m, 1.0 / tp.control_rate_hz);
+        let mut b = Baseline::new(&Default::default(), tp.goal_depth_m, 1.0 / tp.control_rate_hz, false);
         run_trial(&mut w, &mut b, &tp, seed)
     };
     let a = run(3);

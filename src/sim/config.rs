@@ -4,6 +4,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use super::baseline::BaselineParams;
 use super::trial::TrialParams;
 use super::{SimError, SimParams};
 
@@ -18,6 +19,8 @@ pub struct SimConfig {
     pub sim: SimParams,
     /// Trial rules (goal, tolerance, timeout, abort force, control rate).
     pub trial: TrialParams,
+    /// The baseline policy.
+    pub baseline: BaselineParams,
 }
 
 impl SimConfig {

@@ -9,11 +9,6 @@ use super::trials::PolicyFactory;
 pub fn factory(c: &SimConfig, ff: bool) -> Box<PolicyFactory> {
     let depth = c.trial.goal_depth_m;
     let period = 1.0 / c.trial.control_rate_hz;
-    Box::new(move |_seed| {
-        if ff {
-            Err("the baseline policy has no force feedback".to_string())
-        } else {
-            Ok(Box::new(Baseline::new(depth, period)) as Box<dyn Policy>)
-        }
-    })
+    let params = c.baseline.clone();
+    Box::new(move |_seed| Ok(Box::new(Baseline::new(&params, depth, period, ff)) as Box<dyn Policy>))
 }
