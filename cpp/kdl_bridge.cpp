@@ -3,6 +3,9 @@
 #include <limits>
 #include <stdexcept>
 
+#include <mutex>
+
+#include <console_bridge/console.h>
 #include <kdl/frames.hpp>
 #include <kdl/tree.hpp>
 #include <kdl_parser/kdl_parser.hpp>
@@ -105,18 +108,48 @@ void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose
   }
 }
 
+namespace {
+// Collects what urdfdom and kdl_parser log while parsing, so that it reaches the Rust error
+// instead of the console.
+class CaptureHandler : public console_bridge::OutputHandler {
+ public:
+  void log(const std::string& text, console_bridge::LogLevel level, const char*, int) override {
+    if (level < console_bridge::CONSOLE_BRIDGE_LOG_WARN) return;
+    if (!text_.empty()) text_ += "; ";
+    text_ += text;
+  }
+  const std::string& text() const { return text_; }
+
+ private:
+  std::string text_;
+};
+std::mutex console_mutex;  // the console_bridge handler is process-global
+}  // namespace
+
 std::unique_ptr<KdlChain> kdl_chain_from_urdf(rust::Str urdf_xml, rust::Str base, rust::Str tip) {
   const std::string xml(urdf_xml);
   urdf::ModelInterfaceSharedPtr model;
-  try {
-    model = urdf::parseURDF(xml);
-  } catch (const std::exception& e) {
-    throw std::runtime_error(std::string("malformed URDF: ") + e.what());
-  }
-  if (!model) throw std::runtime_error("malformed URDF: urdfdom could not parse it");
   KDL::Tree tree;
-  if (!kdl_parser::treeFromUrdfModel(*model, tree))
-    throw std::runtime_error("URDF could not be turned into a KDL tree");
+  bool tree_ok = false;
+  std::string log;
+  {
+    std::lock_guard<std::mutex> lock(console_mutex);
+    CaptureHandler capture;
+    console_bridge::useOutputHandler(&capture);
+    try {
+      model = urdf::parseURDF(xml);
+      if (model) tree_ok = kdl_parser::treeFromUrdfModel(*model, tree);
+    } catch (const std::exception& e) {
+      log = capture.text();
+      console_bridge::restorePreviousOutputHandler();
+      throw std::runtime_error(std::string("malformed URDF: ") + e.what() + (log.empty() ? "" : " (" + log + ")"));
+    }
+    log = capture.text();
+    console_bridge::restorePreviousOutputHandler();
+  }
+  const std::string detail = log.empty() ? "" : " (" + log + ")";
+  if (!model) throw std::runtime_error("malformed URDF: urdfdom could not parse it" + detail);
+  if (!tree_ok) throw std::runtime_error("URDF could not be turned into a KDL tree" + detail);
   const std::string b(base), t(tip);
   if (tree.getSegments().count(b) == 0 && tree.getRootSegment()->first != b)
     throw std::runtime_error("unknown base link '" + b + "'");
