@@ -9,6 +9,7 @@
 pub mod admittance;
 pub mod bench;
 pub mod cli;
+pub mod controller;
 pub mod docking;
 pub mod ffi;
 pub mod geometry;
