@@ -233,7 +233,8 @@ pub struct Controller {
     trocar_filtered: Option<(Isometry3<f64>, f64)>,
     target: Option<Point3<f64>>,
     insert_s: f64,
-    retreat_s: Option<f64>,
+    /// Retreat after a force stop: (current target depth, final depth); NaN = not begun.
+    retreat_s: Option<(f64, f64)>,
 }
 
 fn nan_point() -> Point3<f64> {
@@ -406,7 +407,7 @@ impl Controller {
             if self.supervisor.phase().is_moving() {
                 self.supervisor.hold(r.to_string(), true);
                 if self.params.retreat_distance > 0.0 {
-                    self.retreat_s = Some(f64::NAN); // set from the tip depth below
+                    self.retreat_s = Some((f64::NAN, f64::NAN)); // begins from the tip depth below
                 }
             }
         }
@@ -436,11 +437,9 @@ impl Controller {
         let phase = self.supervisor.phase();
         let retreating = phase == Phase::Hold && self.retreat_s.is_some();
         if !phase.is_moving() && !retreating {
-            let cmd = if phase == Phase::Idle { None } else { Some(prev) };
-            if phase == Phase::Idle {
-                self.last_command = None;
-            }
-            return self.output(cmd, tip, goal);
+            // Idle sends nothing; DONE, HOLD and ABORTED keep commanding the last command.
+            self.last_command = if phase == Phase::Idle { None } else { Some(prev) };
+            return self.output(self.last_command, tip, goal);
         }
 
         // Admittance reference from the force across the axis.
@@ -452,18 +451,19 @@ impl Controller {
         let p = &self.params;
         let standoff = axis.point_at(-p.standoff);
         let (weights, point) = if retreating {
-            let s_now = axis.depth_of(&tip_p);
-            let s_end = *self.retreat_s.get_or_insert(f64::NAN);
-            let s_end = if s_end.is_nan() {
-                s_now - p.retreat_distance
-            } else {
-                s_end
+            // Back out along the axis from where the stop happened, at the insertion speed.
+            let (s_target, s_end) = match self.retreat_s {
+                Some(s) if s.0.is_finite() => s,
+                _ => {
+                    let s_now = axis.depth_of(&tip_p);
+                    (s_now, s_now - p.retreat_distance)
+                }
             };
-            self.retreat_s = Some(s_end);
-            let s = (s_now - p.insert_speed * dt).max(s_end);
+            let s_target = (s_target - p.insert_speed * dt).max(s_end);
+            self.retreat_s = Some((s_target, s_end));
             let mut w = p.insert_weights;
             w.reference = 0.0;
-            (w, axis.point_at(s))
+            (w, axis.point_at(s_target))
         } else if phase == Phase::Approach {
             let from = self.target.unwrap_or(tip_p);
             let d = standoff - from;
