@@ -4,6 +4,7 @@
 
 use std::time::Instant;
 
+pub mod controller;
 pub mod kinematics;
 
 /// Latency statistics of repeated runs of one operation, in microseconds.
