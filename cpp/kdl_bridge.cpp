@@ -3,6 +3,9 @@
 #include <limits>
 #include <stdexcept>
 
+#include <mutex>
+
+#include <console_bridge/console.h>
 #include <kdl/frames.hpp>
 #include <kdl/tree.hpp>
 #include <kdl_parser/kdl_parser.hpp>
@@ -18,7 +21,39 @@ KdlChain::KdlChain(KDL::Chain chain, std::vector<std::string> names, std::vector
       lower_(std::move(lower)),
       upper_(std::move(upper)),
       velocity_(std::move(velocity)),
-      effort_(std::move(effort)) {}
+      effort_(std::move(effort)) {
+  for (const auto& seg : chain_.segments) {
+    const KDL::Joint& joint = seg.getJoint();
+    Seg s;
+    const int type = joint.getType();
+    s.kind = type == KDL::Joint::None ? Kind::Fixed
+             : type >= KDL::Joint::TransAxis ? Kind::Prismatic
+                                             : Kind::Revolute;
+    s.axis = joint.JointAxis();
+    s.origin = joint.JointOrigin();
+    s.tip = seg.getFrameToTip();
+    // The closed forms below assume KDL's default joint scale 1 and offset 0 (kdl_parser
+    // sets neither); refuse a chain where the segment pose disagrees with them.
+    for (double q : {0.0, 0.7}) {
+      if (!KDL::Equal(seg.pose(q), joint_frame(s, q) * s.tip, 1e-12))
+        throw std::runtime_error("joint '" + joint.getName() + "' has a scale or offset this bridge does not support");
+    }
+    segs_.push_back(s);
+  }
+}
+
+KDL::Frame KdlChain::joint_frame(const Seg& s, double q) const {
+  switch (s.kind) {
+    case Kind::Revolute: {
+      const KDL::Rotation r = KDL::Rotation::Rot2(s.axis, q);
+      return KDL::Frame(r, s.origin - r * s.origin);
+    }
+    case Kind::Prismatic:
+      return KDL::Frame(s.axis * q);
+    default:
+      return KDL::Frame::Identity();
+  }
+}
 
 size_t KdlChain::n_joints() const { return chain_.getNrOfJoints(); }
 
@@ -49,12 +84,8 @@ static void write_pose(const KDL::Frame& f, rust::Slice<double> pose) {
 void KdlChain::fk(rust::Slice<const double> q, rust::Slice<double> pose) const {
   KDL::Frame t = KDL::Frame::Identity();
   unsigned j = 0;
-  for (const auto& seg : chain_.segments) {
-    if (seg.getJoint().getType() != KDL::Joint::None) {
-      t = t * seg.pose(q[j++]);
-    } else {
-      t = t * seg.getFrameToTip();
-    }
+  for (const auto& s : segs_) {
+    t = s.kind == Kind::Fixed ? t * s.tip : t * joint_frame(s, q[j++]) * s.tip;
   }
   write_pose(t, pose);
 }
@@ -66,16 +97,15 @@ void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose
   KDL::Frame t = KDL::Frame::Identity();
   unsigned j = 0;
   double* J = jac.data();
-  for (const auto& seg : chain_.segments) {
-    const KDL::Joint& joint = seg.getJoint();
-    if (joint.getType() == KDL::Joint::None) {
-      t = t * seg.getFrameToTip();
+  for (const auto& s : segs_) {
+    if (s.kind == Kind::Fixed) {
+      t = t * s.tip;
       continue;
     }
-    const KDL::Vector axis = t.M * joint.JointAxis();
-    const KDL::Vector origin = t * joint.JointOrigin();
+    const KDL::Vector axis = t.M * s.axis;
+    const KDL::Vector origin = t * s.origin;
     double* c = J + 6 * j;
-    const bool prismatic = joint.getType() >= KDL::Joint::TransAxis;
+    const bool prismatic = s.kind == Kind::Prismatic;
     c[0] = origin.x();
     c[1] = origin.y();
     c[2] = origin.z();
@@ -83,7 +113,7 @@ void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose
     c[4] = axis.y();
     c[5] = axis.z();
     if (prismatic) c[0] = std::numeric_limits<double>::quiet_NaN();  // marker, fixed below
-    t = t * seg.pose(q[j]);
+    t = t * joint_frame(s, q[j]) * s.tip;
     ++j;
   }
   write_pose(t, pose);
@@ -105,18 +135,48 @@ void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose
   }
 }
 
+namespace {
+// Collects what urdfdom and kdl_parser log while parsing, so that it reaches the Rust error
+// instead of the console.
+class CaptureHandler : public console_bridge::OutputHandler {
+ public:
+  void log(const std::string& text, console_bridge::LogLevel level, const char*, int) override {
+    if (level < console_bridge::CONSOLE_BRIDGE_LOG_WARN) return;
+    if (!text_.empty()) text_ += "; ";
+    text_ += text;
+  }
+  const std::string& text() const { return text_; }
+
+ private:
+  std::string text_;
+};
+std::mutex console_mutex;  // the console_bridge handler is process-global
+}  // namespace
+
 std::unique_ptr<KdlChain> kdl_chain_from_urdf(rust::Str urdf_xml, rust::Str base, rust::Str tip) {
   const std::string xml(urdf_xml);
   urdf::ModelInterfaceSharedPtr model;
-  try {
-    model = urdf::parseURDF(xml);
-  } catch (const std::exception& e) {
-    throw std::runtime_error(std::string("malformed URDF: ") + e.what());
-  }
-  if (!model) throw std::runtime_error("malformed URDF: urdfdom could not parse it");
   KDL::Tree tree;
-  if (!kdl_parser::treeFromUrdfModel(*model, tree))
-    throw std::runtime_error("URDF could not be turned into a KDL tree");
+  bool tree_ok = false;
+  std::string log;
+  {
+    std::lock_guard<std::mutex> lock(console_mutex);
+    CaptureHandler capture;
+    console_bridge::useOutputHandler(&capture);
+    try {
+      model = urdf::parseURDF(xml);
+      if (model) tree_ok = kdl_parser::treeFromUrdfModel(*model, tree);
+    } catch (const std::exception& e) {
+      log = capture.text();
+      console_bridge::restorePreviousOutputHandler();
+      throw std::runtime_error(std::string("malformed URDF: ") + e.what() + (log.empty() ? "" : " (" + log + ")"));
+    }
+    log = capture.text();
+    console_bridge::restorePreviousOutputHandler();
+  }
+  const std::string detail = log.empty() ? "" : " (" + log + ")";
+  if (!model) throw std::runtime_error("malformed URDF: urdfdom could not parse it" + detail);
+  if (!tree_ok) throw std::runtime_error("URDF could not be turned into a KDL tree" + detail);
   const std::string b(base), t(tip);
   if (tree.getSegments().count(b) == 0 && tree.getRootSegment()->first != b)
     throw std::runtime_error("unknown base link '" + b + "'");
