@@ -76,8 +76,8 @@ impl Default for MeasurementParams {
             uniform_quaternion: 0.005,
             gaussian_position_m: 0.003,
             gaussian_rotation_rad: 0.006,
-            bias_position_m: 0.0,
-            bias_rotation_rad: 0.0,
+            bias_position_m: 0.002,
+            bias_rotation_rad: 0.026,
         }
     }
 }
@@ -276,6 +276,8 @@ mod tests {
             model: NoiseModel::None,
             rate_hz: 50.0,
             latency_s: 0.03,
+            bias_position_m: 0.0,
+            bias_rotation_rad: 0.0,
             ..Default::default()
         };
         let mut s = TrocarSensor::new(&p, &mut rng).unwrap();
