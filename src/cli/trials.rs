@@ -149,7 +149,8 @@ pub fn run(a: &TrialsArgs) -> CliResult {
             "seeds": [a.seed, a.seed.wrapping_add(a.trials as u64 - 1)],
             "wall_s": wall,
             "simulated_s": simulated,
-            "m_ratio_no_ff_over_ff": ratio,
+            "m_ratio_no_ff_over_ff": ratio.map(|r| r.0),
+            "m_true_ratio_no_ff_over_ff": ratio.map(|r| r.1),
             "arms": reports,
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
@@ -159,11 +160,12 @@ pub fn run(a: &TrialsArgs) -> CliResult {
     Ok(())
 }
 
-/// Mean M without FF over mean M with FF, when both arms ran.
-fn ratio(r: &[ArmReport]) -> Option<f64> {
-    let m = |l: &str| r.iter().find(|x| x.summary.label == l).map(|x| x.summary.m_est.mean);
-    match (m("no_ff"), m("ff")) {
-        (Some(a), Some(b)) if b > 0.0 && a.is_finite() => Some(a / b),
+/// Mean M without FF over mean M with FF, when both arms ran: (estimated, true force).
+fn ratio(r: &[ArmReport]) -> Option<(f64, f64)> {
+    let arm = |l: &str| r.iter().find(|x| x.summary.label == l).map(|x| &x.summary);
+    let div = |a: f64, b: f64| if b > 0.0 && a.is_finite() { a / b } else { f64::NAN };
+    match (arm("no_ff"), arm("ff")) {
+        (Some(a), Some(b)) => Some((div(a.m_est.mean, b.m_est.mean), div(a.m_true.mean, b.m_true.mean))),
         _ => None,
     }
 }
@@ -172,7 +174,7 @@ fn ms(s: &Stats) -> String {
     format!("{:.2} ± {:.2}", s.mean, s.std)
 }
 
-fn print_text(r: &[ArmReport], cfg: &SimConfig, ratio: Option<f64>, wall: f64, simulated: f64, out: &Path) {
+fn print_text(r: &[ArmReport], cfg: &SimConfig, ratio: Option<(f64, f64)>, wall: f64, simulated: f64, out: &Path) {
     println!(
         "noise {}; {} trials per arm; timeout {} s; success = tip within {} mm of the goal {} mm deep, inside the port",
         cfg.sim.measurement.model,
@@ -202,8 +204,8 @@ fn print_text(r: &[ArmReport], cfg: &SimConfig, ratio: Option<f64>, wall: f64, s
             s.outcomes
         );
     }
-    if let Some(x) = ratio {
-        println!("M(no FF) / M(FF) = {x:.2} (paper: 21.4 / 3.4 = 6.3)");
+    if let Some((e, t)) = ratio {
+        println!("M(no FF) / M(FF) = {e:.2} (true contact force: {t:.2}; paper: 21.4 / 3.4 = 6.3)");
     }
     println!("outcomes: [docked, timeout, force abort, policy abort, sim error]");
     println!(
