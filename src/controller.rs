@@ -23,7 +23,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::admittance::{Admittance, AdmittanceParams};
-use crate::docking::{CostWeights, SqpSettings, SqpSolver, Targets};
+use crate::docking::{CostWeights, LimitAvoidance, SqpSettings, SqpSolver, Targets};
 use crate::geometry::{pose_is_finite, InsertionAxis};
 use crate::kinematics::{JointLimits, JointVector, Kinematics};
 use crate::metrics::ForceMetric;
@@ -76,6 +76,13 @@ pub struct ControllerParams {
     pub require_torques: bool,
     /// After a force stop, back out along the axis by this distance, m (0 = stay).
     pub retreat_distance: f64,
+    /// Weight of the joint-limit avoidance cost (0 = off); see [`LimitAvoidance`].
+    pub limit_avoidance_weight: f64,
+    /// Fraction of each joint's half range (inside the guard's margin) where it starts.
+    pub limit_avoidance_zone: f64,
+    /// Hold (latched) when the tip has sat at the stand-off point this long without
+    /// reaching the alignment tolerance (e.g. a joint limit in the way), s.
+    pub approach_stall_timeout: f64,
     /// Force estimate and admittance law.
     pub admittance: AdmittanceParams,
     /// Safety guard.
@@ -114,6 +121,9 @@ impl Default for ControllerParams {
             trocar_filter_time_constant: 0.0,
             require_torques: true,
             retreat_distance: 0.0,
+            limit_avoidance_weight: 1.0,
+            limit_avoidance_zone: 0.9,
+            approach_stall_timeout: 3.0,
             admittance: AdmittanceParams::default(),
             guard: GuardParams::default(),
             sqp: SqpSettings::default(),
@@ -161,6 +171,14 @@ impl ControllerParams {
         pos("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
         nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
         nonneg("retreat_distance", self.retreat_distance)?;
+        nonneg("limit_avoidance_weight", self.limit_avoidance_weight)?;
+        pos("approach_stall_timeout", self.approach_stall_timeout)?;
+        if !(0.0..1.0).contains(&self.limit_avoidance_zone) {
+            return Err(format!(
+                "limit_avoidance_zone must be in [0, 1), got {}",
+                self.limit_avoidance_zone
+            ));
+        }
         self.admittance.validate()?;
         self.guard.validate()?;
         self.sqp.validate()
@@ -233,6 +251,8 @@ pub struct Controller {
     trocar_filtered: Option<(Isometry3<f64>, f64)>,
     target: Option<Point3<f64>>,
     insert_s: f64,
+    /// Time spent at the stand-off point without the alignment, s.
+    stalled_for: f64,
     /// Retreat after a force stop: (current target depth, final depth); NaN = not begun.
     retreat_s: Option<(f64, f64)>,
 }
@@ -259,6 +279,7 @@ impl Controller {
             trocar_filtered: None,
             target: None,
             insert_s: 0.0,
+            stalled_for: 0.0,
             retreat_s: None,
         })
     }
@@ -497,11 +518,18 @@ impl Controller {
         let step_dt = if dt > 0.0 { dt } else { 0.0 };
         let (lo, hi) = self.guard.step_box(&prev, step_dt);
         let start = prev.zip_zip_map(&lo, &hi, |q, l, h| q.clamp(l, h));
+        let limits = LimitAvoidance {
+            center: (self.guard.upper() + self.guard.lower()) * 0.5,
+            half_range: ((self.guard.upper() - self.guard.lower()) * 0.5).map(|h| h.max(1e-3)),
+            zone: p.limit_avoidance_zone,
+            weight: p.limit_avoidance_weight,
+        };
         let targets = Targets {
             axis,
             point,
             reference,
             q_prev: prev,
+            limits: Some(limits),
         };
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, &weights);
         let mut out_cmd = prev;
@@ -518,11 +546,22 @@ impl Controller {
         // Transitions, judged on the measured tip.
         let angle = axis.alignment_error(&(tip.rotation * Vector3::z()));
         match self.supervisor.phase() {
-            Phase::Approach
-                if (tip_p - standoff).norm() < p.approach_tolerance
-                    && angle < p.approach_angle_tolerance_deg.to_radians() =>
-            {
-                self.supervisor.approach_reached();
+            Phase::Approach if (tip_p - standoff).norm() < p.approach_tolerance => {
+                if angle < p.approach_angle_tolerance_deg.to_radians() {
+                    self.stalled_for = 0.0;
+                    self.supervisor.approach_reached();
+                } else {
+                    self.stalled_for += dt;
+                    if self.stalled_for > p.approach_stall_timeout {
+                        self.stalled_for = 0.0;
+                        let why = format!(
+                            "cannot align at the stand-off point: {:.1} deg off after {:.1} s (a joint limit in the way? reposition the arm or the trocar)",
+                            angle.to_degrees(),
+                            p.approach_stall_timeout
+                        );
+                        self.supervisor.hold(why, true);
+                    }
+                }
             }
             Phase::Insert
                 if (tip_p - goal).norm() < p.goal_tolerance && angle < p.goal_angle_tolerance_deg.to_radians() =>

@@ -60,6 +60,43 @@ impl CostWeights {
     }
 }
 
+/// A cost that keeps joints away from their limits, zero in the middle of the range: for
+/// u_i = (q_i - center_i) / half_range_i, residual max(0, |u_i| - zone) sign(u_i). It does
+/// not bias the task where the joints are comfortable, and steers the arm's redundancy off
+/// a limit before the box constraint stalls the Gauss–Newton step against it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LimitAvoidance {
+    /// Middle of each joint's range, rad.
+    pub center: JointVector,
+    /// Half of each joint's range, rad (> 0).
+    pub half_range: JointVector,
+    /// Fraction of the half range where the cost starts (0..1).
+    pub zone: f64,
+    /// Weight.
+    pub weight: f64,
+}
+
+impl LimitAvoidance {
+    /// Residual and its (diagonal) derivative per joint.
+    fn residual(&self, q: &JointVector) -> (JointVector, JointVector) {
+        let mut r = JointVector::zeros();
+        let mut d = JointVector::zeros();
+        for i in 0..q.len() {
+            let u = (q[i] - self.center[i]) / self.half_range[i];
+            if u.abs() > self.zone {
+                r[i] = (u.abs() - self.zone) * u.signum();
+                d[i] = 1.0 / self.half_range[i];
+            }
+        }
+        (r, d)
+    }
+
+    /// The cost's value at `q` (unweighted).
+    pub fn value(&self, q: &JointVector) -> f64 {
+        self.residual(q).0.norm_squared()
+    }
+}
+
 /// What the cost terms pull towards at one control step.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Targets {
@@ -71,6 +108,8 @@ pub struct Targets {
     pub reference: Point3<f64>,
     /// The previous command, for c4.
     pub q_prev: JointVector,
+    /// Joint-limit avoidance, if any.
+    pub limits: Option<LimitAvoidance>,
 }
 
 /// Unweighted values of c1..c5.
@@ -118,6 +157,15 @@ pub fn quadratic_model(
     add(w.goal, e - t.point, jv);
     add(w.align, a - g_a, -a.cross_matrix() * jw);
     add(w.reference, e - t.reference, jv);
+    if let Some(l) = &t.limits {
+        if l.weight > 0.0 {
+            let (r, d) = l.residual(q_lin);
+            for i in 0..r.len() {
+                h[(i, i)] += 2.0 * l.weight * d[i] * d[i];
+                g[i] += 2.0 * l.weight * d[i] * r[i];
+            }
+        }
+    }
     (h, g)
 }
 
@@ -142,6 +190,12 @@ mod tests {
             point: Point3::new(0.6, 0.0, 0.3),
             reference: Point3::new(0.58, 0.02, 0.35),
             q_prev: q.add_scalar(0.01),
+            limits: Some(LimitAvoidance {
+                center: JointVector::zeros(),
+                half_range: JointVector::from_element(1.0),
+                zone: 0.5,
+                weight: 2.0,
+            }),
         };
         let w = CostWeights {
             axis: 3.0,

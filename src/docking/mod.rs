@@ -5,5 +5,5 @@
 pub mod costs;
 pub mod sqp;
 
-pub use costs::{CostTerms, CostWeights, Targets};
+pub use costs::{CostTerms, CostWeights, LimitAvoidance, Targets};
 pub use sqp::{SqpSettings, SqpSolution, SqpSolver, SqpStatus};

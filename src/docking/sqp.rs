@@ -320,6 +320,7 @@ mod tests {
             point: axis.point_at(-0.02),
             reference: Point3::origin(),
             q_prev: q,
+            limits: None,
         };
         (kin, q, t)
     }
