@@ -211,6 +211,7 @@ mod tests {
                 .zip(w.as_array())
                 .map(|(c, w)| c * w)
                 .sum::<f64>()
+                + t.limits.map_or(0.0, |l| l.weight * l.value(q))
         };
         let (_, g) = quadratic_model(&pose, &jac, &q, &t, &w, 0.0);
         // The model's gradient is the true gradient of the weighted cost.
