@@ -6,7 +6,7 @@
 //! the part of f_ext across the measured axis (yield sideways, keep progressing along the
 //! axis). Each tick corrects `gain` of the remaining error, up to `speed_m_s`.
 
-use nalgebra::{Matrix3, Matrix6, Point3, Vector3, Vector6};
+use nalgebra::{Matrix6, Point3, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::trial::{Action, Observation, Policy};
@@ -71,13 +71,6 @@ impl Baseline {
     }
 }
 
-/// f = (J_lin J_lin^T + l^2 I)^-1 J_lin tau: the damped pseudo-inverse estimate of the tip
-/// force from external joint torques.
-pub fn force_estimate(jlin: &nalgebra::SMatrix<f64, 3, 7>, tau: &JointVector, damping: f64) -> Vector3<f64> {
-    let a = jlin * jlin.transpose() + Matrix3::identity() * damping * damping;
-    a.try_inverse().map_or(Vector3::zeros(), |inv| inv * (jlin * tau))
-}
-
 impl Policy for Baseline {
     fn start(&mut self, _kin: &dyn Kinematics) {
         self.inserting = false;
@@ -93,8 +86,7 @@ impl Policy for Baseline {
         let Ok((tip, jac)) = kin.fk_jacobian(&obs.q) else {
             return hold("kinematics failed");
         };
-        let jlin = jac.fixed_rows::<3>(0).into_owned();
-        let f_ext = force_estimate(&jlin, &obs.tau_ext, 0.05);
+        let f_ext = crate::admittance::tip_force(&jac, &obs.tau_ext, 0.0, 0.05).unwrap_or_else(Vector3::zeros);
         let Some(m) = obs.trocar else {
             return Action {
                 command: None,

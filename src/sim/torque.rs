@@ -45,9 +45,7 @@ impl TorqueSensorParams {
 }
 
 /// Symmetric dead-band: zero inside `[-band, band]`, shifted toward zero outside.
-pub fn deadband(x: f64, band: f64) -> f64 {
-    x.signum() * (x.abs() - band).max(0.0)
-}
+pub use crate::admittance::deadband;
 
 /// A torque sensor with its per-trial bias drawn.
 #[derive(Debug, Clone)]

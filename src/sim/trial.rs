@@ -14,8 +14,7 @@ use super::noise::TrocarMeasurement;
 use super::{check_range, SimError, SimWorld};
 use crate::kinematics::{JointVector, Kinematics};
 
-/// Scale of M in the paper's public code (force pre-scaled by 0.01, summed at 240 Hz).
-pub const PAPER_CODE_SCALE: f64 = 2.4;
+pub use crate::metrics::PAPER_CODE_SCALE;
 
 /// What a policy sees at a control tick.
 #[derive(Debug, Clone, Copy, PartialEq)]
