@@ -17,7 +17,10 @@
 //!
 //! **Linearisation point.** The SQP starts from the previous command, not the measured
 //! position: the command is what the position-controlled arm tracks, the velocity box is
-//! relative to it, and a lagging measurement then never causes a jump.
+//! relative to it, and a lagging measurement then never causes a jump. Because commands
+//! advance from the last command, the guard also holds while a measured joint is more than
+//! `guard.max_tracking_error` from it (the arm stopped following); the hold clears once the
+//! arm has caught up.
 
 use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
@@ -401,6 +404,16 @@ impl Controller {
             }
         };
         let prev = self.last_command.unwrap_or(q_meas);
+        // The arm must follow the commands while they move (also during a retreat); an
+        // unlatched hold keeps checking, so it resumes only once the arm has caught up.
+        let ph = self.supervisor.phase();
+        let commanding =
+            ph.is_moving() || (ph == Phase::Hold && (!self.supervisor.is_latched() || self.retreat_s.is_some()));
+        if commanding {
+            if let Err(r) = self.guard.check_tracking(&q_meas, &prev) {
+                return self.hold_or_idle(r, Some(prev), tip, nan_point());
+            }
+        }
 
         // Force: estimate, monitor, and the metric while moving.
         match input.tau_ext {

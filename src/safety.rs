@@ -62,6 +62,14 @@ pub enum HoldReason {
     },
     /// The kinematics failed.
     Kinematics(String),
+    /// The measured joints are too far from the last command (the arm does not follow:
+    /// stopped by its own controller, blocked, or commands not reaching it).
+    TrackingError {
+        /// Joint index (0-based).
+        joint: usize,
+        /// |q_measured - q_commanded|, rad.
+        error: f64,
+    },
     /// The operator asked to stop.
     Operator(String),
 }
@@ -86,6 +94,11 @@ impl fmt::Display for HoldReason {
                 write!(f, "command would exceed the velocity limit of joint {}", joint + 1)
             }
             HoldReason::Kinematics(s) => write!(f, "kinematics: {s}"),
+            HoldReason::TrackingError { joint, error } => write!(
+                f,
+                "joint {} is {error:.3} rad from its command: the arm does not follow",
+                joint + 1
+            ),
             HoldReason::Operator(s) => write!(f, "operator: {s}"),
         }
     }
@@ -107,6 +120,10 @@ pub struct GuardParams {
     pub trocar_timeout: f64,
     /// External torques older than this hold (only with force feedback on), s.
     pub torque_timeout: f64,
+    /// Hold while a measured joint is further than this from the last command, rad. The
+    /// commands advance from the last command (not the measurement), so without this check
+    /// an arm that stopped following would, on resuming, chase a command far ahead of it.
+    pub max_tracking_error: f64,
 }
 
 impl Default for GuardParams {
@@ -118,6 +135,7 @@ impl Default for GuardParams {
             joint_timeout: 0.1,
             trocar_timeout: 0.5,
             torque_timeout: 0.1,
+            max_tracking_error: 0.15,
         }
     }
 }
@@ -137,7 +155,8 @@ impl GuardParams {
         check("force_stop", self.force_stop, 0.0, 200.0)?;
         check("joint_timeout", self.joint_timeout, 0.0, 10.0)?;
         check("trocar_timeout", self.trocar_timeout, 0.0, 60.0)?;
-        check("torque_timeout", self.torque_timeout, 0.0, 10.0)
+        check("torque_timeout", self.torque_timeout, 0.0, 10.0)?;
+        check("max_tracking_error", self.max_tracking_error, 0.0, 1.0)
     }
 }
 
@@ -218,6 +237,18 @@ impl CommandGuard {
         Ok(())
     }
 
+    /// Hold if the measured joints are further than `max_tracking_error` from the last
+    /// command (NaN counts as too far).
+    pub fn check_tracking(&self, measured: &JointVector, commanded: &JointVector) -> Result<(), HoldReason> {
+        for i in 0..measured.len() {
+            let error = (measured[i] - commanded[i]).abs();
+            if error.is_nan() || error > self.params.max_tracking_error {
+                return Err(HoldReason::TrackingError { joint: i, error });
+            }
+        }
+        Ok(())
+    }
+
     /// Hold if the force norm is over the stop threshold.
     pub fn check_force(&self, force: f64) -> Result<(), HoldReason> {
         if force.is_finite() && force <= self.params.force_stop {
@@ -263,6 +294,22 @@ mod tests {
             prop_assert!(g.check_command(&lo, &prev, dt).is_ok());
             prop_assert!(g.check_command(&hi, &prev, dt).is_ok());
         }
+    }
+
+    #[test]
+    fn tracking_error_over_the_tolerance_holds() {
+        let g = guard();
+        let cmd = JointVector::zeros();
+        let mut q = cmd;
+        q[3] = g.params().max_tracking_error * 0.9;
+        assert!(g.check_tracking(&q, &cmd).is_ok());
+        q[3] = -g.params().max_tracking_error * 1.1;
+        assert!(matches!(
+            g.check_tracking(&q, &cmd),
+            Err(HoldReason::TrackingError { joint: 3, .. })
+        ));
+        q[3] = f64::NAN;
+        assert!(g.check_tracking(&q, &cmd).is_err());
     }
 
     #[test]

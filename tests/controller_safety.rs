@@ -291,3 +291,44 @@ fn params_from_yaml() {
         "config/controller.yaml documents the defaults"
     );
 }
+
+#[test]
+fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
+    let kin = kin();
+    let troc = trocar(&kin);
+    let p = ControllerParams::default();
+    let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    // The arm stays at the start: commands advance until the tracking error trips.
+    let frozen = q_start();
+    let mut last = frozen;
+    let mut held_at = None;
+    for k in 1..=200 {
+        let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
+        last = out.command.unwrap();
+        if out.phase == Phase::Hold {
+            assert!(
+                out.reason.as_deref().unwrap_or("").contains("does not follow"),
+                "{:?}",
+                out.reason
+            );
+            held_at = Some(k);
+            break;
+        }
+    }
+    assert!(held_at.is_some(), "no hold although the arm never moved");
+    // The command never runs further than the tolerance (plus one step) ahead of the arm.
+    let step = kin.limits().velocity * p.guard.velocity_scale * p.dt;
+    for i in 0..7 {
+        assert!((last[i] - frozen[i]).abs() <= p.guard.max_tracking_error + step[i] + 1e-9);
+    }
+    // Still frozen: the hold stays, and the command stays put.
+    for k in 201..=210 {
+        let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
+        assert_eq!(out.phase, Phase::Hold);
+        assert_eq!(out.command, Some(last));
+    }
+    // The arm catches up: docking resumes.
+    let out = c.step(&kin, &input(2.11, last, JointVector::zeros(), troc));
+    assert_eq!(out.phase, Phase::Approach, "{:?}", out.reason);
+}
