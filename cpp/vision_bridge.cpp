@@ -1,13 +1,397 @@
 #include "trocar_docking/cpp/vision_bridge.h"
 
+#include <algorithm>
+#include <cmath>
+#include <random>
+#include <stdexcept>
 #include <string>
+#include <vector>
+
+#include <opencv2/aruco.hpp>
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
 #include <opencv2/core/version.hpp>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
+#include <visp3/core/vpCameraParameters.h>
 #include <visp3/core/vpConfig.h>
+#include <visp3/core/vpHomogeneousMatrix.h>
+#include <visp3/core/vpImage.h>
+#include <visp3/core/vpPoint.h>
+#include <visp3/detection/vpDetectorAprilTag.h>
+#include <visp3/robot/vpImageSimulator.h>
+#include <visp3/vision/vpHandEyeCalibration.h>
+#include <visp3/vision/vpPose.h>
 
 namespace trocar_docking {
 
 rust::String vision_backend_versions() {
   return rust::String("ViSP " + std::to_string(VISP_VERSION_MAJOR) + "." + std::to_string(VISP_VERSION_MINOR) + "." + std::to_string(VISP_VERSION_PATCH) + ", OpenCV " + CV_VERSION);
+}
+
+namespace {
+
+const std::string kAprilTag = "tag36h11";
+
+// OpenCV dictionary by its enum name; throws on an unknown name.
+cv::aruco::PREDEFINED_DICTIONARY_NAME dictionary_by_name(const std::string &name) {
+  using namespace cv::aruco;
+  static const std::pair<const char *, PREDEFINED_DICTIONARY_NAME> table[] = {
+      {"DICT_4X4_50", DICT_4X4_50},       {"DICT_4X4_100", DICT_4X4_100},   {"DICT_4X4_250", DICT_4X4_250},
+      {"DICT_4X4_1000", DICT_4X4_1000},   {"DICT_5X5_50", DICT_5X5_50},     {"DICT_5X5_100", DICT_5X5_100},
+      {"DICT_5X5_250", DICT_5X5_250},     {"DICT_5X5_1000", DICT_5X5_1000}, {"DICT_6X6_50", DICT_6X6_50},
+      {"DICT_6X6_100", DICT_6X6_100},     {"DICT_6X6_250", DICT_6X6_250},   {"DICT_6X6_1000", DICT_6X6_1000},
+      {"DICT_7X7_50", DICT_7X7_50},       {"DICT_7X7_100", DICT_7X7_100},   {"DICT_7X7_250", DICT_7X7_250},
+      {"DICT_7X7_1000", DICT_7X7_1000},   {"DICT_ARUCO_ORIGINAL", DICT_ARUCO_ORIGINAL},
+      {"DICT_APRILTAG_16h5", DICT_APRILTAG_16h5}, {"DICT_APRILTAG_25h9", DICT_APRILTAG_25h9},
+      {"DICT_APRILTAG_36h10", DICT_APRILTAG_36h10}, {"DICT_APRILTAG_36h11", DICT_APRILTAG_36h11},
+  };
+  for (const auto &e : table) {
+    if (name == e.first) return e.second;
+  }
+  throw std::invalid_argument("unknown marker family `" + name + "`");
+}
+
+void check_intrinsics(rust::Slice<const double> k, rust::Slice<const double> dist, int width, int height) {
+  if (k.size() != 4) throw std::invalid_argument("intrinsics must be fx, fy, cx, cy");
+  for (double v : k)
+    if (!std::isfinite(v)) throw std::invalid_argument("intrinsics must be finite");
+  if (!(k[0] > 1.0 && k[1] > 1.0)) throw std::invalid_argument("focal lengths must be > 1 px");
+  const size_t n = dist.size();
+  if (!(n == 0 || n == 4 || n == 5 || n == 8 || n == 12 || n == 14))
+    throw std::invalid_argument("distortion must have 0, 4, 5, 8, 12 or 14 coefficients");
+  for (double v : dist)
+    if (!std::isfinite(v)) throw std::invalid_argument("distortion must be finite");
+  if (width <= 0 || height <= 0 || width > 20000 || height > 20000)
+    throw std::invalid_argument("image size out of range");
+}
+
+cv::Matx33d camera_matrix(rust::Slice<const double> k) {
+  return cv::Matx33d(k[0], 0, k[2], 0, k[1], k[3], 0, 0, 1);
+}
+
+cv::Mat dist_mat(rust::Slice<const double> d) {
+  cv::Mat m(1, static_cast<int>(d.size()), CV_64F);
+  for (size_t i = 0; i < d.size(); ++i) m.at<double>(0, static_cast<int>(i)) = d[i];
+  return m;
+}
+
+// A grey cv::Mat view (or conversion) of the caller's pixels.
+cv::Mat grey_view(rust::Slice<const uint8_t> pixels, int width, int height, int channels) {
+  if (width <= 0 || height <= 0) throw std::invalid_argument("empty image");
+  if (channels != 1 && channels != 3) throw std::invalid_argument("channels must be 1 (grey) or 3 (RGB)");
+  if (pixels.size() != static_cast<size_t>(width) * height * channels)
+    throw std::invalid_argument("pixel buffer size does not match width x height x channels");
+  cv::Mat m(height, width, channels == 1 ? CV_8UC1 : CV_8UC3, const_cast<uint8_t *>(pixels.data()));
+  if (channels == 1) return m;
+  cv::Mat g;
+  cv::cvtColor(m, g, cv::COLOR_RGB2GRAY);
+  return g;
+}
+
+// Marker-frame corners: x right, y up, z out of the marker; TL, TR, BR, BL as seen.
+std::vector<cv::Point3d> object_corners(double s) {
+  const double h = 0.5 * s;
+  return {{-h, h, 0}, {h, h, 0}, {h, -h, 0}, {-h, -h, 0}};
+}
+
+}  // namespace
+
+struct MarkerDetectorCpp::Impl {
+  bool apriltag = false;
+  cv::Ptr<cv::aruco::Dictionary> dict;
+  cv::Ptr<cv::aruco::DetectorParameters> params;
+  std::unique_ptr<vpDetectorAprilTag> april;
+  cv::Matx33d K;
+  cv::Mat dist;
+  int width = 0, height = 0;
+  std::vector<std::vector<cv::Point2f>> corners, rejected;
+  std::vector<int> ids;
+  vpImage<unsigned char> vimg;
+};
+
+MarkerDetectorCpp::MarkerDetectorCpp(std::unique_ptr<Impl> i) : impl(std::move(i)) {}
+MarkerDetectorCpp::~MarkerDetectorCpp() = default;
+
+std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::Slice<const double> intrinsics,
+                                                       rust::Slice<const double> dist, int width, int height) {
+  check_intrinsics(intrinsics, dist, width, height);
+  auto impl = std::make_unique<MarkerDetectorCpp::Impl>();
+  const std::string fam(family);
+  impl->K = camera_matrix(intrinsics);
+  impl->dist = dist_mat(dist);
+  impl->width = width;
+  impl->height = height;
+  if (fam == kAprilTag) {
+    impl->apriltag = true;
+    impl->april = std::make_unique<vpDetectorAprilTag>(vpDetectorAprilTag::TAG_36h11);
+    // Decimation keeps noisy frames fast; edges are refined on the full image.
+    impl->april->setAprilTagQuadDecimate(2.0f);
+    impl->april->setAprilTagQuadSigma(0.8f);
+    impl->april->setAprilTagRefineEdges(true);
+    impl->april->setAprilTagNbThreads(1);
+  } else {
+    impl->dict = cv::aruco::getPredefinedDictionary(dictionary_by_name(fam));
+    impl->params = cv::aruco::DetectorParameters::create();
+    impl->params->cornerRefinementMethod = cv::aruco::CORNER_REFINE_SUBPIX;
+    impl->params->cornerRefinementWinSize = 4;
+    impl->params->cornerRefinementMaxIterations = 50;
+    impl->params->cornerRefinementMinAccuracy = 0.01;
+  }
+  return std::make_unique<MarkerDetectorCpp>(std::move(impl));
+}
+
+namespace {
+
+// Pose of one marker from its 4 corner pixels (TL TR BR BL): undistort to normalised
+// coordinates, IPPE-square initialisation (OpenCV), then ViSP virtual visual servoing.
+// Appends the 22-number record to `out`.
+void pose_from_corners(const MarkerDetectorCpp::Impl &d, int id, double size, const std::vector<cv::Point2d> &px,
+                       rust::Vec<double> &out) {
+  std::vector<cv::Point2d> norm;
+  cv::undistortPoints(px, norm, d.K, d.dist);
+  const auto obj = object_corners(size);
+  cv::Mat rvec, tvec;
+  if (!cv::solvePnP(obj, norm, cv::Matx33d::eye(), cv::noArray(), rvec, tvec, false, cv::SOLVEPNP_IPPE_SQUARE))
+    return;
+  cv::Matx33d R;
+  cv::Rodrigues(rvec, R);
+  vpHomogeneousMatrix cMo;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) cMo[r][c] = R(r, c);
+    cMo[r][3] = tvec.at<double>(r);
+  }
+  vpPose pose;
+  for (size_t i = 0; i < 4; ++i) {
+    vpPoint P(obj[i].x, obj[i].y, obj[i].z);
+    P.set_x(norm[i].x);
+    P.set_y(norm[i].y);
+    pose.addPoint(P);
+  }
+  pose.setVvsEpsilon(1e-10);
+  pose.setVvsIterMax(50);
+  pose.computePose(vpPose::VIRTUAL_VS, cMo);
+  // Reprojection error in pixels, distortion included.
+  cv::Matx33d Rf;
+  cv::Vec3d tf;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) Rf(r, c) = cMo[r][c];
+    tf[r] = cMo[r][3];
+  }
+  cv::Vec3d rv;
+  cv::Rodrigues(Rf, rv);
+  std::vector<cv::Point2d> proj;
+  cv::projectPoints(obj, rv, tf, d.K, d.dist, proj);
+  double sq = 0;
+  for (size_t i = 0; i < 4; ++i) {
+    const double du = proj[i].x - px[i].x, dv = proj[i].y - px[i].y;
+    sq += du * du + dv * dv;
+  }
+  out.push_back(id);
+  for (int r = 0; r < 3; ++r)
+    for (int c = 0; c < 3; ++c) out.push_back(cMo[r][c]);
+  for (int r = 0; r < 3; ++r) out.push_back(cMo[r][3]);
+  for (const auto &p : px) {
+    out.push_back(p.x);
+    out.push_back(p.y);
+  }
+  out.push_back(std::sqrt(sq / 4.0));
+}
+
+}  // namespace
+
+rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8_t> pixels, int width, int height,
+                                 int channels, int id, double size) {
+  auto &d = *det.impl;
+  if (width != d.width || height != d.height)
+    throw std::invalid_argument("image is " + std::to_string(width) + "x" + std::to_string(height) +
+                                " but the camera model is " + std::to_string(d.width) + "x" + std::to_string(d.height));
+  if (!(std::isfinite(size) && size > 0.0)) throw std::invalid_argument("marker size must be > 0");
+  cv::Mat grey = grey_view(pixels, width, height, channels);
+  rust::Vec<double> out;
+  if (d.apriltag) {
+    d.vimg.resize(static_cast<unsigned>(height), static_cast<unsigned>(width));
+    for (int r = 0; r < height; ++r) std::copy_n(grey.ptr<uint8_t>(r), width, d.vimg[r]);
+    d.april->detect(d.vimg);
+    const auto tag_ids = d.april->getTagsId();
+    for (size_t i = 0; i < d.april->getNbObjects() && i < tag_ids.size(); ++i) {
+      if (id >= 0 && tag_ids[i] != id) continue;
+      const auto poly = d.april->getPolygon(i);
+      if (poly.size() != 4) continue;
+      // AprilTag order is BL, BR, TR, TL of the upright tag; ours is TL, TR, BR, BL.
+      std::vector<cv::Point2d> px;
+      for (int k = 3; k >= 0; --k) px.emplace_back(poly[k].get_u(), poly[k].get_v());
+      pose_from_corners(d, tag_ids[i], size, px, out);
+    }
+  } else {
+    d.corners.clear();
+    d.ids.clear();
+    cv::aruco::detectMarkers(grey, d.dict, d.corners, d.ids, d.params, d.rejected);
+    for (size_t i = 0; i < d.ids.size(); ++i) {
+      if (id >= 0 && d.ids[i] != id) continue;
+      std::vector<cv::Point2d> px;
+      for (const auto &c : d.corners[i]) px.emplace_back(c.x, c.y);
+      pose_from_corners(d, d.ids[i], size, px, out);
+    }
+  }
+  return out;
+}
+
+namespace {
+
+// Texture of the plane: the marker with a white quiet zone, on a random grey pattern.
+cv::Mat make_texture(const std::string &family, int id, double size, double plane_size, uint32_t seed, int &marker_px) {
+  const std::string dict_name = family == kAprilTag ? std::string("DICT_APRILTAG_36h11") : family;
+  auto dict = cv::aruco::getPredefinedDictionary(dictionary_by_name(dict_name));
+  if (id < 0 || id >= dict->bytesList.rows)
+    throw std::invalid_argument("marker id " + std::to_string(id) + " is not in family " + family);
+  const int cells = dict->markerSize + 2;
+  const int per_cell = std::max(4, 480 / cells);
+  marker_px = per_cell * cells;
+  cv::Mat marker;
+  dict->drawMarker(id, marker_px, marker, 1);
+  const double scale = marker_px / size;  // texture px per metre
+  const int plane_px = static_cast<int>(std::lround(plane_size * scale));
+  cv::Mat tex(plane_px, plane_px, CV_8UC1);
+  // Blocky random texture, smoothed: clutter but no marker-like squares.
+  std::mt19937 rng(seed);
+  std::uniform_int_distribution<int> u(60, 200);
+  const int block = std::max(8, per_cell / 2);
+  for (int r = 0; r < plane_px; r += block)
+    for (int c = 0; c < plane_px; c += block)
+      tex(cv::Rect(c, r, std::min(block, plane_px - c), std::min(block, plane_px - r))).setTo(u(rng));
+  cv::GaussianBlur(tex, tex, cv::Size(0, 0), block * 0.6);
+  const int quiet = per_cell;  // one cell of white around the marker
+  const int off = (plane_px - marker_px) / 2;
+  tex(cv::Rect(off - quiet, off - quiet, marker_px + 2 * quiet, marker_px + 2 * quiet)).setTo(255);
+  marker.copyTo(tex(cv::Rect(off, off, marker_px, marker_px)));
+  return tex;
+}
+
+}  // namespace
+
+rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double plane_size,
+                                 rust::Slice<const double> cmo, rust::Slice<const double> intrinsics,
+                                 rust::Slice<const double> dist, int width, int height, double blur_sigma,
+                                 uint32_t texture_seed) {
+  check_intrinsics(intrinsics, dist, width, height);
+  if (cmo.size() != 12) throw std::invalid_argument("camera pose must have 12 numbers");
+  for (double v : cmo)
+    if (!std::isfinite(v)) throw std::invalid_argument("camera pose must be finite");
+  if (!(std::isfinite(size) && size > 0.0 && size < 10.0)) throw std::invalid_argument("marker size out of range");
+  if (!(std::isfinite(plane_size) && plane_size >= size * 1.25 && plane_size < 100.0))
+    throw std::invalid_argument("plane must be at least 1.25 x the marker size");
+  if (!(std::isfinite(blur_sigma) && blur_sigma >= 0.0 && blur_sigma < 50.0))
+    throw std::invalid_argument("blur sigma out of range");
+  int marker_px = 0;
+  cv::Mat tex = make_texture(std::string(family), id, size, plane_size, texture_seed, marker_px);
+  const double h = 0.5 * tex.cols * size / marker_px;  // plane half side, m (whole texture px)
+  vpImage<unsigned char> vtex(static_cast<unsigned>(tex.rows), static_cast<unsigned>(tex.cols));
+  for (int r = 0; r < tex.rows; ++r) std::copy_n(tex.ptr<uint8_t>(r), tex.cols, vtex[r]);
+  // Plane corners TL, TR, BR, BL of the texture in the marker frame (y up, z out).
+  vpColVector X[4];
+  const double xy[4][2] = {{-h, h}, {h, h}, {h, -h}, {-h, -h}};
+  for (int i = 0; i < 4; ++i) {
+    X[i].resize(3);
+    X[i][0] = xy[i][0];
+    X[i][1] = xy[i][1];
+    X[i][2] = 0;
+  }
+  vpHomogeneousMatrix cMo;
+  for (int r = 0; r < 3; ++r) {
+    for (int c = 0; c < 3; ++c) cMo[r][c] = cmo[r * 3 + c];
+    cMo[r][3] = cmo[9 + r];
+  }
+  if (cMo[2][3] <= 0) throw std::invalid_argument("the marker must be in front of the camera (z > 0)");
+  vpImageSimulator sim;
+  sim.setInterpolationType(vpImageSimulator::BILINEAR_INTERPOLATION);
+  sim.setCleanPreviousImage(true, vpColor(96, 96, 96));
+  sim.init(vtex, X);
+  sim.setCameraPosition(cMo);
+  vpCameraParameters cam(intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]);
+  vpImage<unsigned char> I(static_cast<unsigned>(height), static_cast<unsigned>(width), 96);
+  sim.getImage(I, cam);
+  cv::Mat img(height, width, CV_8UC1);
+  for (int r = 0; r < height; ++r) std::copy_n(I[r], width, img.ptr<uint8_t>(r));
+  bool distorted = false;
+  for (double v : dist) distorted = distorted || v != 0.0;
+  if (distorted) {
+    // Each distorted output pixel samples the ideal image at its undistorted position.
+    std::vector<cv::Point2f> grid;
+    grid.reserve(static_cast<size_t>(width) * height);
+    for (int r = 0; r < height; ++r)
+      for (int c = 0; c < width; ++c) grid.emplace_back(static_cast<float>(c), static_cast<float>(r));
+    std::vector<cv::Point2f> und;
+    const cv::Matx33d K = camera_matrix(intrinsics);
+    cv::undistortPoints(grid, und, K, dist_mat(dist), cv::noArray(), K);
+    cv::Mat map(height, width, CV_32FC2, und.data());
+    cv::Mat warped;
+    cv::remap(img, warped, map, cv::noArray(), cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(96));
+    img = warped;
+  }
+  if (blur_sigma > 0.0) cv::GaussianBlur(img, img, cv::Size(0, 0), blur_sigma);
+  rust::Vec<uint8_t> out;
+  out.reserve(static_cast<size_t>(width) * height);
+  for (int r = 0; r < height; ++r)
+    for (int c = 0; c < width; ++c) out.push_back(img.at<uint8_t>(r, c));
+  return out;
+}
+
+rust::Vec<uint8_t> read_image(rust::Str path, int channels, rust::Slice<int32_t> dims) {
+  if (channels != 1 && channels != 3) throw std::invalid_argument("channels must be 1 or 3");
+  if (dims.size() != 2) throw std::invalid_argument("dims must have 2 slots");
+  const std::string p(path);
+  cv::Mat m = cv::imread(p, channels == 1 ? cv::IMREAD_GRAYSCALE : cv::IMREAD_COLOR);
+  if (m.empty()) throw std::runtime_error("cannot read image `" + p + "`");
+  if (channels == 3) cv::cvtColor(m, m, cv::COLOR_BGR2RGB);
+  if (!m.isContinuous()) m = m.clone();
+  dims[0] = m.cols;
+  dims[1] = m.rows;
+  rust::Vec<uint8_t> out;
+  const size_t n = m.total() * m.elemSize();
+  out.reserve(n);
+  for (size_t i = 0; i < n; ++i) out.push_back(m.data[i]);
+  return out;
+}
+
+void write_image(rust::Str path, rust::Slice<const uint8_t> pixels, int width, int height, int channels) {
+  if (width <= 0 || height <= 0) throw std::invalid_argument("empty image");
+  if (channels != 1 && channels != 3) throw std::invalid_argument("channels must be 1 or 3");
+  if (pixels.size() != static_cast<size_t>(width) * height * channels)
+    throw std::invalid_argument("pixel buffer size does not match width x height x channels");
+  cv::Mat m(height, width, channels == 1 ? CV_8UC1 : CV_8UC3, const_cast<uint8_t *>(pixels.data()));
+  cv::Mat w = m;
+  if (channels == 3) cv::cvtColor(m, w, cv::COLOR_RGB2BGR);
+  const std::string p(path);
+  if (!cv::imwrite(p, w)) throw std::runtime_error("cannot write image `" + p + "`");
+}
+
+rust::Vec<double> hand_eye_calibrate(rust::Slice<const double> cmo, rust::Slice<const double> rme) {
+  if (cmo.size() != rme.size() || cmo.size() % 12 != 0) throw std::invalid_argument("pose arrays must be n x 12");
+  const size_t n = cmo.size() / 12;
+  if (n < 3) throw std::invalid_argument("hand-eye calibration needs at least 3 pose pairs");
+  auto to_h = [](rust::Slice<const double> s, size_t k) {
+    vpRotationMatrix R;
+    vpTranslationVector t;
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) R[r][c] = s[12 * k + 3 * r + c];
+      t[r] = s[12 * k + 9 + r];
+    }
+    return vpHomogeneousMatrix(t, R);
+  };
+  std::vector<vpHomogeneousMatrix> c, r;
+  for (size_t k = 0; k < n; ++k) {
+    c.push_back(to_h(cmo, k));
+    r.push_back(to_h(rme, k));
+  }
+  vpHomogeneousMatrix eMc;
+  if (vpHandEyeCalibration::calibrate(c, r, eMc) != 0)
+    throw std::runtime_error("hand-eye calibration failed (degenerate motions: rotate about at least 2 axes)");
+  rust::Vec<double> out;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) out.push_back(eMc[i][j]);
+  for (int i = 0; i < 3; ++i) out.push_back(eMc[i][3]);
+  return out;
 }
 
 }  // namespace trocar_docking
