@@ -19,7 +19,6 @@
 #include <visp3/core/vpImage.h>
 #include <visp3/core/vpPoint.h>
 #include <visp3/detection/vpDetectorAprilTag.h>
-#include <visp3/robot/vpImageSimulator.h>
 #include <visp3/vision/vpHandEyeCalibration.h>
 #include <visp3/vision/vpPose.h>
 
@@ -95,6 +94,93 @@ std::vector<cv::Point3d> object_corners(double s) {
   return {{-h, h, 0}, {h, h, 0}, {h, -h, 0}, {-h, -h, 0}};
 }
 
+
+// Bilinear sample of a grey image at (x, y) (pixel centres at integers), clamped inside.
+inline double sample(const cv::Mat &g, double x, double y) {
+  x = std::min(std::max(x, 0.0), g.cols - 1.001);
+  y = std::min(std::max(y, 0.0), g.rows - 1.001);
+  const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+  const double fx = x - x0, fy = y - y0;
+  const uint8_t *r0 = g.ptr<uint8_t>(y0), *r1 = g.ptr<uint8_t>(y0 + 1);
+  return (1 - fy) * ((1 - fx) * r0[x0] + fx * r0[x0 + 1]) + fy * ((1 - fx) * r1[x0] + fx * r1[x0 + 1]);
+}
+
+// Sub-pixel corners of a dark square on a light surround: along each edge, the edge offset
+// of intensity profiles across it (area method, unbiased under symmetric blur and averaging
+// noise), points undistorted, a total-least-squares line per edge, corners at the line
+// intersections. `px` (distorted pixels, TL TR BR BL) is refined in place; returns the
+// corners in undistorted normalised coordinates, or false when an edge has too few points.
+bool refine_corners(const cv::Mat &g, const cv::Matx33d &K, const cv::Mat &dist, int cells,
+                    std::vector<cv::Point2d> &px, std::vector<cv::Point2d> &norm) {
+  for (int pass = 0; pass < 2; ++pass) {
+    double perim = 0;
+    for (int k = 0; k < 4; ++k) perim += cv::norm(px[(k + 1) % 4] - px[k]);
+    const double cell = perim / 4.0 / std::max(cells, 3);
+    const double r = std::min(3.0, std::max(1.0, 0.45 * cell));  // half-width of the profile, px
+    const double step = 0.25;
+    const int ns = static_cast<int>(std::round(2 * r / step)) + 1;
+    const cv::Point2d centre = 0.25 * (px[0] + px[1] + px[2] + px[3]);
+    cv::Vec3d lines[4];
+    for (int k = 0; k < 4; ++k) {
+      const cv::Point2d a = px[k], b = px[(k + 1) % 4];
+      const double len = cv::norm(b - a);
+      if (!(len > 4.0)) return false;
+      const cv::Point2d d = (b - a) / len;
+      cv::Point2d n(-d.y, d.x);
+      if ((0.5 * (a + b) - centre).dot(n) < 0) n = -n;  // outward
+      const int m = std::min(200, std::max(6, static_cast<int>(len)));
+      std::vector<cv::Point2d> pts;
+      pts.reserve(m);
+      for (int i = 0; i < m; ++i) {
+        const double t = 0.12 + 0.76 * (i + 0.5) / m;
+        const cv::Point2d p = a + t * len * d;
+        double in = 0, out = 0, area = 0;
+        const int ends = std::max(1, ns / 6);
+        std::vector<double> prof(ns);
+        for (int j = 0; j < ns; ++j) {
+          const cv::Point2d q = p + (-r + j * step) * n;
+          prof[j] = sample(g, q.x, q.y);
+        }
+        for (int j = 0; j < ends; ++j) {
+          in += prof[j];
+          out += prof[ns - 1 - j];
+        }
+        in /= ends;
+        out /= ends;
+        if (out - in < 15.0) continue;  // no clear dark-to-light edge here
+        for (int j = 0; j < ns; ++j) {
+          const double w = (j == 0 || j == ns - 1) ? 0.5 : 1.0;  // trapezoid rule
+          area += w * std::min(1.0, std::max(0.0, (prof[j] - in) / (out - in)));
+        }
+        const double e = r - area * step;  // edge offset along n
+        pts.push_back(p + e * n);
+      }
+      if (pts.size() < 4) return false;
+      std::vector<cv::Point2d> und;
+      cv::undistortPoints(pts, und, K, dist, cv::noArray(), K);
+      cv::Vec4d line;
+      cv::fitLine(und, line, cv::DIST_L2, 0, 1e-6, 1e-6);
+      // Line as (nx, ny, c) with nx*x + ny*y + c = 0.
+      lines[k] = cv::Vec3d(-line[1], line[0], line[1] * line[2] - line[0] * line[3]);
+    }
+    std::vector<cv::Point2d> und_c(4);
+    for (int k = 0; k < 4; ++k) {
+      const cv::Vec3d p = lines[(k + 3) % 4].cross(lines[k]);  // corner k: edges k-1 and k
+      if (std::abs(p[2]) < 1e-12) return false;
+      und_c[k] = cv::Point2d(p[0] / p[2], p[1] / p[2]);
+    }
+    // Back to normalised and distorted pixel coordinates.
+    norm.resize(4);
+    std::vector<cv::Point3d> rays(4);
+    for (int k = 0; k < 4; ++k) {
+      norm[k] = cv::Point2d((und_c[k].x - K(0, 2)) / K(0, 0), (und_c[k].y - K(1, 2)) / K(1, 1));
+      rays[k] = cv::Point3d(norm[k].x, norm[k].y, 1.0);
+    }
+    cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K, dist, px);
+  }
+  return true;
+}
+
 }  // namespace
 
 struct MarkerDetectorCpp::Impl {
@@ -107,6 +193,9 @@ struct MarkerDetectorCpp::Impl {
   int width = 0, height = 0;
   std::vector<std::vector<cv::Point2f>> corners, rejected;
   std::vector<int> ids;
+  int cells = 6;   // marker side in cells, black border included
+  int decimate = 1;
+  cv::Mat small;
   vpImage<unsigned char> vimg;
 };
 
@@ -130,13 +219,18 @@ std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::S
     impl->april->setAprilTagQuadSigma(0.8f);
     impl->april->setAprilTagRefineEdges(true);
     impl->april->setAprilTagNbThreads(1);
+    impl->cells = 8;
   } else {
     impl->dict = cv::aruco::getPredefinedDictionary(dictionary_by_name(fam));
     impl->params = cv::aruco::DetectorParameters::create();
-    impl->params->cornerRefinementMethod = cv::aruco::CORNER_REFINE_SUBPIX;
-    impl->params->cornerRefinementWinSize = 4;
-    impl->params->cornerRefinementMaxIterations = 50;
-    impl->params->cornerRefinementMinAccuracy = 0.01;
+    // Corners are refined on the full image by refine_corners; detection runs on a
+    // half-size image for wide frames (faster, and averages pixel noise).
+    impl->params->cornerRefinementMethod = cv::aruco::CORNER_REFINE_NONE;
+    impl->params->adaptiveThreshWinSizeMin = 7;
+    impl->params->adaptiveThreshWinSizeMax = 17;
+    impl->params->adaptiveThreshWinSizeStep = 10;
+    impl->cells = impl->dict->markerSize + 2;
+    impl->decimate = width >= 960 ? 2 : 1;
   }
   return std::make_unique<MarkerDetectorCpp>(std::move(impl));
 }
@@ -146,10 +240,10 @@ namespace {
 // Pose of one marker from its 4 corner pixels (TL TR BR BL): undistort to normalised
 // coordinates, IPPE-square initialisation (OpenCV), then ViSP virtual visual servoing.
 // Appends the 22-number record to `out`.
-void pose_from_corners(const MarkerDetectorCpp::Impl &d, int id, double size, const std::vector<cv::Point2d> &px,
-                       rust::Vec<double> &out) {
+void pose_from_corners(const MarkerDetectorCpp::Impl &d, const cv::Mat &grey, int id, double size,
+                       std::vector<cv::Point2d> px, rust::Vec<double> &out) {
   std::vector<cv::Point2d> norm;
-  cv::undistortPoints(px, norm, d.K, d.dist);
+  if (!refine_corners(grey, d.K, d.dist, d.cells, px, norm)) cv::undistortPoints(px, norm, d.K, d.dist);
   const auto obj = object_corners(size);
   cv::Mat rvec, tvec;
   if (!cv::solvePnP(obj, norm, cv::Matx33d::eye(), cv::noArray(), rvec, tvec, false, cv::SOLVEPNP_IPPE_SQUARE))
@@ -218,20 +312,27 @@ rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8
       if (id >= 0 && tag_ids[i] != id) continue;
       const auto poly = d.april->getPolygon(i);
       if (poly.size() != 4) continue;
-      // AprilTag order is BL, BR, TR, TL of the upright tag; ours is TL, TR, BR, BL.
+      // ViSP's polygon runs TR, TL, BL, BR of the tag as OpenCV draws it upright (checked
+      // on rendered tags); ours is TL, TR, BR, BL.
       std::vector<cv::Point2d> px;
-      for (int k = 3; k >= 0; --k) px.emplace_back(poly[k].get_u(), poly[k].get_v());
-      pose_from_corners(d, tag_ids[i], size, px, out);
+      for (int k : {1, 0, 3, 2}) px.emplace_back(poly[k].get_u(), poly[k].get_v());
+      pose_from_corners(d, grey, tag_ids[i], size, px, out);
     }
   } else {
     d.corners.clear();
     d.ids.clear();
-    cv::aruco::detectMarkers(grey, d.dict, d.corners, d.ids, d.params, d.rejected);
+    const double f = d.decimate;
+    if (d.decimate > 1) {
+      cv::resize(grey, d.small, cv::Size(width / d.decimate, height / d.decimate), 0, 0, cv::INTER_AREA);
+      cv::aruco::detectMarkers(d.small, d.dict, d.corners, d.ids, d.params, d.rejected);
+    } else {
+      cv::aruco::detectMarkers(grey, d.dict, d.corners, d.ids, d.params, d.rejected);
+    }
     for (size_t i = 0; i < d.ids.size(); ++i) {
       if (id >= 0 && d.ids[i] != id) continue;
       std::vector<cv::Point2d> px;
-      for (const auto &c : d.corners[i]) px.emplace_back(c.x, c.y);
-      pose_from_corners(d, d.ids[i], size, px, out);
+      for (const auto &c : d.corners[i]) px.emplace_back(f * (c.x + 0.5) - 0.5, f * (c.y + 0.5) - 0.5);
+      pose_from_corners(d, grey, d.ids[i], size, px, out);
     }
   }
   return out;
@@ -285,49 +386,79 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
     throw std::invalid_argument("blur sigma out of range");
   int marker_px = 0;
   cv::Mat tex = make_texture(std::string(family), id, size, plane_size, texture_seed, marker_px);
-  const double h = 0.5 * tex.cols * size / marker_px;  // plane half side, m (whole texture px)
-  vpImage<unsigned char> vtex(static_cast<unsigned>(tex.rows), static_cast<unsigned>(tex.cols));
-  for (int r = 0; r < tex.rows; ++r) std::copy_n(tex.ptr<uint8_t>(r), tex.cols, vtex[r]);
-  // Plane corners TL, TR, BR, BL of the texture in the marker frame (y up, z out).
-  vpColVector X[4];
-  const double xy[4][2] = {{-h, h}, {h, h}, {h, -h}, {-h, -h}};
-  for (int i = 0; i < 4; ++i) {
-    X[i].resize(3);
-    X[i][0] = xy[i][0];
-    X[i][1] = xy[i][1];
-    X[i][2] = 0;
-  }
-  vpHomogeneousMatrix cMo;
-  for (int r = 0; r < 3; ++r) {
-    for (int c = 0; c < 3; ++c) cMo[r][c] = cmo[r * 3 + c];
-    cMo[r][3] = cmo[9 + r];
-  }
-  if (cMo[2][3] <= 0) throw std::invalid_argument("the marker must be in front of the camera (z > 0)");
-  vpImageSimulator sim;
-  sim.setInterpolationType(vpImageSimulator::BILINEAR_INTERPOLATION);
-  sim.setCleanPreviousImage(true, vpColor(96, 96, 96));
-  sim.init(vtex, X);
-  sim.setCameraPosition(cMo);
-  vpCameraParameters cam(intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]);
-  vpImage<unsigned char> I(static_cast<unsigned>(height), static_cast<unsigned>(width), 96);
-  sim.getImage(I, cam);
-  cv::Mat img(height, width, CV_8UC1);
-  for (int r = 0; r < height; ++r) std::copy_n(I[r], width, img.ptr<uint8_t>(r));
+  const double h = 0.5 * tex.cols * size / marker_px;  // plane half side, m
+  // Plane (X, Y, 1) -> normalised image point: H = [r1 r2 t]; we need its inverse.
+  const cv::Matx33d H(cmo[0], cmo[1], cmo[9], cmo[3], cmo[4], cmo[10], cmo[6], cmo[7], cmo[11]);
+  if (cmo[11] <= 0) throw std::invalid_argument("the marker must be in front of the camera (z > 0)");
+  if (std::abs(cv::determinant(H)) < 1e-12) throw std::invalid_argument("the plane is seen edge-on");
+  const cv::Matx33d Hi = H.inv();
+  const double fx = intrinsics[0], fy = intrinsics[1], cx = intrinsics[2], cy = intrinsics[3];
   bool distorted = false;
   for (double v : dist) distorted = distorted || v != 0.0;
-  if (distorted) {
-    // Each distorted output pixel samples the ideal image at its undistorted position.
-    std::vector<cv::Point2f> grid;
-    grid.reserve(static_cast<size_t>(width) * height);
-    for (int r = 0; r < height; ++r)
-      for (int c = 0; c < width; ++c) grid.emplace_back(static_cast<float>(c), static_cast<float>(r));
-    std::vector<cv::Point2f> und;
-    const cv::Matx33d K = camera_matrix(intrinsics);
-    cv::undistortPoints(grid, und, K, dist_mat(dist), cv::noArray(), K);
-    cv::Mat map(height, width, CV_32FC2, und.data());
-    cv::Mat warped;
-    cv::remap(img, warped, map, cv::noArray(), cv::INTER_LINEAR, cv::BORDER_CONSTANT, cv::Scalar(96));
-    img = warped;
+  // Region to render: the plane's projected bounding box (whole image when distorted or
+  // when a corner is behind the camera).
+  int u0 = 0, v0 = 0, u1 = width - 1, v1 = height - 1;
+  if (!distorted) {
+    double umin = 1e18, umax = -1e18, vmin = 1e18, vmax = -1e18;
+    bool ok = true;
+    for (double sx : {-h, h})
+      for (double sy : {-h, h}) {
+        const cv::Vec3d q = H * cv::Vec3d(sx, sy, 1.0);
+        if (q[2] <= 1e-9) ok = false;
+        const double u = fx * q[0] / q[2] + cx, v = fy * q[1] / q[2] + cy;
+        umin = std::min(umin, u); umax = std::max(umax, u); vmin = std::min(vmin, v); vmax = std::max(vmax, v);
+      }
+    if (ok) {
+      u0 = std::max(0, static_cast<int>(std::floor(umin)) - 2);
+      v0 = std::max(0, static_cast<int>(std::floor(vmin)) - 2);
+      u1 = std::min(width - 1, static_cast<int>(std::ceil(umax)) + 2);
+      v1 = std::min(height - 1, static_cast<int>(std::ceil(vmax)) + 2);
+    }
+  }
+  // Undistorted normalised coordinates of the pixel centres in the region.
+  std::vector<cv::Point2d> normc;
+  if (distorted && u1 >= u0 && v1 >= v0) {
+    std::vector<cv::Point2d> grid;
+    grid.reserve(static_cast<size_t>(u1 - u0 + 1) * (v1 - v0 + 1));
+    for (int r = v0; r <= v1; ++r)
+      for (int c = u0; c <= u1; ++c) grid.emplace_back(c, r);
+    cv::undistortPoints(grid, normc, camera_matrix(intrinsics), dist_mat(dist));
+  }
+  const double bg = 96.0;
+  cv::Mat img(height, width, CV_8UC1, cv::Scalar(bg));
+  // 3x3 supersampling per pixel (box filter), bilinear texture lookup at texel centres.
+  const int ss = 3;
+  for (int r = v0; r <= v1; ++r) {
+    uint8_t *row = img.ptr<uint8_t>(r);
+    for (int c = u0; c <= u1; ++c) {
+      double xn, yn;
+      if (distorted) {
+        const auto &p = normc[static_cast<size_t>(r - v0) * (u1 - u0 + 1) + (c - u0)];
+        xn = p.x;
+        yn = p.y;
+      } else {
+        xn = (c - cx) / fx;
+        yn = (r - cy) / fy;
+      }
+      double acc = 0;
+      for (int i = 0; i < ss; ++i)
+        for (int j = 0; j < ss; ++j) {
+          const double x = xn + ((j + 0.5) / ss - 0.5) / fx, y = yn + ((i + 0.5) / ss - 0.5) / fy;
+          const cv::Vec3d P = Hi * cv::Vec3d(x, y, 1.0);
+          if (P[2] <= 0) {  // ray hits the plane behind the camera
+            acc += bg;
+            continue;
+          }
+          const double X = P[0] / P[2], Y = P[1] / P[2];
+          const double tu = (X / (2 * h) + 0.5) * tex.cols - 0.5, tv = (0.5 - Y / (2 * h)) * tex.rows - 0.5;
+          if (tu < -0.5 || tv < -0.5 || tu > tex.cols - 0.5 || tv > tex.rows - 0.5) {
+            acc += bg;
+          } else {
+            acc += sample(tex, tu, tv);
+          }
+        }
+      row[c] = cv::saturate_cast<uint8_t>(acc / (ss * ss));
+    }
   }
   if (blur_sigma > 0.0) cv::GaussianBlur(img, img, cv::Size(0, 0), blur_sigma);
   rust::Vec<uint8_t> out;

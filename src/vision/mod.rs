@@ -16,7 +16,7 @@ pub use camera::CameraModel;
 pub use estimator::{EstimateStatus, EstimatorParams, TrocarEstimate, TrocarEstimator};
 pub use image::{GreyImage, ImageView};
 pub use marker::{MarkerDetection, MarkerDetector, MarkerFamily, MarkerSpec};
-pub use render::{render_marker_image, RenderOptions};
+pub use render::{facing_pose, render_marker_image, RenderOptions};
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 

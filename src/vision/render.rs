@@ -1,4 +1,5 @@
-//! The synthetic camera: a marker on a textured plane (ViSP vpImageSimulator), seen from a
+//! The synthetic camera: a marker on a textured plane (inverse-homography sampler with 3x3
+//! supersampling, in the C++ bridge; vpImageSimulator shifted edges by ~0.17 px), seen from a
 //! given pose through given intrinsics and distortion, with optional blur and Gaussian noise.
 
 use nalgebra::Isometry3;
@@ -91,4 +92,16 @@ pub fn add_gaussian_noise(data: &mut [u8], sigma: f64, seed: u64) {
         let v = f64::from(*p) + n.sample(&mut rng);
         *p = v.round().clamp(0.0, 255.0) as u8;
     }
+}
+
+/// A marker pose in the camera frame facing the camera: centre at (`x`, `y`, `distance`) m,
+/// then tilted about the marker's x and y axes and turned about its z axis (rad).
+pub fn facing_pose(distance: f64, x: f64, y: f64, tilt_x: f64, tilt_y: f64, yaw: f64) -> Isometry3<f64> {
+    use nalgebra::{Translation3, UnitQuaternion, Vector3};
+    let facing = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    let r = facing
+        * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), tilt_x)
+        * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), tilt_y)
+        * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw);
+    Isometry3::from_parts(Translation3::new(x, y, distance), r)
 }
