@@ -8,6 +8,8 @@ use crate::bench::SuiteReport;
 pub enum Suite {
     /// FK + Jacobian through KDL.
     Kinematics,
+    /// Marker detection + pose on synthetic frames (latency and accuracy).
+    Vision,
     /// Every suite.
     All,
 }
@@ -32,6 +34,9 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
     let all = a.suite == Suite::All;
     if all || a.suite == Suite::Kinematics {
         reports.extend(crate::bench::kinematics::run(a.samples)?);
+    }
+    if all || a.suite == Suite::Vision {
+        reports.extend(crate::bench::vision::run(a.samples)?);
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&reports)?);
