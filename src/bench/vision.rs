@@ -6,8 +6,8 @@ use rand::{RngExt, SeedableRng};
 
 use super::{time_each, LatencyStats, SuiteReport};
 use crate::vision::{
-    facing_pose, pose_distance, render_marker_image, CameraModel, GreyImage, MarkerDetector, MarkerFamily,
-    MarkerSpec, RenderOptions, VisionError,
+    facing_pose, pose_distance, render_marker_image, CameraModel, GreyImage, MarkerDetector, MarkerFamily, MarkerSpec,
+    RenderOptions, VisionError,
 };
 use nalgebra::Isometry3;
 
@@ -92,7 +92,11 @@ pub fn synthetic_frames(cfg: &SweepConfig) -> Result<Vec<SyntheticFrame>, Vision
         let yaw = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
         let truth = facing_pose(d, x, y, tilt * dir.cos(), tilt * dir.sin(), yaw);
         let id = rng.random_range(0..cfg.family.id_count().clamp(1, 50));
-        let spec = MarkerSpec { family: cfg.family.clone(), id: Some(id), size };
+        let spec = MarkerSpec {
+            family: cfg.family.clone(),
+            id: Some(id),
+            size,
+        };
         let opts = RenderOptions {
             noise_sigma: cfg.noise_sigma,
             blur_sigma: cfg.blur_sigma,
@@ -100,14 +104,24 @@ pub fn synthetic_frames(cfg: &SweepConfig) -> Result<Vec<SyntheticFrame>, Vision
             ..Default::default()
         };
         let image = render_marker_image(&spec, &camera, &truth, &opts)?;
-        out.push(SyntheticFrame { camera, spec, truth, image });
+        out.push(SyntheticFrame {
+            camera,
+            spec,
+            truth,
+            image,
+        });
     }
     Ok(out)
 }
 
 /// Detect the marker in each frame and compare with the truth.
 pub fn evaluate(frames: &[SyntheticFrame]) -> Result<SweepResult, VisionError> {
-    let mut r = SweepResult { frames: frames.len(), detected: 0, translation_errors_m: vec![], rotation_errors_rad: vec![] };
+    let mut r = SweepResult {
+        frames: frames.len(),
+        detected: 0,
+        translation_errors_m: vec![],
+        rotation_errors_rad: vec![],
+    };
     for fr in frames {
         let mut det = MarkerDetector::new(fr.spec.clone(), &fr.camera)?;
         if let Some(m) = det.detect(&fr.image.view())?.first() {
@@ -131,15 +145,25 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
         ("detect_pose_tag36h11_noise3_1280x720", "tag36h11", 3.0),
     ];
     for (name, fam, noise) in cases {
-        let cfg = SweepConfig { family: fam.parse()?, frames: frames_n, noise_sigma: noise, blur_sigma: 0.0, seed: 11 };
+        let cfg = SweepConfig {
+            family: fam.parse()?,
+            frames: frames_n,
+            noise_sigma: noise,
+            blur_sigma: 0.0,
+            seed: 11,
+        };
         let frames = synthetic_frames(&cfg)?;
         let acc = evaluate(&frames)?;
         // Timing: one detector per frame built beforehand; cycle frames.
-        let mut dets: Vec<MarkerDetector> =
-            frames.iter().map(|f| MarkerDetector::new(f.spec.clone(), &f.camera)).collect::<Result<_, _>>()?;
+        let mut dets: Vec<MarkerDetector> = frames
+            .iter()
+            .map(|f| MarkerDetector::new(f.spec.clone(), &f.camera))
+            .collect::<Result<_, _>>()?;
         let idx: Vec<usize> = (0..n.clamp(1, 2000)).map(|i| i % frames.len()).collect();
         let t = time_each(&idx, 10, |&i| dets[i].detect(&frames[i].image.view()).map(|v| v.len()));
-        let Some(latency) = LatencyStats::from_samples(&t) else { continue };
+        let Some(latency) = LatencyStats::from_samples(&t) else {
+            continue;
+        };
         let (tm, tx) = acc.translation_median_max();
         let (rm, rx) = acc.rotation_median_max();
         let mut extra = serde_json::Map::new();
@@ -150,7 +174,11 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
         extra.insert("translation_error_max_mm".into(), (tx * 1e3).into());
         extra.insert("rotation_error_median_deg".into(), rm.to_degrees().into());
         extra.insert("rotation_error_max_deg".into(), rx.to_degrees().into());
-        out.push(SuiteReport { name: name.into(), latency, extra });
+        out.push(SuiteReport {
+            name: name.into(),
+            latency,
+            extra,
+        });
     }
     Ok(out)
 }
