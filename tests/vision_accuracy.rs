@@ -6,7 +6,13 @@ use trocar_docking::vision::MarkerFamily;
 
 fn sweep(family: &str, frames: usize, noise: f64, seed: u64) -> SweepResult {
     let family: MarkerFamily = family.parse().unwrap();
-    let cfg = SweepConfig { family, frames, noise_sigma: noise, blur_sigma: 0.0, seed };
+    let cfg = SweepConfig {
+        family,
+        frames,
+        noise_sigma: noise,
+        blur_sigma: 0.0,
+        seed,
+    };
     evaluate(&synthetic_frames(&cfg).unwrap()).unwrap()
 }
 

@@ -3,12 +3,15 @@
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
-use trocar_docking::vision::{
-    facing_pose, EstimateStatus, EstimatorParams, MarkerDetection, TrocarEstimator,
-};
+use trocar_docking::vision::{facing_pose, EstimateStatus, EstimatorParams, MarkerDetection, TrocarEstimator};
 
 fn detection(pose_camera_marker: Isometry3<f64>) -> MarkerDetection {
-    MarkerDetection { id: 0, pose_camera_marker, corners: [[0.0; 2]; 4], reprojection_error_px: 0.1 }
+    MarkerDetection {
+        id: 0,
+        pose_camera_marker,
+        corners: [[0.0; 2]; 4],
+        reprojection_error_px: 0.1,
+    }
 }
 
 fn flange() -> Isometry3<f64> {
@@ -23,12 +26,12 @@ fn chain_base_flange_camera_marker_trocar() {
     let p = EstimatorParams::default();
     let mut est = TrocarEstimator::new(p.clone()).unwrap();
     let cm = facing_pose(0.3, 0.01, 0.02, 0.1, 0.0, 0.2);
-    assert_eq!(est.update(0.0, &flange(), Some(&detection(cm))), EstimateStatus::Initialized);
+    assert_eq!(
+        est.update(0.0, &flange(), Some(&detection(cm))),
+        EstimateStatus::Initialized
+    );
     let e = est.estimate(0.0).unwrap();
-    let expected = flange()
-        * p.flange_t_camera.to_isometry().unwrap()
-        * cm
-        * p.marker_t_trocar.to_isometry().unwrap();
+    let expected = flange() * p.flange_t_camera.to_isometry().unwrap() * cm * p.marker_t_trocar.to_isometry().unwrap();
     assert!((e.pose_base_trocar.to_homogeneous() - expected.to_homogeneous()).norm() < 1e-12);
     // The default offset turns z into the trocar (opposite the marker normal).
     let zm = (flange() * p.flange_t_camera.to_isometry().unwrap() * cm).rotation * Vector3::z();
@@ -49,7 +52,10 @@ fn run(truth: impl Fn(f64) -> Vector3<f64>, sigma: f64) -> (f64, f64) {
         let z = truth(t) + Vector3::new(n.sample(&mut rng), n.sample(&mut rng), n.sample(&mut rng));
         let pose = Isometry3::from_parts(Translation3::from(z), UnitQuaternion::identity());
         let s = est.fuse(t, pose);
-        assert!(matches!(s, EstimateStatus::Initialized | EstimateStatus::Updated), "{s:?} at {t}");
+        assert!(
+            matches!(s, EstimateStatus::Initialized | EstimateStatus::Updated),
+            "{s:?} at {t}"
+        );
         if t > 1.0 {
             let e = est.estimate(t).unwrap().pose_base_trocar.translation.vector;
             e_est += (e - truth(t)).norm_squared();
@@ -98,7 +104,11 @@ fn ages_and_goes_stale_without_measurements() {
     let mut est = TrocarEstimator::new(p.clone()).unwrap();
     assert!(est.estimate(0.0).is_none());
     assert_eq!(est.update(0.0, &flange(), None), EstimateStatus::NoMeasurement);
-    est.update(1.0, &flange(), Some(&detection(facing_pose(0.3, 0.0, 0.0, 0.0, 0.0, 0.0))));
+    est.update(
+        1.0,
+        &flange(),
+        Some(&detection(facing_pose(0.3, 0.0, 0.0, 0.0, 0.0, 0.0))),
+    );
     assert_eq!(est.update(1.2, &flange(), None), EstimateStatus::NoMeasurement);
     let e = est.estimate(1.2).unwrap();
     assert!(!e.stale && (e.age_s - 0.2).abs() < 1e-12);
@@ -117,10 +127,16 @@ fn bad_measurements_are_refused() {
     let mut nan = good.clone();
     nan.pose_camera_marker.translation.x = f64::NAN;
     assert_eq!(est.update(0.0, &flange(), Some(&nan)), EstimateStatus::InvalidInput);
-    assert_eq!(est.update(f64::NAN, &flange(), Some(&good)), EstimateStatus::InvalidInput);
+    assert_eq!(
+        est.update(f64::NAN, &flange(), Some(&good)),
+        EstimateStatus::InvalidInput
+    );
     assert_eq!(est.update(1.0, &flange(), Some(&good)), EstimateStatus::Initialized);
     assert_eq!(est.update(0.5, &flange(), Some(&good)), EstimateStatus::InvalidInput);
-    let bad = EstimatorParams { stale_after_s: -1.0, ..Default::default() };
+    let bad = EstimatorParams {
+        stale_after_s: -1.0,
+        ..Default::default()
+    };
     assert!(TrocarEstimator::new(bad).is_err());
 }
 

@@ -6,7 +6,10 @@ use trocar_docking::vision::estimator::PoseYaml;
 use trocar_docking::vision::hand_eye::{calibrate, HandEyeInput, HandEyeResult, HandEyeSample};
 
 fn truth() -> Isometry3<f64> {
-    Isometry3::from_parts(Translation3::new(0.01, 0.07, 0.04), UnitQuaternion::from_euler_angles(0.02, -0.03, 0.05))
+    Isometry3::from_parts(
+        Translation3::new(0.01, 0.07, 0.04),
+        UnitQuaternion::from_euler_angles(0.02, -0.03, 0.05),
+    )
 }
 
 /// Flange poses around a fixed marker, and the marker seen from each (with optional noise).
@@ -16,7 +19,11 @@ fn pairs(n: usize, noise_m: f64) -> (Vec<Isometry3<f64>>, Vec<Isometry3<f64>>) {
     let (mut f, mut m) = (vec![], vec![]);
     for _ in 0..n {
         let flange = Isometry3::from_parts(
-            Translation3::new(rng.random_range(0.4..0.6), rng.random_range(-0.1..0.1), rng.random_range(0.4..0.5)),
+            Translation3::new(
+                rng.random_range(0.4..0.6),
+                rng.random_range(-0.1..0.1),
+                rng.random_range(0.4..0.5),
+            ),
             UnitQuaternion::from_euler_angles(
                 std::f64::consts::PI + rng.random_range(-0.4..0.4),
                 rng.random_range(-0.4..0.4),
@@ -24,9 +31,11 @@ fn pairs(n: usize, noise_m: f64) -> (Vec<Isometry3<f64>>, Vec<Isometry3<f64>>) {
             ),
         );
         let mut cm = (flange * truth()).inverse() * base_marker;
-        cm.translation.vector +=
-            Vector3::new(rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0))
-                * noise_m;
+        cm.translation.vector += Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        ) * noise_m;
         f.push(flange);
         m.push(cm);
     }
@@ -35,7 +44,10 @@ fn pairs(n: usize, noise_m: f64) -> (Vec<Isometry3<f64>>, Vec<Isometry3<f64>>) {
 
 fn error(r: &HandEyeResult) -> (f64, f64) {
     let e = r.flange_t_camera.to_isometry().unwrap();
-    ((e.translation.vector - truth().translation.vector).norm(), e.rotation.angle_to(&truth().rotation))
+    (
+        (e.translation.vector - truth().translation.vector).norm(),
+        e.rotation.angle_to(&truth().rotation),
+    )
 }
 
 #[test]

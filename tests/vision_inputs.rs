@@ -4,8 +4,7 @@
 use std::path::Path;
 
 use trocar_docking::vision::{
-    facing_pose, pose_distance, render_marker_image, CameraModel, ImageView, MarkerDetector, MarkerSpec,
-    RenderOptions,
+    facing_pose, pose_distance, render_marker_image, CameraModel, ImageView, MarkerDetector, MarkerSpec, RenderOptions,
 };
 
 fn cam() -> CameraModel {
@@ -13,23 +12,53 @@ fn cam() -> CameraModel {
 }
 
 fn spec(id: Option<u32>) -> MarkerSpec {
-    MarkerSpec { family: "DICT_4X4_50".parse().unwrap(), id, size: 0.05 }
+    MarkerSpec {
+        family: "DICT_4X4_50".parse().unwrap(),
+        id,
+        size: 0.05,
+    }
 }
 
 #[test]
 fn bad_images_are_errors_and_blank_images_are_empty() {
     let mut det = MarkerDetector::new(spec(None), &cam()).unwrap();
     let empty: [u8; 0] = [];
-    assert!(det.detect(&ImageView { data: &empty, width: 0, height: 0, channels: 1 }).is_err());
+    assert!(det
+        .detect(&ImageView {
+            data: &empty,
+            width: 0,
+            height: 0,
+            channels: 1
+        })
+        .is_err());
     let small = vec![128u8; 640 * 480];
-    assert!(det.detect(&ImageView { data: &small, width: 640, height: 480, channels: 1 }).is_err());
+    assert!(det
+        .detect(&ImageView {
+            data: &small,
+            width: 640,
+            height: 480,
+            channels: 1
+        })
+        .is_err());
     let short = vec![128u8; 100];
-    assert!(det.detect(&ImageView { data: &short, width: 1280, height: 720, channels: 1 }).is_err());
+    assert!(det
+        .detect(&ImageView {
+            data: &short,
+            width: 1280,
+            height: 720,
+            channels: 1
+        })
+        .is_err());
     let blank = vec![200u8; 1280 * 720];
     let v = ImageView::new(&blank, 1280, 720, 1).unwrap();
     assert!(det.detect(&v).unwrap().is_empty());
-    let noise: Vec<u8> = (0..1280 * 720u32).map(|i| (i.wrapping_mul(2_654_435_761) >> 24) as u8).collect();
-    assert!(det.detect(&ImageView::new(&noise, 1280, 720, 1).unwrap()).unwrap().is_empty());
+    let noise: Vec<u8> = (0..1280 * 720u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 24) as u8)
+        .collect();
+    assert!(det
+        .detect(&ImageView::new(&noise, 1280, 720, 1).unwrap())
+        .unwrap()
+        .is_empty());
 }
 
 #[test]
@@ -40,7 +69,10 @@ fn absurd_intrinsics_and_specs_are_rejected_before_cpp() {
     let mut c = cam();
     c.distortion = vec![0.1, 0.2, 0.3];
     assert!(MarkerDetector::new(spec(None), &c).is_err());
-    let bad = MarkerSpec { size: 0.0, ..spec(None) };
+    let bad = MarkerSpec {
+        size: 0.0,
+        ..spec(None)
+    };
     assert!(MarkerDetector::new(bad.clone(), &cam()).is_err());
     let p = facing_pose(0.4, 0.0, 0.0, 0.0, 0.0, 0.0);
     assert!(render_marker_image(&bad, &cam(), &p, &RenderOptions::default()).is_err());

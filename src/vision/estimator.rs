@@ -280,7 +280,7 @@ impl TrocarEstimator {
             pose_base_trocar: pose,
             stamp,
             age_s: age,
-            stale: !(age <= self.params.stale_after_s),
+            stale: age.is_nan() || age > self.params.stale_after_s,
         })
     }
 
