@@ -116,7 +116,10 @@ bool refine_corners(const cv::Mat &g, const cv::Matx33d &K, const cv::Mat &dist,
     double perim = 0;
     for (int k = 0; k < 4; ++k) perim += cv::norm(px[(k + 1) % 4] - px[k]);
     const double cell = perim / 4.0 / std::max(cells, 3);
-    const double r = std::min(3.0, std::max(1.0, 0.45 * cell));  // half-width of the profile, px
+    // Half-width of the profile, px: 3 px spans the blurred edge ramp with flat ends (the
+    // area method is biased when the ends sit on the ramp); kept within 0.75 cell so the
+    // data cells inside and whatever lies beyond the quiet zone stay out of it.
+    const double r = std::min(3.0, std::max(1.0, 0.75 * cell));
     const double step = 0.25;
     const int ns = static_cast<int>(std::round(2 * r / step)) + 1;
     const cv::Point2d centre = 0.25 * (px[0] + px[1] + px[2] + px[3]);
