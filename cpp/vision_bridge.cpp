@@ -78,13 +78,14 @@ cv::Mat dist_mat(rust::Slice<const double> d) {
 // A grey cv::Mat view (or conversion) of the caller's pixels.
 cv::Mat grey_view(rust::Slice<const uint8_t> pixels, int width, int height, int channels) {
   if (width <= 0 || height <= 0) throw std::invalid_argument("empty image");
-  if (channels != 1 && channels != 3) throw std::invalid_argument("channels must be 1 (grey) or 3 (RGB)");
+  if (channels != 1 && channels != 3 && channels != 4)
+    throw std::invalid_argument("channels must be 1 (grey), 3 (RGB8/BGR8) or 4 (BGRA8/RGBA8)");
   if (pixels.size() != static_cast<size_t>(width) * height * channels)
     throw std::invalid_argument("pixel buffer size does not match width x height x channels");
-  cv::Mat m(height, width, channels == 1 ? CV_8UC1 : CV_8UC3, const_cast<uint8_t *>(pixels.data()));
+  cv::Mat m(height, width, CV_8UC(channels), const_cast<uint8_t *>(pixels.data()));
   if (channels == 1) return m;
   cv::Mat g;
-  cv::cvtColor(m, g, cv::COLOR_RGB2GRAY);
+  cv::cvtColor(m, g, channels == 3 ? cv::COLOR_RGB2GRAY : cv::COLOR_RGBA2GRAY);
   return g;
 }
 

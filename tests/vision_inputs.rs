@@ -102,6 +102,10 @@ fn id_filter_rgb_input_and_convention() {
     // Corners TL, TR, BR, BL: TL is left of TR in a marker that is barely turned.
     assert!(m.corners[0][0] < m.corners[1][0] && m.corners[1][1] < m.corners[2][1]);
     assert!(m.reprojection_error_px < 0.5);
+    let bgra: Vec<u8> = img.data.iter().flat_map(|&g| [g, g, g, 255]).collect();
+    let found4 = det.detect(&ImageView::new(&bgra, 1280, 720, 4).unwrap()).unwrap();
+    assert_eq!(found4.len(), 1);
+    assert!(pose_distance(&found4[0].pose_camera_marker, &m.pose_camera_marker).0 < 1e-9);
 }
 
 #[test]

@@ -5,7 +5,9 @@ use std::path::Path;
 use super::VisionError;
 use crate::ffi::vision::ffi;
 
-/// A borrowed 8-bit image: `channels` = 1 (grey) or 3 (RGB8), row-major, no padding.
+/// A borrowed 8-bit image, row-major, no padding: `channels` = 1 (mono8), 3 (rgb8 or bgr8)
+/// or 4 (rgba8 or bgra8, as the ZED publishes). Detection works on grey; the colour order
+/// only changes the grey weights slightly.
 #[derive(Debug, Clone, Copy)]
 pub struct ImageView<'a> {
     /// Pixels, `width * height * channels` bytes.
@@ -14,7 +16,7 @@ pub struct ImageView<'a> {
     pub width: u32,
     /// Height, px.
     pub height: u32,
-    /// 1 (grey) or 3 (RGB8).
+    /// 1 (grey), 3 (RGB8/BGR8) or 4 (RGBA8/BGRA8).
     pub channels: u32,
 }
 
@@ -39,9 +41,9 @@ impl<'a> ImageView<'a> {
         if self.width > 20_000 || self.height > 20_000 {
             return Err(VisionError::InvalidInput("image larger than 20000 px".into()));
         }
-        if self.channels != 1 && self.channels != 3 {
+        if !matches!(self.channels, 1 | 3 | 4) {
             return Err(VisionError::InvalidInput(format!(
-                "{} channels: only grey (1) or RGB8 (3) are supported",
+                "{} channels: grey (1), RGB8/BGR8 (3) or RGBA8/BGRA8 (4) are supported",
                 self.channels
             )));
         }
@@ -120,6 +122,8 @@ mod tests {
         assert!(ImageView::new(&buf, 4, 4, 1).is_err());
         assert!(ImageView::new(&buf, 0, 3, 1).is_err());
         assert!(ImageView::new(&buf, 3, 2, 2).is_err());
+        assert!(ImageView::new(&buf, 3, 1, 4).is_ok());
+        assert!(ImageView::new(&buf, 2, 1, 6).is_err());
     }
 
     #[test]
