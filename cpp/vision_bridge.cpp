@@ -406,24 +406,41 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
   const double fx = intrinsics[0], fy = intrinsics[1], cx = intrinsics[2], cy = intrinsics[3];
   bool distorted = false;
   for (double v : dist) distorted = distorted || v != 0.0;
-  // Region to render: the plane's projected bounding box (whole image when distorted or
-  // when a corner is behind the camera).
+  // Region to render: the bounding box of the plane's border projected with distortion
+  // (whole image when part of the plane is behind the camera).
   int u0 = 0, v0 = 0, u1 = width - 1, v1 = height - 1;
-  if (!distorted) {
-    double umin = 1e18, umax = -1e18, vmin = 1e18, vmax = -1e18;
+  {
+    std::vector<cv::Point3d> border;
+    const int per_side = 32;
+    for (int i = 0; i < per_side; ++i) {
+      const double a = -h + 2 * h * i / per_side;
+      for (const auto &q : {cv::Point3d(a, h, 0), cv::Point3d(h, -a, 0), cv::Point3d(-a, -h, 0), cv::Point3d(-h, a, 0)})
+        border.push_back(q);
+    }
     bool ok = true;
-    for (double sx : {-h, h})
-      for (double sy : {-h, h}) {
-        const cv::Vec3d q = H * cv::Vec3d(sx, sy, 1.0);
-        if (q[2] <= 1e-9) ok = false;
-        const double u = fx * q[0] / q[2] + cx, v = fy * q[1] / q[2] + cy;
-        umin = std::min(umin, u); umax = std::max(umax, u); vmin = std::min(vmin, v); vmax = std::max(vmax, v);
-      }
+    std::vector<cv::Point3d> cam_pts;
+    for (const auto &q : border) {
+      const cv::Vec3d c = H * cv::Vec3d(q.x, q.y, 1.0);
+      if (c[2] <= 1e-6) ok = false;
+      cam_pts.emplace_back(c[0], c[1], c[2]);
+    }
     if (ok) {
-      u0 = std::max(0, static_cast<int>(std::floor(umin)) - 2);
-      v0 = std::max(0, static_cast<int>(std::floor(vmin)) - 2);
-      u1 = std::min(width - 1, static_cast<int>(std::ceil(umax)) + 2);
-      v1 = std::min(height - 1, static_cast<int>(std::ceil(vmax)) + 2);
+      std::vector<cv::Point2d> img_pts;
+      cv::projectPoints(cam_pts, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), camera_matrix(intrinsics), dist_mat(dist),
+                        img_pts);
+      double umin = 1e18, umax = -1e18, vmin = 1e18, vmax = -1e18;
+      for (const auto &p : img_pts) {
+        umin = std::min(umin, p.x);
+        umax = std::max(umax, p.x);
+        vmin = std::min(vmin, p.y);
+        vmax = std::max(vmax, p.y);
+      }
+      if (std::isfinite(umin) && std::isfinite(umax) && std::isfinite(vmin) && std::isfinite(vmax)) {
+        u0 = static_cast<int>(std::max(0.0, std::floor(umin) - 3));
+        v0 = static_cast<int>(std::max(0.0, std::floor(vmin) - 3));
+        u1 = static_cast<int>(std::min(width - 1.0, std::ceil(umax) + 3));
+        v1 = static_cast<int>(std::min(height - 1.0, std::ceil(vmax) + 3));
+      }
     }
   }
   // Undistorted normalised coordinates of the pixel centres in the region.

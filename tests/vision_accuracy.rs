@@ -44,3 +44,18 @@ fn apriltag_frames_are_accurate() {
     assert!(tm <= 1e-3, "median translation error {tm} m");
     assert!(rm.to_degrees() <= 0.2, "median rotation error {} deg", rm.to_degrees());
 }
+
+#[test]
+fn blurred_noisy_frames_stay_accurate() {
+    let cfg = SweepConfig {
+        family: "DICT_5X5_100".parse().unwrap(),
+        frames: 6,
+        noise_sigma: 2.0,
+        blur_sigma: 1.0,
+        seed: 21,
+    };
+    let r = evaluate(&synthetic_frames(&cfg).unwrap()).unwrap();
+    assert_eq!(r.detected, r.frames);
+    let (tm, tx) = r.translation_median_max();
+    assert!(tm <= 1e-3 && tx <= 3e-3, "median {tm} m, max {tx} m");
+}
