@@ -364,15 +364,17 @@ cv::Mat make_texture(const std::string &family, int id, double size, double plan
   dict->drawMarker(id, marker_px, marker, 1);
   const double scale = marker_px / size;  // texture px per metre
   const int plane_px = static_cast<int>(std::lround(plane_size * scale));
-  cv::Mat tex(plane_px, plane_px, CV_8UC1);
-  // Blocky random texture, smoothed: clutter but no marker-like squares.
+  // Smooth random clutter (no marker-like squares): random levels on a coarse grid,
+  // interpolated up to the texture size (cheap: no large blur per frame).
   std::mt19937 rng(seed);
   std::uniform_int_distribution<int> u(60, 200);
   const int block = std::max(8, per_cell / 2);
-  for (int r = 0; r < plane_px; r += block)
-    for (int c = 0; c < plane_px; c += block)
-      tex(cv::Rect(c, r, std::min(block, plane_px - c), std::min(block, plane_px - r))).setTo(u(rng));
-  cv::GaussianBlur(tex, tex, cv::Size(0, 0), block * 0.6);
+  const int coarse = plane_px / block + 2;
+  cv::Mat grid(coarse, coarse, CV_8UC1);
+  for (int r = 0; r < coarse; ++r)
+    for (int c = 0; c < coarse; ++c) grid.at<uint8_t>(r, c) = static_cast<uint8_t>(u(rng));
+  cv::Mat tex;
+  cv::resize(grid, tex, cv::Size(plane_px, plane_px), 0, 0, cv::INTER_CUBIC);
   const int quiet = per_cell;  // one cell of white around the marker
   const int off = (plane_px - marker_px) / 2;
   tex(cv::Rect(off - quiet, off - quiet, marker_px + 2 * quiet, marker_px + 2 * quiet)).setTo(255);

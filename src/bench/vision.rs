@@ -180,5 +180,32 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
             extra,
         });
     }
+    // The synthetic camera itself (the simulated ZED: distortion on, noise on).
+    let zed = CameraModel::from_yaml_str(ZEDM_YAML)?;
+    let spec = MarkerSpec {
+        family: "DICT_4X4_50".parse()?,
+        id: Some(0),
+        size: 0.05,
+    };
+    let poses: Vec<Isometry3<f64>> = (0..n.clamp(1, 200))
+        .map(|i| facing_pose(0.3 + 0.002 * (i % 100) as f64, 0.01, 0.0, 0.3, 0.2, 0.1))
+        .collect();
+    let opts = RenderOptions {
+        noise_sigma: 2.0,
+        ..Default::default()
+    };
+    let t = time_each(&poses, 3, |p| {
+        render_marker_image(&spec, &zed, p, &opts).map(|i| i.data.len())
+    });
+    if let Some(latency) = LatencyStats::from_samples(&t) {
+        out.push(SuiteReport {
+            name: "render_marker_zedm_1280x720".into(),
+            latency,
+            extra: Default::default(),
+        });
+    }
     Ok(out)
 }
+
+/// The shipped ZED mini calibration (distortion included).
+const ZEDM_YAML: &str = include_str!("../../config/camera_zedm.yaml");
