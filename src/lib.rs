@@ -20,3 +20,4 @@ pub mod robot_model;
 pub mod safety;
 pub mod sim;
 pub mod supervisor;
+pub mod vision;

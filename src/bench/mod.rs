@@ -7,6 +7,7 @@ use std::time::Instant;
 pub mod controller;
 pub mod kinematics;
 pub mod sim;
+pub mod vision;
 
 /// Latency statistics of repeated runs of one operation, in microseconds.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]

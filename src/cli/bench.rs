@@ -12,6 +12,8 @@ pub enum Suite {
     Sim,
     /// One control step (FK + Jacobian + SQP + guard), two scenarios.
     Controller,
+    /// Marker detection + pose on synthetic frames (latency and accuracy).
+    Vision,
     /// Every suite.
     All,
 }
@@ -43,6 +45,9 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
     }
     if all || a.suite == Suite::Controller {
         reports.extend(crate::bench::controller::run(a.samples.min(5000))?);
+    }
+    if all || a.suite == Suite::Vision {
+        reports.extend(crate::bench::vision::run(a.samples)?);
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&reports)?);

@@ -6,6 +6,7 @@ pub mod bench;
 pub mod fk;
 pub mod trials;
 pub mod urdf;
+pub mod vision;
 
 /// Errors a subcommand reports to the user (printed, exit code 1).
 pub type CliResult = Result<(), Box<dyn std::error::Error + Send + Sync>>;
@@ -28,6 +29,12 @@ pub enum Command {
     Fk(fk::FkArgs),
     /// Run the paper's experiment in simulation: trials with and without force feedback.
     Trials(trials::TrialsArgs),
+    /// Detect markers in an image file and print their poses.
+    Detect(vision::DetectArgs),
+    /// Render a synthetic marker image and print its true pose.
+    Render(vision::RenderArgs),
+    /// Hand-eye calibration (camera in the flange) from pose pairs.
+    HandEye(vision::HandEyeArgs),
     /// Write the URDF of an LBR Med with an endoscope.
     Urdf(urdf::UrdfArgs),
     /// Print the versions of the C++ libraries linked.
@@ -41,6 +48,9 @@ pub fn run(cli: Cli) -> CliResult {
         Command::Fk(a) => fk::run(&a),
         Command::Trials(a) => trials::run(&a),
         Command::Urdf(a) => urdf::run(&a),
+        Command::Detect(a) => vision::run_detect(&a),
+        Command::Render(a) => vision::run_render(&a),
+        Command::HandEye(a) => vision::run_hand_eye(&a),
         Command::Versions => {
             println!("{}", crate::ffi::vision::ffi::vision_backend_versions());
             Ok(())

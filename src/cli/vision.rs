@@ -1,0 +1,228 @@
+//! `trocar_docking detect`, `render` and `hand-eye`: marker detection on an image file, the
+//! synthetic camera, and hand-eye calibration from a file of pose pairs.
+
+use std::path::PathBuf;
+
+use nalgebra::Isometry3;
+
+use crate::vision::estimator::PoseYaml;
+use crate::vision::{
+    facing_pose, hand_eye, render_marker_image, CameraModel, GreyImage, MarkerDetection, MarkerDetector, MarkerFamily,
+    MarkerSpec, RenderOptions,
+};
+
+/// The marker options shared by `detect` and `render`.
+#[derive(Debug, clap::Args)]
+pub struct MarkerArgs {
+    /// Family: an OpenCV dictionary name (DICT_4X4_50, DICT_ARUCO_ORIGINAL, ...) or tag36h11.
+    #[arg(long, default_value = "DICT_4X4_50")]
+    pub family: String,
+    /// Marker id (detect: keep only this id; default: all).
+    #[arg(long)]
+    pub id: Option<u32>,
+    /// Marker side, m.
+    #[arg(long, default_value_t = 0.05)]
+    pub size: f64,
+}
+
+impl MarkerArgs {
+    fn spec(&self) -> Result<MarkerSpec, crate::vision::VisionError> {
+        let family: MarkerFamily = self.family.parse()?;
+        let spec = MarkerSpec {
+            family,
+            id: self.id,
+            size: self.size,
+        };
+        spec.validate()?;
+        Ok(spec)
+    }
+}
+
+/// Arguments of `detect`.
+#[derive(Debug, clap::Args)]
+pub struct DetectArgs {
+    /// Image file (PNG, PGM, JPEG...).
+    #[arg(long)]
+    pub image: PathBuf,
+    /// Camera calibration YAML (ROS camera_info_manager format).
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// Marker.
+    #[command(flatten)]
+    pub marker: MarkerArgs,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `render`.
+#[derive(Debug, clap::Args)]
+pub struct RenderArgs {
+    /// Output image (format by extension: .png, .pgm, ...).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Camera calibration YAML.
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// Marker (id defaults to 0).
+    #[command(flatten)]
+    pub marker: MarkerArgs,
+    /// Distance of the marker centre along the optical axis, m.
+    #[arg(long, default_value_t = 0.4)]
+    pub distance: f64,
+    /// Lateral offset x, y in the camera frame, m.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_value = "0,0")]
+    pub offset: Vec<f64>,
+    /// Tilt about the marker x and y axes, deg.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true, default_value = "0,0")]
+    pub tilt_deg: Vec<f64>,
+    /// Turn about the marker z axis, deg.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub yaw_deg: f64,
+    /// Gaussian pixel noise sigma, grey levels.
+    #[arg(long, default_value_t = 0.0)]
+    pub noise: f64,
+    /// Gaussian blur sigma, px.
+    #[arg(long, default_value_t = 0.0)]
+    pub blur: f64,
+    /// Seed of noise and texture.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Arguments of `hand-eye`.
+#[derive(Debug, clap::Args)]
+pub struct HandEyeArgs {
+    /// YAML/JSON file: `samples: [{base_t_flange: {translation, quaternion_xyzw}, camera_t_marker: {...}}, ...]`.
+    #[arg(long)]
+    pub input: PathBuf,
+    /// Write the result (flange_t_camera and residuals) as YAML here.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Print JSON instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn pose_json(p: &Isometry3<f64>) -> serde_json::Value {
+    let y = PoseYaml::from_isometry(p);
+    serde_json::json!({ "translation": y.translation, "quaternion_xyzw": y.quaternion_xyzw })
+}
+
+fn detection_json(d: &MarkerDetection) -> serde_json::Value {
+    serde_json::json!({
+        "id": d.id,
+        "pose_camera_marker": pose_json(&d.pose_camera_marker),
+        "corners_px": d.corners,
+        "reprojection_error_px": d.reprojection_error_px,
+    })
+}
+
+/// Run `detect`.
+pub fn run_detect(a: &DetectArgs) -> super::CliResult {
+    let camera = CameraModel::from_yaml_file(&a.camera)?;
+    let spec = a.marker.spec()?;
+    let image = GreyImage::read(&a.image)?;
+    let mut det = MarkerDetector::new(spec, &camera)?;
+    let t0 = std::time::Instant::now();
+    let found = det.detect(&image.view())?;
+    let ms = t0.elapsed().as_secs_f64() * 1e3;
+    if a.json {
+        let v = serde_json::json!({
+            "image": a.image, "family": a.marker.family, "size_m": a.marker.size, "time_ms": ms,
+            "markers": found.iter().map(detection_json).collect::<Vec<_>>(),
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        println!("{} marker(s) in {:.2} ms", found.len(), ms);
+        for d in &found {
+            let t = d.pose_camera_marker.translation.vector;
+            let q = d.pose_camera_marker.rotation;
+            println!(
+                "id {}: t [m] {:+.5} {:+.5} {:+.5}  q [x y z w] {:+.5} {:+.5} {:+.5} {:+.5}  reproj {:.3} px",
+                d.id, t.x, t.y, t.z, q.i, q.j, q.k, q.w, d.reprojection_error_px
+            );
+            let c: Vec<String> = d
+                .corners
+                .iter()
+                .map(|c| format!("({:.2}, {:.2})", c[0], c[1]))
+                .collect();
+            println!("   corners TL TR BR BL: {}", c.join(" "));
+        }
+    }
+    Ok(())
+}
+
+/// Run `render`.
+pub fn run_render(a: &RenderArgs) -> super::CliResult {
+    let camera = CameraModel::from_yaml_file(&a.camera)?;
+    let mut spec = a.marker.spec()?;
+    spec.id = Some(spec.id.unwrap_or(0));
+    if a.offset.len() != 2 || a.tilt_deg.len() != 2 {
+        return Err("--offset and --tilt-deg take two comma-separated numbers".into());
+    }
+    let truth = facing_pose(
+        a.distance,
+        a.offset[0],
+        a.offset[1],
+        a.tilt_deg[0].to_radians(),
+        a.tilt_deg[1].to_radians(),
+        a.yaw_deg.to_radians(),
+    );
+    let opts = RenderOptions {
+        noise_sigma: a.noise,
+        blur_sigma: a.blur,
+        seed: a.seed,
+        ..Default::default()
+    };
+    let img = render_marker_image(&spec, &camera, &truth, &opts)?;
+    img.write(&a.out)?;
+    if a.json {
+        let v = serde_json::json!({
+            "out": a.out, "family": spec.family.name(), "id": spec.id, "size_m": spec.size,
+            "width": img.width, "height": img.height, "pose_camera_marker": pose_json(&truth),
+        });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        let t = truth.translation.vector;
+        let q = truth.rotation;
+        println!("wrote {} ({}x{})", a.out.display(), img.width, img.height);
+        println!(
+            "true pose_camera_marker: t [m] {:+.5} {:+.5} {:+.5}  q [x y z w] {:+.5} {:+.5} {:+.5} {:+.5}",
+            t.x, t.y, t.z, q.i, q.j, q.k, q.w
+        );
+    }
+    Ok(())
+}
+
+/// Run `hand-eye`.
+pub fn run_hand_eye(a: &HandEyeArgs) -> super::CliResult {
+    let input = hand_eye::HandEyeInput::from_file(&a.input)?;
+    let r = hand_eye::calibrate_input(&input)?;
+    if let Some(out) = &a.out {
+        let header = "# Camera pose in the flange frame (eMc) from `trocar_docking hand-eye`, with residuals.\n";
+        std::fs::write(out, format!("{header}{}", serde_yaml::to_string(&r)?))?;
+    }
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        let t = r.flange_t_camera.translation;
+        let q = r.flange_t_camera.quaternion_xyzw;
+        println!(
+            "flange_t_camera: t [m] {:+.5} {:+.5} {:+.5}  q [x y z w] {:+.5} {:+.5} {:+.5} {:+.5}",
+            t[0], t[1], t[2], q[0], q[1], q[2], q[3]
+        );
+        println!(
+            "residuals over {} samples: translation rms {:.3} mm (max {:.3}), rotation rms {:.3} deg (max {:.3})",
+            r.samples,
+            r.residual_translation_rms_m * 1e3,
+            r.residual_translation_max_m * 1e3,
+            r.residual_rotation_rms_rad.to_degrees(),
+            r.residual_rotation_max_rad.to_degrees()
+        );
+    }
+    Ok(())
+}

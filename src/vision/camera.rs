@@ -1,0 +1,261 @@
+//! Camera model: pinhole intrinsics and distortion, from the ROS camera calibration YAML
+//! (what `camera_calibration` writes and `camera_info_manager` reads) or CameraInfo fields.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::VisionError;
+
+/// A row-major matrix as the ROS calibration YAML stores it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct YamlMatrix {
+    /// Rows.
+    pub rows: usize,
+    /// Columns.
+    pub cols: usize,
+    /// Row-major values.
+    pub data: Vec<f64>,
+}
+
+/// The ROS camera calibration file (camera_info_manager format).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CalibrationYaml {
+    /// Image width, px.
+    pub image_width: u32,
+    /// Image height, px.
+    pub image_height: u32,
+    /// Camera name.
+    #[serde(default)]
+    pub camera_name: String,
+    /// K, 3x3.
+    pub camera_matrix: YamlMatrix,
+    /// `plumb_bob`, `rational_polynomial` or `equidistant` (the last is not supported).
+    #[serde(default = "default_model")]
+    pub distortion_model: String,
+    /// D, 1xN.
+    pub distortion_coefficients: YamlMatrix,
+    /// R, 3x3.
+    #[serde(default)]
+    pub rectification_matrix: Option<YamlMatrix>,
+    /// P, 3x4.
+    #[serde(default)]
+    pub projection_matrix: Option<YamlMatrix>,
+}
+
+fn default_model() -> String {
+    "plumb_bob".into()
+}
+
+/// Pinhole intrinsics with OpenCV-ordered distortion (k1 k2 p1 p2 [k3 [k4 k5 k6]]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraModel {
+    /// Image width, px.
+    pub width: u32,
+    /// Image height, px.
+    pub height: u32,
+    /// Focal length x, px.
+    pub fx: f64,
+    /// Focal length y, px.
+    pub fy: f64,
+    /// Principal point x, px.
+    pub cx: f64,
+    /// Principal point y, px.
+    pub cy: f64,
+    /// Distortion coefficients, OpenCV order; empty or all zero = none.
+    pub distortion: Vec<f64>,
+    /// Camera name.
+    pub name: String,
+}
+
+impl CameraModel {
+    /// A distortion-free camera, validated.
+    pub fn pinhole(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> Result<Self, VisionError> {
+        let c = Self {
+            width,
+            height,
+            fx,
+            fy,
+            cx,
+            cy,
+            distortion: vec![],
+            name: String::new(),
+        };
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// From sensor_msgs/CameraInfo fields (`K` row-major 9, `D`, model name).
+    pub fn from_camera_info(
+        width: u32,
+        height: u32,
+        k: &[f64],
+        d: &[f64],
+        distortion_model: &str,
+    ) -> Result<Self, VisionError> {
+        if k.len() != 9 {
+            return Err(VisionError::InvalidInput(format!(
+                "K has {} values, expected 9",
+                k.len()
+            )));
+        }
+        match distortion_model {
+            "plumb_bob" | "rational_polynomial" | "" => {}
+            m => {
+                return Err(VisionError::InvalidInput(format!(
+                    "distortion model `{m}` not supported (plumb_bob, rational_polynomial)"
+                )))
+            }
+        }
+        let c = Self {
+            width,
+            height,
+            fx: k[0],
+            fy: k[4],
+            cx: k[2],
+            cy: k[5],
+            distortion: d.to_vec(),
+            name: String::new(),
+        };
+        c.validate()?;
+        Ok(c)
+    }
+
+    /// From the parsed calibration YAML.
+    pub fn from_calibration(c: &CalibrationYaml) -> Result<Self, VisionError> {
+        let k = &c.camera_matrix;
+        if k.rows != 3 || k.cols != 3 {
+            return Err(VisionError::InvalidInput("camera_matrix must be 3x3".into()));
+        }
+        let mut m = Self::from_camera_info(
+            c.image_width,
+            c.image_height,
+            &k.data,
+            &c.distortion_coefficients.data,
+            &c.distortion_model,
+        )?;
+        m.name = c.camera_name.clone();
+        Ok(m)
+    }
+
+    /// Read a ROS camera calibration YAML file.
+    pub fn from_yaml_file(path: &Path) -> Result<Self, VisionError> {
+        let s = std::fs::read_to_string(path).map_err(|e| VisionError::Io(format!("{}: {e}", path.display())))?;
+        Self::from_yaml_str(&s)
+    }
+
+    /// Parse a ROS camera calibration YAML string.
+    pub fn from_yaml_str(s: &str) -> Result<Self, VisionError> {
+        let c: CalibrationYaml = serde_yaml::from_str(s).map_err(|e| VisionError::Io(format!("camera YAML: {e}")))?;
+        Self::from_calibration(&c)
+    }
+
+    /// The calibration YAML of this model (P = K | 0, R = identity).
+    pub fn to_calibration(&self) -> CalibrationYaml {
+        let k = vec![self.fx, 0.0, self.cx, 0.0, self.fy, self.cy, 0.0, 0.0, 1.0];
+        CalibrationYaml {
+            image_width: self.width,
+            image_height: self.height,
+            camera_name: self.name.clone(),
+            camera_matrix: YamlMatrix {
+                rows: 3,
+                cols: 3,
+                data: k,
+            },
+            distortion_model: if self.distortion.len() > 5 {
+                "rational_polynomial"
+            } else {
+                "plumb_bob"
+            }
+            .into(),
+            distortion_coefficients: YamlMatrix {
+                rows: 1,
+                cols: self.distortion.len(),
+                data: self.distortion.clone(),
+            },
+            rectification_matrix: Some(YamlMatrix {
+                rows: 3,
+                cols: 3,
+                data: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            }),
+            projection_matrix: Some(YamlMatrix {
+                rows: 3,
+                cols: 4,
+                data: vec![
+                    self.fx, 0.0, self.cx, 0.0, 0.0, self.fy, self.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
+                ],
+            }),
+        }
+    }
+
+    /// Check the model is physically plausible (rejects values that would trip C++ asserts).
+    pub fn validate(&self) -> Result<(), VisionError> {
+        let bad = |m: String| Err(VisionError::InvalidInput(m));
+        if self.width == 0 || self.height == 0 || self.width > 20_000 || self.height > 20_000 {
+            return bad(format!("image size {}x{} out of range", self.width, self.height));
+        }
+        let (w, h) = (f64::from(self.width), f64::from(self.height));
+        if ![self.fx, self.fy, self.cx, self.cy].iter().all(|v| v.is_finite()) {
+            return bad("intrinsics must be finite".into());
+        }
+        if self.fx < 1.0 || self.fy < 1.0 || self.fx > 100.0 * w || self.fy > 100.0 * h {
+            return bad(format!("focal lengths {} {} px are absurd", self.fx, self.fy));
+        }
+        if !(-w..=2.0 * w).contains(&self.cx) || !(-h..=2.0 * h).contains(&self.cy) {
+            return bad(format!(
+                "principal point ({}, {}) far outside the image",
+                self.cx, self.cy
+            ));
+        }
+        if !matches!(self.distortion.len(), 0 | 4 | 5 | 8 | 12 | 14) {
+            return bad(format!(
+                "{} distortion coefficients (0, 4, 5, 8, 12 or 14)",
+                self.distortion.len()
+            ));
+        }
+        if self.distortion.iter().any(|d| !d.is_finite() || d.abs() > 1e3) {
+            return bad("distortion coefficients must be finite and moderate".into());
+        }
+        Ok(())
+    }
+
+    /// fx, fy, cx, cy.
+    pub fn intrinsics(&self) -> [f64; 4] {
+        [self.fx, self.fy, self.cx, self.cy]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn yaml_round_trip_and_shipped_file() {
+        let mut c = CameraModel::pinhole(1280, 720, 700.0, 701.0, 640.5, 360.2).unwrap();
+        c.distortion = vec![-0.17, 0.02, 0.0005, -0.0003, 0.0];
+        let s = serde_yaml::to_string(&c.to_calibration()).unwrap();
+        assert_eq!(CameraModel::from_yaml_str(&s).unwrap(), c);
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml");
+        let z = CameraModel::from_yaml_file(&path).unwrap();
+        assert_eq!((z.width, z.height), (1280, 720));
+        assert!((600.0..800.0).contains(&z.fx));
+    }
+
+    #[test]
+    fn absurd_models_are_rejected() {
+        assert!(CameraModel::pinhole(1280, 720, 0.0, 700.0, 640.0, 360.0).is_err());
+        assert!(CameraModel::pinhole(1280, 720, f64::NAN, 700.0, 640.0, 360.0).is_err());
+        assert!(CameraModel::pinhole(0, 720, 700.0, 700.0, 640.0, 360.0).is_err());
+        assert!(CameraModel::pinhole(1280, 720, 700.0, 700.0, 1e6, 360.0).is_err());
+        assert!(CameraModel::from_camera_info(1280, 720, &[1.0; 4], &[], "plumb_bob").is_err());
+        assert!(CameraModel::from_camera_info(
+            1280,
+            720,
+            &[700.0, 0.0, 640.0, 0.0, 700.0, 360.0, 0.0, 0.0, 1.0],
+            &[0.0; 3],
+            "plumb_bob"
+        )
+        .is_err());
+        assert!(CameraModel::from_yaml_str("image_width: 3").is_err());
+    }
+}

@@ -1,0 +1,293 @@
+//! Marker detection and pose: ArUco corners from OpenCV aruco (sub-pixel refined),
+//! AprilTag 36h11 corners from ViSP; pose from IPPE-square initialisation refined by ViSP's
+//! virtual visual servoing (vpPose), distortion included.
+//!
+//! Pose convention: `pose_camera_marker` maps marker coordinates to camera (optical frame)
+//! coordinates; the marker frame is centred, x right and y up on the printed marker, z out
+//! of the marker. Corners are top-left, top-right, bottom-right, bottom-left of the upright
+//! marker, in pixels (distorted image, pixel centres at integers).
+
+use std::fmt;
+use std::str::FromStr;
+
+use nalgebra::Isometry3;
+
+use super::{isometry_from_rt, CameraModel, ImageView, VisionError};
+use crate::ffi::vision::{ffi, DETECTION_RECORD_LEN};
+
+/// A marker family: an OpenCV aruco dictionary or AprilTag 36h11.
+#[derive(Debug, Clone, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub enum MarkerFamily {
+    /// An OpenCV predefined dictionary, by its name (e.g. `DICT_4X4_50`, `DICT_ARUCO_ORIGINAL`).
+    Aruco(String),
+    /// AprilTag 36h11 (ViSP's detector).
+    Tag36h11,
+}
+
+/// The OpenCV dictionary names accepted, with their number of ids.
+pub const ARUCO_DICTIONARIES: &[(&str, u32)] = &[
+    ("DICT_4X4_50", 50),
+    ("DICT_4X4_100", 100),
+    ("DICT_4X4_250", 250),
+    ("DICT_4X4_1000", 1000),
+    ("DICT_5X5_50", 50),
+    ("DICT_5X5_100", 100),
+    ("DICT_5X5_250", 250),
+    ("DICT_5X5_1000", 1000),
+    ("DICT_6X6_50", 50),
+    ("DICT_6X6_100", 100),
+    ("DICT_6X6_250", 250),
+    ("DICT_6X6_1000", 1000),
+    ("DICT_7X7_50", 50),
+    ("DICT_7X7_100", 100),
+    ("DICT_7X7_250", 250),
+    ("DICT_7X7_1000", 1000),
+    ("DICT_ARUCO_ORIGINAL", 1024),
+];
+
+impl MarkerFamily {
+    /// The name (OpenCV dictionary name, or `tag36h11`).
+    pub fn name(&self) -> &str {
+        match self {
+            MarkerFamily::Aruco(n) => n,
+            MarkerFamily::Tag36h11 => "tag36h11",
+        }
+    }
+
+    /// Number of distinct ids in the family.
+    pub fn id_count(&self) -> u32 {
+        match self {
+            MarkerFamily::Aruco(n) => ARUCO_DICTIONARIES.iter().find(|(d, _)| d == n).map_or(0, |(_, c)| *c),
+            MarkerFamily::Tag36h11 => 587,
+        }
+    }
+}
+
+impl FromStr for MarkerFamily {
+    type Err = VisionError;
+    fn from_str(s: &str) -> Result<Self, VisionError> {
+        let t = s.trim();
+        if t.eq_ignore_ascii_case("tag36h11") || t.eq_ignore_ascii_case("36h11") {
+            return Ok(MarkerFamily::Tag36h11);
+        }
+        let u = t.to_ascii_uppercase();
+        let u = if u.starts_with("DICT_") { u } else { format!("DICT_{u}") };
+        if ARUCO_DICTIONARIES.iter().any(|(d, _)| *d == u) {
+            Ok(MarkerFamily::Aruco(u))
+        } else {
+            Err(VisionError::InvalidInput(format!(
+                "unknown marker family `{s}` (OpenCV names such as DICT_4X4_50, DICT_ARUCO_ORIGINAL, or tag36h11)"
+            )))
+        }
+    }
+}
+
+impl TryFrom<String> for MarkerFamily {
+    type Error = VisionError;
+    fn try_from(s: String) -> Result<Self, VisionError> {
+        s.parse()
+    }
+}
+
+impl From<MarkerFamily> for String {
+    fn from(f: MarkerFamily) -> String {
+        f.name().to_string()
+    }
+}
+
+impl fmt::Display for MarkerFamily {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Which marker to look for.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MarkerSpec {
+    /// Family.
+    pub family: MarkerFamily,
+    /// Id to keep; `None` keeps every id of the family.
+    pub id: Option<u32>,
+    /// Side of the black square, m.
+    pub size: f64,
+}
+
+impl MarkerSpec {
+    /// Check size and id.
+    pub fn validate(&self) -> Result<(), VisionError> {
+        if !(self.size.is_finite() && self.size > 1e-4 && self.size < 10.0) {
+            return Err(VisionError::InvalidInput(format!(
+                "marker size {} m out of range",
+                self.size
+            )));
+        }
+        if let Some(id) = self.id {
+            if id >= self.family.id_count() {
+                return Err(VisionError::InvalidInput(format!(
+                    "id {id} not in {} ({} ids)",
+                    self.family,
+                    self.family.id_count()
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One detected marker.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct MarkerDetection {
+    /// Marker id.
+    pub id: u32,
+    /// Marker pose in the camera optical frame.
+    pub pose_camera_marker: Isometry3<f64>,
+    /// Corner pixels: TL, TR, BR, BL of the upright marker.
+    pub corners: [[f64; 2]; 4],
+    /// RMS reprojection error of the corners, px.
+    pub reprojection_error_px: f64,
+}
+
+/// A detector for one marker spec and camera. Keeps its C++ state (dictionary, AprilTag
+/// detector, buffers) between frames; `Send`, not `Sync`.
+pub struct MarkerDetector {
+    spec: MarkerSpec,
+    camera: CameraModel,
+    inner: cxx::UniquePtr<ffi::MarkerDetectorCpp>,
+}
+
+impl fmt::Debug for MarkerDetector {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("MarkerDetector")
+            .field("spec", &self.spec)
+            .field("camera", &self.camera)
+            .finish()
+    }
+}
+
+impl MarkerDetector {
+    /// Build a detector (validates the spec and the camera model first).
+    pub fn new(spec: MarkerSpec, camera: &CameraModel) -> Result<Self, VisionError> {
+        spec.validate()?;
+        camera.validate()?;
+        let inner = ffi::new_marker_detector(
+            spec.family.name(),
+            &camera.intrinsics(),
+            &camera.distortion,
+            camera.width as i32,
+            camera.height as i32,
+        )?;
+        if inner.is_null() {
+            return Err(VisionError::Backend("detector construction returned null".into()));
+        }
+        Ok(Self {
+            spec,
+            camera: camera.clone(),
+            inner,
+        })
+    }
+
+    /// The spec.
+    pub fn spec(&self) -> &MarkerSpec {
+        &self.spec
+    }
+
+    /// The camera model.
+    pub fn camera(&self) -> &CameraModel {
+        &self.camera
+    }
+
+    /// Detect markers of the spec in `image` (grey or RGB8, the camera's size). No marker ->
+    /// an empty vector; a wrong size or a malformed buffer -> an error.
+    pub fn detect(&mut self, image: &ImageView<'_>) -> Result<Vec<MarkerDetection>, VisionError> {
+        image.validate()?;
+        if image.width != self.camera.width || image.height != self.camera.height {
+            return Err(VisionError::InvalidInput(format!(
+                "image is {}x{}, camera model is {}x{}",
+                image.width, image.height, self.camera.width, self.camera.height
+            )));
+        }
+        let id = self.spec.id.map_or(-1, |i| i as i32);
+        let pinned = self
+            .inner
+            .as_mut()
+            .ok_or_else(|| VisionError::Backend("detector is null".into()))?;
+        let rec = ffi::detect_markers(
+            pinned,
+            image.data,
+            image.width as i32,
+            image.height as i32,
+            image.channels as i32,
+            id,
+            self.spec.size,
+        )?;
+        Ok(rec
+            .chunks_exact(DETECTION_RECORD_LEN)
+            .filter_map(parse_record)
+            .collect())
+    }
+}
+
+/// One 22-number record -> a detection; `None` if it is not finite or not a rotation.
+fn parse_record(r: &[f64]) -> Option<MarkerDetection> {
+    if !(r[0].is_finite() && r[0] >= 0.0) || r[21].is_nan() {
+        return None;
+    }
+    let pose = isometry_from_rt(&r[1..13])?;
+    let mut corners = [[0.0; 2]; 4];
+    for (k, c) in corners.iter_mut().enumerate() {
+        *c = [r[13 + 2 * k], r[14 + 2 * k]];
+    }
+    if corners.iter().flatten().any(|v| !v.is_finite()) {
+        return None;
+    }
+    Some(MarkerDetection {
+        id: r[0] as u32,
+        pose_camera_marker: pose,
+        corners,
+        reprojection_error_px: r[21],
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn family_names_parse() {
+        assert_eq!(
+            "DICT_4X4_50".parse::<MarkerFamily>().unwrap(),
+            MarkerFamily::Aruco("DICT_4X4_50".into())
+        );
+        assert_eq!("4x4_50".parse::<MarkerFamily>().unwrap().name(), "DICT_4X4_50");
+        assert_eq!("tag36h11".parse::<MarkerFamily>().unwrap(), MarkerFamily::Tag36h11);
+        assert!("DICT_9X9_50".parse::<MarkerFamily>().is_err());
+        assert_eq!(MarkerFamily::Aruco("DICT_ARUCO_ORIGINAL".into()).id_count(), 1024);
+    }
+
+    #[test]
+    fn specs_are_validated() {
+        let fam = MarkerFamily::Aruco("DICT_4X4_50".into());
+        assert!(MarkerSpec {
+            family: fam.clone(),
+            id: Some(49),
+            size: 0.05
+        }
+        .validate()
+        .is_ok());
+        assert!(MarkerSpec {
+            family: fam.clone(),
+            id: Some(50),
+            size: 0.05
+        }
+        .validate()
+        .is_err());
+        assert!(MarkerSpec {
+            family: fam,
+            id: None,
+            size: f64::NAN
+        }
+        .validate()
+        .is_err());
+    }
+}
