@@ -305,6 +305,9 @@ impl Controller {
             self.metric = ForceMetric::default();
             self.target = None;
             self.admittance.reset();
+            // A new run starts from where the arm is (it may have been moved by hand while
+            // idle), not from the last command of the previous run.
+            self.last_command = None;
         }
         self.retreat_s = None;
         Ok(())

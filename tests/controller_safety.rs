@@ -232,8 +232,26 @@ fn abort_and_reset() {
     assert!(c.start().is_err());
     c.reset();
     assert_eq!(c.phase(), Phase::Idle);
+    // Moved by hand while idle (0.3 rad on joint 1): the new run starts from there, without
+    // a jump and without a tracking hold against the old command.
+    let mut moved = cmd;
+    moved[0] += 0.3;
+    assert_eq!(
+        c.step(&kin, &input(0.04, moved, JointVector::zeros(), troc)).command,
+        None
+    );
     c.start().unwrap();
     assert_eq!(c.phase(), Phase::Approach);
+    let o = c.step(&kin, &input(0.05, moved, JointVector::zeros(), troc));
+    assert_eq!(o.phase, Phase::Approach, "{:?}", o.reason);
+    let next = o.command.unwrap();
+    let vmax = kin.limits().velocity * ControllerParams::default().guard.velocity_scale * 0.01;
+    for i in 0..7 {
+        assert!(
+            (next[i] - moved[i]).abs() <= vmax[i] + 1e-9,
+            "joint {i} jumps after restart"
+        );
+    }
 }
 
 #[test]

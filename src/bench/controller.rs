@@ -69,6 +69,7 @@ pub fn run_scenario(
     let mut times = Vec::with_capacity(steps);
     let mut iters = Vec::with_capacity(steps);
     let mut now = 0.0;
+    let mut restarts = 0usize;
     while times.len() < steps {
         now += params.dt;
         let (_, trocar) = scenario_trocar(kin, scenario, now).map_err(|e| e.to_string())?;
@@ -89,6 +90,15 @@ pub fn run_scenario(
         let us = t0.elapsed().as_secs_f64() * 1e6;
         if !out.phase.is_moving() {
             // Docked (or held): start over from the initial configuration.
+            restarts += 1;
+            if restarts > steps {
+                return Err(format!(
+                    "{}: no progress ({:?}: {:?})",
+                    scenario.name(),
+                    out.phase,
+                    out.reason
+                ));
+            }
             c.reset();
             c.start()?;
             q = q0;
