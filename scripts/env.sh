@@ -18,3 +18,16 @@ export ROS_PYTHON_VERSION=3
 export CMAKE_PREFIX_PATH="${CMAKE_PREFIX_PATH:-/usr}"
 # Debian's ROS tools are /usr/bin python scripts; keep /usr/bin ahead of pyenv shims.
 export PATH="/usr/bin:/bin:$PATH"
+# Python modules of our own messages (scripts/gen-python-msgs), so rostopic/rosbag read them.
+case ":${PYTHONPATH:-}:" in
+  *":$TD_ROOT/target/ros_py:"*) ;;
+  *) export PYTHONPATH="$TD_ROOT/target/ros_py${PYTHONPATH:+:$PYTHONPATH}" ;;
+esac
+# A catkin-style devel space whose lib/trocar_docking/ links to ONE build profile's node
+# binaries (scripts/install-nodes). roslaunch searches catkin workspaces on CMAKE_PREFIX_PATH
+# before the package folder and takes the first match, so it always runs these, never
+# whichever of target/debug or target/release its folder walk meets first.
+case ":$CMAKE_PREFIX_PATH:" in
+  *":$TD_ROOT/target/ros_ws:"*) ;;
+  *) export CMAKE_PREFIX_PATH="$TD_ROOT/target/ros_ws:$CMAKE_PREFIX_PATH" ;;
+esac

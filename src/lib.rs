@@ -11,3 +11,4 @@ pub mod cli;
 pub mod ffi;
 pub mod kinematics;
 pub mod robot_model;
+pub mod ros;

@@ -1,0 +1,8 @@
+//! ROS 1 glue (rosrust): message types, parameter loading, message conversions, the JUnit
+//! writer rostest needs, and the node wiring. No maths here: the nodes convert messages,
+//! call the pure core, and publish.
+
+pub mod convert;
+pub mod junit;
+pub mod msgs;
+pub mod params;
