@@ -9,9 +9,14 @@ export ROS_MASTER_URI="${ROS_MASTER_URI:-http://127.0.0.1:11311}"
 export ROS_IP="${ROS_IP:-127.0.0.1}"
 export ROS_HOME="${ROS_HOME:-$TD_ROOT/target/ros_home}"
 export ROS_LOG_DIR="${ROS_LOG_DIR:-$ROS_HOME/log}"
+# The ROS view of the package (scripts/ros-package): target/ros_pkg/trocar_docking links to
+# package.xml, launch/, config/, ... of the checkout and to ONE build profile's node binaries.
+# roslaunch/rostest find a node by walking the package folder (following links) for an
+# executable named `type` and take the first: walking the checkout would meet target/debug
+# and target/release (and cxx's symlink loop under target/), so it walks this view instead.
 case ":${ROS_PACKAGE_PATH:-}:" in
-  *":$TD_ROOT:"*) ;;
-  *) export ROS_PACKAGE_PATH="$TD_ROOT${ROS_PACKAGE_PATH:+:$ROS_PACKAGE_PATH}" ;;
+  *":$TD_ROOT/target/ros_pkg:"*) ;;
+  *) export ROS_PACKAGE_PATH="$TD_ROOT/target/ros_pkg${ROS_PACKAGE_PATH:+:$ROS_PACKAGE_PATH}" ;;
 esac
 export ROS_DISTRO="${ROS_DISTRO:-noetic}"
 export ROS_PYTHON_VERSION=3
@@ -22,12 +27,4 @@ export PATH="/usr/bin:/bin:$PATH"
 case ":${PYTHONPATH:-}:" in
   *":$TD_ROOT/target/ros_py:"*) ;;
   *) export PYTHONPATH="$TD_ROOT/target/ros_py${PYTHONPATH:+:$PYTHONPATH}" ;;
-esac
-# A catkin-style devel space whose lib/trocar_docking/ links to ONE build profile's node
-# binaries (scripts/install-nodes). roslaunch searches catkin workspaces on CMAKE_PREFIX_PATH
-# before the package folder and takes the first match, so it always runs these, never
-# whichever of target/debug or target/release its folder walk meets first.
-case ":$CMAKE_PREFIX_PATH:" in
-  *":$TD_ROOT/target/ros_ws:"*) ;;
-  *) export CMAKE_PREFIX_PATH="$TD_ROOT/target/ros_ws:$CMAKE_PREFIX_PATH" ;;
 esac

@@ -112,7 +112,11 @@ fn joint_vector(topic: &str, field: &'static str, v: &[f64]) -> Result<JointVect
 }
 
 /// Joint positions in the order of `names`, picked by name from a JointState.
-pub fn joint_positions(topic: &str, msg: &sensor_msgs::JointState, names: &[String]) -> Result<JointVector, InputError> {
+pub fn joint_positions(
+    topic: &str,
+    msg: &sensor_msgs::JointState,
+    names: &[String],
+) -> Result<JointVector, InputError> {
     if msg.name.len() != msg.position.len() {
         return Err(InputError::WrongCount {
             topic: topic.to_string(),
@@ -147,7 +151,12 @@ pub fn joint_positions(topic: &str, msg: &sensor_msgs::JointState, names: &[Stri
 }
 
 /// A JointState message of the arm.
-pub fn joint_state(stamp: rosrust::Time, names: &[String], q: &JointVector, tau: &JointVector) -> sensor_msgs::JointState {
+pub fn joint_state(
+    stamp: rosrust::Time,
+    names: &[String],
+    q: &JointVector,
+    tau: &JointVector,
+) -> sensor_msgs::JointState {
     sensor_msgs::JointState {
         header: header(stamp, ""),
         name: names.to_vec(),
@@ -390,7 +399,10 @@ mod tests {
     #[test]
     fn bad_joint_states_are_rejected_with_a_reason() {
         let e = joint_positions("t", &state(names()[..6].to_vec(), vec![0.0; 6]), &names()).unwrap_err();
-        assert!(matches!(e, InputError::MissingJoint { ref name, .. } if name == "lbr_joint_7"), "{e}");
+        assert!(
+            matches!(e, InputError::MissingJoint { ref name, .. } if name == "lbr_joint_7"),
+            "{e}"
+        );
         let e = joint_positions("t", &state(names(), vec![0.0; 6]), &names()).unwrap_err();
         assert!(matches!(e, InputError::WrongCount { got: 6, .. }));
         let mut p = vec![0.0; 7];
@@ -422,13 +434,22 @@ mod tests {
         let back = pose_in_frame("t", &m, "/lbr_link_0").unwrap();
         assert!((back.translation.vector - p.translation.vector).norm() < 1e-12);
         assert!(back.rotation.angle_to(&p.rotation) < 1e-9);
-        assert!(matches!(pose_in_frame("t", &m, "world"), Err(InputError::WrongFrame { .. })));
+        assert!(matches!(
+            pose_in_frame("t", &m, "world"),
+            Err(InputError::WrongFrame { .. })
+        ));
         let mut bad = m.clone();
         bad.pose.orientation.w *= 2.0;
-        assert!(matches!(pose_in_frame("t", &bad, "lbr_link_0"), Err(InputError::BadQuaternion { .. })));
+        assert!(matches!(
+            pose_in_frame("t", &bad, "lbr_link_0"),
+            Err(InputError::BadQuaternion { .. })
+        ));
         bad = m;
         bad.pose.position.y = f64::NAN;
-        assert!(matches!(pose_in_frame("t", &bad, "lbr_link_0"), Err(InputError::NonFinite { .. })));
+        assert!(matches!(
+            pose_in_frame("t", &bad, "lbr_link_0"),
+            Err(InputError::NonFinite { .. })
+        ));
     }
 
     #[test]

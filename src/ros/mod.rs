@@ -2,6 +2,7 @@
 //! writer rostest needs, and the node wiring. No maths here: the nodes convert messages,
 //! call the pure core, and publish.
 
+pub mod checks;
 pub mod convert;
 pub mod junit;
 pub mod msgs;

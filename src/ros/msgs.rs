@@ -36,7 +36,13 @@ mod tests {
     #[test]
     fn docking_status_has_the_documented_fields() {
         let def = super::trocar_docking::DockingStatus::msg_definition();
-        for field in ["string phase", "string hold_reason", "float64 cost_axis", "float64 metric_m", "float64 latency_p99_ms"] {
+        for field in [
+            "string phase",
+            "string hold_reason",
+            "float64 cost_axis",
+            "float64 metric_m",
+            "float64 latency_p99_ms",
+        ] {
             assert!(def.contains(field), "{field} missing");
         }
     }

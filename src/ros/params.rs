@@ -101,15 +101,27 @@ mod tests {
     #[test]
     fn defaults_fill_missing_keys_and_integers_become_floats() {
         let s: S = from_yaml_str("t", "rate: 1000\n").unwrap();
-        assert_eq!(s, S { rate: 1000.0, topic: "/a".into() });
+        assert_eq!(
+            s,
+            S {
+                rate: 1000.0,
+                topic: "/a".into()
+            }
+        );
         let d: S = from_value("t", serde_json::Value::Null).unwrap();
         assert_eq!(d, S::default());
     }
 
     #[test]
     fn unknown_keys_and_wrong_types_are_errors() {
-        assert!(matches!(from_yaml_str::<S>("t", "rat: 3\n"), Err(ParamError::Invalid { .. })));
-        assert!(matches!(from_yaml_str::<S>("t", "rate: fast\n"), Err(ParamError::Invalid { .. })));
+        assert!(matches!(
+            from_yaml_str::<S>("t", "rat: 3\n"),
+            Err(ParamError::Invalid { .. })
+        ));
+        assert!(matches!(
+            from_yaml_str::<S>("t", "rate: fast\n"),
+            Err(ParamError::Invalid { .. })
+        ));
         assert!(matches!(
             from_yaml_file::<S>(std::path::Path::new("/nonexistent.yaml")),
             Err(ParamError::File { .. })
