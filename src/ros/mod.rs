@@ -5,5 +5,7 @@
 pub mod checks;
 pub mod convert;
 pub mod junit;
+pub mod markers;
 pub mod msgs;
 pub mod params;
+pub mod stats;
