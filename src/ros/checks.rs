@@ -180,6 +180,18 @@ pub fn roundtrip(p: &CheckParams) -> Result<(), String> {
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
+    let max_force = Arc::new(Mutex::new(0.0_f64));
+    let _sub_force = {
+        let m = max_force.clone();
+        rosrust::subscribe(&p.status_topic, 100, move |s: trocar_docking::DockingStatus| {
+            if let Ok(mut m) = m.lock() {
+                if s.phase != "IDLE" && s.f_ext_norm.is_finite() {
+                    *m = m.max(s.f_ext_norm);
+                }
+            }
+        })
+        .map_err(|e| e.to_string())?
+    };
     wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
     if p.call_start {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
@@ -199,7 +211,11 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         )
     })?;
     if done.phase != "DONE" {
-        return Err(format!("ABORTED: {}", done.hold_reason));
+        let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
+        return Err(format!(
+            "failure: ABORTED after {:.2} s: {} (M = {:.2} N, max force {:.2} N)",
+            done.elapsed, done.hold_reason, done.metric_m, fmax
+        ));
     }
     if !(done.metric_m <= p.max_metric_m) {
         return Err(format!(
@@ -207,14 +223,20 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             done.metric_m, p.max_metric_m
         ));
     }
+    let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
     Ok(format!(
-        "DONE in {:.1} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), latency p99 {:.2} ms, loop {:.1} Hz",
+        "success: DONE in {:.2} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), max force {:.2} N, \
+         tip {:.1} mm from the goal, latency trocar->command p50 {:.2} / p99 {:.2} ms, loop {:.1} Hz, {} steps",
         done.elapsed,
         t0.elapsed().as_secs_f64(),
         done.metric_m,
         done.metric_m_paper_scale,
+        fmax,
+        done.tip_to_goal * 1e3,
+        done.latency_p50_ms,
         done.latency_p99_ms,
-        done.loop_rate_hz
+        done.loop_rate_hz,
+        done.steps
     ))
 }
 
