@@ -217,7 +217,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             done.elapsed, done.hold_reason, done.metric_m, fmax
         ));
     }
-    if !(done.metric_m <= p.max_metric_m) {
+    if done.metric_m.is_nan() || done.metric_m > p.max_metric_m {
         return Err(format!(
             "M = {:.2} N above the bound {:.2} N",
             done.metric_m, p.max_metric_m
