@@ -37,6 +37,12 @@ pub struct CheckParams {
     pub min_status: usize,
     /// For `replay`: the phases the controller may report.
     pub allowed_phases: Vec<String>,
+    /// For `replay`: the estimated trocar pose topic.
+    pub pose_topic: String,
+    /// For `replay`: the recorded true trocar pose topic.
+    pub true_pose_topic: String,
+    /// For `replay`: the largest accepted distance between estimate and truth, m.
+    pub max_position_error: f64,
 }
 
 impl Default for CheckParams {
@@ -53,6 +59,9 @@ impl Default for CheckParams {
             hold_observe: 1.0,
             min_status: 10,
             allowed_phases: vec!["HOLD".into(), "APPROACH".into(), "INSERT".into(), "DONE".into()],
+            pose_topic: "/trocar/pose".into(),
+            true_pose_topic: "/trocar/pose_true".into(),
+            max_position_error: 0.01,
         }
     }
 }
@@ -278,14 +287,24 @@ pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
 }
 
 /// Recorded topics are replayed into the nodes: the controller must publish status in the
-/// allowed phases and commands with 7 finite joints, and the estimator a trocar pose.
-pub fn replay(p: &CheckParams, pose_topic: &str) -> Result<String, String> {
+/// allowed phases, and the estimator a trocar pose within `max_position_error` of the
+/// recorded truth.
+pub fn replay(p: &CheckParams) -> Result<String, String> {
+    use super::msgs::geometry_msgs::PoseStamped;
     let (status, _s1) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
-    let (pose, _s2) = subscribe_latest::<super::msgs::geometry_msgs::PoseStamped>(pose_topic)?;
+    let (pose, _s2) = subscribe_latest::<PoseStamped>(&p.pose_topic)?;
+    let (truth, _s3) = subscribe_latest::<PoseStamped>(&p.true_pose_topic)?;
     wait_for(p.time_limit, || {
-        (status.count() >= p.min_status && pose.count() > 0).then_some(())
+        (status.count() >= p.min_status && pose.count() > 0 && truth.count() > 0).then_some(())
     })
-    .ok_or_else(|| format!("{} status and {} pose messages", status.count(), pose.count()))?;
+    .ok_or_else(|| {
+        format!(
+            "got {} status, {} estimated and {} true poses",
+            status.count(),
+            pose.count(),
+            truth.count()
+        )
+    })?;
     let s = status.get().unwrap_or_default();
     if !p.allowed_phases.contains(&s.phase) {
         return Err(format!(
@@ -293,13 +312,18 @@ pub fn replay(p: &CheckParams, pose_topic: &str) -> Result<String, String> {
             s.phase, s.hold_reason, p.allowed_phases
         ));
     }
-    let est = pose.get().unwrap_or_default();
-    let est = convert::pose("estimate", &est.pose).map_err(|e| e.to_string())?;
+    let est = convert::pose("estimate", &pose.get().unwrap_or_default().pose).map_err(|e| e.to_string())?;
+    let tru = convert::pose("truth", &truth.get().unwrap_or_default().pose).map_err(|e| e.to_string())?;
+    let err = (est.translation.vector - tru.translation.vector).norm();
+    if err.is_nan() || err > p.max_position_error {
+        return Err(format!("trocar estimate {:.1} mm from the truth", err * 1e3));
+    }
     Ok(format!(
-        "{} status, phase {}, estimate at {:?}",
+        "{} status (phase {}), {} trocar estimates, {:.2} mm from the truth",
         status.count(),
         s.phase,
-        est.translation.vector.as_slice()
+        pose.count(),
+        err * 1e3
     ))
 }
 
@@ -307,16 +331,13 @@ pub fn replay(p: &CheckParams, pose_topic: &str) -> Result<String, String> {
 pub fn run(name: &str, out: Option<&std::path::Path>) -> bool {
     let mut report = TestReport::new(&format!("trocar_docking_{name}"));
     let params = params::load_private::<CheckParams>();
-    let pose_topic = rosrust::param("~pose_topic")
-        .and_then(|p| p.get::<String>().ok())
-        .unwrap_or_else(|| "/trocar/pose".into());
     report.check(name, || {
         let p = params.map_err(|e| e.to_string())?;
         let summary = match name {
             "roundtrip" => roundtrip(&p).map(|()| "round trip ok".to_string()),
             "docking" => docking(&p),
             "stale_hold" => stale_hold(&p),
-            "replay" => replay(&p, &pose_topic),
+            "replay" => replay(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");
