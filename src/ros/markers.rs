@@ -81,7 +81,14 @@ fn base(stamp: rosrust::Time, frame: &str, id: Id, kind: i32) -> visualization_m
     m
 }
 
-fn arrow(stamp: rosrust::Time, frame: &str, id: Id, from: Point3<f64>, to: Point3<f64>, c: std_msgs::ColorRGBA) -> visualization_msgs::Marker {
+fn arrow(
+    stamp: rosrust::Time,
+    frame: &str,
+    id: Id,
+    from: Point3<f64>,
+    to: Point3<f64>,
+    c: std_msgs::ColorRGBA,
+) -> visualization_msgs::Marker {
     let mut m = base(stamp, frame, id, visualization_msgs::Marker::ARROW as i32);
     m.points = vec![point_msg(&from), point_msg(&to)];
     m.scale.x = 0.004;
@@ -91,7 +98,14 @@ fn arrow(stamp: rosrust::Time, frame: &str, id: Id, from: Point3<f64>, to: Point
     m
 }
 
-fn sphere(stamp: rosrust::Time, frame: &str, id: Id, at: Point3<f64>, d: f64, c: std_msgs::ColorRGBA) -> visualization_msgs::Marker {
+fn sphere(
+    stamp: rosrust::Time,
+    frame: &str,
+    id: Id,
+    at: Point3<f64>,
+    d: f64,
+    c: std_msgs::ColorRGBA,
+) -> visualization_msgs::Marker {
     let mut m = base(stamp, frame, id, visualization_msgs::Marker::SPHERE as i32);
     m.pose = pose_msg(&Isometry3::translation(at.x, at.y, at.z));
     m.scale.x = d;
@@ -109,7 +123,12 @@ fn delete(stamp: rosrust::Time, frame: &str, id: Id) -> visualization_msgs::Mark
 
 /// The MarkerArray of `scene` in `frame`; what is unknown is deleted, so RViz shows no stale
 /// geometry.
-pub fn docking_markers(stamp: rosrust::Time, frame: &str, scene: &Scene, style: &MarkerStyle) -> visualization_msgs::MarkerArray {
+pub fn docking_markers(
+    stamp: rosrust::Time,
+    frame: &str,
+    scene: &Scene,
+    style: &MarkerStyle,
+) -> visualization_msgs::MarkerArray {
     let mut markers = Vec::with_capacity(7);
     match &scene.trocar {
         Some(t) => {
@@ -118,7 +137,14 @@ pub fn docking_markers(stamp: rosrust::Time, frame: &str, scene: &Scene, style: 
             let from = port - dir * style.axis_length;
             let to = port + dir * style.axis_length;
             markers.push(arrow(stamp, frame, Id::Axis, from, to, color(0.1, 0.8, 1.0)));
-            markers.push(sphere(stamp, frame, Id::Port, port, style.sphere * 1.5, color(1.0, 0.6, 0.0)));
+            markers.push(sphere(
+                stamp,
+                frame,
+                Id::Port,
+                port,
+                style.sphere * 1.5,
+                color(1.0, 0.6, 0.0),
+            ));
         }
         None => {
             markers.push(delete(stamp, frame, Id::Axis));
@@ -134,7 +160,14 @@ pub fn docking_markers(stamp: rosrust::Time, frame: &str, scene: &Scene, style: 
             let at = Point3::from(tip.translation.vector);
             markers.push(sphere(stamp, frame, Id::Tip, at, style.sphere, color(1.0, 1.0, 1.0)));
             let axis = tip.rotation * Vector3::z() * style.optical_axis_length;
-            markers.push(arrow(stamp, frame, Id::OpticalAxis, at, at + axis, color(1.0, 1.0, 0.2)));
+            markers.push(arrow(
+                stamp,
+                frame,
+                Id::OpticalAxis,
+                at,
+                at + axis,
+                color(1.0, 1.0, 0.2),
+            ));
             let f = scene.f_ext * style.force_scale;
             if f.iter().all(|x| x.is_finite()) && f.norm() > 1e-4 {
                 markers.push(arrow(stamp, frame, Id::Force, at, at + f, color(1.0, 0.1, 0.1)));
@@ -149,7 +182,14 @@ pub fn docking_markers(stamp: rosrust::Time, frame: &str, scene: &Scene, style: 
         }
     }
     match scene.reference {
-        Some(r) => markers.push(sphere(stamp, frame, Id::Reference, r, style.sphere * 0.8, color(0.9, 0.2, 0.9))),
+        Some(r) => markers.push(sphere(
+            stamp,
+            frame,
+            Id::Reference,
+            r,
+            style.sphere * 0.8,
+            color(0.9, 0.2, 0.9),
+        )),
         None => markers.push(delete(stamp, frame, Id::Reference)),
     }
     visualization_msgs::MarkerArray { markers }
@@ -172,7 +212,10 @@ mod tests {
         let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);
         assert_eq!(a.markers.len(), 7);
         let add = visualization_msgs::Marker::ADD as i32;
-        assert!(a.markers.iter().all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
+        assert!(a
+            .markers
+            .iter()
+            .all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
         let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
         assert!((force.points[1].z - (0.2 - 5.0 * style.force_scale)).abs() < 1e-12);
         let axis = a.markers.iter().find(|m| m.id == Id::Axis as i32).unwrap();

@@ -32,7 +32,11 @@ impl LoopStats {
     pub fn new(window: f64, capacity: usize) -> Self {
         let capacity = capacity.max(1);
         Self {
-            window: if window.is_finite() && window > 0.0 { window } else { 1.0 },
+            window: if window.is_finite() && window > 0.0 {
+                window
+            } else {
+                1.0
+            },
             window_start: None,
             window_steps: 0,
             rate_hz: 0.0,
