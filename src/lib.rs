@@ -12,3 +12,4 @@ pub mod ffi;
 pub mod kinematics;
 pub mod robot_model;
 pub mod ros;
+pub mod sim;

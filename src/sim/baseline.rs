@@ -1,0 +1,102 @@
+//! A baseline docking policy for exercising the simulator without the optimal controller:
+//! damped-least-squares resolved rates toward a point `standoff_m` before the measured port
+//! on its axis, aligning the optical axis with it, then straight along the axis to the
+//! goal. It has no force feedback; its estimate of f_ext is the damped pseudo-inverse
+//! J_lin^-T tau_ext, reported for the metric.
+
+use nalgebra::{Matrix3, Matrix6, Point3, Vector3, Vector6};
+
+use super::trial::{Action, Observation, Policy};
+use crate::kinematics::{JointVector, Kinematics};
+
+/// The baseline policy.
+#[derive(Debug, Clone)]
+pub struct Baseline {
+    /// Goal depth along the axis, m.
+    pub goal_depth_m: f64,
+    /// Stand-off before the port for alignment, m.
+    pub standoff_m: f64,
+    /// Cartesian speed limit, m/s.
+    pub speed_m_s: f64,
+    /// Control period, s.
+    pub period_s: f64,
+    inserting: bool,
+}
+
+impl Baseline {
+    /// A baseline for goal depth `goal_depth_m` at control period `period_s`.
+    pub fn new(goal_depth_m: f64, period_s: f64) -> Self {
+        Self {
+            goal_depth_m,
+            standoff_m: 0.02,
+            speed_m_s: 0.03,
+            period_s,
+            inserting: false,
+        }
+    }
+}
+
+/// f = (J_lin J_lin^T + l^2 I)^-1 J_lin tau: the damped pseudo-inverse estimate of the tip
+/// force from external joint torques.
+pub fn force_estimate(jlin: &nalgebra::SMatrix<f64, 3, 7>, tau: &JointVector, damping: f64) -> Vector3<f64> {
+    let a = jlin * jlin.transpose() + Matrix3::identity() * damping * damping;
+    a.try_inverse().map_or(Vector3::zeros(), |inv| inv * (jlin * tau))
+}
+
+impl Policy for Baseline {
+    fn start(&mut self, _kin: &dyn Kinematics) {
+        self.inserting = false;
+    }
+
+    fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
+        let hold = |why: &str| Action {
+            command: None,
+            f_ext: None,
+            phase: "HOLD",
+            aborted: Some(why.to_string()),
+        };
+        let Ok((tip, jac)) = kin.fk_jacobian(&obs.q) else {
+            return hold("kinematics failed");
+        };
+        let jlin = jac.fixed_rows::<3>(0).into_owned();
+        let f_ext = force_estimate(&jlin, &obs.tau_ext, 0.05);
+        let Some(m) = obs.trocar else {
+            return Action {
+                command: None,
+                f_ext: Some(f_ext),
+                phase: "IDLE",
+                aborted: None,
+            };
+        };
+        let axis = m.pose.rotation * Vector3::z();
+        let port = Point3::from(m.pose.translation.vector);
+        let p = Point3::from(tip.translation.vector);
+        let z = tip.rotation * Vector3::z();
+        let pre = port - axis * self.standoff_m;
+        if !self.inserting && (p - pre).norm() < 0.003 && z.angle(&axis) < 0.03 {
+            self.inserting = true;
+        }
+        let target = if self.inserting {
+            port + axis * self.goal_depth_m
+        } else {
+            pre
+        };
+        let mut dp = target - p;
+        let step = self.speed_m_s * self.period_s;
+        if dp.norm() > step {
+            dp *= step / dp.norm();
+        }
+        let dw = z.cross(&axis) * 0.2;
+        let e = Vector6::new(dp.x, dp.y, dp.z, dw.x, dw.y, dw.z);
+        let a: Matrix6<f64> = jac * jac.transpose() + Matrix6::identity() * 1e-4;
+        let dq = a
+            .try_inverse()
+            .map_or(JointVector::zeros(), |inv| jac.transpose() * (inv * e));
+        Action {
+            command: Some(obs.q + dq),
+            f_ext: Some(f_ext),
+            phase: if self.inserting { "INSERT" } else { "APPROACH" },
+            aborted: None,
+        }
+    }
+}

@@ -1,0 +1,174 @@
+//! The simulator of the paper's experiment: an LBR Med in FRI position mode ([`arm`]) holding
+//! an endoscope whose shaft touches ([`contact`]) a compliantly mounted trocar ([`trocar`]),
+//! measured by a noisy pose sensor ([`noise`]) and the arm's joint torque sensors
+//! ([`torque`]). [`world::SimWorld`] steps it all at 1 kHz; [`trials`] runs the closed-loop
+//! comparison with and without force feedback.
+//!
+//! Pure Rust, no ROS, no C++: the arm is seen through the [`Kinematics`](crate::kinematics::Kinematics)
+//! trait. Every random draw comes from a seeded ChaCha stream, so a seed fixes a run.
+//! Parameters are plain serde structs with defaults, read from `config/sim.yaml`.
+
+pub mod arm;
+pub mod baseline;
+pub mod contact;
+pub mod noise;
+pub mod scenario;
+pub mod torque;
+pub mod trial;
+pub mod trials;
+pub mod trocar;
+pub mod world;
+
+use serde::{Deserialize, Serialize};
+
+pub use arm::ArmParams;
+pub use contact::ContactParams;
+pub use noise::MeasurementParams;
+pub use scenario::{Scenario, ScenarioParams};
+pub use torque::TorqueSensorParams;
+pub use trocar::TrocarParams;
+pub use world::SimWorld;
+
+/// Errors of the simulator.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    /// A parameter is out of its valid range.
+    #[error("invalid simulator parameter {name}: {why}")]
+    Param {
+        /// Parameter path, e.g. `trocar.mass_kg`.
+        name: &'static str,
+        /// What is wrong.
+        why: String,
+    },
+    /// An input (command, pose, duration) is NaN, infinite or out of range.
+    #[error("invalid input: {0}")]
+    Input(String),
+    /// The kinematics failed.
+    #[error(transparent)]
+    Kinematics(#[from] crate::kinematics::KinematicsError),
+    /// The state became non-finite (unstable parameters).
+    #[error("simulation diverged at t = {t:.4} s: {what}")]
+    Diverged {
+        /// Simulated time.
+        t: f64,
+        /// Which state.
+        what: &'static str,
+    },
+    /// The YAML could not be parsed.
+    #[error("sim YAML: {0}")]
+    Yaml(#[from] serde_yaml::Error),
+}
+
+/// Check that `v` is finite and within `[lo, hi]`.
+pub(crate) fn check_range(name: &'static str, v: f64, lo: f64, hi: f64) -> Result<(), SimError> {
+    if v.is_finite() && v >= lo && v <= hi {
+        Ok(())
+    } else {
+        Err(SimError::Param {
+            name,
+            why: format!("{v} is not in [{lo}, {hi}]"),
+        })
+    }
+}
+
+/// Every parameter of the simulated world (the `sim:` section of `config/sim.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimParams {
+    /// Physics rate, Hz (the FRI rate of the LBR: 1000).
+    pub physics_rate_hz: f64,
+    /// Sub-steps of the trocar and contact integration per physics step (stiff contact).
+    pub substeps: usize,
+    /// The arm in FRI position mode.
+    pub arm: ArmParams,
+    /// The trocar geometry and its compliant mount.
+    pub trocar: TrocarParams,
+    /// Shaft-trocar contact.
+    pub contact: ContactParams,
+    /// The joint torque sensors (external torque estimate).
+    pub torque_sensor: TorqueSensorParams,
+    /// The trocar pose measurement.
+    pub measurement: MeasurementParams,
+    /// Randomised start poses.
+    pub scenario: ScenarioParams,
+}
+
+impl Default for SimParams {
+    fn default() -> Self {
+        Self {
+            physics_rate_hz: 1000.0,
+            substeps: 5,
+            arm: ArmParams::default(),
+            trocar: TrocarParams::default(),
+            contact: ContactParams::default(),
+            torque_sensor: TorqueSensorParams::default(),
+            measurement: MeasurementParams::default(),
+            scenario: ScenarioParams::default(),
+        }
+    }
+}
+
+impl SimParams {
+    /// Parse from YAML (missing fields take their defaults) and validate.
+    pub fn from_yaml_str(s: &str) -> Result<Self, SimError> {
+        let p: Self = serde_yaml::from_str(s)?;
+        p.validate()?;
+        Ok(p)
+    }
+
+    /// Check every parameter.
+    pub fn validate(&self) -> Result<(), SimError> {
+        check_range("physics_rate_hz", self.physics_rate_hz, 100.0, 100_000.0)?;
+        if !(1..=100).contains(&self.substeps) {
+            return Err(SimError::Param {
+                name: "substeps",
+                why: format!("{} is not in 1..=100", self.substeps),
+            });
+        }
+        self.arm.validate()?;
+        self.trocar.validate()?;
+        self.contact.validate()?;
+        self.torque_sensor.validate()?;
+        self.measurement.validate()?;
+        self.scenario.validate()?;
+        Ok(())
+    }
+
+    /// Physics period, s.
+    pub fn dt(&self) -> f64 {
+        1.0 / self.physics_rate_hz
+    }
+}
+
+/// Independent random streams of one seed (scenario, measurement noise, torque noise), so
+/// changing one model's draws does not shift the others.
+pub(crate) fn stream(seed: u64, purpose: u64) -> rand_chacha::ChaCha8Rng {
+    use rand::SeedableRng;
+    // splitmix64 of (seed, purpose): well-spread, deterministic sub-seeds.
+    let mut z = seed ^ purpose.wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    rand_chacha::ChaCha8Rng::seed_from_u64(z)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_yaml_round_trips() {
+        let p = SimParams::default();
+        p.validate().unwrap();
+        let y = serde_yaml::to_string(&p).unwrap();
+        assert_eq!(SimParams::from_yaml_str(&y).unwrap(), p);
+    }
+
+    #[test]
+    fn bad_values_are_rejected() {
+        assert!(SimParams::from_yaml_str("physics_rate_hz: .nan").is_err());
+        assert!(SimParams::from_yaml_str("substeps: 0").is_err());
+        assert!(SimParams::from_yaml_str("no_such_field: 1").is_err());
+        assert!(SimParams::from_yaml_str("trocar: {mass_kg: -1}").is_err());
+    }
+}

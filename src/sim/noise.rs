@@ -1,0 +1,248 @@
+//! The trocar pose measurement: the true port pose, captured at `rate_hz`, delivered after
+//! `latency_s`, with noise:
+//! - `uniform` (as the paper's public code): each position axis + U(-a, a) and each
+//!   quaternion component + U(-b, b), then the quaternion normalised (a = 5 mm,
+//!   b = 0.005: at most about 1 deg, typically 0.5 deg);
+//! - `gaussian`: each position axis + N(0, s_p^2); the orientation rotated by
+//!   exp(N(0, s_r^2 I3));
+//! - `none`: the true pose.
+
+use std::collections::VecDeque;
+
+use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion, Vector3};
+use rand::RngExt;
+use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
+
+use super::{check_range, SimError};
+
+/// Which noise the measurement carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum NoiseModel {
+    /// No noise.
+    None,
+    /// Uniform, as the paper's public code.
+    Uniform,
+    /// Gaussian, as the paper's text.
+    Gaussian,
+}
+
+impl std::fmt::Display for NoiseModel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::None => "none",
+            Self::Uniform => "uniform",
+            Self::Gaussian => "gaussian",
+        })
+    }
+}
+
+/// Parameters of the trocar pose measurement.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MeasurementParams {
+    /// Noise model.
+    pub model: NoiseModel,
+    /// Capture rate, Hz.
+    pub rate_hz: f64,
+    /// Delay from capture to delivery, s.
+    pub latency_s: f64,
+    /// Uniform: half-range per position axis, m.
+    pub uniform_position_m: f64,
+    /// Uniform: half-range per quaternion component.
+    pub uniform_quaternion: f64,
+    /// Gaussian: standard deviation per position axis, m.
+    pub gaussian_position_m: f64,
+    /// Gaussian: standard deviation of the rotation per axis, rad.
+    pub gaussian_rotation_rad: f64,
+}
+
+impl Default for MeasurementParams {
+    fn default() -> Self {
+        Self {
+            model: NoiseModel::Uniform,
+            rate_hz: 100.0,
+            latency_s: 0.0,
+            uniform_position_m: 0.005,
+            uniform_quaternion: 0.005,
+            gaussian_position_m: 0.003,
+            gaussian_rotation_rad: 0.006,
+        }
+    }
+}
+
+impl MeasurementParams {
+    /// Check the values.
+    pub fn validate(&self) -> Result<(), SimError> {
+        check_range("measurement.rate_hz", self.rate_hz, 0.1, 10_000.0)?;
+        check_range("measurement.latency_s", self.latency_s, 0.0, 5.0)?;
+        check_range("measurement.uniform_position_m", self.uniform_position_m, 0.0, 0.5)?;
+        check_range("measurement.uniform_quaternion", self.uniform_quaternion, 0.0, 0.5)?;
+        check_range("measurement.gaussian_position_m", self.gaussian_position_m, 0.0, 0.5)?;
+        check_range(
+            "measurement.gaussian_rotation_rad",
+            self.gaussian_rotation_rad,
+            0.0,
+            1.0,
+        )
+    }
+}
+
+/// One trocar pose measurement.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrocarMeasurement {
+    /// Capture time, s (simulated clock).
+    pub stamp: f64,
+    /// Measured port pose in the base frame.
+    pub pose: Isometry3<f64>,
+}
+
+/// Apply the noise model to `pose`.
+pub fn perturb(p: &MeasurementParams, pose: &Isometry3<f64>, rng: &mut impl rand::Rng) -> Isometry3<f64> {
+    match p.model {
+        NoiseModel::None => *pose,
+        NoiseModel::Uniform => {
+            let a = p.uniform_position_m;
+            let b = p.uniform_quaternion;
+            let mut u = |h: f64| if h > 0.0 { rng.random_range(-h..=h) } else { 0.0 };
+            let dt = Vector3::new(u(a), u(a), u(a));
+            let q = pose.rotation.quaternion();
+            let noisy = Quaternion::new(q.w + u(b), q.i + u(b), q.j + u(b), q.k + u(b));
+            let rot = UnitQuaternion::try_new(noisy, 1e-9).unwrap_or(pose.rotation);
+            Isometry3::from_parts(Translation3::from(pose.translation.vector + dt), rot)
+        }
+        NoiseModel::Gaussian => {
+            let mut g = |s: f64| Normal::new(0.0, s).map_or(0.0, |d| if s > 0.0 { d.sample(rng) } else { 0.0 });
+            let dt = Vector3::new(
+                g(p.gaussian_position_m),
+                g(p.gaussian_position_m),
+                g(p.gaussian_position_m),
+            );
+            let s = p.gaussian_rotation_rad;
+            let dr = UnitQuaternion::from_scaled_axis(Vector3::new(g(s), g(s), g(s)));
+            Isometry3::from_parts(Translation3::from(pose.translation.vector + dt), dr * pose.rotation)
+        }
+    }
+}
+
+/// A pose sensor: captures at its rate, delivers after its latency.
+#[derive(Debug, Clone)]
+pub struct TrocarSensor {
+    params: MeasurementParams,
+    next_capture: f64,
+    pending: VecDeque<TrocarMeasurement>,
+    latest: Option<TrocarMeasurement>,
+}
+
+impl TrocarSensor {
+    /// A sensor whose first capture is at t = 0.
+    pub fn new(params: &MeasurementParams) -> Result<Self, SimError> {
+        params.validate()?;
+        let cap = (params.latency_s * params.rate_hz).ceil() as usize + 2;
+        Ok(Self {
+            params: params.clone(),
+            next_capture: 0.0,
+            pending: VecDeque::with_capacity(cap),
+            latest: None,
+        })
+    }
+
+    /// Advance to time `t`: capture `true_pose` if a capture is due, deliver what is ready.
+    pub fn update(&mut self, t: f64, true_pose: &Isometry3<f64>, rng: &mut impl rand::Rng) {
+        let period = 1.0 / self.params.rate_hz;
+        if t + 1e-9 >= self.next_capture {
+            self.pending.push_back(TrocarMeasurement {
+                stamp: t,
+                pose: perturb(&self.params, true_pose, rng),
+            });
+            // Stay on the capture grid; skip captures missed by a coarse caller.
+            while self.next_capture <= t + 1e-9 {
+                self.next_capture += period;
+            }
+        }
+        while let Some(m) = self.pending.front() {
+            if m.stamp + self.params.latency_s <= t + 1e-9 {
+                self.latest = self.pending.pop_front();
+            } else {
+                break;
+            }
+        }
+    }
+
+    /// The newest measurement delivered by time `now`, if any.
+    pub fn latest(&self, now: f64) -> Option<TrocarMeasurement> {
+        self.latest.filter(|m| m.stamp + self.params.latency_s <= now + 1e-9)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    fn pose() -> Isometry3<f64> {
+        Isometry3::from_parts(
+            Translation3::new(0.6, 0.0, 0.3),
+            UnitQuaternion::from_scaled_axis(Vector3::new(3.0, 0.2, 0.0)),
+        )
+    }
+
+    #[test]
+    fn uniform_noise_is_bounded_like_the_paper_code() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let p = MeasurementParams::default();
+        let mut max_dp: f64 = 0.0;
+        let mut max_ang: f64 = 0.0;
+        for _ in 0..5000 {
+            let m = perturb(&p, &pose(), &mut rng);
+            let d = m.translation.vector - pose().translation.vector;
+            max_dp = max_dp.max(d.amax());
+            max_ang = max_ang.max(m.rotation.angle_to(&pose().rotation));
+        }
+        assert!(max_dp <= 0.005 + 1e-12 && max_dp > 0.0045, "{max_dp}");
+        assert!(max_ang < 0.018 && max_ang > 0.008, "{max_ang}");
+    }
+
+    #[test]
+    fn gaussian_noise_has_its_sigma() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let p = MeasurementParams {
+            model: NoiseModel::Gaussian,
+            ..Default::default()
+        };
+        let n = 20_000;
+        let sq: f64 = (0..n)
+            .map(|_| (perturb(&p, &pose(), &mut rng).translation.x - 0.6).powi(2))
+            .sum();
+        let sd = (sq / n as f64).sqrt();
+        assert!((sd - 0.003).abs() < 0.0001, "{sd}");
+    }
+
+    #[test]
+    fn rate_and_latency() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let p = MeasurementParams {
+            model: NoiseModel::None,
+            rate_hz: 50.0,
+            latency_s: 0.03,
+            ..Default::default()
+        };
+        let mut s = TrocarSensor::new(&p).unwrap();
+        let mut stamps = vec![];
+        for k in 0..=100 {
+            let t = k as f64 * 1e-3;
+            s.update(t, &pose(), &mut rng);
+            if let Some(m) = s.latest(t) {
+                assert!(t - m.stamp >= 0.03 - 1e-9 && t - m.stamp < 0.03 + 0.02 + 1e-9);
+                if stamps.last() != Some(&m.stamp) {
+                    stamps.push(m.stamp);
+                }
+            } else {
+                assert!(t < 0.03 - 1e-9);
+            }
+        }
+        assert_eq!(stamps.len(), 4, "{stamps:?}");
+        assert!((stamps[1] - stamps[0] - 0.02).abs() < 1e-9);
+    }
+}

@@ -1,0 +1,205 @@
+//! N closed-loop trials per arm of a comparison (e.g. with and without force feedback),
+//! on the same seeds, in parallel (rayon), with summary statistics. Each trial is a pure
+//! function of its seed, so the results do not depend on the thread count or order.
+
+use std::sync::Arc;
+
+use rayon::prelude::*;
+use serde::Serialize;
+
+use super::trial::{run_trial, Outcome, Policy, TrialParams, TrialResult, PAPER_CODE_SCALE};
+use super::{SimParams, SimWorld};
+use crate::kinematics::Kinematics;
+
+/// Mean, standard deviation (sample, n - 1), min and max of a set of values.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Stats {
+    /// Number of values.
+    pub n: usize,
+    /// Mean (NaN when empty).
+    pub mean: f64,
+    /// Sample standard deviation (0 for one value, NaN when empty).
+    pub std: f64,
+    /// Minimum.
+    pub min: f64,
+    /// Maximum.
+    pub max: f64,
+}
+
+impl Stats {
+    /// Statistics of the finite values in `v`.
+    pub fn of(v: impl IntoIterator<Item = f64>) -> Self {
+        let v: Vec<f64> = v.into_iter().filter(|x| x.is_finite()).collect();
+        let n = v.len();
+        if n == 0 {
+            return Self {
+                n,
+                mean: f64::NAN,
+                std: f64::NAN,
+                min: f64::NAN,
+                max: f64::NAN,
+            };
+        }
+        let mean = v.iter().sum::<f64>() / n as f64;
+        let var = if n > 1 {
+            v.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64
+        } else {
+            0.0
+        };
+        Self {
+            n,
+            mean,
+            std: var.sqrt(),
+            min: v.iter().copied().fold(f64::INFINITY, f64::min),
+            max: v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+        }
+    }
+}
+
+/// Summary of one arm of the comparison. Like the paper, M and T are over the successful
+/// trials; `m_est_all` covers every trial.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ArmSummary {
+    /// Arm label, e.g. `ff`.
+    pub label: String,
+    /// Trials run.
+    pub trials: usize,
+    /// Trials docked.
+    pub successes: usize,
+    /// successes / trials.
+    pub success_rate: f64,
+    /// M from the estimated force, N (successful trials).
+    pub m_est: Stats,
+    /// 2.4 x M: the paper's public-code scale, for comparison with its 21.4 and 3.4.
+    pub m_paper_code_scale: Stats,
+    /// M from the true contact force, N (successful trials).
+    pub m_true: Stats,
+    /// M from the estimated force over every trial, N.
+    pub m_est_all: Stats,
+    /// Completion time, s (successful trials).
+    pub time_s: Stats,
+    /// Largest true contact force over every trial, N.
+    pub max_force_true_n: f64,
+    /// Largest estimated force over every trial, N.
+    pub max_force_est_n: f64,
+    /// Outcome counts: docked, timeout, force abort, policy abort, sim error.
+    pub outcomes: [usize; 5],
+}
+
+impl ArmSummary {
+    /// Summarise the results of one arm.
+    pub fn of(label: &str, r: &[TrialResult]) -> Self {
+        let ok: Vec<&TrialResult> = r.iter().filter(|x| x.success()).collect();
+        let m_est = Stats::of(ok.iter().map(|x| x.m_est));
+        let mut outcomes = [0; 5];
+        for x in r {
+            outcomes[match x.outcome {
+                Outcome::Docked => 0,
+                Outcome::Timeout => 1,
+                Outcome::ForceAbort => 2,
+                Outcome::PolicyAbort => 3,
+                Outcome::SimError => 4,
+            }] += 1;
+        }
+        Self {
+            label: label.to_string(),
+            trials: r.len(),
+            successes: ok.len(),
+            success_rate: if r.is_empty() {
+                0.0
+            } else {
+                ok.len() as f64 / r.len() as f64
+            },
+            m_paper_code_scale: Stats::of(ok.iter().map(|x| PAPER_CODE_SCALE * x.m_est)),
+            m_est,
+            m_true: Stats::of(ok.iter().map(|x| x.m_true)),
+            m_est_all: Stats::of(r.iter().map(|x| x.m_est)),
+            time_s: Stats::of(ok.iter().map(|x| x.time_s)),
+            max_force_true_n: r.iter().map(|x| x.max_f_true).fold(0.0, f64::max),
+            max_force_est_n: r.iter().map(|x| x.max_f_est).fold(0.0, f64::max),
+            outcomes,
+        }
+    }
+}
+
+/// One arm's results and summary.
+#[derive(Debug, Clone, Serialize)]
+pub struct ArmReport {
+    /// Summary.
+    pub summary: ArmSummary,
+    /// Per-trial results (time series not serialised).
+    pub trials: Vec<TrialResult>,
+}
+
+/// Run `seeds.len()` trials for one arm in parallel; `make_policy(seed)` builds the policy
+/// of a trial, `tick()` is called after each trial (progress).
+pub fn run_arm<P, F>(
+    label: &str,
+    params: &SimParams,
+    trial: &TrialParams,
+    kin: &Arc<dyn Kinematics>,
+    seeds: &[u64],
+    make_policy: F,
+    tick: &(dyn Fn() + Sync),
+) -> ArmReport
+where
+    P: Policy,
+    F: Fn(u64) -> Result<P, String> + Sync,
+{
+    let trials: Vec<TrialResult> = seeds
+        .par_iter()
+        .map(|&seed| {
+            let r = one(params, trial, kin, seed, &make_policy);
+            tick();
+            r
+        })
+        .collect();
+    ArmReport {
+        summary: ArmSummary::of(label, &trials),
+        trials,
+    }
+}
+
+fn one<P: Policy>(
+    params: &SimParams,
+    trial: &TrialParams,
+    kin: &Arc<dyn Kinematics>,
+    seed: u64,
+    make_policy: &(impl Fn(u64) -> Result<P, String> + Sync),
+) -> TrialResult {
+    let failed = |why: String| TrialResult {
+        seed,
+        outcome: Outcome::SimError,
+        reason: why,
+        time_s: 0.0,
+        m_est: f64::NAN,
+        m_true: f64::NAN,
+        max_f_est: 0.0,
+        max_f_true: 0.0,
+        samples: vec![],
+    };
+    let mut world = match SimWorld::new(params, kin.clone(), seed) {
+        Ok(w) => w,
+        Err(e) => return failed(e.to_string()),
+    };
+    match make_policy(seed) {
+        Ok(mut p) => run_trial(&mut world, &mut p, trial, seed),
+        Err(e) => failed(e),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stats_of_known_values() {
+        let s = Stats::of([1.0, 2.0, 3.0, 4.0, f64::NAN]);
+        assert_eq!(s.n, 4);
+        assert!((s.mean - 2.5).abs() < 1e-12);
+        assert!((s.std - (5.0f64 / 3.0).sqrt()).abs() < 1e-12);
+        assert_eq!((s.min, s.max), (1.0, 4.0));
+        assert!(Stats::of([]).mean.is_nan());
+        assert_eq!(Stats::of([2.0]).std, 0.0);
+    }
+}
