@@ -7,5 +7,7 @@ pub mod convert;
 pub mod junit;
 pub mod markers;
 pub mod msgs;
+pub mod node;
 pub mod params;
+pub mod sim_node;
 pub mod stats;
