@@ -338,6 +338,7 @@ pub fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "docking" => docking(&p),
             "stale_hold" => stale_hold(&p),
             "replay" => replay(&p),
+            "bad_input" => super::fault_injection::bad_input(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

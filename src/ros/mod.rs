@@ -4,6 +4,7 @@
 
 pub mod checks;
 pub mod convert;
+pub mod fault_injection;
 pub mod junit;
 pub mod markers;
 pub mod msgs;
