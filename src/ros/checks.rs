@@ -327,6 +327,19 @@ pub fn replay(p: &CheckParams) -> Result<String, String> {
     ))
 }
 
+/// Append a line to `$ROS_HOME/rostest_summary.txt`, which scripts/run-rostest prints
+/// (rostest keeps a test node's stdout in its logs only).
+fn append_summary(line: &str) {
+    use std::io::Write as _;
+    let Some(home) = std::env::var_os("ROS_HOME") else {
+        return;
+    };
+    let path = std::path::Path::new(&home).join("rostest_summary.txt");
+    if let Ok(mut f) = std::fs::OpenOptions::new().create(true).append(true).open(path) {
+        let _ = writeln!(f, "{line}");
+    }
+}
+
 /// Run the check named `name`, write the JUnit XML to `out` if given; true if it passed.
 pub fn run(name: &str, out: Option<&std::path::Path>) -> bool {
     let mut report = TestReport::new(&format!("trocar_docking_{name}"));
@@ -343,10 +356,13 @@ pub fn run(name: &str, out: Option<&std::path::Path>) -> bool {
         }?;
         rosrust::ros_info!("{name}: {summary}");
         println!("{name}: {summary}");
+        append_summary(&format!("{name}: {summary}"));
         Ok(())
     });
     if let Some(c) = report.cases().iter().find(|c| c.failure.is_some()) {
-        eprintln!("{name} FAILED: {}", c.failure.clone().unwrap_or_default());
+        let why = c.failure.clone().unwrap_or_default();
+        eprintln!("{name} FAILED: {why}");
+        append_summary(&format!("{name} FAILED: {why}"));
     }
     if let Some(path) = out {
         if let Err(e) = report.write(path) {

@@ -1,6 +1,5 @@
 //! The `docking_controller` node: subscribes the joint states, the driver's LBRState
-//! (external torques) and the trocar pose; runs [`crate::controller::Controller`] at a fixed
-//! rate; publishes the joint command, `/docking/status`, `/docking/f_ext`,
+//! (external torques) and the trocar pose; runs a [`DockingCore`] at a fixed rate; publishes the joint command, `/docking/status`, `/docking/f_ext`,
 //! `/docking/markers` and tf frames of the trocar and the goal; serves `~start`, `~abort`
 //! and `~reset`. Every topic and frame name is a parameter (see [`ControllerNodeParams`]).
 //!
@@ -12,14 +11,15 @@ use std::sync::{Arc, Mutex};
 
 use nalgebra::{Isometry3, Point3};
 
+use super::baseline_core::{BaselineCore, BaselineParams};
 use super::convert::{self, InputError, StampOrder};
+use super::core::{DockingCore, Stamped, StepInput, StepOutput};
 use super::markers::{self, MarkerStyle, Scene};
 use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, std_srvs, tf2_msgs, trocar_docking};
 use super::node::{lock, ros_err, CommandType, NodeError};
 use super::params;
 use super::stats::LoopStats;
-use crate::controller::{ControlInput, ControlOutput, Controller, ControllerParams, Stamped};
-use crate::kinematics::{JointVector, Kinematics, LbrKinematics, TIP_LINK};
+use crate::kinematics::{JointVector, LbrKinematics, TIP_LINK};
 use crate::robot_model::{LbrModel, ToolParams};
 
 /// Parameters of the node (its private namespace; `config/docking_controller.yaml`).
@@ -70,8 +70,18 @@ pub struct ControllerNodeParams {
     pub latency_samples: usize,
     /// Marker sizes.
     pub markers: MarkerStyle,
-    /// The controller's own parameters.
-    pub controller: ControllerParams,
+    /// Which docking core runs.
+    pub core: CoreKind,
+    /// Parameters of the baseline core.
+    pub baseline: BaselineParams,
+}
+
+/// The docking core the node runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CoreKind {
+    /// The simulator's baseline policy (resolved rates, no force feedback).
+    Baseline,
 }
 
 impl Default for ControllerNodeParams {
@@ -99,7 +109,8 @@ impl Default for ControllerNodeParams {
             force_feedback: true,
             latency_samples: 5000,
             markers: MarkerStyle::default(),
-            controller: ControllerParams::default(),
+            core: CoreKind::Baseline,
+            baseline: BaselineParams::default(),
         }
     }
 }
@@ -158,8 +169,8 @@ fn subscribe_inputs(p: &ControllerNodeParams, inputs: &Shared<Inputs>) -> Result
             rosrust::subscribe(&p.lbr_state_topic, 2, move |m: lbr_msgs::LBRState| {
                 let mut i = lock(&inputs);
                 let stamp = convert::seconds(m.stamp.data);
-                let r = convert::external_torques(&topic, &m)
-                    .and_then(|t| i.tau_order.accept(&topic, stamp).map(|()| t));
+                let r =
+                    convert::external_torques(&topic, &m).and_then(|t| i.tau_order.accept(&topic, stamp).map(|()| t));
                 match r {
                     Ok(value) => i.tau_ext = Some(Stamped { stamp, value }),
                     Err(e) => {
@@ -194,21 +205,32 @@ fn subscribe_inputs(p: &ControllerNodeParams, inputs: &Shared<Inputs>) -> Result
 }
 
 /// A `std_srvs/Trigger` service that runs `f` on the controller.
-fn trigger_service<F>(name: &str, controller: &Shared<Controller>, f: F) -> Result<rosrust::Service, NodeError>
+fn trigger_service<F>(
+    name: &str,
+    controller: &Shared<Box<dyn DockingCore>>,
+    f: F,
+) -> Result<rosrust::Service, NodeError>
 where
-    F: Fn(&mut Controller) -> Result<String, String> + Send + Sync + 'static,
+    F: Fn(&mut dyn DockingCore) -> Result<String, String> + Send + Sync + 'static,
 {
     let controller = controller.clone();
     let label = name.to_string();
     rosrust::service::<std_srvs::Trigger, _>(name, move |_req| {
-        let r = f(&mut lock(&controller));
+        let r = f(lock(&controller).as_mut());
         match &r {
-            Ok(m) => rosrust::ros_info!("{label}: {m}"),
-            Err(m) => rosrust::ros_warn!("{label} refused: {m}"),
+            Ok(m) => {
+                rosrust::ros_info!("{label}: {m}");
+            }
+            Err(m) => {
+                rosrust::ros_warn!("{label} refused: {m}");
+            }
         }
         Ok(match r {
             Ok(message) => std_srvs::TriggerRes { success: true, message },
-            Err(message) => std_srvs::TriggerRes { success: false, message },
+            Err(message) => std_srvs::TriggerRes {
+                success: false,
+                message,
+            },
         })
     })
     .map_err(ros_err)
@@ -264,10 +286,11 @@ fn distance_to_axis(tip: &Isometry3<f64>, trocar: &Isometry3<f64>) -> f64 {
 }
 
 /// Fill a DockingStatus from a control step.
+#[allow(clippy::too_many_arguments)]
 fn status_msg(
     stamp: rosrust::Time,
     frame: &str,
-    out: &ControlOutput,
+    out: &StepOutput,
     trocar: Option<&Isometry3<f64>>,
     fault: Option<&String>,
     elapsed: f64,
@@ -275,29 +298,38 @@ fn status_msg(
     ages_ms: (f64, f64),
 ) -> trocar_docking::DockingStatus {
     let lat = stats.percentiles();
-    let reason = out.reason.clone().or_else(|| fault.cloned()).unwrap_or_default();
+    let hold_reason = match (fault, &out.reason) {
+        (Some(f), Some(r)) if !r.contains(f.as_str()) => format!("{r}; input: {f}"),
+        (_, Some(r)) => r.clone(),
+        (Some(f), None) => f.clone(),
+        (None, None) => String::new(),
+    };
+    let tip_point = out.tip.map(|t| Point3::from(t.translation.vector));
     trocar_docking::DockingStatus {
         header: convert::header(stamp, frame),
-        phase: out.phase.as_str().to_string(),
-        hold_reason: match (fault, &out.reason) {
-            (Some(f), Some(r)) if !r.contains(f.as_str()) => format!("{r}; input: {f}"),
-            _ => reason,
-        },
+        phase: out.phase.to_string(),
+        hold_reason,
         cost_axis: out.costs[0],
         cost_goal: out.costs[1],
         cost_alignment: out.costs[2],
         cost_joint_step: out.costs[3],
         cost_admittance: out.costs[4],
-        iterations: out.iterations as u32,
-        solve_time_us: out.solve_time_us as f64,
+        iterations: out.iterations,
+        solve_time_us: out.solve_time_us,
         solver_status: out.solver_status.clone(),
         f_ext: convert::vector_msg(&out.f_ext),
         f_ext_norm: out.f_ext.norm(),
         metric_m: out.metric_m,
         metric_m_paper_scale: 2.4 * out.metric_m,
         elapsed,
-        tip_to_goal: (Point3::from(out.tip.translation.vector) - out.goal).norm(),
-        tip_to_axis: trocar.map_or(f64::NAN, |t| distance_to_axis(&out.tip, t)),
+        tip_to_goal: match (tip_point, out.goal) {
+            (Some(t), Some(g)) => (t - g).norm(),
+            _ => f64::NAN,
+        },
+        tip_to_axis: match (&out.tip, trocar) {
+            (Some(tip), Some(t)) => distance_to_axis(tip, t),
+            _ => f64::NAN,
+        },
         steps: stats.steps(),
         loop_rate_hz: stats.rate_hz(),
         latency_p50_ms: lat.p50,
@@ -308,17 +340,25 @@ fn status_msg(
     }
 }
 
-fn publish_scene(p: &ControllerNodeParams, o: &Outputs, stamp: rosrust::Time, out: &ControlOutput, trocar: Option<&Isometry3<f64>>) {
+fn publish_scene(
+    p: &ControllerNodeParams,
+    o: &Outputs,
+    stamp: rosrust::Time,
+    out: &StepOutput,
+    trocar: Option<&Isometry3<f64>>,
+) {
     let scene = Scene {
         trocar: trocar.copied(),
-        goal: trocar.map(|_| out.goal),
-        tip: Some(out.tip),
+        goal: out.goal,
+        tip: out.tip,
         f_ext: out.f_ext,
-        reference: Some(out.reference),
+        reference: out.reference,
     };
-    let _ = o.markers.send(markers::docking_markers(stamp, &p.base_frame, &scene, &p.markers));
-    if let Some(t) = trocar {
-        let goal = Isometry3::from_parts(out.goal.coords.into(), t.rotation);
+    let _ = o
+        .markers
+        .send(markers::docking_markers(stamp, &p.base_frame, &scene, &p.markers));
+    if let (Some(t), Some(g)) = (trocar, out.goal) {
+        let goal = Isometry3::from_parts(g.coords.into(), t.rotation);
         let _ = o.tf.send(tf2_msgs::TFMessage {
             transforms: vec![
                 convert::transform_stamped(stamp, &p.base_frame, &p.trocar_frame, t),
@@ -335,16 +375,25 @@ pub fn run() -> Result<(), NodeError> {
         return Err(NodeError::Invalid(format!("rate_hz = {} (0, 5000]", p.rate_hz)));
     }
     if p.joint_names.len() != crate::kinematics::N_JOINTS {
-        return Err(NodeError::Invalid(format!("joint_names has {} names, expected 7", p.joint_names.len())));
+        return Err(NodeError::Invalid(format!(
+            "joint_names has {} names, expected 7",
+            p.joint_names.len()
+        )));
     }
     let kin = if p.urdf_file.is_empty() {
         LbrKinematics::from_model(p.model, &ToolParams::default())?
     } else {
         LbrKinematics::from_urdf_file(std::path::Path::new(&p.urdf_file), TIP_LINK)?
     };
-    let mut cparams = p.controller.clone();
-    cparams.force_feedback = p.force_feedback;
-    let controller = Arc::new(Mutex::new(Controller::new(cparams, kin.limits().clone())));
+    let core: Box<dyn DockingCore> = match p.core {
+        CoreKind::Baseline => {
+            if p.force_feedback {
+                rosrust::ros_warn!("core: baseline has no force feedback; force_feedback ignored");
+            }
+            Box::new(BaselineCore::new(p.baseline.clone(), 1.0 / p.rate_hz))
+        }
+    };
+    let controller = Arc::new(Mutex::new(core));
     let inputs: Shared<Inputs> = Arc::new(Mutex::new(Inputs::default()));
     let stats = Arc::new(Mutex::new(LoopStats::new(1.0, p.latency_samples)));
     let start_time: Shared<Option<f64>> = Arc::new(Mutex::new(None));
@@ -354,14 +403,14 @@ pub fn run() -> Result<(), NodeError> {
     let _srv_start = {
         let (st, stats) = (start_time.clone(), stats.clone());
         trigger_service("~start", &controller, move |c| {
-            c.start().map_err(|e| e.to_string())?;
+            c.start()?;
             *lock(&st) = Some(convert::seconds(rosrust::now()));
             lock(&stats).clear();
             Ok("docking started".into())
         })?
     };
     let _srv_abort = trigger_service("~abort", &controller, |c| {
-        c.abort();
+        c.abort("operator abort (~abort)");
         Ok("aborted: holding".into())
     })?;
     let _srv_reset = {
@@ -374,7 +423,9 @@ pub fn run() -> Result<(), NodeError> {
         })?
     };
     if p.autostart {
-        lock(&controller).start().map_err(|e| NodeError::Invalid(format!("autostart: {e}")))?;
+        lock(&controller)
+            .start()
+            .map_err(|e| NodeError::Invalid(format!("autostart: {e}")))?;
         *lock(&start_time) = Some(convert::seconds(rosrust::now()));
     }
     rosrust::ros_info!(
@@ -385,8 +436,16 @@ pub fn run() -> Result<(), NodeError> {
     );
 
     let rate = rosrust::rate(p.rate_hz);
-    let status_period = if p.status_rate_hz > 0.0 { 1.0 / p.status_rate_hz } else { 0.0 };
-    let markers_period = if p.markers_rate_hz > 0.0 { 1.0 / p.markers_rate_hz } else { f64::INFINITY };
+    let status_period = if p.status_rate_hz > 0.0 {
+        1.0 / p.status_rate_hz
+    } else {
+        0.0
+    };
+    let markers_period = if p.markers_rate_hz > 0.0 {
+        1.0 / p.markers_rate_hz
+    } else {
+        f64::INFINITY
+    };
     let (mut last_status, mut last_markers) = (f64::NEG_INFINITY, f64::NEG_INFINITY);
     let mut last_latency_stamp = f64::NEG_INFINITY;
     let mut last_now = f64::NEG_INFINITY;
@@ -402,7 +461,7 @@ pub fn run() -> Result<(), NodeError> {
                 i.trocar_order.reset();
                 last_latency_stamp = f64::NEG_INFINITY;
             }
-            let input = ControlInput {
+            let input = StepInput {
                 now,
                 joints: i.joints.clone(),
                 tau_ext: i.tau_ext.clone(),
@@ -434,7 +493,16 @@ pub fn run() -> Result<(), NodeError> {
                 input.joints.as_ref().map_or(f64::INFINITY, |j| (now - j.stamp) * 1e3),
             );
             let trocar = input.trocar.as_ref().map(|t| &t.value);
-            let msg = status_msg(stamp, &p.base_frame, &out, trocar, fault.as_ref(), elapsed, &mut st, ages);
+            let msg = status_msg(
+                stamp,
+                &p.base_frame,
+                &out,
+                trocar,
+                fault.as_ref(),
+                elapsed,
+                &mut st,
+                ages,
+            );
             let _ = outputs.status.send(msg);
             let _ = outputs.f_ext.send(geometry_msgs::WrenchStamped {
                 header: convert::header(stamp, &p.base_frame),
