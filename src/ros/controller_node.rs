@@ -463,9 +463,9 @@ pub fn run() -> Result<(), NodeError> {
             }
             let input = StepInput {
                 now,
-                joints: i.joints.clone(),
-                tau_ext: i.tau_ext.clone(),
-                trocar: i.trocar.clone(),
+                joints: i.joints,
+                tau_ext: i.tau_ext,
+                trocar: i.trocar,
             };
             if i.joints.is_some() && i.tau_ext.is_some() && i.trocar.is_some() {
                 i.fault = None;
