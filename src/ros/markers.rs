@@ -34,6 +34,10 @@ pub struct MarkerStyle {
     pub force_scale: f64,
     /// Diameter of the spheres, m.
     pub sphere: f64,
+    /// Drawn trocar cannula: outer diameter and length below the port, m.
+    pub trocar_diameter: f64,
+    /// Length of the drawn cannula, m.
+    pub trocar_length: f64,
 }
 
 impl Default for MarkerStyle {
@@ -43,6 +47,8 @@ impl Default for MarkerStyle {
             optical_axis_length: 0.08,
             force_scale: 0.02,
             sphere: 0.012,
+            trocar_diameter: 0.012,
+            trocar_length: 0.05,
         }
     }
 }
@@ -57,6 +63,7 @@ enum Id {
     OpticalAxis = 4,
     Force = 5,
     Reference = 6,
+    TrocarBody = 7,
 }
 
 const NS: &str = "docking";
@@ -129,7 +136,7 @@ pub fn docking_markers(
     scene: &Scene,
     style: &MarkerStyle,
 ) -> visualization_msgs::MarkerArray {
-    let mut markers = Vec::with_capacity(7);
+    let mut markers = Vec::with_capacity(8);
     match &scene.trocar {
         Some(t) => {
             let port = Point3::from(t.translation.vector);
@@ -200,7 +207,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn full_scene_has_seven_markers_and_force_arrow_follows_the_force() {
+    fn full_scene_has_eight_markers_and_force_arrow_follows_the_force() {
         let scene = Scene {
             trocar: Some(Isometry3::translation(0.5, 0.0, 0.3)),
             goal: Some(Point3::new(0.5, 0.0, 0.33)),
@@ -210,7 +217,7 @@ mod tests {
         };
         let style = MarkerStyle::default();
         let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);
-        assert_eq!(a.markers.len(), 7);
+        assert_eq!(a.markers.len(), 8);
         let add = visualization_msgs::Marker::ADD as i32;
         assert!(a
             .markers
@@ -233,7 +240,7 @@ mod tests {
         };
         let a = docking_markers(rosrust::Time::new(), "b", &scene, &MarkerStyle::default());
         let del = visualization_msgs::Marker::DELETE as i32;
-        assert_eq!(a.markers.len(), 7);
+        assert_eq!(a.markers.len(), 8);
         assert!(a.markers.iter().all(|m| m.action == del));
     }
 }
