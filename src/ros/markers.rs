@@ -152,10 +152,30 @@ pub fn docking_markers(
                 style.sphere * 1.5,
                 color(1.0, 0.6, 0.0),
             ));
+            // The cannula: a translucent cylinder from the port into the body along z.
+            let mut body = base(
+                stamp,
+                frame,
+                Id::TrocarBody,
+                visualization_msgs::Marker::CYLINDER as i32,
+            );
+            let centre = t * Point3::new(0.0, 0.0, style.trocar_length / 2.0);
+            body.pose = pose_msg(&Isometry3::from_parts(centre.coords.into(), t.rotation));
+            body.scale.x = style.trocar_diameter;
+            body.scale.y = style.trocar_diameter;
+            body.scale.z = style.trocar_length;
+            body.color = std_msgs::ColorRGBA {
+                r: 0.6,
+                g: 0.6,
+                b: 0.9,
+                a: 0.6,
+            };
+            markers.push(body);
         }
         None => {
-            markers.push(delete(stamp, frame, Id::Axis));
-            markers.push(delete(stamp, frame, Id::Port));
+            for id in [Id::Axis, Id::Port, Id::TrocarBody] {
+                markers.push(delete(stamp, frame, id));
+            }
         }
     }
     match scene.goal {
