@@ -10,6 +10,7 @@ pub mod bench;
 pub mod cli;
 pub mod ffi;
 pub mod kinematics;
+pub mod plot;
 pub mod robot_model;
 pub mod ros;
 pub mod sim;

@@ -5,6 +5,7 @@
 use std::time::Instant;
 
 pub mod kinematics;
+pub mod sim;
 
 /// Latency statistics of repeated runs of one operation, in microseconds.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]

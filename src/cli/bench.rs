@@ -8,6 +8,8 @@ use crate::bench::SuiteReport;
 pub enum Suite {
     /// FK + Jacobian through KDL.
     Kinematics,
+    /// Simulator: physics step and closed-loop real-time factor.
+    Sim,
     /// Every suite.
     All,
 }
@@ -32,6 +34,10 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
     let all = a.suite == Suite::All;
     if all || a.suite == Suite::Kinematics {
         reports.extend(crate::bench::kinematics::run(a.samples)?);
+    }
+    if all || a.suite == Suite::Sim {
+        let cfg = crate::sim::config::SimConfig::load_default()?;
+        reports.extend(crate::bench::sim::run(&cfg, a.samples, 10)?);
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&reports)?);

@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod bench;
 pub mod fk;
+pub mod trials;
 pub mod urdf;
 
 /// Errors a subcommand reports to the user (printed, exit code 1).
@@ -25,6 +26,8 @@ pub enum Command {
     Bench(bench::BenchArgs),
     /// Forward kinematics and Jacobian of a URDF chain.
     Fk(fk::FkArgs),
+    /// Run the paper's experiment in simulation: trials with and without force feedback.
+    Trials(trials::TrialsArgs),
     /// Write the URDF of an LBR Med with an endoscope.
     Urdf(urdf::UrdfArgs),
     /// Print the versions of the C++ libraries linked.
@@ -36,6 +39,7 @@ pub fn run(cli: Cli) -> CliResult {
     match cli.command {
         Command::Bench(a) => bench::run(&a),
         Command::Fk(a) => fk::run(&a),
+        Command::Trials(a) => trials::run(&a),
         Command::Urdf(a) => urdf::run(&a),
         Command::Versions => {
             println!("{}", crate::ffi::vision::ffi::vision_backend_versions());

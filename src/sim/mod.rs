@@ -10,8 +10,10 @@
 
 pub mod arm;
 pub mod baseline;
+pub mod config;
 pub mod contact;
 pub mod noise;
+pub mod policy;
 pub mod scenario;
 pub mod torque;
 pub mod trial;

@@ -131,25 +131,29 @@ pub struct ArmReport {
     pub trials: Vec<TrialResult>,
 }
 
+/// Builds the kinematics of one trial. Each trial gets its own instance: the KDL chain
+/// behind `LbrKinematics` caches joint poses in mutable members (`KDL::Joint::pose`), so one
+/// instance must not be used from two threads at once.
+pub type KinematicsFactory = dyn Fn() -> Result<Arc<dyn Kinematics>, String> + Sync;
+
+/// Builds the policy of the trial with a given seed (or says why it cannot).
+pub type PolicyFactory = dyn Fn(u64) -> Result<Box<dyn Policy>, String> + Sync;
+
 /// Run `seeds.len()` trials for one arm in parallel; `make_policy(seed)` builds the policy
 /// of a trial, `tick()` is called after each trial (progress).
-pub fn run_arm<P, F>(
+pub fn run_arm(
     label: &str,
     params: &SimParams,
     trial: &TrialParams,
-    kin: &Arc<dyn Kinematics>,
+    kin: &KinematicsFactory,
     seeds: &[u64],
-    make_policy: F,
+    make_policy: &PolicyFactory,
     tick: &(dyn Fn() + Sync),
-) -> ArmReport
-where
-    P: Policy,
-    F: Fn(u64) -> Result<P, String> + Sync,
-{
+) -> ArmReport {
     let trials: Vec<TrialResult> = seeds
         .par_iter()
         .map(|&seed| {
-            let r = one(params, trial, kin, seed, &make_policy);
+            let r = one(params, trial, kin, seed, make_policy);
             tick();
             r
         })
@@ -160,12 +164,12 @@ where
     }
 }
 
-fn one<P: Policy>(
+fn one(
     params: &SimParams,
     trial: &TrialParams,
-    kin: &Arc<dyn Kinematics>,
+    kin: &KinematicsFactory,
     seed: u64,
-    make_policy: &(impl Fn(u64) -> Result<P, String> + Sync),
+    make_policy: &PolicyFactory,
 ) -> TrialResult {
     let failed = |why: String| TrialResult {
         seed,
@@ -178,12 +182,16 @@ fn one<P: Policy>(
         max_f_true: 0.0,
         samples: vec![],
     };
-    let mut world = match SimWorld::new(params, kin.clone(), seed) {
+    let kin = match kin() {
+        Ok(k) => k,
+        Err(e) => return failed(e),
+    };
+    let mut world = match SimWorld::new(params, kin, seed) {
         Ok(w) => w,
         Err(e) => return failed(e.to_string()),
     };
     match make_policy(seed) {
-        Ok(mut p) => run_trial(&mut world, &mut p, trial, seed),
+        Ok(mut p) => run_trial(&mut world, p.as_mut(), trial, seed),
         Err(e) => failed(e),
     }
 }

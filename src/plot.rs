@@ -1,0 +1,242 @@
+//! PNG plots of trial results (plotters, bitmap backend): ||f_ext|| over time for each
+//! trial, one panel per arm of the comparison (like the paper's Fig. 2), and box plots of
+//! the metric M per arm. Text uses DejaVu Sans, loaded at run time from
+//! [`FONT_PATH`] (Debian package `fonts-dejavu-core`).
+
+use std::path::Path;
+use std::sync::OnceLock;
+
+use plotters::prelude::*;
+use plotters::style::FontStyle;
+
+use crate::sim::trial::TrialResult;
+
+/// Where the plot font is read from.
+pub const FONT_PATH: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
+const FAMILY: &str = "sans-serif";
+
+/// Errors of plotting.
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    /// The font is missing or unreadable.
+    #[error("plot font {FONT_PATH}: {0} (install the Debian package fonts-dejavu-core: scripts/install-deps)")]
+    Font(String),
+    /// Drawing or encoding failed.
+    #[error("plot {path}: {why}")]
+    Draw {
+        /// Output file.
+        path: String,
+        /// Cause.
+        why: String,
+    },
+    /// Nothing to plot.
+    #[error("plot: {0}")]
+    Empty(&'static str),
+}
+
+fn ensure_font() -> Result<(), PlotError> {
+    static FONT: OnceLock<Result<(), String>> = OnceLock::new();
+    FONT.get_or_init(|| {
+        let bytes = std::fs::read(FONT_PATH).map_err(|e| e.to_string())?;
+        let leaked: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+        plotters::style::register_font(FAMILY, FontStyle::Normal, leaked)
+            .map_err(|_| "not a valid TrueType font".to_string())
+    })
+    .clone()
+    .map_err(PlotError::Font)
+}
+
+fn draw_err(path: &Path) -> impl Fn(String) -> PlotError + '_ {
+    move |why| PlotError::Draw {
+        path: path.display().to_string(),
+        why,
+    }
+}
+
+/// The force the plots show for a sample: the estimate, or the true force without one.
+fn shown_force(s: &crate::sim::trial::Sample) -> f64 {
+    if s.f_est.is_finite() {
+        s.f_est
+    } else {
+        s.f_true
+    }
+}
+
+/// ||f_ext|| over time, one panel per arm (`(label, trials)`), one colour per trial.
+pub fn force_over_time(path: &Path, arms: &[(&str, &[TrialResult])]) -> Result<(), PlotError> {
+    if arms.is_empty() {
+        return Err(PlotError::Empty("no arms to plot"));
+    }
+    ensure_font()?;
+    let e = draw_err(path);
+    let root = BitMapBackend::new(path, (1000, 420 * arms.len() as u32)).into_drawing_area();
+    root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
+    let panels = root.split_evenly((arms.len(), 1));
+    let t_max = arms
+        .iter()
+        .flat_map(|(_, r)| r.iter())
+        .map(|r| r.time_s)
+        .fold(1.0, f64::max);
+    for ((label, trials), area) in arms.iter().zip(panels.iter()) {
+        let f_max = trials
+            .iter()
+            .flat_map(|r| r.samples.iter().map(shown_force))
+            .filter(|x| x.is_finite())
+            .fold(1.0, f64::max)
+            * 1.05;
+        let mut chart = ChartBuilder::on(area)
+            .caption(format!("||f_ext|| over time: {label}"), (FAMILY, 22))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(55)
+            .build_cartesian_2d(0.0..t_max, 0.0..f_max)
+            .map_err(|x| e(x.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc("time [s]")
+            .y_desc("||f_ext|| [N]")
+            .label_style((FAMILY, 14))
+            .draw()
+            .map_err(|x| e(x.to_string()))?;
+        for (i, r) in trials.iter().enumerate() {
+            let colour = Palette99::pick(i).to_rgba();
+            chart
+                .draw_series(LineSeries::new(
+                    r.samples.iter().map(|s| (s.t, shown_force(s))),
+                    colour.stroke_width(1),
+                ))
+                .map_err(|x| e(x.to_string()))?;
+        }
+    }
+    root.present().map_err(|x| e(x.to_string()))
+}
+
+/// Box plots (median, quartiles, whiskers at 1.5 IQR, outliers as dots) of the values of
+/// each group, e.g. M per arm.
+pub fn box_plot(path: &Path, title: &str, y_desc: &str, groups: &[(String, Vec<f64>)]) -> Result<(), PlotError> {
+    let groups: Vec<(&str, Vec<f64>)> = groups
+        .iter()
+        .map(|(l, v)| {
+            let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+            v.sort_by(f64::total_cmp);
+            (l.as_str(), v)
+        })
+        .collect();
+    if groups.iter().all(|(_, v)| v.is_empty()) {
+        return Err(PlotError::Empty("no finite values to box-plot"));
+    }
+    ensure_font()?;
+    let e = draw_err(path);
+    let y_max = groups
+        .iter()
+        .flat_map(|(_, v)| v.last())
+        .fold(1e-3, |a, &b| f64::max(a, b))
+        * 1.1;
+    let root = BitMapBackend::new(path, (300 + 200 * groups.len() as u32, 500)).into_drawing_area();
+    root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
+    let n = groups.len();
+    let mut chart = ChartBuilder::on(&root)
+        .caption(title, (FAMILY, 22))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(55)
+        .build_cartesian_2d(-0.5..(n as f64 - 0.5), 0.0..y_max)
+        .map_err(|x| e(x.to_string()))?;
+    let labels: Vec<String> = groups.iter().map(|(l, v)| format!("{l} (n={})", v.len())).collect();
+    chart
+        .configure_mesh()
+        .disable_x_mesh()
+        .x_labels(n)
+        .x_label_formatter(&|x| {
+            let i = x.round();
+            if (x - i).abs() < 1e-6 && i >= 0.0 {
+                labels.get(i as usize).cloned().unwrap_or_default()
+            } else {
+                String::new()
+            }
+        })
+        .y_desc(y_desc)
+        .label_style((FAMILY, 14))
+        .draw()
+        .map_err(|x| e(x.to_string()))?;
+    for (i, (_, v)) in groups.iter().enumerate() {
+        if v.is_empty() {
+            continue;
+        }
+        let x = i as f64;
+        let q = |p: f64| quantile(v, p);
+        let (q1, med, q3) = (q(0.25), q(0.5), q(0.75));
+        let iqr = q3 - q1;
+        let lo = v.iter().copied().find(|&y| y >= q1 - 1.5 * iqr).unwrap_or(q1);
+        let hi = v.iter().rev().copied().find(|&y| y <= q3 + 1.5 * iqr).unwrap_or(q3);
+        let colour = Palette99::pick(i).to_rgba();
+        let w = 0.25;
+        let lines = [
+            vec![(x - w, q1), (x + w, q1), (x + w, q3), (x - w, q3), (x - w, q1)],
+            vec![(x - w, med), (x + w, med)],
+            vec![(x, q3), (x, hi)],
+            vec![(x, q1), (x, lo)],
+            vec![(x - w / 2.0, hi), (x + w / 2.0, hi)],
+            vec![(x - w / 2.0, lo), (x + w / 2.0, lo)],
+        ];
+        for l in lines {
+            chart
+                .draw_series(std::iter::once(PathElement::new(l, colour.stroke_width(2))))
+                .map_err(|x| e(x.to_string()))?;
+        }
+        chart
+            .draw_series(
+                v.iter()
+                    .filter(|&&y| y < lo || y > hi)
+                    .map(|&y| Circle::new((x, y), 3, colour.filled())),
+            )
+            .map_err(|x| e(x.to_string()))?;
+    }
+    root.present().map_err(|x| e(x.to_string()))
+}
+
+/// Linear-interpolated quantile of sorted, non-empty `v`.
+fn quantile(v: &[f64], p: f64) -> f64 {
+    let pos = p.clamp(0.0, 1.0) * (v.len() - 1) as f64;
+    let (i, f) = (pos.floor() as usize, pos.fract());
+    let j = (i + 1).min(v.len() - 1);
+    v[i] * (1.0 - f) + v[j] * f
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles() {
+        let v = [1.0, 2.0, 3.0, 4.0, 5.0];
+        assert_eq!(quantile(&v, 0.5), 3.0);
+        assert_eq!(quantile(&v, 0.25), 2.0);
+        assert!((quantile(&[1.0, 2.0], 0.5) - 1.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn writes_pngs() {
+        if std::fs::metadata(FONT_PATH).is_err() {
+            // Without the font the error must say so.
+            let err = box_plot(Path::new("/tmp/x.png"), "t", "y", &[("a".into(), vec![1.0])]).unwrap_err();
+            assert!(err.to_string().contains("fonts-dejavu-core"));
+            return;
+        }
+        let dir = std::env::temp_dir().join(format!("plot_test_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let p = dir.join("box.png");
+        box_plot(
+            &p,
+            "M",
+            "M [N]",
+            &[("a".into(), vec![1.0, 2.0, 3.0, 10.0]), ("b".into(), vec![0.5, 0.6])],
+        )
+        .unwrap();
+        let png = std::fs::read(&p).unwrap();
+        assert_eq!(&png[1..4], b"PNG");
+        assert!(box_plot(&p, "M", "M", &[]).is_err());
+        assert!(force_over_time(&dir.join("f.png"), &[]).is_err());
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

@@ -1,0 +1,62 @@
+//! The file `config/sim.yaml`: the simulated world (`sim:`) and the trial rules (`trial:`).
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::trial::TrialParams;
+use super::{SimError, SimParams};
+
+/// Default location of the simulator configuration, relative to the package root.
+pub const DEFAULT_PATH: &str = "config/sim.yaml";
+
+/// Everything `config/sim.yaml` holds.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimConfig {
+    /// The simulated world.
+    pub sim: SimParams,
+    /// Trial rules (goal, tolerance, timeout, abort force, control rate).
+    pub trial: TrialParams,
+}
+
+impl SimConfig {
+    /// Parse and validate YAML.
+    pub fn from_yaml_str(s: &str) -> Result<Self, SimError> {
+        let c: Self = serde_yaml::from_str(s)?;
+        c.sim.validate()?;
+        c.trial.validate()?;
+        Ok(c)
+    }
+
+    /// `config/sim.yaml` when it exists (relative to the working directory), else the
+    /// built-in defaults.
+    pub fn load_default() -> Result<Self, SimError> {
+        let p = Path::new(DEFAULT_PATH);
+        if p.exists() {
+            Self::from_file(p)
+        } else {
+            Ok(Self::default())
+        }
+    }
+
+    /// Read a file.
+    pub fn from_file(path: &Path) -> Result<Self, SimError> {
+        let s = std::fs::read_to_string(path).map_err(|e| SimError::Input(format!("{}: {e}", path.display())))?;
+        Self::from_yaml_str(&s)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn shipped_config_parses() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_PATH);
+        let c = SimConfig::from_file(&path).unwrap();
+        assert_eq!(c.trial.goal_depth_m, 0.03);
+        assert_eq!(c.sim.trocar.port_diameter_m, 0.007);
+        assert!(SimConfig::from_yaml_str("trial: {timeout_s: -1}").is_err());
+    }
+}
