@@ -13,7 +13,8 @@ use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs,
 use super::params;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics};
 use crate::robot_model::{LbrModel, ToolParams};
-use crate::sim::{SimParams, SimWorld};
+use crate::sim::config::SimConfig;
+use crate::sim::SimWorld;
 
 use super::node::{ros_err, CommandType, NodeError};
 
@@ -50,7 +51,7 @@ pub struct SimNodeParams {
     /// CameraInfo out.
     pub camera_info_topic: String,
     /// Publish the simulator's noisy trocar pose measurement directly (the paper's mode; its
-    /// rate, latency and noise are `sim.measurement`).
+    /// rate, latency and noise are `world.sim.measurement`).
     pub direct_pose_enabled: bool,
     /// Direct trocar pose out.
     pub trocar_pose_topic: String,
@@ -60,8 +61,9 @@ pub struct SimNodeParams {
     pub base_frame: String,
     /// Stop camera and direct pose after this many simulated seconds (negative: never).
     pub trocar_dropout_after: f64,
-    /// The simulator's own parameters.
-    pub sim: SimParams,
+    /// The simulator's own parameters (`config/sim.yaml`, loaded under `~world`; its
+    /// `sim:` section is used).
+    pub world: SimConfig,
 }
 
 impl Default for SimNodeParams {
@@ -86,7 +88,7 @@ impl Default for SimNodeParams {
             trocar_true_topic: "/trocar/pose_true".into(),
             base_frame: crate::kinematics::BASE_LINK.into(),
             trocar_dropout_after: -1.0,
-            sim: SimParams::default(),
+            world: SimConfig::default(),
         }
     }
 }
@@ -158,8 +160,8 @@ pub fn run() -> Result<(), NodeError> {
     }
     let kin = LbrKinematics::from_model(p.model, &ToolParams::default())?;
     let shared_kin: Arc<dyn Kinematics> = Arc::new(kin.clone());
-    let mut world = SimWorld::new(&p.sim, shared_kin, p.seed).map_err(|e| NodeError::Invalid(format!("sim: {e}")))?;
-    let dt = p.sim.dt();
+    let mut world = SimWorld::new(&p.world.sim, shared_kin, p.seed).map_err(|e| NodeError::Invalid(format!("sim: {e}")))?;
+    let dt = p.world.sim.dt();
 
     let command: CommandSlot = Arc::new(Mutex::new(None));
     let _sub = subscribe_command(&p, &command)?;
