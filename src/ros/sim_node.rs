@@ -160,7 +160,8 @@ pub fn run() -> Result<(), NodeError> {
     }
     let kin = LbrKinematics::from_model(p.model, &ToolParams::default())?;
     let shared_kin: Arc<dyn Kinematics> = Arc::new(kin.clone());
-    let mut world = SimWorld::new(&p.world.sim, shared_kin, p.seed).map_err(|e| NodeError::Invalid(format!("sim: {e}")))?;
+    let mut world =
+        SimWorld::new(&p.world.sim, shared_kin, p.seed).map_err(|e| NodeError::Invalid(format!("sim: {e}")))?;
     let dt = p.world.sim.dt();
 
     let command: CommandSlot = Arc::new(Mutex::new(None));
