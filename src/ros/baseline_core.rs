@@ -250,7 +250,7 @@ mod tests {
         assert!(out.command.is_none());
         assert!(out.reason.unwrap().contains("stale"));
         input.trocar = None;
-        assert!(core.step(&kin, &input).reason.unwrap().contains("stale"));
+        assert!(core.step(&kin, &input).reason.unwrap().contains("no valid trocar pose"));
     }
 
     #[test]
