@@ -21,7 +21,39 @@ KdlChain::KdlChain(KDL::Chain chain, std::vector<std::string> names, std::vector
       lower_(std::move(lower)),
       upper_(std::move(upper)),
       velocity_(std::move(velocity)),
-      effort_(std::move(effort)) {}
+      effort_(std::move(effort)) {
+  for (const auto& seg : chain_.segments) {
+    const KDL::Joint& joint = seg.getJoint();
+    Seg s;
+    const int type = joint.getType();
+    s.kind = type == KDL::Joint::None ? Kind::Fixed
+             : type >= KDL::Joint::TransAxis ? Kind::Prismatic
+                                             : Kind::Revolute;
+    s.axis = joint.JointAxis();
+    s.origin = joint.JointOrigin();
+    s.tip = seg.getFrameToTip();
+    // The closed forms below assume KDL's default joint scale 1 and offset 0 (kdl_parser
+    // sets neither); refuse a chain where the segment pose disagrees with them.
+    for (double q : {0.0, 0.7}) {
+      if (!KDL::Equal(seg.pose(q), joint_frame(s, q) * s.tip, 1e-12))
+        throw std::runtime_error("joint '" + joint.getName() + "' has a scale or offset this bridge does not support");
+    }
+    segs_.push_back(s);
+  }
+}
+
+KDL::Frame KdlChain::joint_frame(const Seg& s, double q) const {
+  switch (s.kind) {
+    case Kind::Revolute: {
+      const KDL::Rotation r = KDL::Rotation::Rot2(s.axis, q);
+      return KDL::Frame(r, s.origin - r * s.origin);
+    }
+    case Kind::Prismatic:
+      return KDL::Frame(s.axis * q);
+    default:
+      return KDL::Frame::Identity();
+  }
+}
 
 size_t KdlChain::n_joints() const { return chain_.getNrOfJoints(); }
 
@@ -52,12 +84,8 @@ static void write_pose(const KDL::Frame& f, rust::Slice<double> pose) {
 void KdlChain::fk(rust::Slice<const double> q, rust::Slice<double> pose) const {
   KDL::Frame t = KDL::Frame::Identity();
   unsigned j = 0;
-  for (const auto& seg : chain_.segments) {
-    if (seg.getJoint().getType() != KDL::Joint::None) {
-      t = t * seg.pose(q[j++]);
-    } else {
-      t = t * seg.getFrameToTip();
-    }
+  for (const auto& s : segs_) {
+    t = s.kind == Kind::Fixed ? t * s.tip : t * joint_frame(s, q[j++]) * s.tip;
   }
   write_pose(t, pose);
 }
@@ -69,16 +97,15 @@ void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose
   KDL::Frame t = KDL::Frame::Identity();
   unsigned j = 0;
   double* J = jac.data();
-  for (const auto& seg : chain_.segments) {
-    const KDL::Joint& joint = seg.getJoint();
-    if (joint.getType() == KDL::Joint::None) {
-      t = t * seg.getFrameToTip();
+  for (const auto& s : segs_) {
+    if (s.kind == Kind::Fixed) {
+      t = t * s.tip;
       continue;
     }
-    const KDL::Vector axis = t.M * joint.JointAxis();
-    const KDL::Vector origin = t * joint.JointOrigin();
+    const KDL::Vector axis = t.M * s.axis;
+    const KDL::Vector origin = t * s.origin;
     double* c = J + 6 * j;
-    const bool prismatic = joint.getType() >= KDL::Joint::TransAxis;
+    const bool prismatic = s.kind == Kind::Prismatic;
     c[0] = origin.x();
     c[1] = origin.y();
     c[2] = origin.z();
@@ -86,7 +113,7 @@ void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose
     c[4] = axis.y();
     c[5] = axis.z();
     if (prismatic) c[0] = std::numeric_limits<double>::quiet_NaN();  // marker, fixed below
-    t = t * seg.pose(q[j]);
+    t = t * joint_frame(s, q[j]) * s.tip;
     ++j;
   }
   write_pose(t, pose);

@@ -6,6 +6,7 @@
 #include <vector>
 
 #include <kdl/chain.hpp>
+#include <kdl/frames.hpp>
 
 #include "rust/cxx.h"
 
@@ -30,6 +31,18 @@ class KdlChain {
   void fk(rust::Slice<const double> q, rust::Slice<double> pose) const;
 
  private:
+  // Per-segment data copied out of KDL at construction. KDL's Joint::pose caches its last
+  // result in mutable members, so calling it from two threads races; the hot path below
+  // uses only these immutable copies, which makes a KdlChain safe to share between threads.
+  enum class Kind { Fixed, Revolute, Prismatic };
+  struct Seg {
+    Kind kind;
+    KDL::Vector axis;    // joint axis, in the segment's parent frame
+    KDL::Vector origin;  // joint origin, in the segment's parent frame
+    KDL::Frame tip;      // segment frame at q = 0 (the URDF joint origin)
+  };
+  std::vector<Seg> segs_;
+  KDL::Frame joint_frame(const Seg& s, double q) const;
   KDL::Chain chain_;
   std::vector<std::string> names_;
   std::vector<double> lower_, upper_, velocity_, effort_;

@@ -6,11 +6,18 @@
 //! (KDL, ViSP, OpenCV) behind safe Rust; `ros` holds only topic and parameter glue.
 #![warn(missing_docs)]
 
+pub mod admittance;
 pub mod bench;
 pub mod cli;
+pub mod controller;
+pub mod docking;
 pub mod ffi;
+pub mod geometry;
 pub mod kinematics;
+pub mod metrics;
 pub mod plot;
 pub mod robot_model;
 pub mod ros;
+pub mod safety;
 pub mod sim;
+pub mod supervisor;

@@ -4,6 +4,7 @@
 
 use std::time::Instant;
 
+pub mod controller;
 pub mod kinematics;
 pub mod sim;
 

@@ -10,6 +10,8 @@ pub enum Suite {
     Kinematics,
     /// Simulator: physics step and closed-loop real-time factor.
     Sim,
+    /// One control step (FK + Jacobian + SQP + guard), two scenarios.
+    Controller,
     /// Every suite.
     All,
 }
@@ -38,6 +40,9 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
     if all || a.suite == Suite::Sim {
         let cfg = crate::sim::config::SimConfig::load_default()?;
         reports.extend(crate::bench::sim::run(&cfg, a.samples, 10)?);
+    }
+    if all || a.suite == Suite::Controller {
+        reports.extend(crate::bench::controller::run(a.samples.min(5000))?);
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&reports)?);

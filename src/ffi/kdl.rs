@@ -30,8 +30,9 @@ pub mod ffi {
     }
 }
 
-// SAFETY: KdlChain is immutable after construction; every method is const and uses no
-// shared mutable state, so it may be moved to and shared between threads.
+// SAFETY: KdlChain is immutable after construction: its methods are const and read only
+// the per-segment copies it made at construction (it never calls KDL's Joint::pose, whose
+// cache is mutable), so it may be moved to and shared between threads.
 unsafe impl Send for ffi::KdlChain {}
 // SAFETY: see above.
 unsafe impl Sync for ffi::KdlChain {}

@@ -1,0 +1,289 @@
+//! Force feedback: the tip force estimate from external joint torques, and the admittance
+//! law that turns it into the reference r the controller's c5 term pulls the tip towards.
+//!
+//! **Force estimate** (the paper's f_ext = J_lin(q)^{-T} tau_ext): each joint torque first
+//! passes a dead-band (the LBR's torque estimate is not zero at rest), then
+//! f = (J J^T + λ² I)^{-1} J tau, the damped least-squares solution of J^T f = tau, which
+//! stays bounded near singular configurations; then a first-order low-pass filter.
+//!
+//! **Admittance** (a virtual mass-spring-damper driven by the force *across* the insertion
+//! axis): M ẍ + D ẋ + K x = f_⊥, integrated semi-implicitly; r = e(q) + x, the current tip
+//! displaced by the compliance. Only the lateral force drives it, so the tip yields sideways
+//! to contact while the insertion keeps progressing along the axis; the axial force instead
+//! slows the insertion (see [`AdmittanceParams::axial_force_full_stop`]) and the safety guard
+//! stops on a force above its threshold.
+
+use nalgebra::{Matrix3, Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::kinematics::{Jacobian, JointVector};
+
+/// Parameters of the force estimate and the admittance law.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AdmittanceParams {
+    /// Per-joint torque dead-band, Nm.
+    pub torque_deadband: f64,
+    /// Damping λ of the pseudo-inverse, m (units of the Jacobian's linear rows).
+    pub pinv_damping: f64,
+    /// Cut-off of the force low-pass filter, Hz (0 = no filter).
+    pub filter_cutoff_hz: f64,
+    /// Forces below this norm are ignored by the admittance, N.
+    pub force_deadband: f64,
+    /// Virtual mass, kg.
+    pub mass: f64,
+    /// Virtual damping, N s/m.
+    pub damping: f64,
+    /// Virtual stiffness, N/m.
+    pub stiffness: f64,
+    /// Largest displacement of r from the tip, m.
+    pub max_displacement: f64,
+    /// Axial force (resisting insertion) at which insertion stops advancing, N; the advance
+    /// speed falls linearly from full at 0 N to [`Self::min_insert_speed_ratio`] here.
+    pub axial_force_full_stop: f64,
+    /// Fraction of the insertion speed kept at the largest axial force, so insertion never
+    /// stalls while yielding (0..1).
+    pub min_insert_speed_ratio: f64,
+}
+
+impl Default for AdmittanceParams {
+    fn default() -> Self {
+        Self {
+            torque_deadband: 0.0,
+            pinv_damping: 0.02,
+            filter_cutoff_hz: 20.0,
+            force_deadband: 0.2,
+            mass: 0.5,
+            damping: 60.0,
+            stiffness: 300.0,
+            max_displacement: 0.02,
+            axial_force_full_stop: 5.0,
+            min_insert_speed_ratio: 0.25,
+        }
+    }
+}
+
+impl AdmittanceParams {
+    /// Check ranges; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let pos = |n: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("admittance.{n} must be > 0, got {v}"))
+            }
+        };
+        let nonneg = |n: &str, v: f64| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err(format!("admittance.{n} must be >= 0, got {v}"))
+            }
+        };
+        nonneg("torque_deadband", self.torque_deadband)?;
+        pos("pinv_damping", self.pinv_damping)?;
+        nonneg("filter_cutoff_hz", self.filter_cutoff_hz)?;
+        nonneg("force_deadband", self.force_deadband)?;
+        pos("mass", self.mass)?;
+        nonneg("damping", self.damping)?;
+        nonneg("stiffness", self.stiffness)?;
+        pos("max_displacement", self.max_displacement)?;
+        pos("axial_force_full_stop", self.axial_force_full_stop)?;
+        if !(0.0..=1.0).contains(&self.min_insert_speed_ratio) {
+            return Err(format!(
+                "admittance.min_insert_speed_ratio must be in [0, 1], got {}",
+                self.min_insert_speed_ratio
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Dead-band: values within ±`band` become 0, others shrink towards 0 by `band`.
+pub fn deadband(x: f64, band: f64) -> f64 {
+    if x > band {
+        x - band
+    } else if x < -band {
+        x + band
+    } else {
+        0.0
+    }
+}
+
+/// f = (J J^T + λ² I)^{-1} J tau for the linear rows of `jac`; `None` when the inputs are
+/// not finite.
+pub fn tip_force(jac: &Jacobian, tau: &JointVector, deadband_nm: f64, damping: f64) -> Option<Vector3<f64>> {
+    if !tau.iter().all(|t| t.is_finite()) || !jac.iter().all(|j| j.is_finite()) {
+        return None;
+    }
+    let tau_db = tau.map(|t| deadband(t, deadband_nm));
+    let jl = jac.fixed_rows::<3>(0);
+    let a: Matrix3<f64> = jl * jl.transpose() + Matrix3::identity() * damping * damping;
+    let f = a.cholesky()?.solve(&(jl * tau_db));
+    f.iter().all(|x| x.is_finite()).then_some(f)
+}
+
+/// The force estimate and admittance state, one per controller.
+#[derive(Debug, Clone)]
+pub struct Admittance {
+    params: AdmittanceParams,
+    force: Vector3<f64>,
+    x: Vector3<f64>,
+    v: Vector3<f64>,
+}
+
+impl Admittance {
+    /// A new state at rest.
+    pub fn new(params: AdmittanceParams) -> Self {
+        Self {
+            params,
+            force: Vector3::zeros(),
+            x: Vector3::zeros(),
+            v: Vector3::zeros(),
+        }
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &AdmittanceParams {
+        &self.params
+    }
+
+    /// Clear the filter and the admittance state.
+    pub fn reset(&mut self) {
+        self.force = Vector3::zeros();
+        self.x = Vector3::zeros();
+        self.v = Vector3::zeros();
+    }
+
+    /// Feed a torque measurement (already known finite) and update the filtered force.
+    /// Returns the filtered force; a non-finite estimate leaves the filter unchanged.
+    pub fn update_force(&mut self, jac: &Jacobian, tau: &JointVector, dt: f64) -> Vector3<f64> {
+        if let Some(f) = tip_force(jac, tau, self.params.torque_deadband, self.params.pinv_damping) {
+            let fc = self.params.filter_cutoff_hz;
+            let alpha = if fc > 0.0 && dt > 0.0 {
+                let rc = 1.0 / (2.0 * std::f64::consts::PI * fc);
+                dt / (rc + dt)
+            } else {
+                1.0
+            };
+            self.force += (f - self.force) * alpha;
+        }
+        self.force
+    }
+
+    /// The filtered force estimate, N.
+    pub fn force(&self) -> Vector3<f64> {
+        self.force
+    }
+
+    /// Advance the admittance by `dt` driven by the filtered force across `across(f)` and
+    /// return the displacement x of the reference from the tip.
+    pub fn step(&mut self, lateral_force: Vector3<f64>, dt: f64) -> Vector3<f64> {
+        let p = &self.params;
+        let n = lateral_force.norm();
+        let f = if n > p.force_deadband && n.is_finite() {
+            lateral_force * ((n - p.force_deadband) / n)
+        } else {
+            Vector3::zeros()
+        };
+        if dt > 0.0 && dt.is_finite() {
+            // Semi-implicit Euler; stable for dt * (D / M) well beyond our rates.
+            let a = (f - self.v * p.damping - self.x * p.stiffness) / p.mass;
+            self.v += a * dt;
+            self.x += self.v * dt;
+            let xn = self.x.norm();
+            if xn > p.max_displacement {
+                self.x *= p.max_displacement / xn;
+                self.v = Vector3::zeros();
+            }
+        }
+        self.x
+    }
+
+    /// The reference r = tip + x.
+    pub fn reference(&self, tip: &Point3<f64>) -> Point3<f64> {
+        tip + self.x
+    }
+
+    /// Insertion speed ratio for an axial force `f_axial_resisting` (N, positive when the
+    /// force pushes the tip back out of the trocar).
+    pub fn insert_speed_ratio(&self, f_axial_resisting: f64) -> f64 {
+        let p = &self.params;
+        if !f_axial_resisting.is_finite() {
+            return p.min_insert_speed_ratio;
+        }
+        let f = f_axial_resisting.max(0.0);
+        (1.0 - f / p.axial_force_full_stop).clamp(p.min_insert_speed_ratio, 1.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kinematics::{Kinematics, LbrKinematics};
+    use crate::robot_model::{LbrModel, ToolParams};
+
+    #[test]
+    fn force_recovered_from_torques() {
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let q = JointVector::from_column_slice(&[0.1, 0.6, -0.1, -1.2, 0.2, 0.9, 0.0]);
+        let (_, j) = kin.fk_jacobian(&q).unwrap();
+        let f = Vector3::new(3.0, -2.0, 5.0);
+        let tau = j.fixed_rows::<3>(0).transpose() * f;
+        let est = tip_force(&j, &tau, 0.0, 1e-4).unwrap();
+        assert!((est - f).norm() < 1e-3, "{est:?}");
+        // A damped inverse shrinks, never amplifies.
+        let damped = tip_force(&j, &tau, 0.0, 0.2).unwrap();
+        assert!(damped.norm() < f.norm());
+        // Dead-band removes small torques entirely.
+        assert_eq!(tip_force(&j, &(tau * 1e-3), 1.0, 0.02).unwrap(), Vector3::zeros());
+        let mut bad = tau;
+        bad[2] = f64::NAN;
+        assert!(tip_force(&j, &bad, 0.0, 0.02).is_none());
+    }
+
+    #[test]
+    fn deadband_shape() {
+        assert_eq!(deadband(0.5, 1.0), 0.0);
+        assert_eq!(deadband(3.0, 1.0), 2.0);
+        assert_eq!(deadband(-3.0, 1.0), -2.0);
+    }
+
+    #[test]
+    fn admittance_settles_at_force_over_stiffness() {
+        let p = AdmittanceParams {
+            force_deadband: 0.0,
+            ..Default::default()
+        };
+        let k = p.stiffness;
+        let mut a = Admittance::new(p);
+        let f = Vector3::new(2.0, 0.0, -1.0);
+        for _ in 0..5000 {
+            a.step(f, 0.001);
+        }
+        assert!((a.step(f, 0.001) - f / k).norm() < 1e-6);
+        // Saturates at the largest displacement.
+        let big = Vector3::new(1e4, 0.0, 0.0);
+        for _ in 0..100 {
+            a.step(big, 0.01);
+        }
+        assert!(a.step(big, 0.01).norm() <= a.params().max_displacement + 1e-12);
+        a.reset();
+        assert_eq!(a.step(Vector3::zeros(), 0.01), Vector3::zeros());
+    }
+
+    #[test]
+    fn insertion_slows_but_never_stops() {
+        let a = Admittance::new(AdmittanceParams::default());
+        assert_eq!(a.insert_speed_ratio(-3.0), 1.0);
+        assert!(a.insert_speed_ratio(2.5) < 1.0);
+        assert_eq!(a.insert_speed_ratio(100.0), a.params().min_insert_speed_ratio);
+        assert_eq!(a.insert_speed_ratio(f64::NAN), a.params().min_insert_speed_ratio);
+        assert!(AdmittanceParams {
+            mass: 0.0,
+            ..Default::default()
+        }
+        .validate()
+        .is_err());
+    }
+}

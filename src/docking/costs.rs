@@ -1,0 +1,180 @@
+//! The cost terms of the controller and their Gauss–Newton quadratic model.
+//!
+//! With e(q) the tip position, a(q) the optical axis (tip z), p_t the port, g_a the
+//! insertion direction and P = I - g_a g_a^T:
+//!
+//! | term | residual | meaning |
+//! |---|---|---|
+//! | c1 | P (e - p_t) | tip to the insertion axis (the paper's e - n(g_a)) |
+//! | c2 | e - g | tip to the current target point g on the axis |
+//! | c3 | a - g_a | optical axis alignment |
+//! | c4 | q - q_prev | joint step (velocity) |
+//! | c5 | e - r | tip to the admittance reference r |
+//!
+//! Each c_i is the squared norm of its residual. For c5 the paper writes the unsquared norm
+//! ||e - r||; its gradient is undefined at e = r and its Hessian unbounded near it, which
+//! breaks a Gauss–Newton model exactly where the tip follows r closely. The squared form is
+//! smooth, and the weight w5 sets the same trade-off. Linearising e and a about q_lin
+//! (e ≈ e0 + J_v dq, a ≈ a0 - [a0]x J_w dq) turns the weighted sum into
+//! ½ dq^T H dq + g^T dq + const.
+
+use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::geometry::InsertionAxis;
+use crate::kinematics::{Jacobian, JointVector};
+
+/// 7 x 7 matrix of the QP.
+pub type Matrix7 = SMatrix<f64, 7, 7>;
+
+/// Weights w1..w5 of the cost terms.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CostWeights {
+    /// w1: tip to axis, 1/m².
+    pub axis: f64,
+    /// w2: tip to target point, 1/m².
+    pub goal: f64,
+    /// w3: alignment.
+    pub align: f64,
+    /// w4: joint step, 1/rad².
+    pub step: f64,
+    /// w5: tip to admittance reference, 1/m² (0 = force feedback off).
+    pub reference: f64,
+}
+
+impl CostWeights {
+    /// As an array, c1..c5 order.
+    pub fn as_array(&self) -> [f64; 5] {
+        [self.axis, self.goal, self.align, self.step, self.reference]
+    }
+
+    /// Check that every weight is finite and >= 0.
+    pub fn validate(&self, name: &str) -> Result<(), String> {
+        for (i, w) in self.as_array().iter().enumerate() {
+            if !(w.is_finite() && *w >= 0.0) {
+                return Err(format!("{name}: weight w{} must be finite and >= 0, got {w}", i + 1));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// What the cost terms pull towards at one control step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Targets {
+    /// The insertion axis.
+    pub axis: InsertionAxis,
+    /// Target point of c2.
+    pub point: Point3<f64>,
+    /// Admittance reference r of c5 (ignored when w5 = 0).
+    pub reference: Point3<f64>,
+    /// The previous command, for c4.
+    pub q_prev: JointVector,
+}
+
+/// Unweighted values of c1..c5.
+pub type CostTerms = [f64; 5];
+
+/// Evaluate c1..c5 at a tip pose and joint vector.
+pub fn evaluate(pose: &Isometry3<f64>, q: &JointVector, t: &Targets) -> CostTerms {
+    let e = Point3::from(pose.translation.vector);
+    let a = pose.rotation * Vector3::z();
+    [
+        t.axis.lateral_offset(&e).norm_squared(),
+        (e - t.point).norm_squared(),
+        (a - t.axis.direction.into_inner()).norm_squared(),
+        (q - t.q_prev).norm_squared(),
+        (e - t.reference).norm_squared(),
+    ]
+}
+
+/// The Gauss–Newton model ½ dq^T H dq + g^T dq of the weighted cost about `q_lin`, plus a
+/// Levenberg term `regularization` |dq|².
+pub fn quadratic_model(
+    pose: &Isometry3<f64>,
+    jac: &Jacobian,
+    q_lin: &JointVector,
+    t: &Targets,
+    w: &CostWeights,
+    regularization: f64,
+) -> (Matrix7, SVector<f64, 7>) {
+    let e = Point3::from(pose.translation.vector);
+    let a = pose.rotation * Vector3::z();
+    let jv = jac.fixed_rows::<3>(0).into_owned();
+    let jw = jac.fixed_rows::<3>(3).into_owned();
+    let g_a = t.axis.direction.into_inner();
+    let proj = Matrix3::identity() - g_a * g_a.transpose();
+
+    let mut h = Matrix7::identity() * (2.0 * (regularization + w.step));
+    let mut g = (q_lin - t.q_prev) * (2.0 * w.step);
+    let mut add = |weight: f64, r: Vector3<f64>, jr: SMatrix<f64, 3, 7>| {
+        if weight > 0.0 {
+            h += jr.transpose() * jr * (2.0 * weight);
+            g += jr.transpose() * r * (2.0 * weight);
+        }
+    };
+    add(w.axis, proj * (e - t.axis.port), proj * jv);
+    add(w.goal, e - t.point, jv);
+    add(w.align, a - g_a, -a.cross_matrix() * jw);
+    add(w.reference, e - t.reference, jv);
+    (h, g)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kinematics::{Kinematics, LbrKinematics};
+    use crate::robot_model::{LbrModel, ToolParams};
+    use nalgebra::{Translation3, UnitQuaternion};
+
+    #[test]
+    fn model_matches_cost_to_first_order() {
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let q = JointVector::from_column_slice(&[0.1, 0.6, -0.1, -1.2, 0.2, 0.9, 0.3]);
+        let (pose, jac) = kin.fk_jacobian(&q).unwrap();
+        let trocar = Isometry3::from_parts(
+            Translation3::new(0.62, 0.05, 0.25),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI - 0.2),
+        );
+        let t = Targets {
+            axis: InsertionAxis::from_pose(&trocar),
+            point: Point3::new(0.6, 0.0, 0.3),
+            reference: Point3::new(0.58, 0.02, 0.35),
+            q_prev: q.add_scalar(0.01),
+        };
+        let w = CostWeights {
+            axis: 3.0,
+            goal: 2.0,
+            align: 0.7,
+            step: 0.1,
+            reference: 1.5,
+        };
+        let total = |q: &JointVector| {
+            let p = kin.fk(q).unwrap();
+            evaluate(&p, q, &t)
+                .iter()
+                .zip(w.as_array())
+                .map(|(c, w)| c * w)
+                .sum::<f64>()
+        };
+        let (_, g) = quadratic_model(&pose, &jac, &q, &t, &w, 0.0);
+        // The model's gradient is the true gradient of the weighted cost.
+        for i in 0..7 {
+            let h = 1e-6;
+            let (mut qp, mut qm) = (q, q);
+            qp[i] += h;
+            qm[i] -= h;
+            let fd = (total(&qp) - total(&qm)) / (2.0 * h);
+            assert!(
+                (fd - g[i]).abs() < 1e-5 * (1.0 + fd.abs()),
+                "joint {i}: {fd} vs {}",
+                g[i]
+            );
+        }
+        let c = evaluate(&pose, &q, &t);
+        assert!(c.iter().all(|x| x.is_finite() && *x >= 0.0));
+        assert!((c[3] - 7.0 * 1e-4).abs() < 1e-12);
+        assert!(CostWeights { align: -1.0, ..w }.validate("x").is_err());
+    }
+}

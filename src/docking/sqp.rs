@@ -1,0 +1,409 @@
+//! Gauss–Newton SQP on Clarabel: linearise the costs with the Jacobian, solve the box QP
+//! for the joint step, repeat to a tolerance or a cap. In real-time-iteration mode (RTI)
+//! one QP is solved per control step, as acados does.
+//!
+//! The QP is min ½ dq^T H dq + g^T dq subject to lo - q_k <= dq <= hi - q_k, where [lo, hi]
+//! is the step box of the safety guard (position limits with margin ∩ velocity limit from
+//! the previous command). The Clarabel solver is built once with the problem's fixed
+//! sparsity (dense upper-triangular H, A = [I; -I]) and only its data is updated per solve,
+//! so a solve allocates nothing of its own beyond what Clarabel does internally.
+
+use std::time::Instant;
+
+use clarabel::algebra::CscMatrix;
+use clarabel::solver::{
+    DefaultSettings, DefaultSettingsBuilder, DefaultSolver, IPSolver, SolverStatus, SupportedConeT,
+};
+use serde::{Deserialize, Serialize};
+
+use super::costs::{evaluate, quadratic_model, CostTerms, CostWeights, Matrix7, Targets};
+use crate::kinematics::{JointVector, Kinematics, N_JOINTS};
+
+/// Settings of the SQP.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SqpSettings {
+    /// Largest number of QPs per control step (1 = real-time iteration).
+    pub max_iterations: usize,
+    /// Converged when the largest joint step of an iteration is below this, rad.
+    pub tolerance: f64,
+    /// Levenberg regularisation added to the Hessian's diagonal.
+    pub regularization: f64,
+    /// Interior-point iterations allowed per QP.
+    pub qp_max_iterations: u32,
+}
+
+impl Default for SqpSettings {
+    fn default() -> Self {
+        Self {
+            max_iterations: 3,
+            tolerance: 1e-5,
+            regularization: 1e-6,
+            qp_max_iterations: 50,
+        }
+    }
+}
+
+impl SqpSettings {
+    /// Real-time-iteration settings: one QP per step.
+    pub fn rti() -> Self {
+        Self {
+            max_iterations: 1,
+            ..Self::default()
+        }
+    }
+
+    /// Check ranges.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.max_iterations == 0 || self.max_iterations > 100 {
+            return Err(format!(
+                "sqp.max_iterations must be in 1..=100, got {}",
+                self.max_iterations
+            ));
+        }
+        if !(self.tolerance.is_finite() && self.tolerance > 0.0) {
+            return Err(format!("sqp.tolerance must be > 0, got {}", self.tolerance));
+        }
+        if !(self.regularization.is_finite() && self.regularization >= 0.0) {
+            return Err(format!("sqp.regularization must be >= 0, got {}", self.regularization));
+        }
+        if self.qp_max_iterations == 0 {
+            return Err("sqp.qp_max_iterations must be > 0".into());
+        }
+        Ok(())
+    }
+}
+
+/// How a solve ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SqpStatus {
+    /// The step fell below the tolerance.
+    Converged,
+    /// The iteration cap was reached (normal in RTI mode); the solution is usable.
+    IterationLimit,
+    /// A QP failed; the solution must not be commanded.
+    QpFailed(String),
+    /// The kinematics failed; the solution must not be commanded.
+    Kinematics(String),
+}
+
+impl SqpStatus {
+    /// Whether the solution may be commanded.
+    pub fn is_usable(&self) -> bool {
+        matches!(self, SqpStatus::Converged | SqpStatus::IterationLimit)
+    }
+
+    /// Short text for status messages.
+    pub fn as_text(&self) -> String {
+        match self {
+            SqpStatus::Converged => "converged".into(),
+            SqpStatus::IterationLimit => "iteration_limit".into(),
+            SqpStatus::QpFailed(s) => format!("qp_failed: {s}"),
+            SqpStatus::Kinematics(s) => format!("kinematics: {s}"),
+        }
+    }
+}
+
+/// The result of one SQP solve.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SqpSolution {
+    /// The joint positions found (equal to the start when not usable).
+    pub q: JointVector,
+    /// How it ended.
+    pub status: SqpStatus,
+    /// QPs solved.
+    pub iterations: usize,
+    /// Interior-point iterations over all QPs.
+    pub qp_iterations: u32,
+    /// Wall time of the whole solve, µs.
+    pub solve_time_us: f64,
+    /// Unweighted c1..c5 at `q` (at the start when not usable).
+    pub costs: CostTerms,
+}
+
+const NC: usize = 2 * N_JOINTS;
+
+/// The SQP solver; owns its Clarabel workspace, reused between steps.
+pub struct SqpSolver {
+    settings: SqpSettings,
+    qp: DefaultSolver<f64>,
+    p_values: Vec<f64>,
+    q_values: Vec<f64>,
+    b_values: Vec<f64>,
+}
+
+impl std::fmt::Debug for SqpSolver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SqpSolver").field("settings", &self.settings).finish()
+    }
+}
+
+fn upper_triangle_pattern(values: &[f64]) -> CscMatrix<f64> {
+    let n = N_JOINTS;
+    let mut colptr = vec![0];
+    let mut rowval = vec![];
+    for j in 0..n {
+        rowval.extend(0..=j);
+        colptr.push(rowval.len());
+    }
+    CscMatrix::new(n, n, colptr, rowval, values.to_vec())
+}
+
+fn clarabel_settings(s: &SqpSettings) -> Result<DefaultSettings<f64>, String> {
+    DefaultSettingsBuilder::default()
+        .verbose(false)
+        .presolve_enable(false)
+        .max_iter(s.qp_max_iterations)
+        .build()
+        .map_err(|e| format!("clarabel settings: {e}"))
+}
+
+impl SqpSolver {
+    /// Build the solver and its QP workspace.
+    pub fn new(settings: SqpSettings) -> Result<Self, String> {
+        settings.validate()?;
+        let n = N_JOINTS;
+        // Identity Hessian to start; only the values change later.
+        let mut p_values = Vec::with_capacity(n * (n + 1) / 2);
+        for j in 0..n {
+            for i in 0..=j {
+                p_values.push(if i == j { 1.0 } else { 0.0 });
+            }
+        }
+        let p = upper_triangle_pattern(&p_values);
+        // A = [I; -I]: column j has +1 in row j and -1 in row n + j.
+        let colptr: Vec<usize> = (0..=n).map(|j| 2 * j).collect();
+        let rowval: Vec<usize> = (0..n).flat_map(|j| [j, n + j]).collect();
+        let nzval: Vec<f64> = (0..n).flat_map(|_| [1.0, -1.0]).collect();
+        let a = CscMatrix::new(NC, n, colptr, rowval, nzval);
+        let q_values = vec![0.0; n];
+        let b_values = vec![1.0; NC];
+        let cones = [SupportedConeT::NonnegativeConeT(NC)];
+        let qp = DefaultSolver::new(&p, &q_values, &a, &b_values, &cones, clarabel_settings(&settings)?)
+            .map_err(|e| format!("clarabel setup: {e}"))?;
+        Ok(Self {
+            settings,
+            qp,
+            p_values,
+            q_values,
+            b_values,
+        })
+    }
+
+    /// The settings.
+    pub fn settings(&self) -> &SqpSettings {
+        &self.settings
+    }
+
+    fn solve_qp(
+        &mut self,
+        h: &Matrix7,
+        g: &JointVector,
+        lo: &JointVector,
+        hi: &JointVector,
+    ) -> Result<(JointVector, u32), String> {
+        let n = N_JOINTS;
+        let mut k = 0;
+        for j in 0..n {
+            for i in 0..=j {
+                self.p_values[k] = 0.5 * (h[(i, j)] + h[(j, i)]);
+                k += 1;
+            }
+        }
+        for i in 0..n {
+            self.q_values[i] = g[i];
+            self.b_values[i] = hi[i];
+            self.b_values[n + i] = -lo[i];
+        }
+        if !(self
+            .p_values
+            .iter()
+            .chain(&self.q_values)
+            .chain(&self.b_values)
+            .all(|x| x.is_finite()))
+        {
+            return Err("non-finite QP data".into());
+        }
+        self.qp.update_P(&self.p_values).map_err(|e| e.to_string())?;
+        self.qp.update_q(&self.q_values).map_err(|e| e.to_string())?;
+        self.qp.update_b(&self.b_values).map_err(|e| e.to_string())?;
+        self.qp.solve();
+        let sol = &self.qp.solution;
+        match sol.status {
+            SolverStatus::Solved | SolverStatus::AlmostSolved => {}
+            s => return Err(format!("{s:?}")),
+        }
+        let dq = JointVector::from_fn(|i, _| sol.x[i].clamp(lo[i], hi[i]));
+        if dq.iter().all(|x| x.is_finite()) {
+            Ok((dq, sol.iterations))
+        } else {
+            Err("non-finite QP solution".into())
+        }
+    }
+
+    /// Minimise the weighted costs from `q_start` with q in the box [lo, hi].
+    /// `q_start` should lie in the box (the previous command does). Never panics; a
+    /// failure is reported in the status with `q = q_start`.
+    pub fn solve(
+        &mut self,
+        kin: &dyn Kinematics,
+        q_start: &JointVector,
+        lo: &JointVector,
+        hi: &JointVector,
+        targets: &Targets,
+        weights: &CostWeights,
+    ) -> SqpSolution {
+        let t0 = Instant::now();
+        let mut q = *q_start;
+        let mut iterations = 0;
+        let mut qp_iterations = 0;
+        let mut status = SqpStatus::IterationLimit;
+        while iterations < self.settings.max_iterations {
+            let (pose, jac) = match kin.fk_jacobian(&q) {
+                Ok(x) => x,
+                Err(e) => {
+                    status = SqpStatus::Kinematics(e.to_string());
+                    break;
+                }
+            };
+            let (h, g) = quadratic_model(&pose, &jac, &q, targets, weights, self.settings.regularization);
+            match self.solve_qp(&h, &g, &(lo - q), &(hi - q)) {
+                Ok((dq, it)) => {
+                    q += dq;
+                    iterations += 1;
+                    qp_iterations += it;
+                    if dq.amax() < self.settings.tolerance {
+                        status = SqpStatus::Converged;
+                        break;
+                    }
+                }
+                Err(e) => {
+                    status = SqpStatus::QpFailed(e);
+                    break;
+                }
+            }
+        }
+        if !status.is_usable() {
+            q = *q_start;
+        }
+        let costs = kin.fk(&q).map(|p| evaluate(&p, &q, targets)).unwrap_or([f64::NAN; 5]);
+        SqpSolution {
+            q,
+            status,
+            iterations,
+            qp_iterations,
+            solve_time_us: t0.elapsed().as_secs_f64() * 1e6,
+            costs,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::InsertionAxis;
+    use crate::kinematics::LbrKinematics;
+    use crate::robot_model::{LbrModel, ToolParams};
+    use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+
+    fn setup() -> (LbrKinematics, JointVector, Targets) {
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let q = JointVector::from_column_slice(&[0.0, 0.6, 0.0, -1.2, 0.0, 0.9, 0.0]);
+        let tip = kin.fk(&q).unwrap();
+        let trocar = Isometry3::from_parts(
+            Translation3::from(tip.translation.vector + Vector3::new(0.02, 0.01, -0.05)),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI - 0.1),
+        );
+        let axis = InsertionAxis::from_pose(&trocar);
+        let t = Targets {
+            axis,
+            point: axis.point_at(-0.02),
+            reference: Point3::origin(),
+            q_prev: q,
+        };
+        (kin, q, t)
+    }
+
+    #[test]
+    fn converges_inside_a_wide_box_and_lowers_the_cost() {
+        let (kin, q, t) = setup();
+        let w = CostWeights {
+            axis: 10.0,
+            goal: 100.0,
+            align: 1.0,
+            step: 1e-3,
+            reference: 0.0,
+        };
+        let mut s = SqpSolver::new(SqpSettings {
+            max_iterations: 30,
+            ..Default::default()
+        })
+        .unwrap();
+        let lo = q.add_scalar(-0.5);
+        let hi = q.add_scalar(0.5);
+        let sol = s.solve(&kin, &q, &lo, &hi, &t, &w);
+        assert!(sol.status.is_usable(), "{:?}", sol.status);
+        assert_eq!(sol.status, SqpStatus::Converged);
+        let weighted = |qq: &JointVector| {
+            let c = evaluate(&kin.fk(qq).unwrap(), qq, &t);
+            c.iter().zip(w.as_array()).map(|(c, w)| c * w).sum::<f64>()
+        };
+        let (before, after) = (weighted(&q), weighted(&sol.q));
+        assert!(after < 0.5 * before, "{after} vs {before}");
+        // A local minimum: no small feasible move of any joint lowers the cost.
+        for i in 0..7 {
+            for d in [-1e-4, 1e-4] {
+                let mut qq = sol.q;
+                qq[i] += d;
+                if qq[i] >= lo[i] && qq[i] <= hi[i] {
+                    assert!(weighted(&qq) >= after - 1e-9, "joint {i} {d}");
+                }
+            }
+        }
+        assert!((0..7).all(|i| sol.q[i] >= lo[i] - 1e-12 && sol.q[i] <= hi[i] + 1e-12));
+    }
+
+    #[test]
+    fn tight_box_is_respected_and_rti_takes_one_qp() {
+        let (kin, q, t) = setup();
+        let w = CostWeights {
+            axis: 10.0,
+            goal: 100.0,
+            align: 1.0,
+            step: 1e-3,
+            reference: 0.0,
+        };
+        let mut s = SqpSolver::new(SqpSettings::rti()).unwrap();
+        let lo = q.add_scalar(-0.001);
+        let hi = q.add_scalar(0.001);
+        let sol = s.solve(&kin, &q, &lo, &hi, &t, &w);
+        assert_eq!(sol.iterations, 1);
+        assert!((sol.q - q).amax() <= 0.001 + 1e-12);
+    }
+
+    #[test]
+    fn bad_data_fails_safely() {
+        let (kin, q, mut t) = setup();
+        t.point = Point3::new(f64::NAN, 0.0, 0.0);
+        let w = CostWeights {
+            axis: 1.0,
+            goal: 1.0,
+            align: 1.0,
+            step: 1e-3,
+            reference: 0.0,
+        };
+        let mut s = SqpSolver::new(SqpSettings::default()).unwrap();
+        let sol = s.solve(&kin, &q, &q.add_scalar(-0.1), &q.add_scalar(0.1), &t, &w);
+        assert!(!sol.status.is_usable());
+        assert_eq!(sol.q, q);
+        let mut bad_q = q;
+        bad_q[0] = f64::INFINITY;
+        let sol = s.solve(&kin, &bad_q, &q, &q, &t, &w);
+        assert!(matches!(sol.status, SqpStatus::Kinematics(_)));
+        assert!(SqpSolver::new(SqpSettings {
+            max_iterations: 0,
+            ..Default::default()
+        })
+        .is_err());
+    }
+}

@@ -1,0 +1,303 @@
+//! The safety guard: every command is checked before it leaves, and the inputs are checked
+//! before the controller uses them. Each decision carries a reason.
+//!
+//! A command passes only if it is finite, inside the joint position limits less a margin,
+//! and within the per-step velocity limit from the previous command. Otherwise the guard
+//! answers with a hold at the previous command (a hold never moves the arm). Stale joint
+//! state, a stale or missing trocar pose, and a tip force over the threshold are reasons to
+//! hold as well.
+
+use std::fmt;
+
+use serde::{Deserialize, Serialize};
+
+use crate::kinematics::{JointLimits, JointVector};
+
+/// Why the controller holds (or stopped).
+#[derive(Debug, Clone, PartialEq)]
+pub enum HoldReason {
+    /// No joint state received yet.
+    NoJointState,
+    /// The joint state is older than the timeout.
+    StaleJointState {
+        /// Age, s.
+        age: f64,
+    },
+    /// The joint state contains NaN or infinity.
+    NonFiniteJointState,
+    /// No trocar pose received yet.
+    NoTrocarPose,
+    /// The trocar pose is older than the timeout (e.g. the marker is lost).
+    StaleTrocarPose {
+        /// Age, s.
+        age: f64,
+    },
+    /// The trocar pose is not a finite rigid transform.
+    BadTrocarPose,
+    /// The external torques are older than the timeout (force feedback is blind).
+    StaleTorques {
+        /// Age, s.
+        age: f64,
+    },
+    /// The tip force exceeded the stop threshold.
+    ForceLimit {
+        /// Force, N.
+        force: f64,
+        /// Threshold, N.
+        limit: f64,
+    },
+    /// The optimiser failed; its solution is not used.
+    SolverFailed(String),
+    /// The command was not finite.
+    NonFiniteCommand,
+    /// The command would leave the joint limits.
+    PositionLimit {
+        /// Joint index (0-based).
+        joint: usize,
+    },
+    /// The command would move a joint faster than allowed.
+    VelocityLimit {
+        /// Joint index (0-based).
+        joint: usize,
+    },
+    /// The kinematics failed.
+    Kinematics(String),
+    /// The operator asked to stop.
+    Operator(String),
+}
+
+impl fmt::Display for HoldReason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            HoldReason::NoJointState => write!(f, "no joint state received"),
+            HoldReason::StaleJointState { age } => write!(f, "joint state stale ({age:.3} s old)"),
+            HoldReason::NonFiniteJointState => write!(f, "joint state has NaN or infinite values"),
+            HoldReason::NoTrocarPose => write!(f, "no trocar pose received"),
+            HoldReason::StaleTrocarPose { age } => write!(f, "trocar pose stale ({age:.3} s old): marker lost?"),
+            HoldReason::BadTrocarPose => write!(f, "trocar pose is not a finite rigid transform"),
+            HoldReason::StaleTorques { age } => write!(f, "external torques stale ({age:.3} s old)"),
+            HoldReason::ForceLimit { force, limit } => write!(f, "tip force {force:.1} N over the {limit:.1} N limit"),
+            HoldReason::SolverFailed(s) => write!(f, "optimiser failed ({s}); holding"),
+            HoldReason::NonFiniteCommand => write!(f, "command has NaN or infinite values"),
+            HoldReason::PositionLimit { joint } => {
+                write!(f, "command would pass the position limit of joint {}", joint + 1)
+            }
+            HoldReason::VelocityLimit { joint } => {
+                write!(f, "command would exceed the velocity limit of joint {}", joint + 1)
+            }
+            HoldReason::Kinematics(s) => write!(f, "kinematics: {s}"),
+            HoldReason::Operator(s) => write!(f, "operator: {s}"),
+        }
+    }
+}
+
+/// Parameters of the guard.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GuardParams {
+    /// Margin inside each position limit, rad.
+    pub position_margin: f64,
+    /// Fraction of each joint's velocity limit the controller may use (0..1].
+    pub velocity_scale: f64,
+    /// Tip force that stops the docking, N.
+    pub force_stop: f64,
+    /// Joint state older than this holds, s.
+    pub joint_timeout: f64,
+    /// Trocar pose older than this holds, s.
+    pub trocar_timeout: f64,
+    /// External torques older than this hold (only with force feedback on), s.
+    pub torque_timeout: f64,
+}
+
+impl Default for GuardParams {
+    fn default() -> Self {
+        Self {
+            position_margin: 5f64.to_radians(),
+            velocity_scale: 0.5,
+            force_stop: 20.0,
+            joint_timeout: 0.1,
+            trocar_timeout: 0.5,
+            torque_timeout: 0.1,
+        }
+    }
+}
+
+impl GuardParams {
+    /// Check ranges; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let check = |n: &str, v: f64, lo: f64, hi: f64| {
+            if v.is_finite() && v > lo && v <= hi {
+                Ok(())
+            } else {
+                Err(format!("guard.{n} must be in ({lo}, {hi}], got {v}"))
+            }
+        };
+        check("position_margin", self.position_margin + 1e-12, 0.0, 0.5)?;
+        check("velocity_scale", self.velocity_scale, 0.0, 1.0)?;
+        check("force_stop", self.force_stop, 0.0, 200.0)?;
+        check("joint_timeout", self.joint_timeout, 0.0, 10.0)?;
+        check("trocar_timeout", self.trocar_timeout, 0.0, 60.0)?;
+        check("torque_timeout", self.torque_timeout, 0.0, 10.0)
+    }
+}
+
+/// The command guard for one arm.
+#[derive(Debug, Clone)]
+pub struct CommandGuard {
+    params: GuardParams,
+    lower: JointVector,
+    upper: JointVector,
+    vmax: JointVector,
+}
+
+impl CommandGuard {
+    /// A guard for `limits`.
+    pub fn new(params: GuardParams, limits: &JointLimits) -> Self {
+        let m = params.position_margin;
+        let lower = limits.lower.map(|l| l + m);
+        let upper = limits.upper.map(|u| u - m);
+        let vmax = limits.velocity * params.velocity_scale;
+        Self {
+            params,
+            lower,
+            upper,
+            vmax,
+        }
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &GuardParams {
+        &self.params
+    }
+    /// Lower position bounds with the margin, rad.
+    pub fn lower(&self) -> &JointVector {
+        &self.lower
+    }
+    /// Upper position bounds with the margin, rad.
+    pub fn upper(&self) -> &JointVector {
+        &self.upper
+    }
+    /// Usable velocity per joint, rad/s.
+    pub fn max_velocity(&self) -> &JointVector {
+        &self.vmax
+    }
+
+    /// The box a command for a step of `dt` from `prev` must lie in: the position limits
+    /// (with margin) intersected with the velocity limit. When `prev` is itself outside the
+    /// limits, the box still contains `prev`'s nearest feasible motion, never a jump.
+    pub fn step_box(&self, prev: &JointVector, dt: f64) -> (JointVector, JointVector) {
+        let mut lo = JointVector::zeros();
+        let mut hi = JointVector::zeros();
+        for i in 0..prev.len() {
+            let dq = self.vmax[i] * dt;
+            // Moving back towards the feasible range is always allowed; never a jump.
+            let l = self.lower[i].max(prev[i] - dq).min(prev[i]);
+            let h = self.upper[i].min(prev[i] + dq).max(prev[i]);
+            lo[i] = l;
+            hi[i] = h;
+        }
+        (lo, hi)
+    }
+
+    /// Check `cmd` as the next command after `prev`, `dt` seconds later.
+    pub fn check_command(&self, cmd: &JointVector, prev: &JointVector, dt: f64) -> Result<(), HoldReason> {
+        if !cmd.iter().all(|x| x.is_finite()) {
+            return Err(HoldReason::NonFiniteCommand);
+        }
+        let tol = 1e-9;
+        for i in 0..cmd.len() {
+            let step = cmd[i] - prev[i];
+            if step.abs() > self.vmax[i] * dt + tol {
+                return Err(HoldReason::VelocityLimit { joint: i });
+            }
+            // Outside the limits only if it moves further out.
+            if (cmd[i] > self.upper[i] + tol && step > 0.0) || (cmd[i] < self.lower[i] - tol && step < 0.0) {
+                return Err(HoldReason::PositionLimit { joint: i });
+            }
+        }
+        Ok(())
+    }
+
+    /// Hold if the force norm is over the stop threshold.
+    pub fn check_force(&self, force: f64) -> Result<(), HoldReason> {
+        if force.is_finite() && force <= self.params.force_stop {
+            Ok(())
+        } else {
+            Err(HoldReason::ForceLimit {
+                force,
+                limit: self.params.force_stop,
+            })
+        }
+    }
+
+    /// Whether data of `age` seconds is fresh for `timeout` (data from the future by more
+    /// than the timeout is a clock fault, not fresh).
+    pub fn fresh(age: f64, timeout: f64) -> bool {
+        age.is_finite() && age <= timeout && age >= -timeout
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::robot_model::LbrModel;
+    use proptest::prelude::*;
+
+    fn guard() -> CommandGuard {
+        CommandGuard::new(GuardParams::default(), &JointLimits::of_model(LbrModel::Med7))
+    }
+
+    proptest! {
+        #[test]
+        fn step_box_is_safe(prev in proptest::collection::vec(-3.5f64..3.5, 7), dt in 0.0005f64..0.05) {
+            let g = guard();
+            let prev = JointVector::from_column_slice(&prev);
+            let (lo, hi) = g.step_box(&prev, dt);
+            for i in 0..7 {
+                prop_assert!(lo[i] <= hi[i]);
+                prop_assert!(lo[i] <= prev[i] && prev[i] <= hi[i]);
+                prop_assert!(hi[i] - prev[i] <= g.max_velocity()[i] * dt + 1e-12);
+                prop_assert!(prev[i] - lo[i] <= g.max_velocity()[i] * dt + 1e-12);
+            }
+            // Any point of the box passes the check.
+            prop_assert!(g.check_command(&lo, &prev, dt).is_ok());
+            prop_assert!(g.check_command(&hi, &prev, dt).is_ok());
+        }
+    }
+
+    #[test]
+    fn rejects_bad_commands() {
+        let g = guard();
+        let prev = JointVector::zeros();
+        let mut c = prev;
+        c[2] = f64::NAN;
+        assert_eq!(g.check_command(&c, &prev, 0.01), Err(HoldReason::NonFiniteCommand));
+        let mut c = prev;
+        c[1] = 0.5;
+        assert_eq!(
+            g.check_command(&c, &prev, 0.01),
+            Err(HoldReason::VelocityLimit { joint: 1 })
+        );
+        let mut p = prev;
+        p[0] = g.upper()[0];
+        let mut c = p;
+        c[0] += 0.001;
+        assert_eq!(
+            g.check_command(&c, &p, 0.01),
+            Err(HoldReason::PositionLimit { joint: 0 })
+        );
+        assert!(g.check_force(19.0).is_ok());
+        assert!(matches!(g.check_force(21.0), Err(HoldReason::ForceLimit { .. })));
+        assert!(g.check_force(f64::NAN).is_err());
+        assert!(
+            CommandGuard::fresh(0.05, 0.1) && !CommandGuard::fresh(0.2, 0.1) && !CommandGuard::fresh(f64::NAN, 0.1)
+        );
+        assert!(GuardParams {
+            velocity_scale: 1.5,
+            ..Default::default()
+        }
+        .validate()
+        .is_err());
+        assert!(HoldReason::StaleTrocarPose { age: 0.7 }.to_string().contains("marker"));
+    }
+}

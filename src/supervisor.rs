@@ -1,0 +1,214 @@
+//! The supervisor state machine: IDLE -> APPROACH -> INSERT -> DONE, with HOLD and ABORTED.
+//!
+//! The surgeon stays in the loop: nothing moves before `start`. `abort` stops from any
+//! phase and needs `reset` (back to IDLE) before a new start. A hold keeps the arm still
+//! and remembers the phase it interrupted. Holds for missing or stale data clear by
+//! themselves when the data is fresh again; a latched hold (force limit, solver failure,
+//! operator) needs an explicit `start` to resume.
+
+use std::fmt;
+
+/// The phase of a docking run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
+pub enum Phase {
+    /// Waiting for start; nothing moves.
+    Idle,
+    /// Moving the tip to the stand-off point on the insertion axis, aligning the scope.
+    Approach,
+    /// Sliding along the axis through the port to the goal depth.
+    Insert,
+    /// The tip is at the goal within tolerance; holding there.
+    Done,
+    /// Holding still, for the reason given.
+    Hold,
+    /// Stopped for good; reset to start again.
+    Aborted,
+}
+
+impl Phase {
+    /// The phase's name as DockingStatus carries it.
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Phase::Idle => "IDLE",
+            Phase::Approach => "APPROACH",
+            Phase::Insert => "INSERT",
+            Phase::Done => "DONE",
+            Phase::Hold => "HOLD",
+            Phase::Aborted => "ABORTED",
+        }
+    }
+
+    /// Whether the arm is commanded to move in this phase.
+    pub fn is_moving(&self) -> bool {
+        matches!(self, Phase::Approach | Phase::Insert)
+    }
+}
+
+impl fmt::Display for Phase {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// The state machine.
+#[derive(Debug, Clone)]
+pub struct Supervisor {
+    phase: Phase,
+    resume: Phase,
+    latched: bool,
+    reason: Option<String>,
+}
+
+impl Default for Supervisor {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Supervisor {
+    /// IDLE.
+    pub fn new() -> Self {
+        Self {
+            phase: Phase::Idle,
+            resume: Phase::Approach,
+            latched: false,
+            reason: None,
+        }
+    }
+
+    /// The current phase.
+    pub fn phase(&self) -> Phase {
+        self.phase
+    }
+
+    /// The reason of the last hold or abort.
+    pub fn reason(&self) -> Option<&str> {
+        self.reason.as_deref()
+    }
+
+    /// Start (from IDLE) or resume (from HOLD). Refused after DONE or ABORTED.
+    pub fn start(&mut self) -> Result<(), String> {
+        match self.phase {
+            Phase::Idle => {
+                self.phase = Phase::Approach;
+                self.reason = None;
+                Ok(())
+            }
+            Phase::Hold => {
+                self.phase = self.resume;
+                self.latched = false;
+                Ok(())
+            }
+            Phase::Approach | Phase::Insert => Ok(()),
+            Phase::Done => Err("docking is done; reset before starting again".into()),
+            Phase::Aborted => Err(format!(
+                "aborted ({}); reset before starting again",
+                self.reason.as_deref().unwrap_or("no reason")
+            )),
+        }
+    }
+
+    /// Abort from any phase.
+    pub fn abort(&mut self, why: &str) {
+        self.phase = Phase::Aborted;
+        self.reason = Some(why.to_string());
+    }
+
+    /// Back to IDLE, forgetting any hold.
+    pub fn reset(&mut self) {
+        *self = Self::new();
+    }
+
+    /// Hold for `reason`. A latched hold needs `start` to resume. Outside APPROACH and
+    /// INSERT the phase does not change (nothing moves there anyway) but the reason is kept.
+    pub fn hold(&mut self, reason: String, latched: bool) {
+        match self.phase {
+            Phase::Approach | Phase::Insert => {
+                self.resume = self.phase;
+                self.phase = Phase::Hold;
+                self.latched = latched;
+            }
+            Phase::Hold => self.latched |= latched,
+            _ => {}
+        }
+        self.reason = Some(reason);
+    }
+
+    /// The cause of an unlatched hold is gone: resume the interrupted phase.
+    pub fn clear_hold(&mut self) {
+        if self.phase == Phase::Hold && !self.latched {
+            self.phase = self.resume;
+        }
+    }
+
+    /// Whether the current hold is latched.
+    pub fn is_latched(&self) -> bool {
+        self.phase == Phase::Hold && self.latched
+    }
+
+    /// The stand-off point is reached: APPROACH -> INSERT.
+    pub fn approach_reached(&mut self) {
+        if self.phase == Phase::Approach {
+            self.phase = Phase::Insert;
+        }
+    }
+
+    /// The goal is reached: INSERT -> DONE.
+    pub fn goal_reached(&mut self) {
+        if self.phase == Phase::Insert {
+            self.phase = Phase::Done;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn nominal_run() {
+        let mut s = Supervisor::new();
+        assert_eq!(s.phase(), Phase::Idle);
+        s.approach_reached();
+        s.goal_reached();
+        assert_eq!(s.phase(), Phase::Idle, "nothing happens before start");
+        s.start().unwrap();
+        assert_eq!(s.phase(), Phase::Approach);
+        s.goal_reached();
+        assert_eq!(s.phase(), Phase::Approach, "no skipping the insertion");
+        s.approach_reached();
+        assert_eq!(s.phase(), Phase::Insert);
+        s.goal_reached();
+        assert_eq!(s.phase(), Phase::Done);
+        assert!(s.start().is_err());
+        s.reset();
+        assert_eq!(s.phase(), Phase::Idle);
+    }
+
+    #[test]
+    fn holds_resume_or_latch() {
+        let mut s = Supervisor::new();
+        s.start().unwrap();
+        s.approach_reached();
+        s.hold("trocar pose stale".into(), false);
+        assert_eq!(s.phase(), Phase::Hold);
+        assert_eq!(s.reason(), Some("trocar pose stale"));
+        s.clear_hold();
+        assert_eq!(s.phase(), Phase::Insert, "resumes the interrupted phase");
+        s.hold("force".into(), true);
+        s.clear_hold();
+        assert_eq!(s.phase(), Phase::Hold, "a latched hold needs start");
+        assert!(s.is_latched());
+        s.start().unwrap();
+        assert_eq!(s.phase(), Phase::Insert);
+        s.abort("surgeon");
+        assert_eq!(s.phase(), Phase::Aborted);
+        s.clear_hold();
+        assert!(s.start().unwrap_err().contains("surgeon"));
+        assert_eq!(Phase::Aborted.as_str(), "ABORTED");
+        // Holding in IDLE keeps IDLE.
+        let mut s = Supervisor::new();
+        s.hold("no joint state".into(), false);
+        assert_eq!(s.phase(), Phase::Idle);
+    }
+}

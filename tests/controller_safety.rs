@@ -1,0 +1,293 @@
+//! The controller under bad and hostile input: every command is finite, inside the joint
+//! limits and inside the per-step velocity limit; force and stale data give holds with
+//! reasons; force stops latch; retreat backs out along the axis.
+
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use proptest::prelude::*;
+use trocar_docking::controller::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
+use trocar_docking::geometry::InsertionAxis;
+use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
+use trocar_docking::robot_model::{LbrModel, ToolParams};
+
+fn kin() -> LbrKinematics {
+    LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap()
+}
+
+fn q_start() -> JointVector {
+    JointVector::from_column_slice(&[0.0, 0.6, 0.0, -1.2, 0.0, 0.9, 0.0])
+}
+
+/// A trocar 0.1 m below the start tip, axis pointing down.
+fn trocar(kin: &LbrKinematics) -> Isometry3<f64> {
+    let tip = kin.fk(&q_start()).unwrap();
+    Isometry3::from_parts(
+        Translation3::from(tip.translation.vector + Vector3::new(0.01, 0.0, -0.1)),
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+    )
+}
+
+fn input(now: f64, q: JointVector, tau: JointVector, trocar: Isometry3<f64>) -> ControlInput {
+    ControlInput {
+        now,
+        joints: Some(Stamped { stamp: now, value: q }),
+        tau_ext: Some(Stamped { stamp: now, value: tau }),
+        trocar: Some(Stamped {
+            stamp: now,
+            value: trocar,
+        }),
+    }
+}
+
+/// Torques that a tip force `f` produces at `q`.
+fn torques_for(kin: &LbrKinematics, q: &JointVector, f: Vector3<f64>) -> JointVector {
+    let (_, j) = kin.fk_jacobian(q).unwrap();
+    j.fixed_rows::<3>(0).transpose() * f
+}
+
+fn assert_safe(out: &ControlOutput, prev: &JointVector, kin: &LbrKinematics, p: &ControllerParams) {
+    if let Some(c) = out.command {
+        let lim = kin.limits();
+        for i in 0..7 {
+            assert!(c[i].is_finite(), "non-finite command");
+            // Inside the limits, or not moving further out of them.
+            assert!(c[i] >= lim.lower[i].min(prev[i]) - 1e-12 && c[i] <= lim.upper[i].max(prev[i]) + 1e-12);
+            assert!(
+                (c[i] - prev[i]).abs() <= lim.velocity[i] * p.guard.velocity_scale * p.dt + 1e-9,
+                "joint {i} jumps"
+            );
+        }
+    }
+}
+
+fn weird() -> impl Strategy<Value = f64> {
+    prop_oneof![
+        8 => -3.0f64..3.0,
+        1 => Just(f64::NAN),
+        1 => Just(f64::INFINITY),
+        1 => Just(-1e12),
+    ]
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    #[test]
+    fn any_input_gives_a_safe_command(
+        q0 in proptest::collection::vec(-3.0f64..3.0, 7),
+        qs in proptest::collection::vec(proptest::collection::vec(weird(), 7), 20),
+        taus in proptest::collection::vec(proptest::collection::vec(prop_oneof![4 => -50.0f64..50.0, 1 => Just(f64::NAN), 1 => Just(1e9)], 7), 20),
+        pos in proptest::collection::vec(-1.0f64..1.0, 3),
+        rot in proptest::collection::vec(-1.0f64..1.0, 4),
+        stamps in proptest::collection::vec(prop_oneof![4 => Just(0.0), 1 => -1.0f64..1.0, 1 => Just(f64::NAN)], 20),
+    ) {
+        let kin = kin();
+        let p = ControllerParams::default();
+        let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
+        c.start().unwrap();
+        let quat = nalgebra::Quaternion::new(rot[0], rot[1], rot[2], rot[3]);
+        let pose = Isometry3::from_parts(Translation3::new(pos[0], pos[1], pos[2]), UnitQuaternion::new_normalize(quat));
+        let mut prev: Option<JointVector> = None;
+        let mut measured = JointVector::from_column_slice(&q0);
+        for k in 0..20 {
+            let now = 0.01 * (k + 1) as f64;
+            // Measured joints: sometimes garbage, otherwise the last command.
+            let noisy = JointVector::from_column_slice(&qs[k]);
+            let q_in = if k % 3 == 1 { noisy } else { measured };
+            let mut inp = input(now, q_in, JointVector::from_column_slice(&taus[k]), pose);
+            if let Some(t) = inp.trocar.as_mut() { t.stamp = now + stamps[k]; }
+            let out = c.step(&kin, &inp);
+            // Before any command, "not moving" means the measured position.
+            assert_safe(&out, &prev.unwrap_or(q_in), &kin, &p);
+            if let Some(cmd) = out.command {
+                prev = Some(cmd);
+                measured = cmd;
+            }
+        }
+    }
+}
+
+#[test]
+fn force_over_threshold_latches_a_hold() {
+    let kin = kin();
+    let troc = trocar(&kin);
+    let p = ControllerParams::default();
+    let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    let mut q = q_start();
+    for k in 1..=20 {
+        q = c
+            .step(&kin, &input(k as f64 * 0.01, q, JointVector::zeros(), troc))
+            .command
+            .unwrap();
+    }
+    assert_eq!(c.phase(), Phase::Approach);
+    // 40 N at the tip: the filtered estimate passes 20 N within a few steps.
+    let tau = torques_for(&kin, &q, Vector3::new(0.0, 40.0, 0.0));
+    let held = q;
+    let mut out = None;
+    for k in 21..=40 {
+        let o = c.step(&kin, &input(k as f64 * 0.01, q, tau, troc));
+        q = o.command.unwrap();
+        out = Some(o);
+        if c.phase() == Phase::Hold {
+            break;
+        }
+    }
+    let out = out.unwrap();
+    assert_eq!(out.phase, Phase::Hold);
+    assert!(
+        out.reason.as_deref().unwrap_or("").contains("force"),
+        "{:?}",
+        out.reason
+    );
+    // Held: the command no longer changes, even when the force is gone (latched).
+    let at_hold = q;
+    assert!((at_hold - held).amax() < 0.1);
+    for k in 41..=60 {
+        let o = c.step(&kin, &input(k as f64 * 0.01, q, JointVector::zeros(), troc));
+        assert_eq!(o.phase, Phase::Hold);
+        assert_eq!(o.command, Some(at_hold));
+    }
+    // The surgeon resumes.
+    c.start().unwrap();
+    let o = c.step(&kin, &input(0.61, q, JointVector::zeros(), troc));
+    assert!(o.phase.is_moving(), "{:?}", o.phase);
+}
+
+#[test]
+fn stale_or_missing_data_holds_and_fresh_data_resumes() {
+    let kin = kin();
+    let troc = trocar(&kin);
+    let p = ControllerParams::default();
+    let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    let mut q = q_start();
+    for k in 1..=10 {
+        q = c
+            .step(&kin, &input(k as f64 * 0.01, q, JointVector::zeros(), troc))
+            .command
+            .unwrap();
+    }
+    // The marker is lost: the trocar pose stops at t = 0.1 s.
+    let mut last = q;
+    for k in 11..=100 {
+        let now = k as f64 * 0.01;
+        let mut inp = input(now, q, JointVector::zeros(), troc);
+        inp.trocar = Some(Stamped {
+            stamp: 0.1,
+            value: troc,
+        });
+        let o = c.step(&kin, &inp);
+        q = o.command.unwrap();
+        if now > 0.1 + p.guard.trocar_timeout + 0.011 {
+            assert_eq!(o.phase, Phase::Hold, "at {now}");
+            assert!(o.reason.as_deref().unwrap().contains("stale"));
+            assert_eq!(q, last, "holding means not moving");
+        }
+        last = q;
+    }
+    // Back: resumes by itself.
+    let o = c.step(&kin, &input(1.01, q, JointVector::zeros(), troc));
+    assert_eq!(o.phase, Phase::Approach);
+    // Joint state stale, missing, wrong: hold at the last command.
+    let mut inp = input(1.5, q, JointVector::zeros(), troc);
+    inp.joints = Some(Stamped { stamp: 1.0, value: q });
+    let o = c.step(&kin, &inp);
+    assert_eq!(o.phase, Phase::Hold);
+    assert_eq!(o.command, Some(o.command.unwrap()));
+    inp.joints = None;
+    assert_eq!(c.step(&kin, &inp).phase, Phase::Hold);
+    let mut bad = q;
+    bad[3] = f64::NAN;
+    inp.joints = Some(Stamped { stamp: 1.5, value: bad });
+    let o = c.step(&kin, &inp);
+    assert!(o.reason.unwrap().contains("NaN"));
+    // Missing torques with force monitoring required: hold.
+    let mut inp = input(1.6, q, JointVector::zeros(), troc);
+    inp.tau_ext = None;
+    let o = c.step(&kin, &inp);
+    assert_eq!(o.phase, Phase::Hold);
+    assert!(o.reason.unwrap().contains("torques"));
+}
+
+#[test]
+fn abort_and_reset() {
+    let kin = kin();
+    let troc = trocar(&kin);
+    let mut c = Controller::new(ControllerParams::default(), kin.limits().clone()).unwrap();
+    let q = q_start();
+    assert_eq!(
+        c.step(&kin, &input(0.01, q, JointVector::zeros(), troc)).command,
+        None,
+        "idle sends nothing"
+    );
+    c.start().unwrap();
+    let cmd = c
+        .step(&kin, &input(0.02, q, JointVector::zeros(), troc))
+        .command
+        .unwrap();
+    c.abort("surgeon pressed stop");
+    let o = c.step(&kin, &input(0.03, cmd, JointVector::zeros(), troc));
+    assert_eq!(o.phase, Phase::Aborted);
+    assert_eq!(o.command, Some(cmd), "aborted holds the last command");
+    assert!(c.start().is_err());
+    c.reset();
+    assert_eq!(c.phase(), Phase::Idle);
+    c.start().unwrap();
+    assert_eq!(c.phase(), Phase::Approach);
+}
+
+#[test]
+fn retreats_along_the_axis_after_a_force_stop() {
+    let kin = kin();
+    let troc = trocar(&kin);
+    let axis = InsertionAxis::from_pose(&troc);
+    let p = ControllerParams {
+        retreat_distance: 0.02,
+        ..Default::default()
+    };
+    let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    let mut q = q_start();
+    for k in 1..=150 {
+        q = c
+            .step(&kin, &input(k as f64 * 0.01, q, JointVector::zeros(), troc))
+            .command
+            .unwrap();
+    }
+    let depth = |q: &JointVector| axis.depth_of(&Point3::from(kin.fk(q).unwrap().translation.vector));
+    let d0 = depth(&q);
+    let tau = torques_for(&kin, &q, Vector3::new(30.0, 0.0, 0.0));
+    for k in 151..=160 {
+        q = c.step(&kin, &input(k as f64 * 0.01, q, tau, troc)).command.unwrap();
+    }
+    assert_eq!(c.phase(), Phase::Hold);
+    for k in 161..=400 {
+        let o = c.step(&kin, &input(k as f64 * 0.01, q, JointVector::zeros(), troc));
+        q = o.command.unwrap();
+    }
+    let d1 = depth(&q);
+    assert!(d1 < d0 - 0.015, "retreated from {d0:.4} to {d1:.4}");
+    assert!(axis.distance_to_axis(&Point3::from(kin.fk(&q).unwrap().translation.vector)) < 0.005);
+}
+
+#[test]
+fn params_from_yaml() {
+    let p = ControllerParams::from_yaml_str("dt: 0.001\nforce_feedback: false\nguard:\n  force_stop: 15.0\n").unwrap();
+    assert_eq!(p.dt, 0.001);
+    assert!(!p.force_feedback);
+    assert_eq!(p.guard.force_stop, 15.0);
+    assert_eq!(p.insertion_depth, ControllerParams::default().insertion_depth);
+    assert!(ControllerParams::from_yaml_str("dt: -1")
+        .unwrap_err()
+        .to_string()
+        .contains("dt"));
+    assert!(ControllerParams::from_yaml_str("no_such_field: 1").is_err());
+    assert!(ControllerParams::from_yaml_str("dt: [").is_err());
+    let shipped = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/controller.yaml")).unwrap();
+    let p = ControllerParams::from_yaml_str(&shipped).unwrap();
+    assert_eq!(
+        p,
+        ControllerParams::default(),
+        "config/controller.yaml documents the defaults"
+    );
+}
