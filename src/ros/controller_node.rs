@@ -17,8 +17,11 @@ use super::core::{DockingCore, Stamped, StepInput, StepOutput};
 use super::markers::{self, MarkerStyle, Scene};
 use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, std_srvs, tf2_msgs, trocar_docking};
 use super::node::{lock, ros_err, CommandType, NodeError};
+use super::optimal_core::OptimalCore;
 use super::params;
 use super::stats::LoopStats;
+use crate::controller::{Controller, ControllerParams};
+use crate::kinematics::Kinematics;
 use crate::kinematics::{JointVector, LbrKinematics, TIP_LINK};
 use crate::robot_model::{LbrModel, ToolParams};
 
@@ -72,6 +75,9 @@ pub struct ControllerNodeParams {
     pub markers: MarkerStyle,
     /// Which docking core runs.
     pub core: CoreKind,
+    /// Parameters of the optimal controller (`config/controller.yaml`, loaded under
+    /// `~controller`); its `dt` is set from `rate_hz` and `force_feedback` from the node's.
+    pub controller: ControllerParams,
     /// Parameters of the baseline core.
     pub baseline: BaselineParams,
 }
@@ -80,6 +86,8 @@ pub struct ControllerNodeParams {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CoreKind {
+    /// The optimal controller (SQP, admittance, guard, supervisor).
+    Optimal,
     /// The simulator's baseline policy (resolved rates, no force feedback).
     Baseline,
 }
@@ -109,7 +117,8 @@ impl Default for ControllerNodeParams {
             force_feedback: true,
             latency_samples: 5000,
             markers: MarkerStyle::default(),
-            core: CoreKind::Baseline,
+            core: CoreKind::Optimal,
+            controller: ControllerParams::default(),
             baseline: BaselineParams::default(),
         }
     }
@@ -386,6 +395,14 @@ pub fn run() -> Result<(), NodeError> {
         LbrKinematics::from_urdf_file(std::path::Path::new(&p.urdf_file), TIP_LINK)?
     };
     let core: Box<dyn DockingCore> = match p.core {
+        CoreKind::Optimal => {
+            let mut cp = p.controller.clone();
+            cp.dt = 1.0 / p.rate_hz;
+            cp.force_feedback = p.force_feedback;
+            let c = Controller::new(cp, kin.limits().clone())
+                .map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
+            Box::new(OptimalCore::new(c))
+        }
         CoreKind::Baseline => {
             if p.force_feedback {
                 rosrust::ros_warn!("core: baseline has no force feedback; force_feedback ignored");

@@ -12,6 +12,7 @@ pub mod junit;
 pub mod markers;
 pub mod msgs;
 pub mod node;
+pub mod optimal_core;
 pub mod params;
 pub mod sim_node;
 pub mod stats;
