@@ -27,7 +27,7 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("closed_loop");
     g.sample_size(10);
     for ff in [false, true] {
-        let factory = trocar_docking::sim::policy::factory(&cfg, ff);
+        let factory = trocar_docking::sim::policy::factory(&cfg, ff, kin.limits());
         if factory(1).is_err() {
             continue;
         }

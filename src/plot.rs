@@ -77,13 +77,15 @@ pub fn force_over_time(path: &Path, arms: &[(&str, &[TrialResult])]) -> Result<(
         .flat_map(|(_, r)| r.iter())
         .map(|r| r.time_s)
         .fold(1.0, f64::max);
+    // One force scale for every panel, so the arms compare at a glance.
+    let f_max = arms
+        .iter()
+        .flat_map(|(_, r)| r.iter())
+        .flat_map(|r| r.samples.iter().map(shown_force))
+        .filter(|x| x.is_finite())
+        .fold(1.0, f64::max)
+        * 1.05;
     for ((label, trials), area) in arms.iter().zip(panels.iter()) {
-        let f_max = trials
-            .iter()
-            .flat_map(|r| r.samples.iter().map(shown_force))
-            .filter(|x| x.is_finite())
-            .fold(1.0, f64::max)
-            * 1.05;
         let mut chart = ChartBuilder::on(area)
             .caption(format!("||f_ext|| over time: {label}"), (FAMILY, 22))
             .margin(12)

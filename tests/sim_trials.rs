@@ -2,7 +2,7 @@
 
 use std::sync::Arc;
 
-use trocar_docking::kinematics::{Kinematics, LbrKinematics};
+use trocar_docking::kinematics::{JointLimits, Kinematics, LbrKinematics};
 use trocar_docking::robot_model::{LbrModel, ToolParams};
 use trocar_docking::sim::config::SimConfig;
 use trocar_docking::sim::trials::{run_arm, ArmReport};
@@ -15,8 +15,8 @@ fn kin() -> Result<Arc<dyn Kinematics>, String> {
 
 fn run(cfg: &SimConfig, ff: bool, threads: usize) -> ArmReport {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
-    let seeds: Vec<u64> = (10..14).collect();
-    let factory = trocar_docking::sim::policy::factory(cfg, ff);
+    let seeds: Vec<u64> = (10..16).collect();
+    let factory = trocar_docking::sim::policy::factory(cfg, ff, &JointLimits::of_model(LbrModel::Med7));
     let done = std::sync::atomic::AtomicUsize::new(0);
     let tick = || {
         done.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -36,7 +36,25 @@ fn same_seeds_same_numbers_in_parallel() {
         // Debug text compares NaN (no successes yet) as equal, and every bit of each float.
         assert_eq!(format!("{:?}", a.summary), format!("{:?}", b.summary));
         assert_eq!(format!("{:?}", a.trials), format!("{:?}", b.trials));
-        assert_eq!(a.summary.trials, 4);
+        assert_eq!(a.summary.trials, 6);
         assert!(a.trials.iter().all(|t| t.time_s > 0.0 || !t.reason.is_empty()));
     }
+}
+
+#[test]
+fn force_feedback_lowers_contact_forces() {
+    let mut cfg = SimConfig::load_default().unwrap();
+    cfg.trial.timeout_s = 8.0;
+    let no_ff = run(&cfg, false, 2);
+    let ff = run(&cfg, true, 2);
+    let m = |r: &ArmReport| r.trials.iter().map(|t| t.m_true).sum::<f64>();
+    let peak = |r: &ArmReport| r.summary.max_force_true_n;
+    assert!(no_ff.summary.successes >= 5 && ff.summary.successes >= 5);
+    assert!(
+        m(&ff) < 0.7 * m(&no_ff),
+        "M with FF {} vs without {}",
+        m(&ff),
+        m(&no_ff)
+    );
+    assert!(peak(&ff) < peak(&no_ff));
 }

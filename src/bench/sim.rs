@@ -67,7 +67,7 @@ pub fn run(
         });
     }
     for ff in [false, true] {
-        let factory = crate::sim::policy::factory(cfg, ff);
+        let factory = crate::sim::policy::factory(cfg, ff, kin.limits());
         let mut per_sim_second = vec![];
         let (mut wall, mut simulated) = (0.0, 0.0);
         for seed in 1..=trials.max(1) as u64 {

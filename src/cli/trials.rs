@@ -10,9 +10,9 @@ use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-use crate::kinematics::{Kinematics, LbrKinematics};
+use crate::kinematics::{JointLimits, Kinematics, LbrKinematics};
 use crate::robot_model::{LbrModel, ToolParams};
-use crate::sim::config::SimConfig;
+use crate::sim::config::{PolicyKind, SimConfig};
 use crate::sim::noise::NoiseModel;
 use crate::sim::trial::TrialResult;
 use crate::sim::trials::{run_arm, ArmReport, ArmSummary, PolicyFactory, Stats};
@@ -49,6 +49,9 @@ pub struct TrialsArgs {
     /// Output directory for CSV, JSON and PNG.
     #[arg(long, default_value = "out/trials")]
     pub out: PathBuf,
+    /// Policy (default: the config's, normally the docking controller).
+    #[arg(long, value_enum)]
+    pub policy: Option<PolicyKind>,
     /// Do not draw the PNG plots.
     #[arg(long)]
     pub no_plots: bool,
@@ -82,17 +85,19 @@ fn load_config(a: &TrialsArgs) -> Result<SimConfig, Box<dyn std::error::Error + 
     if let Some(n) = a.noise {
         c.sim.measurement.model = n;
     }
+    if let Some(p) = a.policy {
+        c.policy = p;
+    }
     if let Some(t) = a.timeout {
         c.trial.timeout_s = t;
     }
-    c.sim.validate()?;
-    c.trial.validate()?;
+    c.validate()?;
     Ok(c)
 }
 
 /// The policy of one arm.
 fn factory(c: &SimConfig, ff: bool) -> Box<PolicyFactory> {
-    crate::sim::policy::factory(c, ff)
+    crate::sim::policy::factory(c, ff, &JointLimits::of_model(LbrModel::Med7))
 }
 
 /// Run `trials`.

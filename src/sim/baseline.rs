@@ -1,13 +1,41 @@
 //! A baseline docking policy for exercising the simulator without the optimal controller:
 //! damped-least-squares resolved rates toward a point `standoff_m` before the measured port
 //! on its axis, aligning the optical axis with it, then straight along the axis to the
-//! goal. It has no force feedback; its estimate of f_ext is the damped pseudo-inverse
-//! J_lin^-T tau_ext, reported for the metric.
+//! goal. Its estimate of f_ext is the damped pseudo-inverse J_lin^-T tau_ext; with force
+//! feedback (`admittance_m_per_n` > 0) the target moves by `admittance_m_per_n * f_perp`,
+//! the part of f_ext across the measured axis (yield sideways, keep progressing along the
+//! axis). Each tick corrects `gain` of the remaining error, up to `speed_m_s`.
 
 use nalgebra::{Matrix3, Matrix6, Point3, Vector3, Vector6};
+use serde::{Deserialize, Serialize};
 
 use super::trial::{Action, Observation, Policy};
 use crate::kinematics::{JointVector, Kinematics};
+
+/// Tunables of the baseline (the `baseline:` section of `config/sim.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct BaselineParams {
+    /// Stand-off before the port for alignment, m.
+    pub standoff_m: f64,
+    /// Cartesian speed limit, m/s.
+    pub speed_m_s: f64,
+    /// Fraction of the position error corrected per tick.
+    pub gain: f64,
+    /// Admittance of the force feedback when it is on, m/N.
+    pub admittance_m_per_n: f64,
+}
+
+impl Default for BaselineParams {
+    fn default() -> Self {
+        Self {
+            standoff_m: 0.02,
+            speed_m_s: 0.05,
+            gain: 1.0,
+            admittance_m_per_n: 0.005,
+        }
+    }
+}
 
 /// The baseline policy.
 #[derive(Debug, Clone)]
@@ -20,17 +48,24 @@ pub struct Baseline {
     pub speed_m_s: f64,
     /// Control period, s.
     pub period_s: f64,
+    /// Fraction of the position error corrected per tick.
+    pub gain: f64,
+    /// Admittance of the force feedback, m/N (0: none).
+    pub admittance_m_per_n: f64,
     inserting: bool,
 }
 
 impl Baseline {
-    /// A baseline for goal depth `goal_depth_m` at control period `period_s`.
-    pub fn new(goal_depth_m: f64, period_s: f64) -> Self {
+    /// A baseline for goal depth `goal_depth_m` at control period `period_s`, with force
+    /// feedback when `ff`.
+    pub fn new(p: &BaselineParams, goal_depth_m: f64, period_s: f64, ff: bool) -> Self {
         Self {
             goal_depth_m,
-            standoff_m: 0.02,
-            speed_m_s: 0.03,
+            standoff_m: p.standoff_m,
+            speed_m_s: p.speed_m_s,
             period_s,
+            gain: p.gain,
+            admittance_m_per_n: if ff { p.admittance_m_per_n } else { 0.0 },
             inserting: false,
         }
     }
@@ -81,7 +116,9 @@ impl Policy for Baseline {
         } else {
             pre
         };
-        let mut dp = target - p;
+        let f_perp = f_ext - axis * axis.dot(&f_ext);
+        let target = target + f_perp * self.admittance_m_per_n;
+        let mut dp = (target - p) * self.gain;
         let step = self.speed_m_s * self.period_s;
         if dp.norm() > step {
             dp *= step / dp.norm();

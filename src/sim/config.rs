@@ -4,8 +4,10 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
+use super::baseline::BaselineParams;
 use super::trial::TrialParams;
 use super::{SimError, SimParams};
+use crate::controller::ControllerParams;
 
 /// Default location of the simulator configuration, relative to the package root.
 pub const DEFAULT_PATH: &str = "config/sim.yaml";
@@ -18,15 +20,42 @@ pub struct SimConfig {
     pub sim: SimParams,
     /// Trial rules (goal, tolerance, timeout, abort force, control rate).
     pub trial: TrialParams,
+    /// Which policy the trials run.
+    pub policy: PolicyKind,
+    /// The docking controller's parameters (its `dt` is set from `trial.control_rate_hz`,
+    /// `force_feedback` by the arm of the comparison).
+    pub controller: ControllerParams,
+    /// The baseline policy.
+    pub baseline: BaselineParams,
+}
+
+/// The policy of the trials.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum PolicyKind {
+    /// The docking controller (paper eq. 1), `crate::controller`.
+    #[default]
+    Controller,
+    /// The resolved-rate baseline, [`super::baseline`].
+    Baseline,
 }
 
 impl SimConfig {
     /// Parse and validate YAML.
     pub fn from_yaml_str(s: &str) -> Result<Self, SimError> {
         let c: Self = serde_yaml::from_str(s)?;
-        c.sim.validate()?;
-        c.trial.validate()?;
+        c.validate()?;
         Ok(c)
+    }
+
+    /// Check every section.
+    pub fn validate(&self) -> Result<(), SimError> {
+        self.sim.validate()?;
+        self.trial.validate()?;
+        self.controller.validate().map_err(|why| SimError::Param {
+            name: "controller",
+            why,
+        })
     }
 
     /// `config/sim.yaml` when it exists (relative to the working directory), else the

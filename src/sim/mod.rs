@@ -12,6 +12,7 @@ pub mod arm;
 pub mod baseline;
 pub mod config;
 pub mod contact;
+pub mod controller_policy;
 pub mod noise;
 pub mod policy;
 pub mod scenario;

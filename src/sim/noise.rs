@@ -6,6 +6,10 @@
 //! - `gaussian`: each position axis + N(0, s_p^2); the orientation rotated by
 //!   exp(N(0, s_r^2 I3));
 //! - `none`: the true pose.
+//!
+//! On top of the noise, an optional per-trial constant calibration bias (the hand-eye and
+//! marker calibration errors of a real setup): a position offset U(-c, c) per axis and a
+//! rotation of U(0, c_r) about a random axis, drawn once per trial, in the port frame.
 
 use std::collections::VecDeque;
 
@@ -56,6 +60,10 @@ pub struct MeasurementParams {
     pub gaussian_position_m: f64,
     /// Gaussian: standard deviation of the rotation per axis, rad.
     pub gaussian_rotation_rad: f64,
+    /// Calibration bias: half-range per position axis, m (0: none).
+    pub bias_position_m: f64,
+    /// Calibration bias: largest rotation, rad (0: none).
+    pub bias_rotation_rad: f64,
 }
 
 impl Default for MeasurementParams {
@@ -68,6 +76,8 @@ impl Default for MeasurementParams {
             uniform_quaternion: 0.005,
             gaussian_position_m: 0.003,
             gaussian_rotation_rad: 0.006,
+            bias_position_m: 0.002,
+            bias_rotation_rad: 0.026,
         }
     }
 }
@@ -85,7 +95,25 @@ impl MeasurementParams {
             self.gaussian_rotation_rad,
             0.0,
             1.0,
-        )
+        )?;
+        check_range("measurement.bias_position_m", self.bias_position_m, 0.0, 0.1)?;
+        check_range("measurement.bias_rotation_rad", self.bias_rotation_rad, 0.0, 0.5)
+    }
+
+    /// Draw the per-trial calibration bias (identity when both ranges are zero).
+    pub fn draw_bias(&self, rng: &mut impl rand::Rng) -> Isometry3<f64> {
+        let c = self.bias_position_m;
+        let mut u = |h: f64| if h > 0.0 { rng.random_range(-h..=h) } else { 0.0 };
+        let t = Vector3::new(u(c), u(c), u(c));
+        let axis = Vector3::new(u(1.0), u(1.0), u(1.0));
+        let ang = if self.bias_rotation_rad > 0.0 {
+            rng.random_range(0.0..=self.bias_rotation_rad)
+        } else {
+            0.0
+        };
+        let rot = nalgebra::Unit::try_new(axis, 1e-9)
+            .map_or(UnitQuaternion::identity(), |a| UnitQuaternion::from_axis_angle(&a, ang));
+        Isometry3::from_parts(Translation3::from(t), rot)
     }
 }
 
@@ -130,17 +158,19 @@ pub fn perturb(p: &MeasurementParams, pose: &Isometry3<f64>, rng: &mut impl rand
 #[derive(Debug, Clone)]
 pub struct TrocarSensor {
     params: MeasurementParams,
+    bias: Isometry3<f64>,
     next_capture: f64,
     pending: VecDeque<TrocarMeasurement>,
     latest: Option<TrocarMeasurement>,
 }
 
 impl TrocarSensor {
-    /// A sensor whose first capture is at t = 0.
-    pub fn new(params: &MeasurementParams) -> Result<Self, SimError> {
+    /// A sensor whose first capture is at t = 0, its calibration bias drawn from `rng`.
+    pub fn new(params: &MeasurementParams, rng: &mut impl rand::Rng) -> Result<Self, SimError> {
         params.validate()?;
         let cap = (params.latency_s * params.rate_hz).ceil() as usize + 2;
         Ok(Self {
+            bias: params.draw_bias(rng),
             params: params.clone(),
             next_capture: 0.0,
             pending: VecDeque::with_capacity(cap),
@@ -154,7 +184,7 @@ impl TrocarSensor {
         if t + 1e-9 >= self.next_capture {
             self.pending.push_back(TrocarMeasurement {
                 stamp: t,
-                pose: perturb(&self.params, true_pose, rng),
+                pose: perturb(&self.params, &(true_pose * self.bias), rng),
             });
             // Stay on the capture grid; skip captures missed by a coarse caller.
             while self.next_capture <= t + 1e-9 {
@@ -220,15 +250,37 @@ mod tests {
     }
 
     #[test]
+    fn calibration_bias_is_constant_and_bounded() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let p = MeasurementParams {
+            model: NoiseModel::None,
+            bias_position_m: 0.003,
+            bias_rotation_rad: 0.02,
+            ..Default::default()
+        };
+        let mut s = TrocarSensor::new(&p, &mut rng).unwrap();
+        s.update(0.0, &pose(), &mut rng);
+        let a = s.latest(0.0).unwrap().pose;
+        s.update(0.5, &pose(), &mut rng);
+        let b = s.latest(0.5).unwrap().pose;
+        assert_eq!(a, b);
+        let d = pose().inverse() * a;
+        assert!(d.translation.vector.amax() <= 0.003 && d.translation.vector.norm() > 0.0);
+        assert!(d.rotation.angle() <= 0.02 + 1e-12);
+    }
+
+    #[test]
     fn rate_and_latency() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         let p = MeasurementParams {
             model: NoiseModel::None,
             rate_hz: 50.0,
             latency_s: 0.03,
+            bias_position_m: 0.0,
+            bias_rotation_rad: 0.0,
             ..Default::default()
         };
-        let mut s = TrocarSensor::new(&p).unwrap();
+        let mut s = TrocarSensor::new(&p, &mut rng).unwrap();
         let mut stamps = vec![];
         for k in 0..=100 {
             let t = k as f64 * 1e-3;
@@ -243,6 +295,7 @@ mod tests {
             }
         }
         assert_eq!(stamps.len(), 4, "{stamps:?}");
+        assert_eq!(s.latest(1.0).map(|m| m.pose), Some(pose()));
         assert!((stamps[1] - stamps[0] - 0.02).abs() < 1e-9);
     }
 }

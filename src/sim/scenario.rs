@@ -1,7 +1,8 @@
 //! Randomised start of a trial: the arm's start configuration and the trocar's rest pose.
 //!
-//! q0 = q_nominal + U(-q_spread, q_spread) per joint (q_nominal puts the tip about 0.6 m in
-//! front of the base, 0.35 m high, pointing down). The port lies `port_distance_m` from
+//! q0 = q_nominal + U(-q_spread, q_spread) per joint (q_nominal puts the tip 0.57 m in
+//! front of the base, 0.31 m high, pointing down, with room on every joint for the docking
+//! pose about 0.15 m lower). The port lies `port_distance_m` from
 //! the start tip, in a direction within `approach_cone_deg` of straight down; the trocar's
 //! axis (z, into the body) is straight down tilted by U(0, max_tilt_deg) about a random
 //! horizontal axis, with a random twist about itself.
@@ -32,7 +33,7 @@ pub struct ScenarioParams {
 impl Default for ScenarioParams {
     fn default() -> Self {
         Self {
-            q_nominal: [0.0, 0.55, 0.0, -0.9, 0.0, 1.69, 0.0],
+            q_nominal: [0.0, 0.45, 0.0, -1.15, 0.0, 1.54, 0.0],
             q_spread_rad: 0.08,
             port_distance_m: [0.10, 0.15],
             approach_cone_deg: 20.0,

@@ -73,14 +73,15 @@ impl SimWorld {
     ) -> Result<Self, SimError> {
         params.validate()?;
         let mut rng_torque = stream(seed, STREAM_TORQUE);
+        let mut rng_meas = stream(seed, STREAM_MEASUREMENT);
         let arm = Arm::new(&params.arm, kin.limits(), &scenario.q0())?;
         let (tip, jac) = kin.fk_jacobian(arm.q())?;
         Ok(Self {
             trocar: Trocar::new(&params.trocar, &scenario.trocar_rest)?,
             contact: ContactModel::new(&params.contact, &params.trocar)?,
             torque: TorqueSensor::new(&params.torque_sensor, &mut rng_torque)?,
-            sensor: TrocarSensor::new(&params.measurement)?,
-            rng_meas: stream(seed, STREAM_MEASUREMENT),
+            sensor: TrocarSensor::new(&params.measurement, &mut rng_meas)?,
+            rng_meas,
             rng_torque,
             params: params.clone(),
             kin,

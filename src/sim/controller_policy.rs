@@ -1,0 +1,54 @@
+//! The docking controller ([`crate::controller::Controller`]) as a trial [`Policy`]: the
+//! observation becomes a `ControlInput` (joints and torques stamped now, the trocar pose
+//! stamped at capture), its output the commanded joints and the f_ext estimate.
+
+use super::trial::{Action, Observation, Policy};
+use crate::controller::{ControlInput, Controller, ControllerParams, Phase, Stamped};
+use crate::kinematics::{JointLimits, Kinematics};
+
+/// The controller driving a simulated trial.
+pub struct ControllerPolicy {
+    ctrl: Controller,
+}
+
+impl ControllerPolicy {
+    /// A controller with `params` for an arm with `limits`.
+    pub fn new(params: &ControllerParams, limits: &JointLimits) -> Result<Self, String> {
+        Controller::new(params.clone(), limits.clone())
+            .map(|ctrl| Self { ctrl })
+            .map_err(|e| e.to_string())
+    }
+}
+
+impl Policy for ControllerPolicy {
+    fn start(&mut self, _kin: &dyn Kinematics) {
+        self.ctrl.reset();
+        // From IDLE, start cannot fail; a failure would show as the phase staying IDLE.
+        let _ = self.ctrl.start();
+    }
+
+    fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
+        let input = ControlInput {
+            now: obs.t,
+            joints: Some(Stamped {
+                stamp: obs.t,
+                value: obs.q,
+            }),
+            tau_ext: Some(Stamped {
+                stamp: obs.t,
+                value: obs.tau_ext,
+            }),
+            trocar: obs.trocar.map(|m| Stamped {
+                stamp: m.stamp,
+                value: m.pose,
+            }),
+        };
+        let out = self.ctrl.step(kin, &input);
+        Action {
+            command: out.command,
+            f_ext: Some(out.f_ext),
+            phase: out.phase.as_str(),
+            aborted: (out.phase == Phase::Aborted).then(|| out.reason.unwrap_or_else(|| "aborted".into())),
+        }
+    }
+}
