@@ -11,7 +11,6 @@ use std::sync::{Arc, Mutex};
 
 use nalgebra::{Isometry3, Point3};
 
-use super::baseline_core::{BaselineCore, BaselineParams};
 use super::convert::{self, InputError, StampOrder};
 use super::core::{DockingCore, Stamped, StepInput, StepOutput};
 use super::markers::{self, MarkerStyle, Scene};
@@ -73,23 +72,9 @@ pub struct ControllerNodeParams {
     pub latency_samples: usize,
     /// Marker sizes.
     pub markers: MarkerStyle,
-    /// Which docking core runs.
-    pub core: CoreKind,
     /// Parameters of the optimal controller (`config/controller.yaml`, loaded under
     /// `~controller`); its `dt` is set from `rate_hz` and `force_feedback` from the node's.
     pub controller: ControllerParams,
-    /// Parameters of the baseline core.
-    pub baseline: BaselineParams,
-}
-
-/// The docking core the node runs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum CoreKind {
-    /// The optimal controller (SQP, admittance, guard, supervisor).
-    Optimal,
-    /// The simulator's baseline policy (resolved rates, no force feedback).
-    Baseline,
 }
 
 impl Default for ControllerNodeParams {
@@ -117,9 +102,7 @@ impl Default for ControllerNodeParams {
             force_feedback: true,
             latency_samples: 5000,
             markers: MarkerStyle::default(),
-            core: CoreKind::Optimal,
             controller: ControllerParams::default(),
-            baseline: BaselineParams::default(),
         }
     }
 }
@@ -394,22 +377,12 @@ pub fn run() -> Result<(), NodeError> {
     } else {
         LbrKinematics::from_urdf_file(std::path::Path::new(&p.urdf_file), TIP_LINK)?
     };
-    let core: Box<dyn DockingCore> = match p.core {
-        CoreKind::Optimal => {
-            let mut cp = p.controller.clone();
-            cp.dt = 1.0 / p.rate_hz;
-            cp.force_feedback = p.force_feedback;
-            let c = Controller::new(cp, kin.limits().clone())
-                .map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
-            Box::new(OptimalCore::new(c))
-        }
-        CoreKind::Baseline => {
-            if p.force_feedback {
-                rosrust::ros_warn!("core: baseline has no force feedback; force_feedback ignored");
-            }
-            Box::new(BaselineCore::new(p.baseline.clone(), 1.0 / p.rate_hz))
-        }
-    };
+    let mut cp = p.controller.clone();
+    cp.dt = 1.0 / p.rate_hz;
+    cp.force_feedback = p.force_feedback;
+    let optimal =
+        Controller::new(cp, kin.limits().clone()).map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
+    let core: Box<dyn DockingCore> = Box::new(OptimalCore::new(optimal));
     let controller = Arc::new(Mutex::new(core));
     let inputs: Shared<Inputs> = Arc::new(Mutex::new(Inputs::default()));
     let stats = Arc::new(Mutex::new(LoopStats::new(1.0, p.latency_samples)));

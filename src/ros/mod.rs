@@ -2,7 +2,6 @@
 //! writer rostest needs, and the node wiring. No maths here: the nodes convert messages,
 //! call the pure core, and publish.
 
-pub mod baseline_core;
 pub mod checks;
 pub mod controller_node;
 pub mod convert;
