@@ -1,5 +1,7 @@
 //! Builds the C++ side of the cxx bridges (KDL kinematics, ViSP/OpenCV vision) and links
 //! Debian's libraries. Missing libraries: run `scripts/install-deps`.
+//!
+//! It also lays out the ROS message tree rosrust reads (see `ros_message_path`).
 
 use std::process::Command;
 
@@ -23,7 +25,56 @@ fn pkg_config(lib: &str) -> (Vec<String>, Vec<String>, Vec<String>) {
     (inc, dirs, libs)
 }
 
+/// ROS message packages (Debian, under /usr/share) the nodes use.
+const ROS_MSG_PACKAGES: [&str; 10] = [
+    "std_msgs",
+    "std_srvs",
+    "geometry_msgs",
+    "sensor_msgs",
+    "trajectory_msgs",
+    "visualization_msgs",
+    "tf2_msgs",
+    "rosgraph_msgs",
+    "actionlib_msgs",
+    "diagnostic_msgs",
+];
+
+/// rosrust's `rosmsg_include!` names a package after the folder holding its `msg/`, and the
+/// checkout folder may be called anything. So copy our messages into
+/// `$OUT_DIR/ros_msgs/<package>/msg/` (trocar_docking from `msg/`, the vendored driver
+/// message from `vendor/lbr_msgs/msg/`), and hand the proc macro that tree plus the Debian
+/// message folders through `ROSRUST_MSG_PATH` (set for this crate's compilation only).
+fn ros_message_path() {
+    let out = std::path::PathBuf::from(std::env::var("OUT_DIR").expect("cargo sets OUT_DIR"));
+    let tree = out.join("ros_msgs");
+    for (pkg, src) in [("trocar_docking", "msg"), ("lbr_msgs", "vendor/lbr_msgs/msg")] {
+        println!("cargo:rerun-if-changed={src}");
+        let dst = tree.join(pkg).join("msg");
+        let _ = std::fs::remove_dir_all(&dst);
+        std::fs::create_dir_all(&dst).unwrap_or_else(|e| panic!("cannot create {}: {e}", dst.display()));
+        let entries = std::fs::read_dir(src).unwrap_or_else(|e| panic!("cannot read {src}: {e}"));
+        for entry in entries.flatten() {
+            let path = entry.path();
+            if path.extension().is_some_and(|x| x == "msg") {
+                println!("cargo:rerun-if-changed={}", path.display());
+                let target = dst.join(entry.file_name());
+                std::fs::copy(&path, &target).unwrap_or_else(|e| panic!("cannot copy {}: {e}", path.display()));
+            }
+        }
+    }
+    let mut dirs = vec![tree.display().to_string()];
+    for pkg in ROS_MSG_PACKAGES {
+        let d = format!("/usr/share/{pkg}");
+        if !std::path::Path::new(&d).join("msg").is_dir() && !std::path::Path::new(&d).join("srv").is_dir() {
+            panic!("{d} has no messages: run scripts/install-deps (ros-*-msgs Debian packages)");
+        }
+        dirs.push(d);
+    }
+    println!("cargo:rustc-env=ROSRUST_MSG_PATH={}", dirs.join(":"));
+}
+
 fn main() {
+    ros_message_path();
     let bridges = ["src/ffi/kdl.rs", "src/ffi/vision.rs"];
     let sources = ["cpp/kdl_bridge.cpp", "cpp/vision_bridge.cpp"];
     for f in bridges.iter().chain(sources.iter()) {

@@ -17,6 +17,7 @@ pub mod kinematics;
 pub mod metrics;
 pub mod plot;
 pub mod robot_model;
+pub mod ros;
 pub mod safety;
 pub mod sim;
 pub mod supervisor;

@@ -1,0 +1,145 @@
+//! The `bad_input` rostest check: the test node plays the driver and the camera (joint
+//! states, LBRState, trocar pose at 100 Hz, all valid), starts the controller, then breaks
+//! one input at a time (wrong joint names, NaN, a short torque vector, a wrong frame, a
+//! stamp that goes back, a driver that stops) and asserts that the controller holds with a
+//! reason naming the fault, keeps publishing its status (it did not crash) and does not move.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use nalgebra::{Isometry3, Translation3, Vector3};
+
+use super::checks::{subscribe_latest, trigger, wait_for, CheckParams};
+use super::convert;
+use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
+use crate::kinematics::{JointVector, Kinematics, LbrKinematics};
+use crate::robot_model::{LbrModel, ToolParams};
+
+/// One way to break the inputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Fault {
+    None,
+    WrongJointNames,
+    NanJoint,
+    ShortTorques,
+    WrongFrame,
+    StampBack,
+    DriverStops,
+}
+
+impl Fault {
+    /// Text the hold reason must contain.
+    fn expected(self) -> &'static str {
+        match self {
+            Fault::WrongJointNames => "missing",
+            Fault::NanJoint => "not finite",
+            Fault::ShortTorques => "external_torque",
+            Fault::WrongFrame => "frame",
+            Fault::StampBack => "not after",
+            Fault::None | Fault::DriverStops => "",
+        }
+    }
+}
+
+/// Publish the fake driver and camera until `stop`, applying the current fault.
+fn play_driver(
+    q0: JointVector,
+    trocar: Isometry3<f64>,
+    fault: Arc<Mutex<Fault>>,
+    stop: Arc<AtomicBool>,
+) -> Result<std::thread::JoinHandle<()>, String> {
+    let js = rosrust::publish::<sensor_msgs::JointState>("/lbr/joint_states", 10).map_err(|e| e.to_string())?;
+    let lbr = rosrust::publish::<lbr_msgs::LBRState>("/lbr/states", 10).map_err(|e| e.to_string())?;
+    let pose = rosrust::publish::<geometry_msgs::PoseStamped>("/trocar/pose", 10).map_err(|e| e.to_string())?;
+    let names: Vec<String> = (1..=7).map(|i| format!("lbr_joint_{i}")).collect();
+    Ok(std::thread::spawn(move || {
+        let rate = rosrust::rate(100.0);
+        let zeros = JointVector::zeros();
+        while rosrust::is_ok() && !stop.load(Ordering::Relaxed) {
+            let f = fault.lock().map(|f| *f).unwrap_or(Fault::None);
+            let now = rosrust::now();
+            if f != Fault::DriverStops {
+                let mut m = convert::joint_state(now, &names, &q0, &zeros);
+                match f {
+                    Fault::WrongJointNames => m.name = (1..=7).map(|i| format!("A{i}")).collect(),
+                    Fault::NanJoint => m.position[2] = f64::NAN,
+                    _ => {}
+                }
+                let _ = js.send(m);
+                let mut s = convert::lbr_state(now, 0.01, &q0, &zeros, &zeros);
+                if f == Fault::ShortTorques {
+                    s.external_torque.pop();
+                }
+                let _ = lbr.send(s);
+            }
+            let (frame, stamp) = match f {
+                Fault::WrongFrame => ("world", now),
+                Fault::StampBack => ("lbr_link_0", convert::ros_time(convert::seconds(now) - 5.0)),
+                _ => ("lbr_link_0", now),
+            };
+            let _ = pose.send(convert::pose_stamped(stamp, frame, &trocar));
+            rate.sleep();
+        }
+    }))
+}
+
+/// Run the check; a summary on success.
+pub fn bad_input(p: &CheckParams) -> Result<String, String> {
+    let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
+    let q0 = JointVector::from_column_slice(&[0.3, 0.6, -0.2, -1.2, 0.4, 0.8, 0.1]);
+    let tip = kin.fk(&q0).map_err(|e| e.to_string())?;
+    // A trocar 8 cm ahead of the tip on its optical axis, axis along it.
+    let trocar = Isometry3::from_parts(
+        Translation3::from(tip.translation.vector + tip.rotation * Vector3::new(0.0, 0.0, 0.08)),
+        tip.rotation,
+    );
+    let fault = Arc::new(Mutex::new(Fault::None));
+    let stop = Arc::new(AtomicBool::new(false));
+    let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
+    let driver = play_driver(q0, trocar, fault.clone(), stop.clone())?;
+    let result = (|| {
+        wait_for(p.startup_timeout, || status.get()).ok_or("no status from the controller")?;
+        let mut seen = Vec::new();
+        for f in [
+            Fault::WrongJointNames,
+            Fault::NanJoint,
+            Fault::ShortTorques,
+            Fault::WrongFrame,
+            Fault::StampBack,
+            Fault::DriverStops,
+        ] {
+            // Clean inputs, re-arm, then break one.
+            *fault.lock().map_err(|e| e.to_string())? = Fault::None;
+            trigger(&format!("{}/reset", p.controller), p.startup_timeout)?;
+            std::thread::sleep(Duration::from_millis(300));
+            trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
+            std::thread::sleep(Duration::from_millis(300));
+            *fault.lock().map_err(|e| e.to_string())? = f;
+            let before = status.count();
+            let held = wait_for(3.0, || {
+                status
+                    .get()
+                    .filter(|s| s.phase == "HOLD" && s.hold_reason.contains(f.expected()))
+            })
+            .ok_or_else(|| {
+                let s = status.get().unwrap_or_default();
+                format!(
+                    "{f:?}: phase {} reason '{}' (expected HOLD naming '{}')",
+                    s.phase,
+                    s.hold_reason,
+                    f.expected()
+                )
+            })?;
+            std::thread::sleep(Duration::from_millis(300));
+            if status.count() <= before {
+                return Err(format!("{f:?}: the controller stopped publishing its status"));
+            }
+            seen.push(format!("{f:?}: {}", held.hold_reason));
+        }
+        Ok(seen.join(" | "))
+    })();
+    stop.store(true, Ordering::Relaxed);
+    let _ = driver.join();
+    result
+}

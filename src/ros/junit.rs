@@ -1,0 +1,172 @@
+//! JUnit XML for rostest: a `<test>` node is started with `--gtest_output=xml:PATH` and
+//! rostest counts the test cases it finds in that file (none found = "0 tests", a failure).
+//! [`TestReport`] collects named checks and writes the file.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// The result of one named check.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TestCase {
+    /// The check's name (the `testcase` name in the XML).
+    pub name: String,
+    /// Duration of the check, s.
+    pub time_s: f64,
+    /// `None` when it passed, else why it failed.
+    pub failure: Option<String>,
+}
+
+/// A suite of checks that becomes one JUnit `testsuite`.
+#[derive(Debug, Clone)]
+pub struct TestReport {
+    suite: String,
+    cases: Vec<TestCase>,
+    started: Instant,
+}
+
+/// The path from a `--gtest_output=xml:PATH` argument among `args`, if any.
+pub fn gtest_output_path<S: AsRef<str>>(args: &[S]) -> Option<PathBuf> {
+    args.iter()
+        .filter_map(|a| a.as_ref().strip_prefix("--gtest_output=xml:"))
+        .find(|p| !p.is_empty())
+        .map(PathBuf::from)
+}
+
+/// Escape text for an XML attribute or element.
+fn escape(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&apos;"),
+            // XML 1.0 forbids most control characters.
+            c if (c as u32) < 0x20 && !matches!(c, '\n' | '\r' | '\t') => out.push(' '),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+impl TestReport {
+    /// An empty report for the suite `suite`.
+    pub fn new(suite: &str) -> Self {
+        Self {
+            suite: suite.to_string(),
+            cases: Vec::new(),
+            started: Instant::now(),
+        }
+    }
+
+    /// Record a check: `result` is `Ok(())` when it passed, else the failure message.
+    pub fn record(&mut self, name: &str, time_s: f64, result: Result<(), String>) {
+        self.cases.push(TestCase {
+            name: name.to_string(),
+            time_s,
+            failure: result.err(),
+        });
+    }
+
+    /// Run `check` and record its outcome and duration under `name`.
+    pub fn check<F: FnOnce() -> Result<(), String>>(&mut self, name: &str, check: F) {
+        let t0 = Instant::now();
+        let result = check();
+        self.record(name, t0.elapsed().as_secs_f64(), result);
+    }
+
+    /// The recorded checks.
+    pub fn cases(&self) -> &[TestCase] {
+        &self.cases
+    }
+
+    /// True when at least one check ran and none failed.
+    pub fn passed(&self) -> bool {
+        !self.cases.is_empty() && self.cases.iter().all(|c| c.failure.is_none())
+    }
+
+    /// The JUnit XML document.
+    pub fn to_xml(&self) -> String {
+        let failures = self.cases.iter().filter(|c| c.failure.is_some()).count();
+        let mut x = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n");
+        let _ = writeln!(
+            x,
+            "<testsuite name=\"{}\" tests=\"{}\" failures=\"{}\" errors=\"0\" time=\"{:.3}\">",
+            escape(&self.suite),
+            self.cases.len(),
+            failures,
+            self.started.elapsed().as_secs_f64()
+        );
+        for c in &self.cases {
+            let _ = write!(
+                x,
+                "  <testcase classname=\"{}\" name=\"{}\" status=\"run\" time=\"{:.3}\"",
+                escape(&self.suite),
+                escape(&c.name),
+                c.time_s
+            );
+            match &c.failure {
+                None => x.push_str("/>\n"),
+                Some(msg) => {
+                    let _ = writeln!(
+                        x,
+                        ">\n    <failure message=\"{}\" type=\"\">{}</failure>\n  </testcase>",
+                        escape(msg),
+                        escape(msg)
+                    );
+                }
+            }
+        }
+        x.push_str("</testsuite>\n");
+        x
+    }
+
+    /// Write the XML to `path`, creating its folder.
+    pub fn write(&self, path: &Path) -> std::io::Result<()> {
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        std::fs::write(path, self.to_xml())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn finds_the_gtest_output_argument() {
+        let args = ["node", "__name:=x", "--gtest_output=xml:/tmp/a b/r.xml"];
+        assert_eq!(gtest_output_path(&args), Some(PathBuf::from("/tmp/a b/r.xml")));
+        assert_eq!(gtest_output_path(&["node", "--gtest_output=xml:"]), None);
+        assert_eq!(gtest_output_path::<&str>(&[]), None);
+    }
+
+    #[test]
+    fn xml_counts_failures_and_escapes() {
+        let mut r = TestReport::new("suite<1>");
+        r.record("ok", 0.5, Ok(()));
+        r.record("bad", 1.0, Err("M = 3 > 2 & \"x\"".into()));
+        let x = r.to_xml();
+        assert!(x.contains("tests=\"2\" failures=\"1\""), "{x}");
+        assert!(x.contains("name=\"suite&lt;1&gt;\""), "{x}");
+        assert!(x.contains("M = 3 &gt; 2 &amp; &quot;x&quot;"), "{x}");
+        assert!(!r.passed());
+    }
+
+    #[test]
+    fn empty_report_does_not_pass_and_file_is_written() {
+        let mut r = TestReport::new("s");
+        assert!(!r.passed());
+        r.check("passes", || Ok(()));
+        assert!(r.passed());
+        let dir = std::env::temp_dir().join(format!("junit_test_{}", std::process::id()));
+        let path = dir.join("sub/r.xml");
+        r.write(&path).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(text.contains("<testcase classname=\"s\" name=\"passes\""));
+        let _ = std::fs::remove_dir_all(dir);
+    }
+}

@@ -1,0 +1,266 @@
+//! RViz markers of a docking scene (`/docking/markers`): the insertion axis and the port of
+//! the trocar, the goal, the endoscope tip and its optical axis, the external force arrow and
+//! the admittance reference r. Only message assembly; the geometry comes from the controller.
+
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use super::convert::{header, point_msg, pose_msg};
+use super::msgs::{std_msgs, visualization_msgs};
+
+/// What to draw, all in the base frame.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// The trocar pose (origin at the port, z along the insertion direction), if known.
+    pub trocar: Option<Isometry3<f64>>,
+    /// The docking goal, if known.
+    pub goal: Option<Point3<f64>>,
+    /// The endoscope tip pose (z = optical axis), if known.
+    pub tip: Option<Isometry3<f64>>,
+    /// External force at the tip, N.
+    pub f_ext: Vector3<f64>,
+    /// The admittance reference r, if any.
+    pub reference: Option<Point3<f64>>,
+}
+
+/// Marker sizes.
+#[derive(Debug, Clone, Copy, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MarkerStyle {
+    /// Length of the drawn insertion axis (beyond and before the port), m.
+    pub axis_length: f64,
+    /// Length of the drawn optical axis, m.
+    pub optical_axis_length: f64,
+    /// Force arrow length per newton, m/N.
+    pub force_scale: f64,
+    /// Diameter of the spheres, m.
+    pub sphere: f64,
+    /// Drawn trocar cannula: outer diameter and length below the port, m.
+    pub trocar_diameter: f64,
+    /// Length of the drawn cannula, m.
+    pub trocar_length: f64,
+}
+
+impl Default for MarkerStyle {
+    fn default() -> Self {
+        Self {
+            axis_length: 0.15,
+            optical_axis_length: 0.08,
+            force_scale: 0.02,
+            sphere: 0.012,
+            trocar_diameter: 0.012,
+            trocar_length: 0.05,
+        }
+    }
+}
+
+/// Marker ids (one marker each, replaced in place).
+#[derive(Debug, Clone, Copy)]
+enum Id {
+    Axis = 0,
+    Port = 1,
+    Goal = 2,
+    Tip = 3,
+    OpticalAxis = 4,
+    Force = 5,
+    Reference = 6,
+    TrocarBody = 7,
+}
+
+const NS: &str = "docking";
+
+fn color(r: f32, g: f32, b: f32) -> std_msgs::ColorRGBA {
+    std_msgs::ColorRGBA { r, g, b, a: 1.0 }
+}
+
+fn base(stamp: rosrust::Time, frame: &str, id: Id, kind: i32) -> visualization_msgs::Marker {
+    let mut m = visualization_msgs::Marker {
+        header: header(stamp, frame),
+        ns: NS.into(),
+        id: id as i32,
+        type_: kind,
+        action: visualization_msgs::Marker::ADD as i32,
+        pose: pose_msg(&Isometry3::identity()),
+        ..Default::default()
+    };
+    m.scale.x = 1.0;
+    m.scale.y = 1.0;
+    m.scale.z = 1.0;
+    m
+}
+
+fn arrow(
+    stamp: rosrust::Time,
+    frame: &str,
+    id: Id,
+    from: Point3<f64>,
+    to: Point3<f64>,
+    c: std_msgs::ColorRGBA,
+) -> visualization_msgs::Marker {
+    let mut m = base(stamp, frame, id, visualization_msgs::Marker::ARROW as i32);
+    m.points = vec![point_msg(&from), point_msg(&to)];
+    m.scale.x = 0.004;
+    m.scale.y = 0.008;
+    m.scale.z = 0.012;
+    m.color = c;
+    m
+}
+
+fn sphere(
+    stamp: rosrust::Time,
+    frame: &str,
+    id: Id,
+    at: Point3<f64>,
+    d: f64,
+    c: std_msgs::ColorRGBA,
+) -> visualization_msgs::Marker {
+    let mut m = base(stamp, frame, id, visualization_msgs::Marker::SPHERE as i32);
+    m.pose = pose_msg(&Isometry3::translation(at.x, at.y, at.z));
+    m.scale.x = d;
+    m.scale.y = d;
+    m.scale.z = d;
+    m.color = c;
+    m
+}
+
+fn delete(stamp: rosrust::Time, frame: &str, id: Id) -> visualization_msgs::Marker {
+    let mut m = base(stamp, frame, id, visualization_msgs::Marker::SPHERE as i32);
+    m.action = visualization_msgs::Marker::DELETE as i32;
+    m
+}
+
+/// The MarkerArray of `scene` in `frame`; what is unknown is deleted, so RViz shows no stale
+/// geometry.
+pub fn docking_markers(
+    stamp: rosrust::Time,
+    frame: &str,
+    scene: &Scene,
+    style: &MarkerStyle,
+) -> visualization_msgs::MarkerArray {
+    let mut markers = Vec::with_capacity(8);
+    match &scene.trocar {
+        Some(t) => {
+            let port = Point3::from(t.translation.vector);
+            let dir = t.rotation * Vector3::z();
+            let from = port - dir * style.axis_length;
+            let to = port + dir * style.axis_length;
+            markers.push(arrow(stamp, frame, Id::Axis, from, to, color(0.1, 0.8, 1.0)));
+            markers.push(sphere(
+                stamp,
+                frame,
+                Id::Port,
+                port,
+                style.sphere * 1.5,
+                color(1.0, 0.6, 0.0),
+            ));
+            // The cannula: a translucent cylinder from the port into the body along z.
+            let mut body = base(
+                stamp,
+                frame,
+                Id::TrocarBody,
+                visualization_msgs::Marker::CYLINDER as i32,
+            );
+            let centre = t * Point3::new(0.0, 0.0, style.trocar_length / 2.0);
+            body.pose = pose_msg(&Isometry3::from_parts(centre.coords.into(), t.rotation));
+            body.scale.x = style.trocar_diameter;
+            body.scale.y = style.trocar_diameter;
+            body.scale.z = style.trocar_length;
+            body.color = std_msgs::ColorRGBA {
+                r: 0.6,
+                g: 0.6,
+                b: 0.9,
+                a: 0.6,
+            };
+            markers.push(body);
+        }
+        None => {
+            for id in [Id::Axis, Id::Port, Id::TrocarBody] {
+                markers.push(delete(stamp, frame, id));
+            }
+        }
+    }
+    match scene.goal {
+        Some(g) => markers.push(sphere(stamp, frame, Id::Goal, g, style.sphere, color(0.1, 1.0, 0.2))),
+        None => markers.push(delete(stamp, frame, Id::Goal)),
+    }
+    match &scene.tip {
+        Some(tip) => {
+            let at = Point3::from(tip.translation.vector);
+            markers.push(sphere(stamp, frame, Id::Tip, at, style.sphere, color(1.0, 1.0, 1.0)));
+            let axis = tip.rotation * Vector3::z() * style.optical_axis_length;
+            markers.push(arrow(
+                stamp,
+                frame,
+                Id::OpticalAxis,
+                at,
+                at + axis,
+                color(1.0, 1.0, 0.2),
+            ));
+            let f = scene.f_ext * style.force_scale;
+            if f.iter().all(|x| x.is_finite()) && f.norm() > 1e-4 {
+                markers.push(arrow(stamp, frame, Id::Force, at, at + f, color(1.0, 0.1, 0.1)));
+            } else {
+                markers.push(delete(stamp, frame, Id::Force));
+            }
+        }
+        None => {
+            for id in [Id::Tip, Id::OpticalAxis, Id::Force] {
+                markers.push(delete(stamp, frame, id));
+            }
+        }
+    }
+    match scene.reference {
+        Some(r) => markers.push(sphere(
+            stamp,
+            frame,
+            Id::Reference,
+            r,
+            style.sphere * 0.8,
+            color(0.9, 0.2, 0.9),
+        )),
+        None => markers.push(delete(stamp, frame, Id::Reference)),
+    }
+    visualization_msgs::MarkerArray { markers }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn full_scene_has_eight_markers_and_force_arrow_follows_the_force() {
+        let scene = Scene {
+            trocar: Some(Isometry3::translation(0.5, 0.0, 0.3)),
+            goal: Some(Point3::new(0.5, 0.0, 0.33)),
+            tip: Some(Isometry3::translation(0.5, 0.0, 0.2)),
+            f_ext: Vector3::new(0.0, 0.0, -5.0),
+            reference: Some(Point3::new(0.5, 0.0, 0.21)),
+        };
+        let style = MarkerStyle::default();
+        let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);
+        assert_eq!(a.markers.len(), 8);
+        let add = visualization_msgs::Marker::ADD as i32;
+        assert!(a
+            .markers
+            .iter()
+            .all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
+        let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
+        assert!((force.points[1].z - (0.2 - 5.0 * style.force_scale)).abs() < 1e-12);
+        let axis = a.markers.iter().find(|m| m.id == Id::Axis as i32).unwrap();
+        assert!((axis.points[1].z - (0.3 + style.axis_length)).abs() < 1e-12);
+    }
+
+    #[test]
+    fn unknown_geometry_is_deleted() {
+        let scene = Scene {
+            trocar: None,
+            goal: None,
+            tip: None,
+            f_ext: Vector3::zeros(),
+            reference: None,
+        };
+        let a = docking_markers(rosrust::Time::new(), "b", &scene, &MarkerStyle::default());
+        let del = visualization_msgs::Marker::DELETE as i32;
+        assert_eq!(a.markers.len(), 8);
+        assert!(a.markers.iter().all(|m| m.action == del));
+    }
+}

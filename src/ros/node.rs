@@ -1,0 +1,44 @@
+//! What every node shares: the start-up error type, the command message choice, and small
+//! helpers around rosrust.
+
+use std::sync::{Mutex, MutexGuard};
+
+use super::params;
+
+/// How a joint command travels (the driver's two controller types).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CommandType {
+    /// trajectory_msgs/JointTrajectory with one point (a joint trajectory controller).
+    Trajectory,
+    /// std_msgs/Float64MultiArray (a JointGroupPositionController).
+    Float64MultiArray,
+}
+
+/// Errors that stop a node at start-up (the loops themselves never stop on bad data).
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    /// Parameters.
+    #[error(transparent)]
+    Params(#[from] params::ParamError),
+    /// The kinematic chain.
+    #[error("kinematics: {0}")]
+    Kinematics(#[from] crate::kinematics::KinematicsError),
+    /// rosrust (master, topics, services).
+    #[error("ros: {0}")]
+    Ros(String),
+    /// A parameter value is out of range, or a module refused its configuration.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+/// A rosrust error as a [`NodeError`].
+pub fn ros_err<E: std::fmt::Display>(e: E) -> NodeError {
+    NodeError::Ros(e.to_string())
+}
+
+/// Lock a mutex shared with a subscriber callback. A poisoned lock (a callback panicked)
+/// still holds the last data written, which is what the loop wants.
+pub fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
