@@ -258,6 +258,12 @@ pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
     if p.call_start {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
     }
+    // A short hold right after start (no pose received yet) is not the hold under test:
+    // first see the arm moving, then wait for the hold.
+    wait_for(p.time_limit, || {
+        status.get().filter(|s| s.phase == "APPROACH" || s.phase == "INSERT")
+    })
+    .ok_or_else(|| format!("never moved; last phase {}", status.get().unwrap_or_default().phase))?;
     let held = wait_for(p.time_limit, || status.get().filter(|s| s.phase == "HOLD"))
         .ok_or_else(|| format!("never held; last phase {}", status.get().unwrap_or_default().phase))?;
     if !held.hold_reason.contains(&p.hold_reason_contains) {
