@@ -28,6 +28,22 @@ fn scenario(kin: &LbrKinematics, misalign_deg: f64, tilt_about: Vector3<f64>) ->
     (q0, Isometry3::from_parts(Translation3::from(port), rot))
 }
 
+/// Inputs all measured at `now`, with no contact (zero external torques).
+fn fresh_input(now: f64, q: JointVector, trocar: Isometry3<f64>) -> ControlInput {
+    ControlInput {
+        now,
+        joints: Some(Stamped { stamp: now, value: q }),
+        tau_ext: Some(Stamped {
+            stamp: now,
+            value: JointVector::zeros(),
+        }),
+        trocar: Some(Stamped {
+            stamp: now,
+            value: trocar,
+        }),
+    }
+}
+
 fn run(
     params: ControllerParams,
     seconds: f64,
@@ -57,18 +73,7 @@ fn run(
     let steps = (seconds / dt).round() as usize;
     for k in 1..=steps {
         let now = k as f64 * dt;
-        let input = ControlInput {
-            now,
-            joints: Some(Stamped { stamp: now, value: q }),
-            tau_ext: Some(Stamped {
-                stamp: now,
-                value: JointVector::zeros(),
-            }),
-            trocar: Some(Stamped {
-                stamp: now,
-                value: trocar,
-            }),
-        };
+        let input = fresh_input(now, q, trocar);
         let out = c.step(&kin, &input);
         assert_ne!(out.phase, Phase::Hold, "unexpected hold: {:?}", out.reason);
         let cmd = out.command.expect("a command while running");
@@ -133,18 +138,7 @@ fn never_crosses_the_port_before_alignment() {
     c.start().unwrap();
     for k in 1..=500 {
         let now = k as f64 * params.dt;
-        let input = ControlInput {
-            now,
-            joints: Some(Stamped { stamp: now, value: q }),
-            tau_ext: Some(Stamped {
-                stamp: now,
-                value: JointVector::zeros(),
-            }),
-            trocar: Some(Stamped {
-                stamp: now,
-                value: trocar,
-            }),
-        };
+        let input = fresh_input(now, q, trocar);
         let out = c.step(&kin, &input);
         q = out.command.unwrap();
         let tip = kin.fk(&q).unwrap();
