@@ -25,6 +25,8 @@ pub type Jacobian = SMatrix<f64, 6, N_JOINTS>;
 pub const BASE_LINK: &str = "lbr_link_0";
 /// The tool tip link: its z axis is the endoscope's optical axis.
 pub const TIP_LINK: &str = "endoscope_tip";
+/// The flange link (the hand-eye calibration's "hand").
+pub const FLANGE_LINK: &str = "lbr_link_ee";
 
 /// Errors of the kinematics layer.
 #[derive(Debug, thiserror::Error)]
@@ -263,6 +265,16 @@ impl LbrKinematics {
     /// The built-in model with an endoscope, chain to `endoscope_tip`.
     pub fn from_model(model: LbrModel, tool: &ToolParams) -> Result<Self, KinematicsError> {
         Self::from_urdf_str(&robot_model::urdf(model, tool)?, TIP_LINK)
+    }
+
+    /// The chain `lbr_link_0` -> `tip` of `urdf_file`, or of the built-in `model` (default
+    /// endoscope) when `urdf_file` is empty: how the nodes build their chains.
+    pub fn from_model_or_file(model: LbrModel, urdf_file: &str, tip: &str) -> Result<Self, KinematicsError> {
+        if urdf_file.is_empty() {
+            Self::from_urdf_str(&robot_model::urdf(model, &ToolParams::default())?, tip)
+        } else {
+            Self::from_urdf_file(Path::new(urdf_file), tip)
+        }
     }
 
     /// The underlying chain.

@@ -21,4 +21,5 @@ pub mod ros;
 pub mod safety;
 pub mod sim;
 pub mod supervisor;
+pub mod timeline;
 pub mod vision;

@@ -42,3 +42,45 @@ pub fn ros_err<E: std::fmt::Display>(e: E) -> NodeError {
 pub fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|p| p.into_inner())
 }
+
+/// Lets a repeated log line through at most once per period; shareable by callbacks.
+#[derive(Debug)]
+pub struct Throttle {
+    period: std::time::Duration,
+    last: Mutex<Option<std::time::Instant>>,
+}
+
+impl Throttle {
+    /// At most once per `period`.
+    pub fn new(period: std::time::Duration) -> Self {
+        Self {
+            period,
+            last: Mutex::new(None),
+        }
+    }
+
+    /// True (and the period restarts) when the last `true` is at least a period ago.
+    pub fn ready(&self) -> bool {
+        let now = std::time::Instant::now();
+        let mut last = lock(&self.last);
+        if last.is_some_and(|t| now.duration_since(t) < self.period) {
+            return false;
+        }
+        *last = Some(now);
+        true
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn throttle_lets_one_through_per_period() {
+        let t = Throttle::new(std::time::Duration::from_millis(50));
+        assert!(t.ready());
+        assert!(!t.ready());
+        std::thread::sleep(std::time::Duration::from_millis(60));
+        assert!(t.ready());
+    }
+}

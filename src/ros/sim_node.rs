@@ -8,13 +8,19 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+use nalgebra::Isometry3;
+
 use super::convert;
+use super::image_msgs;
 use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs};
 use super::params;
-use crate::kinematics::{JointVector, Kinematics, LbrKinematics};
+use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::robot_model::{LbrModel, ToolParams};
 use crate::sim::config::SimConfig;
 use crate::sim::SimWorld;
+use crate::vision::estimator::PoseYaml;
+use crate::vision::render::add_gaussian_noise;
+use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions};
 
 use super::node::{ros_err, CommandType, NodeError};
 
@@ -61,9 +67,156 @@ pub struct SimNodeParams {
     pub base_frame: String,
     /// Stop camera and direct pose after this many simulated seconds (negative: never).
     pub trocar_dropout_after: f64,
+    /// The simulated camera: its model, mount and the marker it sees.
+    pub camera: SimCameraParams,
     /// The simulator's own parameters (`config/sim.yaml`, loaded under `~world`; its
     /// `sim:` section is used).
     pub world: SimConfig,
+}
+
+/// The simulated camera (`camera:` in `config/lbr_med_sim.yaml`): a marker on the trocar
+/// rendered from the true arm pose through the true camera mount, published as the real
+/// camera's topics with the capture time as stamp.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SimCameraParams {
+    /// ROS camera calibration YAML of the simulated camera (required with `camera_enabled`).
+    pub calibration_file: String,
+    /// Optical frame of the images.
+    pub frame: String,
+    /// Image encoding: mono8, rgb8, bgr8, rgba8 or bgra8 (the ZED publishes bgra8).
+    pub encoding: String,
+    /// Gaussian pixel noise, grey levels.
+    pub noise_sigma: f64,
+    /// Optical blur, px.
+    pub blur_sigma: f64,
+    /// The true camera pose in the flange frame (the estimator's hand-eye may differ).
+    pub flange_t_camera: PoseYaml,
+    /// The marker on the trocar.
+    pub marker: MarkerSpec,
+    /// The true trocar port pose in the marker frame.
+    pub marker_t_trocar: PoseYaml,
+}
+
+impl Default for SimCameraParams {
+    fn default() -> Self {
+        let nominal = crate::vision::EstimatorParams::default();
+        Self {
+            calibration_file: String::new(),
+            frame: "camera_optical_frame".into(),
+            encoding: "mono8".into(),
+            noise_sigma: 2.0,
+            blur_sigma: 0.6,
+            flange_t_camera: nominal.flange_t_camera,
+            marker: MarkerSpec::default(),
+            marker_t_trocar: nominal.marker_t_trocar,
+        }
+    }
+}
+
+/// One frame to render: the marker in the camera at the capture time.
+struct CameraJob {
+    stamp: rosrust::Time,
+    camera_t_marker: Isometry3<f64>,
+    seq: u64,
+}
+
+/// The simulated camera: renders on its own thread (a frame takes tens of ms) so the
+/// physics and the FRI topics keep their rate; a frame due while the last one is still
+/// rendering is skipped, as a real camera drops frames.
+struct SimCamera {
+    jobs: std::sync::mpsc::SyncSender<CameraJob>,
+    flange_kin: LbrKinematics,
+    flange_t_camera: Isometry3<f64>,
+    trocar_t_marker: Isometry3<f64>,
+    seq: u64,
+}
+
+impl SimCamera {
+    fn start(p: &SimNodeParams) -> Result<Self, NodeError> {
+        let c = &p.camera;
+        let invalid = |what: &str, e: &dyn std::fmt::Display| NodeError::Invalid(format!("camera.{what}: {e}"));
+        if c.calibration_file.is_empty() {
+            return Err(NodeError::Invalid(
+                "camera.calibration_file must name a camera calibration YAML when camera_enabled".into(),
+            ));
+        }
+        let model = CameraModel::from_yaml_file(std::path::Path::new(&c.calibration_file))
+            .map_err(|e| invalid("calibration_file", &e))?;
+        c.marker.validate().map_err(|e| invalid("marker", &e))?;
+        image_msgs::encoding_layout(&c.encoding).map_err(|e| invalid("encoding", &e))?;
+        let flange_t_camera = c
+            .flange_t_camera
+            .to_isometry()
+            .map_err(|e| invalid("flange_t_camera", &e))?;
+        let trocar_t_marker = c
+            .marker_t_trocar
+            .to_isometry()
+            .map_err(|e| invalid("marker_t_trocar", &e))?
+            .inverse();
+        let opts = RenderOptions {
+            blur_sigma: c.blur_sigma,
+            ..RenderOptions::default()
+        };
+        // Check the options once here, so the thread cannot fail on them later.
+        render_marker_image(
+            &c.marker,
+            &model,
+            &crate::vision::facing_pose(0.5, 0.0, 0.0, 0.0, 0.0, 0.0),
+            &opts,
+        )
+        .map_err(|e| invalid("render", &e))?;
+        let pub_img = rosrust::publish::<sensor_msgs::Image>(&p.image_topic, 2).map_err(ros_err)?;
+        let pub_info = rosrust::publish::<sensor_msgs::CameraInfo>(&p.camera_info_topic, 2).map_err(ros_err)?;
+        let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(1);
+        let (c, noise) = (c.clone(), c.noise_sigma);
+        std::thread::spawn(move || {
+            for job in rx {
+                // Out of view or behind the camera: the camera still delivers a (blank) frame.
+                let mut grey = render_marker_image(&c.marker, &model, &job.camera_t_marker, &opts)
+                    .map(|g| g.data)
+                    .unwrap_or_else(|_| vec![128; model.width as usize * model.height as usize]);
+                if noise > 0.0 {
+                    add_gaussian_noise(&mut grey, noise, job.seq);
+                }
+                let Ok((data, channels)) = image_msgs::grey_as(&c.encoding, grey) else {
+                    continue;
+                };
+                let _ = pub_info.send(image_msgs::camera_info(job.stamp, &c.frame, &model));
+                let _ = pub_img.send(image_msgs::image(
+                    job.stamp,
+                    &c.frame,
+                    model.width,
+                    model.height,
+                    &c.encoding,
+                    channels,
+                    data,
+                ));
+            }
+        });
+        Ok(Self {
+            jobs: tx,
+            flange_kin: LbrKinematics::from_model_or_file(p.model, "", FLANGE_LINK)?,
+            flange_t_camera,
+            trocar_t_marker,
+            seq: 0,
+        })
+    }
+
+    /// Capture a frame of `world` now (skipped while the last one renders).
+    fn capture(&mut self, world: &SimWorld, stamp: rosrust::Time) {
+        let Ok(base_t_flange) = self.flange_kin.fk(&world.joint_positions()) else {
+            return;
+        };
+        let base_t_camera = base_t_flange * self.flange_t_camera;
+        let camera_t_marker = base_t_camera.inverse() * world.trocar_pose_true() * self.trocar_t_marker;
+        self.seq += 1;
+        let _ = self.jobs.try_send(CameraJob {
+            stamp,
+            camera_t_marker,
+            seq: self.seq,
+        });
+    }
 }
 
 impl Default for SimNodeParams {
@@ -80,7 +233,7 @@ impl Default for SimNodeParams {
             command_topic: "/lbr/PositionJointInterface_trajectory_controller/command".into(),
             command_type: CommandType::Trajectory,
             camera_enabled: true,
-            camera_rate_hz: 30.0,
+            camera_rate_hz: 15.0,
             image_topic: "/zedm/zed_node/left/image_rect_color".into(),
             camera_info_topic: "/zedm/zed_node/left/camera_info".into(),
             direct_pose_enabled: false,
@@ -88,6 +241,7 @@ impl Default for SimNodeParams {
             trocar_true_topic: "/trocar/pose_true".into(),
             base_frame: crate::kinematics::BASE_LINK.into(),
             trocar_dropout_after: -1.0,
+            camera: SimCameraParams::default(),
             world: SimConfig::default(),
         }
     }
@@ -183,17 +337,17 @@ pub fn run() -> Result<(), NodeError> {
     } else {
         Some(rosrust::publish::<geometry_msgs::PoseStamped>(&p.trocar_true_topic, 2).map_err(ros_err)?)
     };
-    if p.camera_enabled {
-        return Err(NodeError::Invalid(
-            "camera_enabled: the simulated camera needs the vision module, not in this build; use direct_pose_enabled"
-                .into(),
-        ));
-    }
+    let mut camera = if p.camera_enabled {
+        Some(SimCamera::start(&p)?)
+    } else {
+        None
+    };
 
     // Simulated time starts at the wall clock, so stamps look like the real driver's.
     let t0 = convert::seconds(rosrust::Time::from(std::time::SystemTime::now()));
     let wall0 = Instant::now();
     let (mut fri, mut truth) = (Every::new(p.fri_rate_hz, t0), Every::new(10.0, t0));
+    let mut frames = Every::new(p.camera_rate_hz, t0);
     let mut last_measurement = f64::NEG_INFINITY;
     let sample_time = 1.0 / p.fri_rate_hz;
     rosrust::ros_info!(
@@ -230,6 +384,11 @@ pub fn run() -> Result<(), NodeError> {
             let _ = pub_lbr.send(convert::lbr_state(stamp, sample_time, &q, &tau, &tau_ext));
         }
         let live = p.trocar_dropout_after < 0.0 || world.time() < p.trocar_dropout_after;
+        if let (true, Some(cam)) = (live, camera.as_mut()) {
+            if frames.due(t) {
+                cam.capture(&world, stamp);
+            }
+        }
         if let (true, Some(publ), Some(m)) = (live, &pub_pose, world.measure_trocar(world.time())) {
             if m.stamp > last_measurement {
                 last_measurement = m.stamp;

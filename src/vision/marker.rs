@@ -104,6 +104,7 @@ impl fmt::Display for MarkerFamily {
 
 /// Which marker to look for.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
 pub struct MarkerSpec {
     /// Family.
     pub family: MarkerFamily,
@@ -111,6 +112,18 @@ pub struct MarkerSpec {
     pub id: Option<u32>,
     /// Side of the black square, m.
     pub size: f64,
+}
+
+impl Default for MarkerSpec {
+    /// The marker the simulator shows and the launch files expect: ArUco DICT_4X4_50, id 7,
+    /// 40 mm.
+    fn default() -> Self {
+        Self {
+            family: MarkerFamily::Aruco("DICT_4X4_50".into()),
+            id: Some(7),
+            size: 0.04,
+        }
+    }
 }
 
 impl MarkerSpec {

@@ -10,12 +10,14 @@ pub mod estimator;
 pub mod hand_eye;
 pub mod image;
 pub mod marker;
+pub mod overlay;
 pub mod render;
 
 pub use camera::CameraModel;
 pub use estimator::{EstimateStatus, EstimatorParams, TrocarEstimate, TrocarEstimator};
 pub use image::{GreyImage, ImageView};
 pub use marker::{MarkerDetection, MarkerDetector, MarkerFamily, MarkerSpec};
+pub use overlay::{ChannelOrder, RgbImage};
 pub use render::{facing_pose, render_marker_image, RenderOptions};
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
