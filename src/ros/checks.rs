@@ -43,6 +43,11 @@ pub struct CheckParams {
     pub true_pose_topic: String,
     /// For `replay`: the largest accepted distance between estimate and truth, m.
     pub max_position_error: f64,
+    /// `replay`: trocar poses the check must see before it judges.
+    pub min_poses: usize,
+    /// `replay`: a HOLD whose reason contains this is accepted too ('' = none is), e.g. the
+    /// tracking hold when a bag's arm does not follow the live commands.
+    pub allowed_hold_reason: String,
 }
 
 impl Default for CheckParams {
@@ -62,6 +67,8 @@ impl Default for CheckParams {
             pose_topic: "/trocar/pose".into(),
             true_pose_topic: "/trocar/pose_true".into(),
             max_position_error: 0.01,
+            min_poses: 1,
+            allowed_hold_reason: String::new(),
         }
     }
 }
@@ -301,7 +308,7 @@ pub fn replay(p: &CheckParams) -> Result<String, String> {
     let (pose, _s2) = subscribe_latest::<PoseStamped>(&p.pose_topic)?;
     let (truth, _s3) = subscribe_latest::<PoseStamped>(&p.true_pose_topic)?;
     wait_for(p.time_limit, || {
-        (status.count() >= p.min_status && pose.count() > 0 && truth.count() > 0).then_some(())
+        (status.count() >= p.min_status && pose.count() >= p.min_poses.max(1) && truth.count() > 0).then_some(())
     })
     .ok_or_else(|| {
         format!(
@@ -312,7 +319,9 @@ pub fn replay(p: &CheckParams) -> Result<String, String> {
         )
     })?;
     let s = status.get().unwrap_or_default();
-    if !p.allowed_phases.contains(&s.phase) {
+    let allowed_hold =
+        !p.allowed_hold_reason.is_empty() && s.phase == "HOLD" && s.hold_reason.contains(&p.allowed_hold_reason);
+    if !(p.allowed_phases.contains(&s.phase) || allowed_hold) {
         return Err(format!(
             "phase {} ({}) not among {:?}",
             s.phase, s.hold_reason, p.allowed_phases

@@ -157,6 +157,8 @@ struct Pipeline {
     last_stamp: Option<f64>,
     counts: FrameCounts,
     processing: LoopStats,
+    /// Age of each image at its arrival (ROS time - stamp): the camera's own latency.
+    arrival_age: LoopStats,
     warn: Throttle,
 }
 
@@ -304,6 +306,7 @@ pub fn run() -> Result<(), NodeError> {
         last_stamp: None,
         counts: FrameCounts::default(),
         processing: LoopStats::new(1.0, 1000),
+        arrival_age: LoopStats::new(1.0, 1000),
         warn: Throttle::new(Duration::from_secs(2)),
     }));
     let _sub_image = {
@@ -312,6 +315,7 @@ pub fn run() -> Result<(), NodeError> {
         // Queue of one: a slow frame never makes the next one stale.
         rosrust::subscribe(&p.image_topic, 1, move |img: sensor_msgs::Image| {
             let t0 = Instant::now();
+            let age_ms = (convert::seconds(rosrust::now()) - convert::seconds(img.header.stamp)) * 1e3;
             let cam = lock(&camera).clone();
             let mut pl = lock(&pipeline);
             match pl.frame(&img, cam.as_ref(), &history, pub_debug.subscriber_count() > 0) {
@@ -344,6 +348,7 @@ pub fn run() -> Result<(), NodeError> {
                 }
             }
             pl.processing.latency(t0.elapsed().as_secs_f64() * 1e3);
+            pl.arrival_age.latency(age_ms);
         })
         .map_err(ros_err)?
     };
@@ -365,16 +370,17 @@ pub fn run() -> Result<(), NodeError> {
         std::thread::sleep(Duration::from_millis(200));
         if p.report_period_s > 0.0 && report.ready() {
             let mut pl = lock(&pipeline);
-            let (c, lat) = (pl.counts, pl.processing.percentiles());
+            let (c, lat, age) = (pl.counts, pl.processing.percentiles(), pl.arrival_age.percentiles());
             if c.frames > 0 {
                 rosrust::ros_info!(
-                    "trocar_estimator: {} frames, marker in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+                    "trocar_estimator: {} frames, marker in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms",
                     c.frames,
                     c.detected,
                     c.published,
                     lat.p50,
                     lat.p99,
-                    lat.max
+                    lat.max,
+                    age.p50
                 );
             }
             pl.counts = FrameCounts::default();

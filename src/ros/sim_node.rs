@@ -90,6 +90,9 @@ pub struct SimCameraParams {
     pub noise_sigma: f64,
     /// Optical blur, px.
     pub blur_sigma: f64,
+    /// Side of the textured plate around the marker, in marker sizes (>= 1.25; a smaller
+    /// plate renders faster).
+    pub plane_scale: f64,
     /// The true camera pose in the flange frame (the estimator's hand-eye may differ).
     pub flange_t_camera: PoseYaml,
     /// The marker on the trocar.
@@ -107,6 +110,7 @@ impl Default for SimCameraParams {
             encoding: "mono8".into(),
             noise_sigma: 2.0,
             blur_sigma: 0.6,
+            plane_scale: 1.6,
             flange_t_camera: nominal.flange_t_camera,
             marker: MarkerSpec::default(),
             marker_t_trocar: nominal.marker_t_trocar,
@@ -156,6 +160,7 @@ impl SimCamera {
             .inverse();
         let opts = RenderOptions {
             blur_sigma: c.blur_sigma,
+            plane_scale: c.plane_scale,
             ..RenderOptions::default()
         };
         // Check the options once here, so the thread cannot fail on them later.
@@ -168,7 +173,8 @@ impl SimCamera {
         .map_err(|e| invalid("render", &e))?;
         let pub_img = rosrust::publish::<sensor_msgs::Image>(&p.image_topic, 2).map_err(ros_err)?;
         let pub_info = rosrust::publish::<sensor_msgs::CameraInfo>(&p.camera_info_topic, 2).map_err(ros_err)?;
-        let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(1);
+        // A rendezvous channel: a frame is only taken when the renderer is free.
+        let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(0);
         let (c, noise) = (c.clone(), c.noise_sigma);
         std::thread::spawn(move || {
             for job in rx {
