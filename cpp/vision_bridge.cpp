@@ -209,6 +209,9 @@ MarkerDetectorCpp::~MarkerDetectorCpp() = default;
 std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::Slice<const double> intrinsics,
                                                        rust::Slice<const double> dist, int width, int height) {
   check_intrinsics(intrinsics, dist, width, height);
+  // One thread: OpenCV's pool splits a few-ms detection into tasks that wait for cores
+  // busy with the control loop, which made the latency tail (p99) several times the median.
+  cv::setNumThreads(1);
   auto impl = std::make_unique<MarkerDetectorCpp::Impl>();
   const std::string fam(family);
   impl->K = camera_matrix(intrinsics);

@@ -48,6 +48,12 @@ pub struct CheckParams {
     /// `replay`: a HOLD whose reason contains this is accepted too ('' = none is), e.g. the
     /// tracking hold when a bag's arm does not follow the live commands.
     pub allowed_hold_reason: String,
+    /// `latency`: the camera calibration YAML of the played camera.
+    pub camera_calibration: String,
+    /// `latency`: the played camera's rate, Hz.
+    pub camera_rate_hz: f64,
+    /// `latency`: the largest accepted 99th percentile of image -> command, ms.
+    pub max_latency_ms: f64,
 }
 
 impl Default for CheckParams {
@@ -69,6 +75,9 @@ impl Default for CheckParams {
             max_position_error: 0.01,
             min_poses: 1,
             allowed_hold_reason: String::new(),
+            camera_calibration: String::new(),
+            camera_rate_hz: 30.0,
+            max_latency_ms: 10.0,
         }
     }
 }
@@ -367,6 +376,7 @@ pub fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "stale_hold" => stale_hold(&p),
             "replay" => replay(&p),
             "bad_input" => super::fault_injection::bad_input(&p),
+            "latency" => super::latency_check::latency(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

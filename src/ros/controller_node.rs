@@ -22,7 +22,7 @@ use super::stats::LoopStats;
 use crate::controller::{Controller, ControllerParams};
 use crate::kinematics::Kinematics;
 use crate::kinematics::{JointVector, LbrKinematics, TIP_LINK};
-use crate::robot_model::{LbrModel, ToolParams};
+use crate::robot_model::LbrModel;
 
 /// Parameters of the node (its private namespace; `config/docking_controller.yaml`).
 #[derive(Debug, Clone, serde::Deserialize)]
@@ -372,11 +372,7 @@ pub fn run() -> Result<(), NodeError> {
             p.joint_names.len()
         )));
     }
-    let kin = if p.urdf_file.is_empty() {
-        LbrKinematics::from_model(p.model, &ToolParams::default())?
-    } else {
-        LbrKinematics::from_urdf_file(std::path::Path::new(&p.urdf_file), TIP_LINK)?
-    };
+    let kin = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, TIP_LINK)?;
     let mut cp = p.controller.clone();
     cp.dt = 1.0 / p.rate_hz;
     cp.force_feedback = p.force_feedback;

@@ -32,6 +32,8 @@ pub struct MarkerStyle {
     pub optical_axis_length: f64,
     /// Force arrow length per newton, m/N.
     pub force_scale: f64,
+    /// Longest force arrow, m (larger forces are drawn this long; the label gives the value).
+    pub force_max_length: f64,
     /// Diameter of the spheres, m.
     pub sphere: f64,
     /// Drawn trocar cannula: outer diameter and length below the port, m.
@@ -45,7 +47,8 @@ impl Default for MarkerStyle {
         Self {
             axis_length: 0.15,
             optical_axis_length: 0.08,
-            force_scale: 0.02,
+            force_scale: 0.1,
+            force_max_length: 0.12,
             sphere: 0.012,
             trocar_diameter: 0.012,
             trocar_length: 0.05,
@@ -64,6 +67,7 @@ enum Id {
     Force = 5,
     Reference = 6,
     TrocarBody = 7,
+    ForceLabel = 8,
 }
 
 const NS: &str = "docking";
@@ -136,7 +140,7 @@ pub fn docking_markers(
     scene: &Scene,
     style: &MarkerStyle,
 ) -> visualization_msgs::MarkerArray {
-    let mut markers = Vec::with_capacity(8);
+    let mut markers = Vec::with_capacity(9);
     match &scene.trocar {
         Some(t) => {
             let port = Point3::from(t.translation.vector);
@@ -195,15 +199,29 @@ pub fn docking_markers(
                 at + axis,
                 color(1.0, 1.0, 0.2),
             ));
-            let f = scene.f_ext * style.force_scale;
-            if f.iter().all(|x| x.is_finite()) && f.norm() > 1e-4 {
-                markers.push(arrow(stamp, frame, Id::Force, at, at + f, color(1.0, 0.1, 0.1)));
+            let f = scene.f_ext;
+            let len = (f.norm() * style.force_scale).min(style.force_max_length);
+            if f.iter().all(|x| x.is_finite()) && len > 1e-3 {
+                let to = at + f.normalize() * len;
+                markers.push(arrow(stamp, frame, Id::Force, at, to, color(1.0, 0.1, 0.1)));
+                let mut label = base(
+                    stamp,
+                    frame,
+                    Id::ForceLabel,
+                    visualization_msgs::Marker::TEXT_VIEW_FACING as i32,
+                );
+                label.pose = pose_msg(&Isometry3::translation(to.x, to.y, to.z + 0.015));
+                label.scale.z = 0.015;
+                label.color = color(1.0, 0.3, 0.3);
+                label.text = format!("|f_ext| {:.2} N", f.norm());
+                markers.push(label);
             } else {
                 markers.push(delete(stamp, frame, Id::Force));
+                markers.push(delete(stamp, frame, Id::ForceLabel));
             }
         }
         None => {
-            for id in [Id::Tip, Id::OpticalAxis, Id::Force] {
+            for id in [Id::Tip, Id::OpticalAxis, Id::Force, Id::ForceLabel] {
                 markers.push(delete(stamp, frame, id));
             }
         }
@@ -227,24 +245,34 @@ mod tests {
     use super::*;
 
     #[test]
-    fn full_scene_has_eight_markers_and_force_arrow_follows_the_force() {
+    fn full_scene_has_nine_markers_and_force_arrow_follows_the_force() {
         let scene = Scene {
             trocar: Some(Isometry3::translation(0.5, 0.0, 0.3)),
             goal: Some(Point3::new(0.5, 0.0, 0.33)),
             tip: Some(Isometry3::translation(0.5, 0.0, 0.2)),
-            f_ext: Vector3::new(0.0, 0.0, -5.0),
+            f_ext: Vector3::new(0.0, 0.0, -1.5),
             reference: Some(Point3::new(0.5, 0.0, 0.21)),
         };
         let style = MarkerStyle::default();
         let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);
-        assert_eq!(a.markers.len(), 8);
+        assert_eq!(a.markers.len(), 9);
         let add = visualization_msgs::Marker::ADD as i32;
         assert!(a
             .markers
             .iter()
             .all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
         let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
-        assert!((force.points[1].z - (0.2 - 5.0 * style.force_scale)).abs() < 1e-12);
+        assert!((force.points[1].z - (0.2 - 1.5 * style.force_scale)).abs() < 1e-12);
+        let label = a.markers.iter().find(|m| m.id == Id::ForceLabel as i32).unwrap();
+        assert_eq!(label.text, "|f_ext| 1.50 N");
+        // A large force is drawn at the longest length, pointing the same way.
+        let big = Scene {
+            f_ext: Vector3::new(0.0, 0.0, -50.0),
+            ..scene.clone()
+        };
+        let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &big, &style);
+        let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
+        assert!((force.points[1].z - (0.2 - style.force_max_length)).abs() < 1e-12);
         let axis = a.markers.iter().find(|m| m.id == Id::Axis as i32).unwrap();
         assert!((axis.points[1].z - (0.3 + style.axis_length)).abs() < 1e-12);
     }
@@ -260,7 +288,7 @@ mod tests {
         };
         let a = docking_markers(rosrust::Time::new(), "b", &scene, &MarkerStyle::default());
         let del = visualization_msgs::Marker::DELETE as i32;
-        assert_eq!(a.markers.len(), 8);
+        assert_eq!(a.markers.len(), 9);
         assert!(a.markers.iter().all(|m| m.action == del));
     }
 }

@@ -10,6 +10,7 @@ pub mod estimator_node;
 pub mod fault_injection;
 pub mod image_msgs;
 pub mod junit;
+pub mod latency_check;
 pub mod markers;
 pub mod msgs;
 pub mod node;
