@@ -376,7 +376,8 @@ pub fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "stale_hold" => stale_hold(&p),
             "replay" => replay(&p),
             "bad_input" => super::fault_injection::bad_input(&p),
-            "latency" => super::latency_check::latency(&p),
+            "latency" => super::camera_checks::latency(&p),
+            "bad_images" => super::camera_checks::bad_images(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

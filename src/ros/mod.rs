@@ -2,6 +2,7 @@
 //! writer rostest needs, and the node wiring. No maths here: the nodes convert messages,
 //! call the pure core, and publish.
 
+pub mod camera_checks;
 pub mod checks;
 pub mod controller_node;
 pub mod convert;
@@ -10,7 +11,6 @@ pub mod estimator_node;
 pub mod fault_injection;
 pub mod image_msgs;
 pub mod junit;
-pub mod latency_check;
 pub mod markers;
 pub mod msgs;
 pub mod node;
