@@ -78,12 +78,15 @@ proptest! {
         pos in proptest::collection::vec(-1.0f64..1.0, 3),
         rot in proptest::collection::vec(-1.0f64..1.0, 4),
         stamps in proptest::collection::vec(prop_oneof![4 => Just(0.0), 1 => -1.0f64..1.0, 1 => Just(f64::NAN)], 20),
-        // The default SQP time budget, one that cuts QPs short, and one that is always spent.
-        budget_us in prop_oneof![Just(400.0), 1.0f64..60.0, Just(1e-6)],
+        // No time budget (the default), one that cuts QPs short, one that is always spent.
+        budget_us in prop_oneof![Just(0.0), 1.0f64..60.0, Just(1e-6)],
+        // The default iteration budget, and ones that cut the first or a later QP short.
+        qp_budget in prop_oneof![Just(60u32), 1u32..20],
     ) {
         let kin = kin();
         let mut p = ControllerParams::default();
         p.sqp.time_budget_us = budget_us;
+        p.sqp.max_total_qp_iterations = qp_budget;
         let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
         c.start().unwrap();
         let quat = nalgebra::Quaternion::new(rot[0], rot[1], rot[2], rot[3]);
@@ -126,8 +129,8 @@ fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
         assert_eq!(out.command, Some(q0));
         assert_safe(&out, &q0, &kin, &p);
     }
-    // With time to spare, the same step moves the arm.
-    p.sqp.time_budget_us = 1e6;
+    // Without a time budget (the default), the same step moves the arm.
+    p.sqp.time_budget_us = 0.0;
     let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
     c.start().unwrap();
     let out = c.step(&kin, &input(0.01, q0, JointVector::zeros(), troc));

@@ -34,6 +34,10 @@ pub struct BenchArgs {
     /// CAP_SYS_NICE), as a real-time control thread runs; default: the ordinary scheduler.
     #[arg(long)]
     pub realtime_priority: Option<i32>,
+    /// Controller parameters (YAML, as `config/controller.yaml`; missing fields take the
+    /// defaults) for the controller suite, e.g. to time a `sqp.time_budget_us`.
+    #[arg(long)]
+    pub controller_config: Option<std::path::PathBuf>,
 }
 
 /// Run `bench`.
@@ -51,7 +55,14 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
         reports.extend(crate::bench::sim::run(&cfg, a.samples, 10)?);
     }
     if all || a.suite == Suite::Controller {
-        reports.extend(crate::bench::controller::run(a.samples.min(5000))?);
+        let params = match &a.controller_config {
+            Some(path) => {
+                let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+                crate::controller::ControllerParams::from_yaml_str(&text)?
+            }
+            None => crate::controller::ControllerParams::default(),
+        };
+        reports.extend(crate::bench::controller::run(a.samples.min(5000), &params)?);
     }
     if all || a.suite == Suite::Vision {
         reports.extend(crate::bench::vision::run(a.samples)?);

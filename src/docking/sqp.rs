@@ -8,17 +8,24 @@
 //! sparsity (dense upper-triangular H, A = [I; -I]) and only its data is updated per solve,
 //! so a solve allocates nothing of its own beyond what Clarabel does internally.
 //!
-//! **Bounded work per step.** A solve has a wall-time budget ([`SqpSettings::time_budget_us`])
-//! and each QP a cap on interior-point iterations. No new QP starts once the budget is used
-//! up, and a QP still running when it runs out is stopped (Clarabel's termination callback,
-//! checked once per interior-point iteration) and its unfinished result dropped: the solve
-//! returns the last completed iterate with [`SqpStatus::TimeBudget`]. Every completed
-//! iterate lies in the box (each QP step is clamped into it), so it is a safe command; with
-//! no QP completed it is the start point itself, i.e. the arm holds for one step.
-//! [`SqpSolver::new`] runs one dummy solve, so Clarabel's lazy first-solve allocations
-//! happen at construction and not in the first control step.
+//! **Bounded work per step.** Besides the cap on QPs and on interior-point iterations per
+//! QP, a solve has two budgets:
+//! - [`SqpSettings::max_total_qp_iterations`], interior-point iterations over all its QPs:
+//!   a deterministic bound on the work of one step (the same inputs give the same output);
+//! - [`SqpSettings::time_budget_us`], wall time, off by default: for a hard real-time loop.
+//!   It bounds the step's latency even after a preemption, at the price of determinism (a
+//!   loaded machine cuts more solves short), so simulations and tests leave it off.
+//!
+//! No QP starts once a budget is spent, and a QP still running when one runs out is stopped
+//! (Clarabel's termination callback, checked once per interior-point iteration) and its
+//! unfinished result dropped: the solve returns the last completed iterate with
+//! [`SqpStatus::TimeBudget`] or [`SqpStatus::QpIterationBudget`]. Every completed iterate
+//! lies in the box (each QP step is clamped into it), so it is a safe command; with no QP
+//! completed it is the start point itself, i.e. the arm holds for one step.
+//! [`SqpSolver::new`] runs one dummy solve, so Clarabel's lazy first-solve work happens at
+//! construction and not in the first control step.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -43,8 +50,14 @@ pub struct SqpSettings {
     pub regularization: f64,
     /// Interior-point iterations allowed per QP (a QP that hits the cap has failed).
     pub qp_max_iterations: u32,
-    /// Wall-time budget of one solve, µs: no QP starts after it, a running QP is stopped at
-    /// it and the last completed iterate is returned ([`SqpStatus::TimeBudget`]).
+    /// Interior-point iterations allowed per solve, over all its QPs (a hard bound: a QP
+    /// still unsolved when it has taken the iterations left is stopped, before that last
+    /// iteration's convergence check); then the last completed iterate is returned
+    /// ([`SqpStatus::QpIterationBudget`]).
+    pub max_total_qp_iterations: u32,
+    /// Wall-time budget of one solve, µs (0 = none): no QP starts after it, a running QP is
+    /// stopped at it and the last completed iterate is returned ([`SqpStatus::TimeBudget`]).
+    /// Makes the result depend on the machine's load; see the module doc.
     pub time_budget_us: f64,
 }
 
@@ -55,7 +68,8 @@ impl Default for SqpSettings {
             tolerance: 1e-5,
             regularization: 1e-6,
             qp_max_iterations: 30,
-            time_budget_us: 400.0,
+            max_total_qp_iterations: 60,
+            time_budget_us: 0.0,
         }
     }
 }
@@ -86,10 +100,13 @@ impl SqpSettings {
         if self.qp_max_iterations == 0 {
             return Err("sqp.qp_max_iterations must be > 0".into());
         }
+        if self.max_total_qp_iterations == 0 {
+            return Err("sqp.max_total_qp_iterations must be > 0".into());
+        }
         // The upper bound keeps the nanosecond deadline far from u64 overflow.
-        if !(self.time_budget_us.is_finite() && self.time_budget_us > 0.0 && self.time_budget_us <= 1e9) {
+        if !(self.time_budget_us.is_finite() && (0.0..=1e9).contains(&self.time_budget_us)) {
             return Err(format!(
-                "sqp.time_budget_us must be in (0, 1e9] µs, got {}",
+                "sqp.time_budget_us must be in [0, 1e9] µs (0 = none), got {}",
                 self.time_budget_us
             ));
         }
@@ -107,6 +124,8 @@ pub enum SqpStatus {
     /// The time budget ran out; the solution is the last completed iterate (the start
     /// point when no QP completed), inside the box and usable.
     TimeBudget,
+    /// The interior-point iteration budget ran out; as [`SqpStatus::TimeBudget`].
+    QpIterationBudget,
     /// A QP failed; the solution must not be commanded.
     QpFailed(String),
     /// The kinematics failed; the solution must not be commanded.
@@ -118,7 +137,7 @@ impl SqpStatus {
     pub fn is_usable(&self) -> bool {
         matches!(
             self,
-            SqpStatus::Converged | SqpStatus::IterationLimit | SqpStatus::TimeBudget
+            SqpStatus::Converged | SqpStatus::IterationLimit | SqpStatus::TimeBudget | SqpStatus::QpIterationBudget
         )
     }
 
@@ -128,6 +147,7 @@ impl SqpStatus {
             SqpStatus::Converged => "converged".into(),
             SqpStatus::IterationLimit => "iteration_limit".into(),
             SqpStatus::TimeBudget => "time_budget".into(),
+            SqpStatus::QpIterationBudget => "qp_iteration_budget".into(),
             SqpStatus::QpFailed(s) => format!("qp_failed: {s}"),
             SqpStatus::Kinematics(s) => format!("kinematics: {s}"),
         }
@@ -155,26 +175,29 @@ const NC: usize = 2 * N_JOINTS;
 
 /// Why one QP gave no step.
 enum QpError {
-    /// Stopped by the time budget after this many interior-point iterations.
-    OutOfTime(u32),
+    /// Stopped by a budget after this many interior-point iterations.
+    OutOfBudget(u32),
     /// Anything else (bad data, solver status, non-finite result).
     Failed(String),
 }
 
-/// A deadline shared with Clarabel's termination callback: nanoseconds after `base`,
-/// stored atomically (the callback must be `Send + Sync`), so that setting it per QP
-/// allocates nothing.
+/// The budgets of the running solve, shared with Clarabel's termination callback (which
+/// must be `Send + Sync`) through atomics, so that setting them per QP allocates nothing.
 #[derive(Debug, Clone)]
-struct Deadline {
+struct Budget {
     base: Instant,
-    at_ns: Arc<AtomicU64>,
+    /// Wall-clock deadline, ns after `base` (`u64::MAX`: none).
+    deadline_ns: Arc<AtomicU64>,
+    /// Interior-point iterations the running QP may take.
+    qp_iterations: Arc<AtomicU32>,
 }
 
-impl Deadline {
+impl Budget {
     fn new() -> Self {
         Self {
             base: Instant::now(),
-            at_ns: Arc::new(AtomicU64::new(u64::MAX)),
+            deadline_ns: Arc::new(AtomicU64::new(u64::MAX)),
+            qp_iterations: Arc::new(AtomicU32::new(u32::MAX)),
         }
     }
 
@@ -182,12 +205,19 @@ impl Deadline {
         u64::try_from(t.saturating_duration_since(self.base).as_nanos()).unwrap_or(u64::MAX)
     }
 
-    fn set(&self, at: Instant) {
-        self.at_ns.store(self.nanos_since_base(at), Ordering::Relaxed);
+    fn set_deadline(&self, at: Option<Instant>) {
+        let ns = at.map_or(u64::MAX, |t| self.nanos_since_base(t));
+        self.deadline_ns.store(ns, Ordering::Relaxed);
     }
 
-    fn passed(&self) -> bool {
-        self.nanos_since_base(Instant::now()) >= self.at_ns.load(Ordering::Relaxed)
+    fn set_qp_iterations(&self, n: u32) {
+        self.qp_iterations.store(n, Ordering::Relaxed);
+    }
+
+    /// Whether a QP that has taken `iterations` interior-point iterations must stop.
+    fn spent(&self, iterations: u32) -> bool {
+        iterations >= self.qp_iterations.load(Ordering::Relaxed)
+            || self.nanos_since_base(Instant::now()) >= self.deadline_ns.load(Ordering::Relaxed)
     }
 }
 
@@ -195,7 +225,7 @@ impl Deadline {
 pub struct SqpSolver {
     settings: SqpSettings,
     qp: DefaultSolver<f64>,
-    deadline: Deadline,
+    budget: Budget,
     p_values: Vec<f64>,
     q_values: Vec<f64>,
     b_values: Vec<f64>,
@@ -250,9 +280,9 @@ impl SqpSolver {
         let cones = [SupportedConeT::NonnegativeConeT(NC)];
         let mut qp = DefaultSolver::new(&p, &q_values, &a, &b_values, &cones, clarabel_settings(&settings)?)
             .map_err(|e| format!("clarabel setup: {e}"))?;
-        let deadline = Deadline::new();
-        let watch = deadline.clone();
-        qp.set_termination_callback(move |_| watch.passed());
+        let budget = Budget::new();
+        let watch = budget.clone();
+        qp.set_termination_callback(move |info: &clarabel::solver::DefaultInfo<f64>| watch.spent(info.iterations));
         // Warm-up: one solve of the setup data (min ½|x|² in the unit box, x = 0), so the
         // solver's lazy first-solve work (timer maps, page faults of its workspace) happens
         // here rather than in the first control step.
@@ -263,7 +293,7 @@ impl SqpSolver {
         Ok(Self {
             settings,
             qp,
-            deadline,
+            budget,
             p_values,
             q_values,
             b_values,
@@ -312,7 +342,7 @@ impl SqpSolver {
         let sol = &self.qp.solution;
         match sol.status {
             SolverStatus::Solved | SolverStatus::AlmostSolved => {}
-            SolverStatus::CallbackTerminated => return Err(QpError::OutOfTime(sol.iterations)),
+            SolverStatus::CallbackTerminated => return Err(QpError::OutOfBudget(sol.iterations)),
             s => return Err(QpError::Failed(format!("{s:?}"))),
         }
         let dq = JointVector::from_fn(|i, _| sol.x[i].clamp(lo[i], hi[i]));
@@ -325,8 +355,8 @@ impl SqpSolver {
 
     /// Minimise the weighted costs from `q_start` with q in the box [lo, hi].
     /// `q_start` should lie in the box (the previous command does). Never panics; a
-    /// failure is reported in the status with `q = q_start`. Stops at the time budget
-    /// (see the module doc) with the last completed iterate.
+    /// failure is reported in the status with `q = q_start`. Stops at a budget (see the
+    /// module doc) with the last completed iterate.
     pub fn solve(
         &mut self,
         kin: &dyn Kinematics,
@@ -337,17 +367,24 @@ impl SqpSolver {
         weights: &CostWeights,
     ) -> SqpSolution {
         let t0 = Instant::now();
-        let budget = Duration::from_secs_f64(self.settings.time_budget_us * 1e-6);
-        self.deadline.set(t0 + budget);
+        let time_budget =
+            (self.settings.time_budget_us > 0.0).then(|| Duration::from_secs_f64(self.settings.time_budget_us * 1e-6));
+        self.budget.set_deadline(time_budget.map(|b| t0 + b));
         let mut q = *q_start;
         let mut iterations = 0;
-        let mut qp_iterations = 0;
+        let mut qp_iterations: u32 = 0;
         let mut status = SqpStatus::IterationLimit;
         while iterations < self.settings.max_iterations {
-            if t0.elapsed() >= budget {
+            let qp_iterations_left = self.settings.max_total_qp_iterations.saturating_sub(qp_iterations);
+            if qp_iterations_left == 0 {
+                status = SqpStatus::QpIterationBudget;
+                break;
+            }
+            if time_budget.is_some_and(|b| t0.elapsed() >= b) {
                 status = SqpStatus::TimeBudget;
                 break;
             }
+            self.budget.set_qp_iterations(qp_iterations_left);
             let (pose, jac) = match kin.fk_jacobian(&q) {
                 Ok(x) => x,
                 Err(e) => {
@@ -360,15 +397,19 @@ impl SqpSolver {
                 Ok((dq, it)) => {
                     q += dq;
                     iterations += 1;
-                    qp_iterations += it;
+                    qp_iterations = qp_iterations.saturating_add(it);
                     if dq.amax() < self.settings.tolerance {
                         status = SqpStatus::Converged;
                         break;
                     }
                 }
-                Err(QpError::OutOfTime(it)) => {
-                    qp_iterations += it;
-                    status = SqpStatus::TimeBudget;
+                Err(QpError::OutOfBudget(it)) => {
+                    qp_iterations = qp_iterations.saturating_add(it);
+                    status = if it >= qp_iterations_left {
+                        SqpStatus::QpIterationBudget
+                    } else {
+                        SqpStatus::TimeBudget
+                    };
                     break;
                 }
                 Err(QpError::Failed(e)) => {
@@ -419,15 +460,6 @@ mod tests {
         (kin, q, t)
     }
 
-    /// `s` with a time budget that even a heavily loaded test machine does not use up, for
-    /// the tests whose outcome must not depend on timing.
-    fn unhurried(s: SqpSettings) -> SqpSettings {
-        SqpSettings {
-            time_budget_us: 1e6,
-            ..s
-        }
-    }
-
     #[test]
     fn converges_inside_a_wide_box_and_lowers_the_cost() {
         let (kin, q, t) = setup();
@@ -438,10 +470,10 @@ mod tests {
             step: 1e-3,
             reference: 0.0,
         };
-        let mut s = SqpSolver::new(unhurried(SqpSettings {
+        let mut s = SqpSolver::new(SqpSettings {
             max_iterations: 30,
             ..Default::default()
-        }))
+        })
         .unwrap();
         let lo = q.add_scalar(-0.5);
         let hi = q.add_scalar(0.5);
@@ -477,7 +509,7 @@ mod tests {
             step: 1e-3,
             reference: 0.0,
         };
-        let mut s = SqpSolver::new(unhurried(SqpSettings::rti())).unwrap();
+        let mut s = SqpSolver::new(SqpSettings::rti()).unwrap();
         let lo = q.add_scalar(-0.001);
         let hi = q.add_scalar(0.001);
         let sol = s.solve(&kin, &q, &lo, &hi, &t, &w);
@@ -550,7 +582,7 @@ mod tests {
         let (kin, q, t) = setup();
         let (lo, hi) = (q.add_scalar(-0.05), q.add_scalar(0.05));
         // One QP, to compare with.
-        let mut rti = SqpSolver::new(unhurried(SqpSettings::rti())).unwrap();
+        let mut rti = SqpSolver::new(SqpSettings::rti()).unwrap();
         let one = rti.solve(&kin, &q, &lo, &hi, &t, &weights());
         assert_eq!(one.status, SqpStatus::IterationLimit);
         assert!((one.q - q).amax() > 1e-4, "the first QP moves");
@@ -581,8 +613,8 @@ mod tests {
     }
 
     #[test]
-    fn settings_reject_a_bad_time_budget() {
-        for b in [0.0, -1.0, f64::NAN, f64::INFINITY, 2e9] {
+    fn settings_reject_bad_budgets() {
+        for b in [-1.0, f64::NAN, f64::INFINITY, 2e9] {
             let s = SqpSettings {
                 time_budget_us: b,
                 ..Default::default()
@@ -590,6 +622,56 @@ mod tests {
             assert!(s.validate().is_err(), "{b}");
             assert!(SqpSolver::new(s).is_err(), "{b}");
         }
+        let none = SqpSettings {
+            time_budget_us: 0.0,
+            ..Default::default()
+        };
+        assert!(none.validate().is_ok(), "0 = no time budget");
+        let zero_work = SqpSettings {
+            max_total_qp_iterations: 0,
+            ..Default::default()
+        };
+        assert!(zero_work.validate().is_err());
+    }
+
+    #[test]
+    fn the_iteration_budget_cuts_deterministically_and_keeps_the_last_completed_iterate() {
+        let (kin, q, t) = setup();
+        let (lo, hi) = (q.add_scalar(-0.05), q.add_scalar(0.05));
+        let one = SqpSolver::new(SqpSettings::rti())
+            .unwrap()
+            .solve(&kin, &q, &lo, &hi, &t, &weights());
+        assert!(one.qp_iterations > 3);
+        let budgeted = |total: u32| {
+            SqpSolver::new(SqpSettings {
+                max_iterations: 10,
+                max_total_qp_iterations: total,
+                ..Default::default()
+            })
+            .unwrap()
+            .solve(&kin, &q, &lo, &hi, &t, &weights())
+        };
+        // Room for the first QP and two iterations of the second: the second is cut off
+        // and dropped; the result is exactly the first QP's.
+        let sol = budgeted(one.qp_iterations + 2);
+        assert_eq!(sol.status, SqpStatus::QpIterationBudget);
+        assert!(sol.status.is_usable());
+        assert_eq!(sol.status.as_text(), "qp_iteration_budget");
+        assert_eq!((sol.iterations, sol.qp_iterations), (1, one.qp_iterations + 2));
+        assert_eq!(sol.q, one.q);
+        // Exactly the first QP's iterations: it is stopped on its last one, before the
+        // convergence check (the budget is a hard bound), so nothing completed.
+        let sol = budgeted(one.qp_iterations);
+        assert_eq!(sol.status, SqpStatus::QpIterationBudget);
+        assert_eq!((sol.iterations, sol.qp_iterations), (0, one.qp_iterations));
+        assert_eq!(sol.q, q);
+        // Too little for the first QP: the start point, unchanged, and still usable.
+        let sol = budgeted(1);
+        assert_eq!(sol.status, SqpStatus::QpIterationBudget);
+        assert_eq!((sol.iterations, sol.qp_iterations), (0, 1));
+        assert_eq!(sol.q, q);
+        // Deterministic: the same budget, the same answer.
+        assert_eq!(budgeted(one.qp_iterations + 2).q, budgeted(one.qp_iterations + 2).q);
     }
 
     #[test]
