@@ -163,7 +163,7 @@ pub struct SqpSolution {
     pub status: SqpStatus,
     /// QPs solved.
     pub iterations: usize,
-    /// Interior-point iterations over all QPs.
+    /// Interior-point iterations over all QPs (those of a QP cut off by a budget included).
     pub qp_iterations: u32,
     /// Wall time of the whole solve, µs.
     pub solve_time_us: f64,
