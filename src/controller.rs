@@ -228,8 +228,8 @@ pub struct ControlOutput {
     pub qp_iterations: u32,
     /// SQP wall time, µs.
     pub solve_time_us: f64,
-    /// SQP status text ("converged", "iteration_limit", "time_budget", "qp_failed: …",
-    /// "not_run").
+    /// SQP status text ("converged", "iteration_limit", "time_budget",
+    /// "qp_iteration_budget", "qp_failed: …", "not_run"); see [`crate::docking::SqpStatus`].
     pub solver_status: String,
     /// Filtered tip force estimate, base frame, N.
     pub f_ext: Vector3<f64>,
