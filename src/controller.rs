@@ -224,9 +224,12 @@ pub struct ControlOutput {
     pub costs: [f64; 5],
     /// QPs solved this step.
     pub iterations: usize,
+    /// Interior-point iterations this step, over all its QPs.
+    pub qp_iterations: u32,
     /// SQP wall time, µs.
     pub solve_time_us: f64,
-    /// SQP status text ("converged", "iteration_limit", "qp_failed: …", "not_run").
+    /// SQP status text ("converged", "iteration_limit", "time_budget",
+    /// "qp_iteration_budget", "qp_failed: …", "not_run"); see [`crate::docking::SqpStatus`].
     pub solver_status: String,
     /// Filtered tip force estimate, base frame, N.
     pub f_ext: Vector3<f64>,
@@ -341,6 +344,7 @@ impl Controller {
             reason: self.supervisor.reason().map(str::to_string),
             costs: [f64::NAN; 5],
             iterations: 0,
+            qp_iterations: 0,
             solve_time_us: 0.0,
             solver_status: "not_run".into(),
             f_ext: self.admittance.force(),
@@ -590,6 +594,7 @@ impl Controller {
         let mut out = self.output(Some(out_cmd), tip, goal);
         out.costs = sol.costs;
         out.iterations = sol.iterations;
+        out.qp_iterations = sol.qp_iterations;
         out.solve_time_us = sol.solve_time_us;
         out.solver_status = sol.status.as_text();
         out.reference = reference;

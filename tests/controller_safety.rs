@@ -78,9 +78,15 @@ proptest! {
         pos in proptest::collection::vec(-1.0f64..1.0, 3),
         rot in proptest::collection::vec(-1.0f64..1.0, 4),
         stamps in proptest::collection::vec(prop_oneof![4 => Just(0.0), 1 => -1.0f64..1.0, 1 => Just(f64::NAN)], 20),
+        // No time budget (the default), one that cuts QPs short, one that is always spent.
+        budget_us in prop_oneof![Just(0.0), 1.0f64..60.0, Just(1e-6)],
+        // The default iteration budget, and ones that cut the first or a later QP short.
+        qp_budget in prop_oneof![Just(60u32), 1u32..20],
     ) {
         let kin = kin();
-        let p = ControllerParams::default();
+        let mut p = ControllerParams::default();
+        p.sqp.time_budget_us = budget_us;
+        p.sqp.max_total_qp_iterations = qp_budget;
         let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
         c.start().unwrap();
         let quat = nalgebra::Quaternion::new(rot[0], rot[1], rot[2], rot[3]);
@@ -103,6 +109,34 @@ proptest! {
             }
         }
     }
+}
+
+#[test]
+fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
+    let kin = kin();
+    let troc = trocar(&kin);
+    let mut p = ControllerParams::default();
+    p.sqp.time_budget_us = 1e-6;
+    let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    let q0 = q_start();
+    for k in 1..=20 {
+        let out = c.step(&kin, &input(k as f64 * 0.01, q0, JointVector::zeros(), troc));
+        assert_eq!(out.phase, Phase::Approach, "{:?}", out.reason);
+        assert_eq!(out.solver_status, "time_budget");
+        assert_eq!(out.iterations, 0);
+        // No QP finished in time: the command stays where the arm is, finite and in the box.
+        assert_eq!(out.command, Some(q0));
+        assert_safe(&out, &q0, &kin, &p);
+    }
+    // Without a time budget (the default), the same step moves the arm.
+    p.sqp.time_budget_us = 0.0;
+    let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    let out = c.step(&kin, &input(0.01, q0, JointVector::zeros(), troc));
+    assert!(out.iterations >= 1, "{}", out.solver_status);
+    assert!((out.command.unwrap() - q0).amax() > 1e-6);
+    assert_safe(&out, &q0, &kin, &p);
 }
 
 #[test]

@@ -1,15 +1,20 @@
 //! Controller suite: the time of one control step (FK + Jacobian of the measured joints,
 //! force estimate, SQP to tolerance with FK + Jacobian per iteration, guard), in closed loop
-//! with perfect tracking, dt = 0.01 s, default weights (`config/controller.yaml`), on two
-//! scenarios: a docking approach to a static trocar, and a trocar whose port oscillates
-//! laterally 5 mm at 0.5 Hz, so that every step has work to do.
-
-use std::time::Instant;
+//! with perfect tracking, dt = 0.01 s, the default parameters (`config/controller.yaml`)
+//! unless others are given, on two scenarios: a docking approach to a static trocar, and a
+//! trocar whose port oscillates laterally 5 mm at 0.5 Hz, so that every step has work to do.
+//!
+//! Each step is timed on the wall clock and on the thread's CPU clock. A step slow on the
+//! wall clock only was preempted by the OS. One slow on both either did more work (see its
+//! interior-point iterations) or ran on a slowed CPU: in a virtual machine the guest's CPU
+//! clock also runs while the hypervisor has the vCPU descheduled, and a busy sibling
+//! hardware thread slows it too, so the iteration count is the algorithm's own measure.
 
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 
-use super::{LatencyStats, SuiteReport};
+use super::{scheduler_name, time_wall_and_cpu, LatencyStats, SuiteReport};
 use crate::controller::{ControlInput, Controller, ControllerParams, Stamped};
+use crate::docking::SqpStatus;
 use crate::kinematics::{JointVector, Kinematics, KinematicsError, LbrKinematics};
 use crate::robot_model::{LbrModel, ToolParams};
 
@@ -53,24 +58,46 @@ pub fn scenario_trocar(
     Ok((q0, Isometry3::from_parts(Translation3::from(port), rot)))
 }
 
-/// Run `steps` closed-loop control steps of `scenario`; returns per-step times (µs) and
-/// iterations. The loop restarts the docking when it completes, so every sample is a
-/// moving step.
+/// Per-step measurements of one scenario run, in step order.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ScenarioSamples {
+    /// Wall-clock time of each step, µs.
+    pub wall_us: Vec<f64>,
+    /// Thread CPU time of each step, µs (NaN where the clock is unavailable).
+    pub cpu_us: Vec<f64>,
+    /// QPs solved in each step.
+    pub iterations: Vec<usize>,
+    /// Interior-point iterations in each step, over all its QPs.
+    pub qp_iterations: Vec<u32>,
+    /// Steps whose SQP stopped at its time budget.
+    pub time_budget_steps: usize,
+    /// Steps whose SQP stopped at its interior-point iteration budget.
+    pub qp_iteration_budget_steps: usize,
+}
+
+/// Run `steps` closed-loop control steps of `scenario` and time each one (wall clock and
+/// thread CPU). The loop restarts the docking when it completes, so every sample is a
+/// moving step; none is left out, the first step after construction included.
 pub fn run_scenario(
     kin: &LbrKinematics,
     params: &ControllerParams,
     scenario: Scenario,
     steps: usize,
-) -> Result<(Vec<f64>, Vec<usize>), String> {
+) -> Result<ScenarioSamples, String> {
     let mut c = Controller::new(params.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
     c.start()?;
     let (q0, _) = scenario_trocar(kin, scenario, 0.0).map_err(|e| e.to_string())?;
     let mut q = q0;
-    let mut times = Vec::with_capacity(steps);
-    let mut iters = Vec::with_capacity(steps);
+    let mut s = ScenarioSamples {
+        wall_us: Vec::with_capacity(steps),
+        cpu_us: Vec::with_capacity(steps),
+        iterations: Vec::with_capacity(steps),
+        qp_iterations: Vec::with_capacity(steps),
+        ..Default::default()
+    };
     let mut now = 0.0;
     let mut restarts = 0usize;
-    while times.len() < steps {
+    while s.wall_us.len() < steps {
         now += params.dt;
         let (_, trocar) = scenario_trocar(kin, scenario, now).map_err(|e| e.to_string())?;
         let input = ControlInput {
@@ -85,9 +112,7 @@ pub fn run_scenario(
                 value: trocar,
             }),
         };
-        let t0 = Instant::now();
-        let out = c.step(kin, &input);
-        let us = t0.elapsed().as_secs_f64() * 1e6;
+        let (out, wall, cpu) = time_wall_and_cpu(|| c.step(kin, &input));
         if !out.phase.is_moving() {
             // Docked (or held): start over from the initial configuration.
             restarts += 1;
@@ -104,37 +129,95 @@ pub fn run_scenario(
             q = q0;
             continue;
         }
-        times.push(us);
-        iters.push(out.iterations);
+        s.wall_us.push(wall);
+        s.cpu_us.push(cpu);
+        s.iterations.push(out.iterations);
+        s.qp_iterations.push(out.qp_iterations);
+        s.time_budget_steps += usize::from(out.solver_status == SqpStatus::TimeBudget.as_text());
+        s.qp_iteration_budget_steps += usize::from(out.solver_status == SqpStatus::QpIterationBudget.as_text());
         q = out.command.unwrap_or(q);
     }
-    Ok((times, iters))
+    Ok(s)
 }
 
-/// Run the suite with `n` steps per scenario.
-pub fn run(n: usize) -> Result<Vec<SuiteReport>, String> {
+/// The control deadline the suite counts misses of, µs (a 1 kHz FRI period).
+pub const DEADLINE_US: f64 = 1000.0;
+
+fn misses(samples_us: &[f64]) -> usize {
+    samples_us.iter().filter(|t| **t >= DEADLINE_US).count()
+}
+
+fn mean<T: Copy + Into<f64>>(v: &[T]) -> f64 {
+    v.iter().map(|x| (*x).into()).sum::<f64>() / v.len().max(1) as f64
+}
+
+/// The report of one scenario run with `params`: wall-clock statistics as the latency,
+/// thread-CPU statistics and the solver's work as extra figures.
+pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Option<SuiteReport> {
+    let latency = LatencyStats::from_samples(&s.wall_us)?;
+    let worst = s
+        .wall_us
+        .iter()
+        .enumerate()
+        .max_by(|a, b| a.1.total_cmp(b.1))
+        .map_or(0, |(i, _)| i);
+    let iterations: Vec<u32> = s
+        .iterations
+        .iter()
+        .map(|i| u32::try_from(*i).unwrap_or(u32::MAX))
+        .collect();
+    let mut extra = serde_json::Map::new();
+    let mut put = |k: &str, v: serde_json::Value| {
+        extra.insert(k.into(), v);
+    };
+    put("cpu_time", serde_json::json!(LatencyStats::from_samples(&s.cpu_us)));
+    put("deadline_misses_1ms", serde_json::json!(misses(&s.wall_us)));
+    put("deadline_misses_1ms_cpu", serde_json::json!(misses(&s.cpu_us)));
+    put("mean_iterations", serde_json::json!(mean(&iterations)));
+    put("max_iterations", serde_json::json!(iterations.iter().max()));
+    put("mean_qp_iterations", serde_json::json!(mean(&s.qp_iterations)));
+    put("max_qp_iterations", serde_json::json!(s.qp_iterations.iter().max()));
+    put("time_budget_steps", serde_json::json!(s.time_budget_steps));
+    put(
+        "qp_iteration_budget_steps",
+        serde_json::json!(s.qp_iteration_budget_steps),
+    );
+    put(
+        "first_step_us",
+        serde_json::json!({"wall": s.wall_us.first(), "cpu": s.cpu_us.first()}),
+    );
+    put(
+        "worst_step",
+        serde_json::json!({
+            "index": worst,
+            "wall_us": s.wall_us.get(worst),
+            "cpu_us": s.cpu_us.get(worst),
+            "iterations": s.iterations.get(worst),
+            "qp_iterations": s.qp_iterations.get(worst),
+        }),
+    );
+    put("warmup_steps_excluded", serde_json::json!(0));
+    put("scheduler", serde_json::json!(scheduler_name()));
+    put("dt_s", serde_json::json!(params.dt));
+    put("sqp_time_budget_us", serde_json::json!(params.sqp.time_budget_us));
+    put(
+        "sqp_max_total_qp_iterations",
+        serde_json::json!(params.sqp.max_total_qp_iterations),
+    );
+    Some(SuiteReport {
+        name: name.into(),
+        latency,
+        extra,
+    })
+}
+
+/// Run the suite with `n` steps per scenario and the controller's `params`.
+pub fn run(n: usize, params: &ControllerParams) -> Result<Vec<SuiteReport>, String> {
     let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
-    let params = ControllerParams::default();
     let mut out = vec![];
     for scenario in [Scenario::Approach, Scenario::Oscillating] {
-        let (times, iters) = run_scenario(&kin, &params, scenario, n.max(10))?;
-        let Some(latency) = LatencyStats::from_samples(&times) else {
-            continue;
-        };
-        let mut extra = serde_json::Map::new();
-        let mean_it = iters.iter().sum::<usize>() as f64 / iters.len().max(1) as f64;
-        extra.insert("mean_iterations".into(), serde_json::json!(mean_it));
-        extra.insert("max_iterations".into(), serde_json::json!(iters.iter().max()));
-        extra.insert("dt_s".into(), serde_json::json!(params.dt));
-        extra.insert(
-            "deadline_misses_1ms".into(),
-            serde_json::json!(times.iter().filter(|t| **t >= 1000.0).count()),
-        );
-        out.push(SuiteReport {
-            name: scenario.name().into(),
-            latency,
-            extra,
-        });
+        let samples = run_scenario(&kin, params, scenario, n.max(10))?;
+        out.extend(report(scenario.name(), params, &samples));
     }
     Ok(out)
 }

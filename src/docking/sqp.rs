@@ -7,8 +7,27 @@
 //! the previous command). The Clarabel solver is built once with the problem's fixed
 //! sparsity (dense upper-triangular H, A = [I; -I]) and only its data is updated per solve,
 //! so a solve allocates nothing of its own beyond what Clarabel does internally.
+//!
+//! **Bounded work per step.** Besides the cap on QPs and on interior-point iterations per
+//! QP, a solve has two budgets:
+//! - [`SqpSettings::max_total_qp_iterations`], interior-point iterations over all its QPs:
+//!   a deterministic bound on the work of one step (the same inputs give the same output);
+//! - [`SqpSettings::time_budget_us`], wall time, off by default: for a hard real-time loop.
+//!   It bounds the step's latency even after a preemption, at the price of determinism (a
+//!   loaded machine cuts more solves short), so simulations and tests leave it off.
+//!
+//! No QP starts once a budget is spent, and a QP still running when one runs out is stopped
+//! (Clarabel's termination callback, checked once per interior-point iteration) and its
+//! unfinished result dropped: the solve returns the last completed iterate with
+//! [`SqpStatus::TimeBudget`] or [`SqpStatus::QpIterationBudget`]. Every completed iterate
+//! lies in the box (each QP step is clamped into it), so it is a safe command; with no QP
+//! completed it is the start point itself, i.e. the arm holds for one step.
+//! [`SqpSolver::new`] runs one dummy solve, so Clarabel's lazy first-solve work happens at
+//! construction and not in the first control step.
 
-use std::time::Instant;
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
 
 use clarabel::algebra::CscMatrix;
 use clarabel::solver::{
@@ -29,8 +48,17 @@ pub struct SqpSettings {
     pub tolerance: f64,
     /// Levenberg regularisation added to the Hessian's diagonal.
     pub regularization: f64,
-    /// Interior-point iterations allowed per QP.
+    /// Interior-point iterations allowed per QP (a QP that hits the cap has failed).
     pub qp_max_iterations: u32,
+    /// Interior-point iterations allowed per solve, over all its QPs (a hard bound: a QP
+    /// still unsolved when it has taken the iterations left is stopped, before that last
+    /// iteration's convergence check); then the last completed iterate is returned
+    /// ([`SqpStatus::QpIterationBudget`]).
+    pub max_total_qp_iterations: u32,
+    /// Wall-time budget of one solve, µs (0 = none): no QP starts after it, a running QP is
+    /// stopped at it and the last completed iterate is returned ([`SqpStatus::TimeBudget`]).
+    /// Makes the result depend on the machine's load; see the module doc.
+    pub time_budget_us: f64,
 }
 
 impl Default for SqpSettings {
@@ -39,7 +67,9 @@ impl Default for SqpSettings {
             max_iterations: 3,
             tolerance: 1e-5,
             regularization: 1e-6,
-            qp_max_iterations: 50,
+            qp_max_iterations: 30,
+            max_total_qp_iterations: 60,
+            time_budget_us: 0.0,
         }
     }
 }
@@ -70,6 +100,16 @@ impl SqpSettings {
         if self.qp_max_iterations == 0 {
             return Err("sqp.qp_max_iterations must be > 0".into());
         }
+        if self.max_total_qp_iterations == 0 {
+            return Err("sqp.max_total_qp_iterations must be > 0".into());
+        }
+        // The upper bound keeps the nanosecond deadline far from u64 overflow.
+        if !(self.time_budget_us.is_finite() && (0.0..=1e9).contains(&self.time_budget_us)) {
+            return Err(format!(
+                "sqp.time_budget_us must be in [0, 1e9] µs (0 = none), got {}",
+                self.time_budget_us
+            ));
+        }
         Ok(())
     }
 }
@@ -81,6 +121,11 @@ pub enum SqpStatus {
     Converged,
     /// The iteration cap was reached (normal in RTI mode); the solution is usable.
     IterationLimit,
+    /// The time budget ran out; the solution is the last completed iterate (the start
+    /// point when no QP completed), inside the box and usable.
+    TimeBudget,
+    /// The interior-point iteration budget ran out; as [`SqpStatus::TimeBudget`].
+    QpIterationBudget,
     /// A QP failed; the solution must not be commanded.
     QpFailed(String),
     /// The kinematics failed; the solution must not be commanded.
@@ -90,7 +135,10 @@ pub enum SqpStatus {
 impl SqpStatus {
     /// Whether the solution may be commanded.
     pub fn is_usable(&self) -> bool {
-        matches!(self, SqpStatus::Converged | SqpStatus::IterationLimit)
+        matches!(
+            self,
+            SqpStatus::Converged | SqpStatus::IterationLimit | SqpStatus::TimeBudget | SqpStatus::QpIterationBudget
+        )
     }
 
     /// Short text for status messages.
@@ -98,6 +146,8 @@ impl SqpStatus {
         match self {
             SqpStatus::Converged => "converged".into(),
             SqpStatus::IterationLimit => "iteration_limit".into(),
+            SqpStatus::TimeBudget => "time_budget".into(),
+            SqpStatus::QpIterationBudget => "qp_iteration_budget".into(),
             SqpStatus::QpFailed(s) => format!("qp_failed: {s}"),
             SqpStatus::Kinematics(s) => format!("kinematics: {s}"),
         }
@@ -113,7 +163,7 @@ pub struct SqpSolution {
     pub status: SqpStatus,
     /// QPs solved.
     pub iterations: usize,
-    /// Interior-point iterations over all QPs.
+    /// Interior-point iterations over all QPs (those of a QP cut off by a budget included).
     pub qp_iterations: u32,
     /// Wall time of the whole solve, µs.
     pub solve_time_us: f64,
@@ -123,10 +173,59 @@ pub struct SqpSolution {
 
 const NC: usize = 2 * N_JOINTS;
 
+/// Why one QP gave no step.
+enum QpError {
+    /// Stopped by a budget after this many interior-point iterations.
+    OutOfBudget(u32),
+    /// Anything else (bad data, solver status, non-finite result).
+    Failed(String),
+}
+
+/// The budgets of the running solve, shared with Clarabel's termination callback (which
+/// must be `Send + Sync`) through atomics, so that setting them per QP allocates nothing.
+#[derive(Debug, Clone)]
+struct Budget {
+    base: Instant,
+    /// Wall-clock deadline, ns after `base` (`u64::MAX`: none).
+    deadline_ns: Arc<AtomicU64>,
+    /// Interior-point iterations the running QP may take.
+    qp_iterations: Arc<AtomicU32>,
+}
+
+impl Budget {
+    fn new() -> Self {
+        Self {
+            base: Instant::now(),
+            deadline_ns: Arc::new(AtomicU64::new(u64::MAX)),
+            qp_iterations: Arc::new(AtomicU32::new(u32::MAX)),
+        }
+    }
+
+    fn nanos_since_base(&self, t: Instant) -> u64 {
+        u64::try_from(t.saturating_duration_since(self.base).as_nanos()).unwrap_or(u64::MAX)
+    }
+
+    fn set_deadline(&self, at: Option<Instant>) {
+        let ns = at.map_or(u64::MAX, |t| self.nanos_since_base(t));
+        self.deadline_ns.store(ns, Ordering::Relaxed);
+    }
+
+    fn set_qp_iterations(&self, n: u32) {
+        self.qp_iterations.store(n, Ordering::Relaxed);
+    }
+
+    /// Whether a QP that has taken `iterations` interior-point iterations must stop.
+    fn spent(&self, iterations: u32) -> bool {
+        iterations >= self.qp_iterations.load(Ordering::Relaxed)
+            || self.nanos_since_base(Instant::now()) >= self.deadline_ns.load(Ordering::Relaxed)
+    }
+}
+
 /// The SQP solver; owns its Clarabel workspace, reused between steps.
 pub struct SqpSolver {
     settings: SqpSettings,
     qp: DefaultSolver<f64>,
+    budget: Budget,
     p_values: Vec<f64>,
     q_values: Vec<f64>,
     b_values: Vec<f64>,
@@ -179,11 +278,22 @@ impl SqpSolver {
         let q_values = vec![0.0; n];
         let b_values = vec![1.0; NC];
         let cones = [SupportedConeT::NonnegativeConeT(NC)];
-        let qp = DefaultSolver::new(&p, &q_values, &a, &b_values, &cones, clarabel_settings(&settings)?)
+        let mut qp = DefaultSolver::new(&p, &q_values, &a, &b_values, &cones, clarabel_settings(&settings)?)
             .map_err(|e| format!("clarabel setup: {e}"))?;
+        let budget = Budget::new();
+        let watch = budget.clone();
+        qp.set_termination_callback(move |info: &clarabel::solver::DefaultInfo<f64>| watch.spent(info.iterations));
+        // Warm-up: one solve of the setup data (min ½|x|² in the unit box, x = 0), so the
+        // solver's lazy first-solve work (timer maps, page faults of its workspace) happens
+        // here rather than in the first control step.
+        qp.solve();
+        if !matches!(qp.solution.status, SolverStatus::Solved) {
+            return Err(format!("clarabel warm-up solve: {:?}", qp.solution.status));
+        }
         Ok(Self {
             settings,
             qp,
+            budget,
             p_values,
             q_values,
             b_values,
@@ -201,7 +311,7 @@ impl SqpSolver {
         g: &JointVector,
         lo: &JointVector,
         hi: &JointVector,
-    ) -> Result<(JointVector, u32), String> {
+    ) -> Result<(JointVector, u32), QpError> {
         let n = N_JOINTS;
         let mut k = 0;
         for j in 0..n {
@@ -222,28 +332,31 @@ impl SqpSolver {
             .chain(&self.b_values)
             .all(|x| x.is_finite()))
         {
-            return Err("non-finite QP data".into());
+            return Err(QpError::Failed("non-finite QP data".into()));
         }
-        self.qp.update_P(&self.p_values).map_err(|e| e.to_string())?;
-        self.qp.update_q(&self.q_values).map_err(|e| e.to_string())?;
-        self.qp.update_b(&self.b_values).map_err(|e| e.to_string())?;
+        let failed = |e: clarabel::solver::DataUpdateError| QpError::Failed(e.to_string());
+        self.qp.update_P(&self.p_values).map_err(failed)?;
+        self.qp.update_q(&self.q_values).map_err(failed)?;
+        self.qp.update_b(&self.b_values).map_err(failed)?;
         self.qp.solve();
         let sol = &self.qp.solution;
         match sol.status {
             SolverStatus::Solved | SolverStatus::AlmostSolved => {}
-            s => return Err(format!("{s:?}")),
+            SolverStatus::CallbackTerminated => return Err(QpError::OutOfBudget(sol.iterations)),
+            s => return Err(QpError::Failed(format!("{s:?}"))),
         }
         let dq = JointVector::from_fn(|i, _| sol.x[i].clamp(lo[i], hi[i]));
         if dq.iter().all(|x| x.is_finite()) {
             Ok((dq, sol.iterations))
         } else {
-            Err("non-finite QP solution".into())
+            Err(QpError::Failed("non-finite QP solution".into()))
         }
     }
 
     /// Minimise the weighted costs from `q_start` with q in the box [lo, hi].
     /// `q_start` should lie in the box (the previous command does). Never panics; a
-    /// failure is reported in the status with `q = q_start`.
+    /// failure is reported in the status with `q = q_start`. Stops at a budget (see the
+    /// module doc) with the last completed iterate.
     pub fn solve(
         &mut self,
         kin: &dyn Kinematics,
@@ -254,11 +367,24 @@ impl SqpSolver {
         weights: &CostWeights,
     ) -> SqpSolution {
         let t0 = Instant::now();
+        let time_budget =
+            (self.settings.time_budget_us > 0.0).then(|| Duration::from_secs_f64(self.settings.time_budget_us * 1e-6));
+        self.budget.set_deadline(time_budget.map(|b| t0 + b));
         let mut q = *q_start;
         let mut iterations = 0;
-        let mut qp_iterations = 0;
+        let mut qp_iterations: u32 = 0;
         let mut status = SqpStatus::IterationLimit;
         while iterations < self.settings.max_iterations {
+            let qp_iterations_left = self.settings.max_total_qp_iterations.saturating_sub(qp_iterations);
+            if qp_iterations_left == 0 {
+                status = SqpStatus::QpIterationBudget;
+                break;
+            }
+            if time_budget.is_some_and(|b| t0.elapsed() >= b) {
+                status = SqpStatus::TimeBudget;
+                break;
+            }
+            self.budget.set_qp_iterations(qp_iterations_left);
             let (pose, jac) = match kin.fk_jacobian(&q) {
                 Ok(x) => x,
                 Err(e) => {
@@ -271,13 +397,22 @@ impl SqpSolver {
                 Ok((dq, it)) => {
                     q += dq;
                     iterations += 1;
-                    qp_iterations += it;
+                    qp_iterations = qp_iterations.saturating_add(it);
                     if dq.amax() < self.settings.tolerance {
                         status = SqpStatus::Converged;
                         break;
                     }
                 }
-                Err(e) => {
+                Err(QpError::OutOfBudget(it)) => {
+                    qp_iterations = qp_iterations.saturating_add(it);
+                    status = if it >= qp_iterations_left {
+                        SqpStatus::QpIterationBudget
+                    } else {
+                        SqpStatus::TimeBudget
+                    };
+                    break;
+                }
+                Err(QpError::Failed(e)) => {
                     status = SqpStatus::QpFailed(e);
                     break;
                 }
@@ -380,6 +515,163 @@ mod tests {
         let sol = s.solve(&kin, &q, &lo, &hi, &t, &w);
         assert_eq!(sol.iterations, 1);
         assert!((sol.q - q).amax() <= 0.001 + 1e-12);
+    }
+
+    fn weights() -> CostWeights {
+        CostWeights {
+            axis: 10.0,
+            goal: 100.0,
+            align: 1.0,
+            step: 1e-3,
+            reference: 0.0,
+        }
+    }
+
+    /// Kinematics that stall (sleep) from the `slow_from`-th call of `fk_jacobian` on, as a
+    /// preempted or overloaded step would.
+    struct Stalling {
+        inner: LbrKinematics,
+        calls: std::sync::atomic::AtomicUsize,
+        slow_from: usize,
+        stall: Duration,
+    }
+
+    impl Kinematics for Stalling {
+        fn joint_names(&self) -> &[String] {
+            self.inner.joint_names()
+        }
+        fn limits(&self) -> &crate::kinematics::JointLimits {
+            self.inner.limits()
+        }
+        fn fk(&self, q: &JointVector) -> Result<nalgebra::Isometry3<f64>, crate::kinematics::KinematicsError> {
+            self.inner.fk(q)
+        }
+        fn fk_jacobian(
+            &self,
+            q: &JointVector,
+        ) -> Result<(nalgebra::Isometry3<f64>, crate::kinematics::Jacobian), crate::kinematics::KinematicsError>
+        {
+            if self.calls.fetch_add(1, Ordering::Relaxed) + 1 >= self.slow_from {
+                std::thread::sleep(self.stall);
+            }
+            self.inner.fk_jacobian(q)
+        }
+    }
+
+    #[test]
+    fn a_spent_budget_returns_the_start_point_as_a_usable_hold() {
+        let (kin, q, t) = setup();
+        let mut s = SqpSolver::new(SqpSettings {
+            time_budget_us: 1e-3,
+            ..Default::default()
+        })
+        .unwrap();
+        let (lo, hi) = (q.add_scalar(-0.01), q.add_scalar(0.01));
+        let start = q.add_scalar(0.004);
+        let sol = s.solve(&kin, &start, &lo, &hi, &t, &weights());
+        assert_eq!(sol.status, SqpStatus::TimeBudget);
+        assert!(sol.status.is_usable());
+        assert_eq!(sol.status.as_text(), "time_budget");
+        assert_eq!((sol.iterations, sol.qp_iterations), (0, 0));
+        assert_eq!(sol.q, start, "no QP completed: the start point, unchanged");
+        assert!(sol.costs.iter().all(|c| c.is_finite()));
+    }
+
+    #[test]
+    fn a_qp_cut_off_by_the_budget_is_dropped_and_the_last_completed_iterate_kept() {
+        let (kin, q, t) = setup();
+        let (lo, hi) = (q.add_scalar(-0.05), q.add_scalar(0.05));
+        // One QP, to compare with.
+        let mut rti = SqpSolver::new(SqpSettings::rti()).unwrap();
+        let one = rti.solve(&kin, &q, &lo, &hi, &t, &weights());
+        assert_eq!(one.status, SqpStatus::IterationLimit);
+        assert!((one.q - q).amax() > 1e-4, "the first QP moves");
+        // The second linearisation stalls past the budget, so the second QP is stopped
+        // by the deadline: the result is the first QP's iterate, not garbage, not the start.
+        let stalling = Stalling {
+            inner: kin,
+            calls: Default::default(),
+            slow_from: 2,
+            stall: Duration::from_millis(60),
+        };
+        let mut s = SqpSolver::new(SqpSettings {
+            max_iterations: 10,
+            time_budget_us: 40_000.0,
+            ..Default::default()
+        })
+        .unwrap();
+        let sol = s.solve(&stalling, &q, &lo, &hi, &t, &weights());
+        assert_eq!(sol.status, SqpStatus::TimeBudget);
+        assert_eq!(sol.iterations, 1);
+        assert!((sol.q - one.q).amax() < 1e-12, "{} vs {}", sol.q, one.q);
+        assert!((0..7).all(|i| sol.q[i] >= lo[i] && sol.q[i] <= hi[i]));
+        assert!(sol.solve_time_us >= 60_000.0);
+        // The deadline is per solve: the same solver converges on the next, unhurried one.
+        let kin = stalling.inner;
+        let sol = s.solve(&kin, &q, &q.add_scalar(-0.5), &q.add_scalar(0.5), &t, &weights());
+        assert_eq!(sol.status, SqpStatus::Converged);
+    }
+
+    #[test]
+    fn settings_reject_bad_budgets() {
+        for b in [-1.0, f64::NAN, f64::INFINITY, 2e9] {
+            let s = SqpSettings {
+                time_budget_us: b,
+                ..Default::default()
+            };
+            assert!(s.validate().is_err(), "{b}");
+            assert!(SqpSolver::new(s).is_err(), "{b}");
+        }
+        let none = SqpSettings {
+            time_budget_us: 0.0,
+            ..Default::default()
+        };
+        assert!(none.validate().is_ok(), "0 = no time budget");
+        let zero_work = SqpSettings {
+            max_total_qp_iterations: 0,
+            ..Default::default()
+        };
+        assert!(zero_work.validate().is_err());
+    }
+
+    #[test]
+    fn the_iteration_budget_cuts_deterministically_and_keeps_the_last_completed_iterate() {
+        let (kin, q, t) = setup();
+        let (lo, hi) = (q.add_scalar(-0.05), q.add_scalar(0.05));
+        let one = SqpSolver::new(SqpSettings::rti())
+            .unwrap()
+            .solve(&kin, &q, &lo, &hi, &t, &weights());
+        assert!(one.qp_iterations > 3);
+        let budgeted = |total: u32| {
+            SqpSolver::new(SqpSettings {
+                max_iterations: 10,
+                max_total_qp_iterations: total,
+                ..Default::default()
+            })
+            .unwrap()
+            .solve(&kin, &q, &lo, &hi, &t, &weights())
+        };
+        // Room for the first QP and two iterations of the second: the second is cut off
+        // and dropped; the result is exactly the first QP's.
+        let sol = budgeted(one.qp_iterations + 2);
+        assert_eq!(sol.status, SqpStatus::QpIterationBudget);
+        assert!(sol.status.is_usable());
+        assert_eq!(sol.status.as_text(), "qp_iteration_budget");
+        assert_eq!((sol.iterations, sol.qp_iterations), (1, one.qp_iterations + 2));
+        assert_eq!(sol.q, one.q);
+        // Exactly the first QP's iterations: it is stopped on its last one, before the
+        // convergence check (the budget is a hard bound), so nothing completed.
+        let sol = budgeted(one.qp_iterations);
+        assert_eq!(sol.status, SqpStatus::QpIterationBudget);
+        assert_eq!((sol.iterations, sol.qp_iterations), (0, one.qp_iterations));
+        assert_eq!(sol.q, q);
+        // Too little for the first QP: the start point, unchanged, and still usable.
+        let sol = budgeted(1);
+        assert_eq!(sol.status, SqpStatus::QpIterationBudget);
+        assert_eq!((sol.iterations, sol.qp_iterations), (0, 1));
+        assert_eq!(sol.q, q);
+        // Deterministic: the same budget, the same answer.
+        assert_eq!(budgeted(one.qp_iterations + 2).q, budgeted(one.qp_iterations + 2).q);
     }
 
     #[test]
