@@ -16,6 +16,7 @@ pub mod geometry;
 pub mod kinematics;
 pub mod metrics;
 pub mod plot;
+pub mod realtime;
 pub mod robot_model;
 pub mod ros;
 pub mod safety;

@@ -70,6 +70,10 @@ pub struct ControllerNodeParams {
     pub force_feedback: bool,
     /// Latency samples kept for the percentiles.
     pub latency_samples: usize,
+    /// Run the control loop in the real-time class `SCHED_FIFO` at this priority (1..=99;
+    /// needs CAP_SYS_NICE or an rtprio limit); 0 = normal scheduling. If it cannot be had
+    /// the node warns and runs at normal priority.
+    pub realtime_priority: i32,
     /// Marker sizes.
     pub markers: MarkerStyle,
     /// Parameters of the optimal controller (`config/controller.yaml`, loaded under
@@ -101,6 +105,7 @@ impl Default for ControllerNodeParams {
             autostart: false,
             force_feedback: true,
             latency_samples: 5000,
+            realtime_priority: 0,
             markers: MarkerStyle::default(),
             controller: ControllerParams::default(),
         }
@@ -421,6 +426,16 @@ pub fn run() -> Result<(), NodeError> {
         p.command_topic
     );
 
+    if p.realtime_priority != 0 {
+        match crate::realtime::set_realtime_priority(p.realtime_priority) {
+            Ok(()) => {
+                rosrust::ros_info!("control loop runs at SCHED_FIFO {}", p.realtime_priority);
+            }
+            Err(e) => {
+                rosrust::ros_warn!("control loop at normal priority: {e}");
+            }
+        }
+    }
     let rate = rosrust::rate(p.rate_hz);
     let status_period = if p.status_rate_hz > 0.0 {
         1.0 / p.status_rate_hz
