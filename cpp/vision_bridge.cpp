@@ -304,7 +304,7 @@ void pose_from_corners(const MarkerDetectorCpp::Impl &d, const cv::Mat &grey, in
 }  // namespace
 
 rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8_t> pixels, int width, int height,
-                                 int channels, int id, double size) {
+                                 int channels, int id, double size, rust::Slice<const int> roi) {
   auto &d = *det.impl;
   if (width != d.width || height != d.height)
     throw std::invalid_argument("image is " + std::to_string(width) + "x" + std::to_string(height) +
@@ -336,16 +336,30 @@ rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8
   } else {
     d.corners.clear();
     d.ids.clear();
-    if (d.decimate > 1) {
-      cv::resize(grey, d.small, cv::Size(width / d.decimate, height / d.decimate), 0, 0, cv::INTER_AREA);
+    // Search window (x, y, w, h in full-image px), aligned to the decimation; the whole
+    // frame when none is given or it is too small to hold a marker.
+    const int dec = d.decimate;
+    cv::Rect r(0, 0, width, height);
+    if (roi.size() == 4) {
+      cv::Rect w = cv::Rect(roi[0], roi[1], roi[2], roi[3]) & r;
+      w.x -= w.x % dec;
+      w.y -= w.y % dec;
+      w.width -= w.width % dec;
+      w.height -= w.height % dec;
+      if (w.width >= 24 * dec && w.height >= 24 * dec) r = w;
+    }
+    const cv::Mat sub = grey(r);
+    if (dec > 1) {
+      cv::resize(sub, d.small, cv::Size(r.width / dec, r.height / dec), 0, 0, cv::INTER_AREA);
       cv::aruco::detectMarkers(d.small, d.dict, d.corners, d.ids, d.params, d.rejected);
     } else {
-      cv::aruco::detectMarkers(grey, d.dict, d.corners, d.ids, d.params, d.rejected);
+      cv::aruco::detectMarkers(sub, d.dict, d.corners, d.ids, d.params, d.rejected);
     }
     for (size_t i = 0; i < d.ids.size(); ++i) {
       if (id >= 0 && d.ids[i] != id) continue;
       std::vector<cv::Point2d> px;
-      for (const auto &c : d.corners[i]) px.emplace_back(f * (c.x + 0.5) - 0.5, f * (c.y + 0.5) - 0.5);
+      for (const auto &c : d.corners[i])
+        px.emplace_back(r.x + f * (c.x + 0.5) - 0.5, r.y + f * (c.y + 0.5) - 0.5);
       pose_from_corners(d, grey, d.ids[i], size, px, out);
     }
   }

@@ -27,7 +27,7 @@ std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::S
 // Detect markers of `id` (-1: any) of side `size` metres. Output, 22 numbers per marker:
 // id, R row-major (9), t (3), corners TL TR BR BL (8: u0 v0 u1 v1 ...), RMS reprojection error px.
 rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8_t> pixels, int width, int height,
-                                 int channels, int id, double size);
+                                 int channels, int id, double size, rust::Slice<const int> roi);
 
 // Render a marker (family, id, side `size` m) centred on a textured square plane of side
 // `plane_size` m, seen from camera pose cMo (R row-major 9 + t 3), into a grey image.

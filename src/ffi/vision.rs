@@ -22,6 +22,8 @@ pub mod ffi {
         ) -> Result<UniquePtr<MarkerDetectorCpp>>;
 
         /// Detect markers; 22 numbers per marker (id, R 9, t 3, corners 8, rms px).
+        /// `roi` = x, y, w, h (full-image px) limits the ArUco search; empty = whole frame.
+        #[allow(clippy::too_many_arguments)]
         fn detect_markers(
             det: Pin<&mut MarkerDetectorCpp>,
             pixels: &[u8],
@@ -30,6 +32,7 @@ pub mod ffi {
             channels: i32,
             id: i32,
             size: f64,
+            roi: &[i32],
         ) -> Result<Vec<f64>>;
 
         /// Render a marker on a textured plane at camera pose cMo (R row-major + t).

@@ -6,7 +6,8 @@
 //! - `latency`: end-to-end latency from a camera image to the joint command that first uses
 //!   it. The trocar estimator stamps its pose with the image's stamp, and the controller
 //!   measures stamp -> command (DockingStatus `latency_*`); the check starts the controller,
-//!   lets it run, and asserts the 99th percentile below `max_latency_ms`.
+//!   lets it run, and asserts the median below `max_latency_p50_ms` and the 99th percentile
+//!   below `max_latency_ms`.
 //! - `bad_images`: the camera sends broken frames one kind at a time (an unsupported
 //!   encoding, a truncated buffer, a size that is not the camera_info's, NaN intrinsics, a
 //!   stamp far behind the arm's joint states): the estimator must publish no trocar pose from them, and must publish
@@ -183,6 +184,9 @@ pub fn latency(p: &CheckParams) -> Result<String, String> {
         "image -> command latency p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms at a {:.0} Hz control loop ({} steps, phase {})",
         s.latency_p50_ms, s.latency_p99_ms, s.latency_max_ms, s.loop_rate_hz, s.steps, s.phase
     );
+    if s.latency_p50_ms.is_nan() || s.latency_p50_ms > p.max_latency_p50_ms {
+        return Err(format!("{summary}: median above {} ms", p.max_latency_p50_ms));
+    }
     if s.latency_p99_ms.is_nan() || s.latency_p99_ms > p.max_latency_ms {
         return Err(format!("{summary}: p99 above {} ms", p.max_latency_ms));
     }

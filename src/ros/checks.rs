@@ -54,6 +54,8 @@ pub struct CheckParams {
     pub camera_rate_hz: f64,
     /// `latency`: the largest accepted 99th percentile of image -> command, ms.
     pub max_latency_ms: f64,
+    /// `latency`: the largest accepted median of image -> command, ms.
+    pub max_latency_p50_ms: f64,
 }
 
 impl Default for CheckParams {
@@ -78,6 +80,7 @@ impl Default for CheckParams {
             camera_calibration: String::new(),
             camera_rate_hz: 30.0,
             max_latency_ms: 10.0,
+            max_latency_p50_ms: 10.0,
         }
     }
 }

@@ -28,7 +28,8 @@ use crate::robot_model::LbrModel;
 use crate::timeline::JointHistory;
 use crate::vision::estimator::PoseYaml;
 use crate::vision::{
-    CameraModel, EstimateStatus, EstimatorParams, MarkerDetector, MarkerSpec, RgbImage, TrocarEstimator,
+    CameraModel, EstimateStatus, EstimatorParams, MarkerDetector, MarkerSpec, RgbImage, TrackingDetector,
+    TrocarEstimator,
 };
 
 /// Parameters of the node (its private namespace; `config/trocar_estimator.yaml`).
@@ -62,6 +63,9 @@ pub struct EstimatorNodeParams {
     pub marker: MarkerSpec,
     /// The estimator (hand-eye, marker-to-port offset, gates, filter, staleness).
     pub estimator: EstimatorParams,
+    /// After a detection, search the next frame only this many marker extents around it
+    /// (0 = always the whole frame); the whole frame is searched when it is not found there.
+    pub search_margin: f64,
     /// Joint states kept to pair with image stamps, s.
     pub joint_history_s: f64,
     /// Joint states farther apart than this are not interpolated between, s.
@@ -70,6 +74,10 @@ pub struct EstimatorNodeParams {
     pub max_joint_extrapolation_s: f64,
     /// How often the node logs its frame statistics, s (0 = never).
     pub report_period_s: f64,
+    /// Process images in the real-time class `SCHED_FIFO` at this priority (1..=99; needs
+    /// CAP_SYS_NICE or an rtprio limit); 0 = normal scheduling. If it cannot be had the node
+    /// warns and runs at normal priority.
+    pub realtime_priority: i32,
 }
 
 impl Default for EstimatorNodeParams {
@@ -88,10 +96,12 @@ impl Default for EstimatorNodeParams {
             hand_eye_file: String::new(),
             marker: MarkerSpec::default(),
             estimator: EstimatorParams::default(),
+            search_margin: 1.5,
             joint_history_s: 1.0,
             max_joint_gap_s: 0.05,
             max_joint_extrapolation_s: 0.02,
             report_period_s: 10.0,
+            realtime_priority: 0,
         }
     }
 }
@@ -152,7 +162,7 @@ struct FrameCounts {
 struct Pipeline {
     p: EstimatorNodeParams,
     flange: LbrKinematics,
-    detector: Option<MarkerDetector>,
+    detector: Option<TrackingDetector>,
     estimator: TrocarEstimator,
     last_stamp: Option<f64>,
     counts: FrameCounts,
@@ -189,17 +199,14 @@ impl Pipeline {
         }
         self.last_stamp = Some(stamp);
         let camera = camera.ok_or("no camera_info received yet")?;
-        if self.detector.as_ref().is_none_or(|d| d.camera() != camera) {
-            self.detector = Some(MarkerDetector::new(self.p.marker.clone(), camera).map_err(|e| e.to_string())?);
+        if self.detector.as_ref().is_none_or(|d| d.detector().camera() != camera) {
+            let d = MarkerDetector::new(self.p.marker.clone(), camera).map_err(|e| e.to_string())?;
+            self.detector = Some(TrackingDetector::new(d, self.p.search_margin));
         }
         let (pixels, channels, order) = image_msgs::image_pixels(img)?;
         let view = image_msgs::view(img, &pixels, channels).map_err(|e| e.to_string())?;
         let detector = self.detector.as_mut().ok_or("no detector")?;
-        let detection = detector
-            .detect(&view)
-            .map_err(|e| e.to_string())?
-            .into_iter()
-            .min_by(|a, b| a.reprojection_error_px.total_cmp(&b.reprojection_error_px));
+        let detection = detector.detect(&view).map_err(|e| e.to_string())?;
         let debug = if want_debug {
             let mut rgb = RgbImage::from_view(&view, order).map_err(|e| e.to_string())?;
             if let Some(d) = &detection {
@@ -312,8 +319,21 @@ pub fn run() -> Result<(), NodeError> {
     let _sub_image = {
         let (pipeline, camera, history) = (pipeline.clone(), camera.clone(), history.clone());
         let base_frame = p.base_frame.clone();
+        let priority = p.realtime_priority;
+        let realtime_set = std::sync::Once::new();
         // Queue of one: a slow frame never makes the next one stale.
         rosrust::subscribe(&p.image_topic, 1, move |img: sensor_msgs::Image| {
+            // rosrust runs this callback on its own thread: raise that thread once.
+            if priority != 0 {
+                realtime_set.call_once(|| match crate::realtime::set_realtime_priority(priority) {
+                    Ok(()) => {
+                        rosrust::ros_info!("image processing runs at SCHED_FIFO {priority}");
+                    }
+                    Err(e) => {
+                        rosrust::ros_warn!("image processing at normal priority: {e}");
+                    }
+                });
+            }
             let t0 = Instant::now();
             let age_ms = (convert::seconds(rosrust::now()) - convert::seconds(img.header.stamp)) * 1e3;
             let cam = lock(&camera).clone();
@@ -373,14 +393,15 @@ pub fn run() -> Result<(), NodeError> {
             let (c, lat, age) = (pl.counts, pl.processing.percentiles(), pl.arrival_age.percentiles());
             if c.frames > 0 {
                 rosrust::ros_info!(
-                    "trocar_estimator: {} frames, marker in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms",
+                    "trocar_estimator: {} frames, marker in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms, p99 {:.1} ms",
                     c.frames,
                     c.detected,
                     c.published,
                     lat.p50,
                     lat.p99,
                     lat.max,
-                    age.p50
+                    age.p50,
+                    age.p99
                 );
             }
             pl.counts = FrameCounts::default();

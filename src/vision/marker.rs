@@ -213,6 +213,17 @@ impl MarkerDetector {
     /// Detect markers of the spec in `image` (grey or RGB8, the camera's size). No marker ->
     /// an empty vector; a wrong size or a malformed buffer -> an error.
     pub fn detect(&mut self, image: &ImageView<'_>) -> Result<Vec<MarkerDetection>, VisionError> {
+        self.detect_in(image, None)
+    }
+
+    /// As [`MarkerDetector::detect`], searching only the window `roi` = x, y, width, height
+    /// (px) for ArUco markers (corners are still refined and reported in full-image pixels);
+    /// AprilTag, and a window too small to hold a marker, search the whole frame.
+    pub fn detect_in(
+        &mut self,
+        image: &ImageView<'_>,
+        roi: Option<[u32; 4]>,
+    ) -> Result<Vec<MarkerDetection>, VisionError> {
         image.validate()?;
         if image.width != self.camera.width || image.height != self.camera.height {
             return Err(VisionError::InvalidInput(format!(
@@ -221,6 +232,9 @@ impl MarkerDetector {
             )));
         }
         let id = self.spec.id.map_or(-1, |i| i as i32);
+        let window: Vec<i32> = roi
+            .map(|r| r.iter().map(|&v| v.min(i32::MAX as u32) as i32).collect())
+            .unwrap_or_default();
         let pinned = self
             .inner
             .as_mut()
@@ -233,11 +247,74 @@ impl MarkerDetector {
             image.channels as i32,
             id,
             self.spec.size,
+            &window,
         )?;
         Ok(rec
             .chunks_exact(DETECTION_RECORD_LEN)
             .filter_map(parse_record)
             .collect())
+    }
+}
+
+/// The window around `corners` grown by `margin` times the marker's pixel extent on every
+/// side, clipped to a `width` x `height` image: where the marker will be in the next frame.
+pub fn search_window(corners: &[[f64; 2]; 4], margin: f64, width: u32, height: u32) -> Option<[u32; 4]> {
+    if corners.iter().flatten().any(|v| !v.is_finite()) || !(margin.is_finite() && margin >= 0.0) {
+        return None;
+    }
+    let (mut x0, mut y0, mut x1, mut y1) = (f64::MAX, f64::MAX, f64::MIN, f64::MIN);
+    for [x, y] in corners {
+        (x0, y0, x1, y1) = (x0.min(*x), y0.min(*y), x1.max(*x), y1.max(*y));
+    }
+    let grow = margin * (x1 - x0).max(y1 - y0);
+    let clip = |v: f64, hi: u32| v.clamp(0.0, f64::from(hi)) as u32;
+    let (ax, ay) = (clip(x0 - grow, width), clip(y0 - grow, height));
+    let (bx, by) = (clip((x1 + grow).ceil(), width), clip((y1 + grow).ceil(), height));
+    (bx > ax && by > ay).then(|| [ax, ay, bx - ax, by - ay])
+}
+
+/// A detector that follows the marker: after a detection it searches the next frame near
+/// the last one (a fraction of the frame: less work, and a shorter latency tail), and the
+/// whole frame when the marker is not found there or was lost.
+#[derive(Debug)]
+pub struct TrackingDetector {
+    detector: MarkerDetector,
+    margin: f64,
+    last: Option<[[f64; 2]; 4]>,
+}
+
+impl TrackingDetector {
+    /// Track with a search window `margin` marker extents wide around the last detection
+    /// (0 = always search the whole frame).
+    pub fn new(detector: MarkerDetector, margin: f64) -> Self {
+        Self {
+            detector,
+            margin: if margin.is_finite() { margin.max(0.0) } else { 0.0 },
+            last: None,
+        }
+    }
+
+    /// The detector.
+    pub fn detector(&self) -> &MarkerDetector {
+        &self.detector
+    }
+
+    /// The best detection in `image` (lowest reprojection error), if any.
+    pub fn detect(&mut self, image: &ImageView<'_>) -> Result<Option<MarkerDetection>, VisionError> {
+        let window = match (self.last, self.margin > 0.0) {
+            (Some(c), true) => search_window(&c, self.margin, image.width, image.height),
+            _ => None,
+        };
+        let best = |v: Vec<MarkerDetection>| {
+            v.into_iter()
+                .min_by(|a, b| a.reprojection_error_px.total_cmp(&b.reprojection_error_px))
+        };
+        let mut found = best(self.detector.detect_in(image, window)?);
+        if found.is_none() && window.is_some() {
+            found = best(self.detector.detect_in(image, None)?);
+        }
+        self.last = found.as_ref().map(|d| d.corners);
+        Ok(found)
     }
 }
 
@@ -276,6 +353,18 @@ mod tests {
         assert_eq!("tag36h11".parse::<MarkerFamily>().unwrap(), MarkerFamily::Tag36h11);
         assert!("DICT_9X9_50".parse::<MarkerFamily>().is_err());
         assert_eq!(MarkerFamily::Aruco("DICT_ARUCO_ORIGINAL".into()).id_count(), 1024);
+    }
+
+    #[test]
+    fn search_windows_grow_and_clip() {
+        let c = [[100.0, 100.0], [140.0, 100.0], [140.0, 130.0], [100.0, 130.0]];
+        assert_eq!(search_window(&c, 1.0, 640, 360), Some([60, 60, 120, 110]));
+        assert_eq!(search_window(&c, 5.0, 640, 360), Some([0, 0, 340, 330]));
+        let mut bad = c;
+        bad[2][0] = f64::NAN;
+        assert_eq!(search_window(&bad, 1.0, 640, 360), None);
+        let outside = [[700.0, 400.0], [710.0, 400.0], [710.0, 410.0], [700.0, 410.0]];
+        assert_eq!(search_window(&outside, 0.5, 640, 360), None);
     }
 
     #[test]

@@ -16,7 +16,7 @@ pub mod render;
 pub use camera::CameraModel;
 pub use estimator::{EstimateStatus, EstimatorParams, TrocarEstimate, TrocarEstimator};
 pub use image::{GreyImage, ImageView};
-pub use marker::{MarkerDetection, MarkerDetector, MarkerFamily, MarkerSpec};
+pub use marker::{search_window, MarkerDetection, MarkerDetector, MarkerFamily, MarkerSpec, TrackingDetector};
 pub use overlay::{ChannelOrder, RgbImage};
 pub use render::{facing_pose, render_marker_image, RenderOptions};
 
