@@ -114,7 +114,7 @@ fn play(
             let now = rosrust::now();
             let _ = js.send(convert::joint_state(now, &names, &q0, &zeros));
             let _ = lbr.send(convert::lbr_state(now, 0.002, &q0, &zeros, &zeros));
-            if k % every == 0 {
+            if k.is_multiple_of(every) {
                 let f = fault.lock().map(|f| *f).unwrap_or(CameraFault::None);
                 // Stamped as it leaves: the camera itself adds no latency.
                 let (i, m) = camera_messages(f, &camera, &frame, rosrust::now());
