@@ -250,7 +250,7 @@ mod tests {
             trocar: Some(Isometry3::translation(0.5, 0.0, 0.3)),
             goal: Some(Point3::new(0.5, 0.0, 0.33)),
             tip: Some(Isometry3::translation(0.5, 0.0, 0.2)),
-            f_ext: Vector3::new(0.0, 0.0, -1.5),
+            f_ext: Vector3::new(0.0, 0.0, -0.8),
             reference: Some(Point3::new(0.5, 0.0, 0.21)),
         };
         let style = MarkerStyle::default();
@@ -262,9 +262,9 @@ mod tests {
             .iter()
             .all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
         let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
-        assert!((force.points[1].z - (0.2 - 1.5 * style.force_scale)).abs() < 1e-12);
+        assert!((force.points[1].z - (0.2 - 0.8 * style.force_scale)).abs() < 1e-12);
         let label = a.markers.iter().find(|m| m.id == Id::ForceLabel as i32).unwrap();
-        assert_eq!(label.text, "|f_ext| 1.50 N");
+        assert_eq!(label.text, "|f_ext| 0.80 N");
         // A large force is drawn at the longest length, pointing the same way.
         let big = Scene {
             f_ext: Vector3::new(0.0, 0.0, -50.0),
