@@ -71,6 +71,21 @@ impl Throttle {
     }
 }
 
+/// The `main` of a node binary: connect to the master as `name`, run `run`, and exit with
+/// 2 when there is no master, 1 (with the error logged and printed) when `run` fails.
+pub fn node_main(name: &str, run: fn() -> Result<(), NodeError>) -> ! {
+    if let Err(e) = rosrust::try_init(name) {
+        eprintln!("{name}: cannot reach the ROS master: {e}");
+        std::process::exit(2);
+    }
+    if let Err(e) = run() {
+        rosrust::ros_err!("{name}: {e}");
+        eprintln!("{name}: {e}");
+        std::process::exit(1);
+    }
+    std::process::exit(0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
