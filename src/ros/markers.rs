@@ -47,8 +47,8 @@ impl Default for MarkerStyle {
         Self {
             axis_length: 0.15,
             optical_axis_length: 0.08,
-            force_scale: 0.1,
-            force_max_length: 0.12,
+            force_scale: 0.2,
+            force_max_length: 0.15,
             sphere: 0.012,
             trocar_diameter: 0.012,
             trocar_length: 0.05,
@@ -203,7 +203,10 @@ pub fn docking_markers(
             let len = (f.norm() * style.force_scale).min(style.force_max_length);
             if f.iter().all(|x| x.is_finite()) && len > 1e-3 {
                 let to = at + f.normalize() * len;
-                markers.push(arrow(stamp, frame, Id::Force, at, to, color(1.0, 0.1, 0.1)));
+                let mut a = arrow(stamp, frame, Id::Force, at, to, color(1.0, 0.1, 0.1));
+                // Thicker than the geometry arrows: the force is what the surgeon watches.
+                (a.scale.x, a.scale.y, a.scale.z) = (0.007, 0.014, 0.02);
+                markers.push(a);
                 let mut label = base(
                     stamp,
                     frame,
@@ -250,7 +253,7 @@ mod tests {
             trocar: Some(Isometry3::translation(0.5, 0.0, 0.3)),
             goal: Some(Point3::new(0.5, 0.0, 0.33)),
             tip: Some(Isometry3::translation(0.5, 0.0, 0.2)),
-            f_ext: Vector3::new(0.0, 0.0, -0.8),
+            f_ext: Vector3::new(0.0, 0.0, -0.5),
             reference: Some(Point3::new(0.5, 0.0, 0.21)),
         };
         let style = MarkerStyle::default();
@@ -262,9 +265,9 @@ mod tests {
             .iter()
             .all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
         let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
-        assert!((force.points[1].z - (0.2 - 0.8 * style.force_scale)).abs() < 1e-12);
+        assert!((force.points[1].z - (0.2 - 0.5 * style.force_scale)).abs() < 1e-12);
         let label = a.markers.iter().find(|m| m.id == Id::ForceLabel as i32).unwrap();
-        assert_eq!(label.text, "|f_ext| 0.80 N");
+        assert_eq!(label.text, "|f_ext| 0.50 N");
         // A large force is drawn at the longest length, pointing the same way.
         let big = Scene {
             f_ext: Vector3::new(0.0, 0.0, -50.0),
