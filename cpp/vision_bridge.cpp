@@ -19,6 +19,8 @@
 #include <visp3/core/vpImage.h>
 #include <visp3/core/vpPoint.h>
 #include <visp3/detection/vpDetectorAprilTag.h>
+
+#include <omp.h>
 #include <visp3/vision/vpHandEyeCalibration.h>
 #include <visp3/vision/vpPose.h>
 
