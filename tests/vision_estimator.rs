@@ -146,3 +146,21 @@ fn shipped_config_parses() {
     let p = EstimatorParams::from_yaml_file(&path).unwrap();
     assert_eq!(p, EstimatorParams::default());
 }
+
+#[test]
+fn marker_in_camera_inverts_the_estimator_chain() {
+    let est = TrocarEstimator::new(EstimatorParams::default()).unwrap();
+    let p = EstimatorParams::default();
+    let (fc, mt) = (
+        p.flange_t_camera.to_isometry().unwrap(),
+        p.marker_t_trocar.to_isometry().unwrap(),
+    );
+    let trocar = Isometry3::from_parts(
+        Translation3::new(0.6, -0.05, 0.2),
+        UnitQuaternion::from_euler_angles(2.9, 0.1, 0.3),
+    );
+    let seen = trocar_docking::vision::estimator::marker_in_camera(&flange(), &fc, &trocar, &mt);
+    let back = est.measurement_in_base(&flange(), &seen);
+    let (dt, dr) = trocar_docking::vision::pose_distance(&back, &trocar);
+    assert!(dt < 1e-12 && dr < 1e-9, "{dt} m, {dr} rad");
+}

@@ -25,6 +25,7 @@ use super::image_msgs;
 use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::robot_model::{LbrModel, ToolParams};
+use crate::vision::estimator::marker_in_camera;
 use crate::vision::{render_marker_image, CameraModel, EstimatorParams, MarkerSpec, RenderOptions};
 
 /// One camera frame: the marker seen from the arm at `q0` with the nominal mount, for a
@@ -40,8 +41,8 @@ fn camera_frame(camera: &CameraModel, q0: &JointVector) -> Result<Vec<u8>, Strin
     let nominal = EstimatorParams::default();
     let flange_t_camera = nominal.flange_t_camera.to_isometry().map_err(|e| e.to_string())?;
     let marker_t_trocar = nominal.marker_t_trocar.to_isometry().map_err(|e| e.to_string())?;
-    let base_t_camera = flange_kin.fk(q0).map_err(|e| e.to_string())? * flange_t_camera;
-    let camera_t_marker = base_t_camera.inverse() * trocar * marker_t_trocar.inverse();
+    let base_t_flange = flange_kin.fk(q0).map_err(|e| e.to_string())?;
+    let camera_t_marker = marker_in_camera(&base_t_flange, &flange_t_camera, &trocar, &marker_t_trocar);
     let opts = RenderOptions {
         plane_scale: 1.6,
         noise_sigma: 2.0,

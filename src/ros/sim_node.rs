@@ -18,7 +18,7 @@ use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::robot_model::{LbrModel, ToolParams};
 use crate::sim::config::SimConfig;
 use crate::sim::SimWorld;
-use crate::vision::estimator::PoseYaml;
+use crate::vision::estimator::{marker_in_camera, PoseYaml};
 use crate::vision::render::add_gaussian_noise;
 use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions};
 
@@ -132,7 +132,7 @@ struct SimCamera {
     jobs: std::sync::mpsc::SyncSender<CameraJob>,
     flange_kin: LbrKinematics,
     flange_t_camera: Isometry3<f64>,
-    trocar_t_marker: Isometry3<f64>,
+    marker_t_trocar: Isometry3<f64>,
     seq: u64,
 }
 
@@ -153,11 +153,10 @@ impl SimCamera {
             .flange_t_camera
             .to_isometry()
             .map_err(|e| invalid("flange_t_camera", &e))?;
-        let trocar_t_marker = c
+        let marker_t_trocar = c
             .marker_t_trocar
             .to_isometry()
-            .map_err(|e| invalid("marker_t_trocar", &e))?
-            .inverse();
+            .map_err(|e| invalid("marker_t_trocar", &e))?;
         let opts = RenderOptions {
             blur_sigma: c.blur_sigma,
             plane_scale: c.plane_scale,
@@ -204,7 +203,7 @@ impl SimCamera {
             jobs: tx,
             flange_kin: LbrKinematics::from_model_or_file(p.model, "", FLANGE_LINK)?,
             flange_t_camera,
-            trocar_t_marker,
+            marker_t_trocar,
             seq: 0,
         })
     }
@@ -214,8 +213,12 @@ impl SimCamera {
         let Ok(base_t_flange) = self.flange_kin.fk(&world.joint_positions()) else {
             return;
         };
-        let base_t_camera = base_t_flange * self.flange_t_camera;
-        let camera_t_marker = base_t_camera.inverse() * world.trocar_pose_true() * self.trocar_t_marker;
+        let camera_t_marker = marker_in_camera(
+            &base_t_flange,
+            &self.flange_t_camera,
+            &world.trocar_pose_true(),
+            &self.marker_t_trocar,
+        );
         self.seq += 1;
         let _ = self.jobs.try_send(CameraJob {
             stamp,

@@ -292,6 +292,18 @@ impl TrocarEstimator {
     }
 }
 
+/// The inverse of the estimator's chain: where a camera on the flange sees the marker of a
+/// trocar at `base_t_trocar` (what a simulated camera renders).
+/// camera_T_marker = (base_T_flange * flange_T_camera)^-1 * base_T_trocar * marker_T_trocar^-1.
+pub fn marker_in_camera(
+    base_t_flange: &Isometry3<f64>,
+    flange_t_camera: &Isometry3<f64>,
+    base_t_trocar: &Isometry3<f64>,
+    marker_t_trocar: &Isometry3<f64>,
+) -> Isometry3<f64> {
+    (base_t_flange * flange_t_camera).inverse() * base_t_trocar * marker_t_trocar.inverse()
+}
+
 fn finite_pose(p: &Isometry3<f64>) -> bool {
     p.translation.vector.iter().all(|v| v.is_finite()) && p.rotation.coords.iter().all(|v| v.is_finite())
 }
