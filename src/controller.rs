@@ -226,6 +226,8 @@ pub struct ControlOutput {
     pub iterations: usize,
     /// Interior-point iterations this step, over all its QPs.
     pub qp_iterations: u32,
+    /// QPs of this step solved by Clarabel (the others from a proven active set).
+    pub clarabel_qps: usize,
     /// SQP wall time, µs.
     pub solve_time_us: f64,
     /// SQP status text ("converged", "iteration_limit", "time_budget",
@@ -345,6 +347,7 @@ impl Controller {
             costs: [f64::NAN; 5],
             iterations: 0,
             qp_iterations: 0,
+            clarabel_qps: 0,
             solve_time_us: 0.0,
             solver_status: "not_run".into(),
             f_ext: self.admittance.force(),
@@ -595,6 +598,7 @@ impl Controller {
         out.costs = sol.costs;
         out.iterations = sol.iterations;
         out.qp_iterations = sol.qp_iterations;
+        out.clarabel_qps = sol.clarabel_qps;
         out.solve_time_us = sol.solve_time_us;
         out.solver_status = sol.status.as_text();
         out.reference = reference;

@@ -69,6 +69,8 @@ pub struct ScenarioSamples {
     pub iterations: Vec<usize>,
     /// Interior-point iterations in each step, over all its QPs.
     pub qp_iterations: Vec<u32>,
+    /// QPs of each step that Clarabel solved (the others from a proven active set).
+    pub clarabel_qps: Vec<usize>,
     /// Steps whose SQP stopped at its time budget.
     pub time_budget_steps: usize,
     /// Steps whose SQP stopped at its interior-point iteration budget.
@@ -93,6 +95,7 @@ pub fn run_scenario(
         cpu_us: Vec::with_capacity(steps),
         iterations: Vec::with_capacity(steps),
         qp_iterations: Vec::with_capacity(steps),
+        clarabel_qps: Vec::with_capacity(steps),
         ..Default::default()
     };
     let mut now = 0.0;
@@ -133,6 +136,7 @@ pub fn run_scenario(
         s.cpu_us.push(cpu);
         s.iterations.push(out.iterations);
         s.qp_iterations.push(out.qp_iterations);
+        s.clarabel_qps.push(out.clarabel_qps);
         s.time_budget_steps += usize::from(out.solver_status == SqpStatus::TimeBudget.as_text());
         s.qp_iteration_budget_steps += usize::from(out.solver_status == SqpStatus::QpIterationBudget.as_text());
         q = out.command.unwrap_or(q);
@@ -177,6 +181,29 @@ pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Opt
     put("max_iterations", serde_json::json!(iterations.iter().max()));
     put("mean_qp_iterations", serde_json::json!(mean(&s.qp_iterations)));
     put("max_qp_iterations", serde_json::json!(s.qp_iterations.iter().max()));
+    let clarabel_qps: Vec<u32> = s
+        .clarabel_qps
+        .iter()
+        .map(|i| u32::try_from(*i).unwrap_or(u32::MAX))
+        .collect();
+    put("mean_clarabel_qps", serde_json::json!(mean(&clarabel_qps)));
+    // The steps where Clarabel solved at least one QP, timed apart: the warm start's
+    // misses, the slow tail of the distribution.
+    let with_clarabel: Vec<f64> = s
+        .wall_us
+        .iter()
+        .zip(&s.clarabel_qps)
+        .filter(|(_, c)| **c > 0)
+        .map(|(t, _)| *t)
+        .collect();
+    put(
+        "clarabel_steps",
+        serde_json::json!({"count": with_clarabel.len(), "wall": LatencyStats::from_samples(&with_clarabel)}),
+    );
+    put(
+        "sqp_active_set_warm_start",
+        serde_json::json!(params.sqp.active_set_warm_start),
+    );
     put("time_budget_steps", serde_json::json!(s.time_budget_steps));
     put(
         "qp_iteration_budget_steps",
@@ -194,6 +221,7 @@ pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Opt
             "cpu_us": s.cpu_us.get(worst),
             "iterations": s.iterations.get(worst),
             "qp_iterations": s.qp_iterations.get(worst),
+            "clarabel_qps": s.clarabel_qps.get(worst),
         }),
     );
     put("warmup_steps_excluded", serde_json::json!(0));
@@ -220,4 +248,42 @@ pub fn run(n: usize, params: &ControllerParams) -> Result<Vec<SuiteReport>, Stri
         out.extend(report(scenario.name(), params, &samples));
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn figure(r: &SuiteReport, key: &str) -> f64 {
+        r.extra[key]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{key} in {:?}", r.extra))
+    }
+
+    #[test]
+    fn reports_both_scenarios_with_the_solvers_work() {
+        let params = ControllerParams::default();
+        let reports = run(200, &params).unwrap();
+        let names: Vec<&str> = reports.iter().map(|r| r.name.as_str()).collect();
+        assert_eq!(names, [Scenario::Approach.name(), Scenario::Oscillating.name()]);
+        for r in &reports {
+            assert_eq!(r.latency.samples, 200);
+            assert!(r.latency.median_us > 0.0 && r.latency.median_us <= r.latency.max_us);
+            let qps = figure(r, "mean_iterations");
+            assert!((1.0..=3.0).contains(&qps), "{qps}");
+            // With the warm start most QPs never reach Clarabel.
+            let clarabel = figure(r, "mean_clarabel_qps");
+            assert!(clarabel < 0.5 * qps, "{clarabel} of {qps}");
+            let n = r.extra["clarabel_steps"]["count"].as_u64().unwrap();
+            assert!(n > 0 && n < 200, "{n}");
+        }
+        // Without it Clarabel solves every QP, in every step.
+        let mut cold = params.clone();
+        cold.sqp.active_set_warm_start = false;
+        for r in run(50, &cold).unwrap() {
+            assert_eq!(figure(&r, "mean_clarabel_qps"), figure(&r, "mean_iterations"));
+            assert_eq!(r.extra["clarabel_steps"]["count"].as_u64(), Some(50));
+            assert!(figure(&r, "mean_qp_iterations") > 3.0);
+        }
+    }
 }
