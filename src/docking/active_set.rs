@@ -60,6 +60,10 @@ pub fn certify(
     set: &ActiveSet,
 ) -> Option<JointVector> {
     let n = N_JOINTS;
+    // An empty box has no solution to certify (Clarabel reports it infeasible).
+    if !(0..n).all(|i| lo[i] <= hi[i]) {
+        return None;
+    }
     let fixed = |i: usize| match set[i] {
         Bound::Free => None,
         Bound::Lower => Some(lo[i]),
@@ -200,6 +204,16 @@ mod tests {
         g[3] = f64::NAN;
         let (lo, hi) = (JointVector::from_element(-1.0), JointVector::from_element(1.0));
         assert!(solve_from_guesses(&h, &g, &lo, &hi, &NONE_ACTIVE).is_none());
+        // An empty box: no guess is proven, whatever it fixes.
+        let (mut lo2, mut hi2) = (lo, hi);
+        lo2[2] = 0.2;
+        hi2[2] = 0.1;
+        for b in [Bound::Free, Bound::Lower, Bound::Upper] {
+            let mut set = NONE_ACTIVE;
+            set[2] = b;
+            assert!(certify(&Matrix7::identity(), &JointVector::zeros(), &lo2, &hi2, &set).is_none());
+        }
+        assert!(solve_from_guesses(&Matrix7::identity(), &JointVector::zeros(), &lo2, &hi2, &NONE_ACTIVE).is_none());
         // Not positive definite.
         let h = -Matrix7::identity();
         assert!(solve_from_guesses(&h, &JointVector::zeros(), &lo, &hi, &NONE_ACTIVE).is_none());

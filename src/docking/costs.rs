@@ -15,7 +15,7 @@
 //! ||e - r||; its gradient is undefined at e = r and its Hessian unbounded near it, which
 //! breaks a Gauss–Newton model exactly where the tip follows r closely. The squared form is
 //! smooth, and the weight w5 sets the same trade-off. Linearising e and a about q_lin
-//! (e ≈ e0 + J_v dq, a ≈ a0 - [a0]x J_w dq) turns the weighted sum into
+//! (`e ≈ e0 + J_v dq`, `a ≈ a0 - [a0]x J_w dq`) turns the weighted sum into
 //! ½ dq^T H dq + g^T dq + const.
 
 use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, Vector3};

@@ -8,6 +8,15 @@
 //! sparsity (dense upper-triangular H, A = [I; -I]) and only its data is updated per solve,
 //! so a solve allocates nothing of its own beyond what Clarabel does internally.
 //!
+//! **Active-set warm start** ([`SqpSettings::active_set_warm_start`], on by default). An
+//! interior-point solver cannot start from a known solution, but consecutive QPs of a
+//! control loop nearly always share their active set: no bound, or the same joints at
+//! their velocity limit. So each QP first tries the last QP's active set, then the bounds
+//! its unconstrained minimiser crosses ([`super::active_set`]); a guess is taken only when
+//! the QP's KKT conditions prove it the exact solution, and Clarabel solves every QP no
+//! guess settles. In the benchmark and the simulated trials Clarabel then solves about 1 %
+//! of the QPs, and a step costs a few microseconds instead of about 70.
+//!
 //! **Bounded work per step.** Besides the cap on QPs and on interior-point iterations per
 //! QP, a solve has two budgets:
 //! - [`SqpSettings::max_total_qp_iterations`], interior-point iterations over all its QPs:
