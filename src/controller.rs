@@ -13,7 +13,8 @@
 //! along the axis to the goal depth with c1 keeping the tip on the axis; the axial force
 //! slows the advance but never stops it, and the lateral force moves r so the tip yields
 //! sideways (see [`crate::admittance`]). DONE when the tip is within the position and angle
-//! tolerance of the goal.
+//! tolerance of the goal, or when it has settled at the goal depth held off the estimated
+//! axis by the port itself (a biased trocar estimate; see [`crate::seated`]).
 //!
 //! **Linearisation point.** The SQP starts from the previous command, not the measured
 //! position: the command is what the position-controlled arm tracks, the velocity box is
@@ -31,6 +32,7 @@ use crate::geometry::{pose_is_finite, InsertionAxis};
 use crate::kinematics::{JointLimits, JointVector, Kinematics};
 use crate::metrics::ForceMetric;
 use crate::safety::{CommandGuard, GuardParams, HoldReason};
+use crate::seated::{SeatedCheck, SeatedParams, TipState};
 pub use crate::supervisor::Phase;
 use crate::supervisor::Supervisor;
 
@@ -73,6 +75,9 @@ pub struct ControllerParams {
     pub goal_tolerance: f64,
     /// ... and the optical axis within this angle, deg.
     pub goal_angle_tolerance_deg: f64,
+    /// DONE also for a scope seated in the port beside a biased trocar estimate; see
+    /// [`crate::seated`].
+    pub seated: SeatedParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant: f64,
     /// Hold when external torques are missing or stale (force monitoring blind).
@@ -121,6 +126,7 @@ impl Default for ControllerParams {
             approach_angle_tolerance_deg: 1.0,
             goal_tolerance: 0.001,
             goal_angle_tolerance_deg: 0.5,
+            seated: SeatedParams::default(),
             trocar_filter_time_constant: 0.0,
             require_torques: true,
             retreat_distance: 0.0,
@@ -172,6 +178,7 @@ impl ControllerParams {
         pos("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
         pos("goal_tolerance", self.goal_tolerance)?;
         pos("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
+        self.seated.validate()?;
         nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
         nonneg("retreat_distance", self.retreat_distance)?;
         nonneg("limit_avoidance_weight", self.limit_avoidance_weight)?;
@@ -261,6 +268,7 @@ pub struct Controller {
     insert_s: f64,
     /// Time spent at the stand-off point without the alignment, s.
     stalled_for: f64,
+    seated: SeatedCheck,
     /// Retreat after a force stop: (current target depth, final depth); NaN = not begun.
     retreat_s: Option<(f64, f64)>,
 }
@@ -288,6 +296,7 @@ impl Controller {
             target: None,
             insert_s: 0.0,
             stalled_for: 0.0,
+            seated: SeatedCheck::default(),
             retreat_s: None,
         })
     }
@@ -332,6 +341,7 @@ impl Controller {
         self.target = None;
         self.retreat_s = None;
         self.trocar_filtered = None;
+        self.seated.reset();
     }
 
     /// The force metric so far.
@@ -586,12 +596,27 @@ impl Controller {
                     }
                 }
             }
-            Phase::Insert
-                if (tip_p - goal).norm() < p.goal_tolerance && angle < p.goal_angle_tolerance_deg.to_radians() =>
-            {
-                self.supervisor.goal_reached();
+            Phase::Insert => {
+                if (tip_p - goal).norm() < p.goal_tolerance && angle < p.goal_angle_tolerance_deg.to_radians() {
+                    self.supervisor.goal_reached(None);
+                } else {
+                    let state = TipState {
+                        tip: tip_p,
+                        optical_axis: tip.rotation * Vector3::z(),
+                        force: f,
+                    };
+                    let seated = self
+                        .seated
+                        .update(&p.seated, &axis, p.insertion_depth, p.goal_tolerance, &state, dt);
+                    if let Some(s) = seated {
+                        self.supervisor.goal_reached(Some(s.describe()));
+                    }
+                }
             }
             _ => {}
+        }
+        if self.supervisor.phase() != Phase::Insert {
+            self.seated.reset();
         }
 
         let mut out = self.output(Some(out_cmd), tip, goal);

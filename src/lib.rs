@@ -20,6 +20,7 @@ pub mod realtime;
 pub mod robot_model;
 pub mod ros;
 pub mod safety;
+pub mod seated;
 pub mod sim;
 pub mod supervisor;
 pub mod timeline;

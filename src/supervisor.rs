@@ -81,7 +81,8 @@ impl Supervisor {
         self.phase
     }
 
-    /// The reason of the last hold or abort.
+    /// The reason of the last hold or abort, or how DONE was reached (see
+    /// [`Supervisor::goal_reached`]).
     pub fn reason(&self) -> Option<&str> {
         self.reason.as_deref()
     }
@@ -153,10 +154,12 @@ impl Supervisor {
         }
     }
 
-    /// The goal is reached: INSERT -> DONE.
-    pub fn goal_reached(&mut self) {
+    /// The goal is reached: INSERT -> DONE. `note` says how, when not plainly at the goal;
+    /// it replaces the reason of any earlier hold.
+    pub fn goal_reached(&mut self, note: Option<String>) {
         if self.phase == Phase::Insert {
             self.phase = Phase::Done;
+            self.reason = note;
         }
     }
 }
@@ -170,16 +173,19 @@ mod tests {
         let mut s = Supervisor::new();
         assert_eq!(s.phase(), Phase::Idle);
         s.approach_reached();
-        s.goal_reached();
+        s.goal_reached(None);
         assert_eq!(s.phase(), Phase::Idle, "nothing happens before start");
         s.start().unwrap();
         assert_eq!(s.phase(), Phase::Approach);
-        s.goal_reached();
+        s.goal_reached(None);
         assert_eq!(s.phase(), Phase::Approach, "no skipping the insertion");
         s.approach_reached();
         assert_eq!(s.phase(), Phase::Insert);
-        s.goal_reached();
+        s.hold("trocar pose stale".into(), false);
+        s.clear_hold();
+        s.goal_reached(Some("seated".into()));
         assert_eq!(s.phase(), Phase::Done);
+        assert_eq!(s.reason(), Some("seated"), "the note replaces the old hold's reason");
         assert!(s.start().is_err());
         s.reset();
         assert_eq!(s.phase(), Phase::Idle);

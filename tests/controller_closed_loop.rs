@@ -155,27 +155,38 @@ fn never_crosses_the_port_before_alignment() {
     }
 }
 
-/// Insertion in contact: the port seen by the camera is 1.5 mm beside the true port, whose
-/// wall pushes the tip towards the true axis (2000 N/m) and whose seal resists insertion
-/// with 2 N of axial friction. Returns (final depth along the perceived axis, distance of
-/// the tip from the true axis, largest contact force, whether the run held).
-fn insert_in_contact(force_feedback: bool) -> (f64, f64, f64, bool) {
+/// How a run in contact ended.
+struct ContactRun {
+    /// Final depth along the perceived axis, m.
+    depth: f64,
+    /// Final distance of the tip from the true axis, m.
+    off_true: f64,
+    /// Largest contact force, N.
+    f_max: f64,
+    /// Whether the run held at some step.
+    held: bool,
+    /// The last step's phase and reason.
+    phase: Phase,
+    reason: Option<String>,
+}
+
+/// Insertion in contact: the port seen by the camera is `bias` m beside the true port,
+/// whose wall pushes the tip towards the true axis (2000 N/m) and whose seal resists
+/// insertion with 2 N of axial friction; 800 steps of 10 ms.
+fn insert_in_contact(params: ControllerParams, bias: f64) -> ContactRun {
     let kin = kin();
     let (mut q, seen) = scenario(&kin, 20.0, Vector3::new(0.3, 1.0, 0.0));
     let axis = InsertionAxis::from_pose(&seen);
     let side = axis.direction.cross(&Vector3::z()).normalize();
     let truth = InsertionAxis::from_pose(&Isometry3::from_parts(
-        Translation3::from(seen.translation.vector + side * 0.0015),
+        Translation3::from(seen.translation.vector + side * bias),
         seen.rotation,
     ));
-    let params = ControllerParams {
-        force_feedback,
-        ..Default::default()
-    };
     let mut c = Controller::new(params.clone(), kin.limits().clone()).unwrap();
     c.start().unwrap();
     let mut f_max: f64 = 0.0;
     let mut held = false;
+    let mut last = None;
     for k in 1..=800 {
         let now = k as f64 * params.dt;
         let (tip, jac) = kin.fk_jacobian(&q).unwrap();
@@ -199,16 +210,34 @@ fn insert_in_contact(force_feedback: bool) -> (f64, f64, f64, bool) {
         let out = c.step(&kin, &input);
         held |= out.phase == Phase::Hold;
         q = out.command.expect("a command while running");
+        last = Some((out.phase, out.reason));
     }
     let tip = Point3::from(kin.fk(&q).unwrap().translation.vector);
-    (axis.depth_of(&tip), truth.distance_to_axis(&tip), f_max, held)
+    let (phase, reason) = last.unwrap();
+    ContactRun {
+        depth: axis.depth_of(&tip),
+        off_true: truth.distance_to_axis(&tip),
+        f_max,
+        held,
+        phase,
+        reason,
+    }
+}
+
+fn with_ff(force_feedback: bool) -> ControllerParams {
+    ControllerParams {
+        force_feedback,
+        ..Default::default()
+    }
 }
 
 #[test]
 fn keeps_inserting_while_yielding_across_the_axis() {
     let depth = ControllerParams::default().insertion_depth;
-    let (d_ff, off_ff, f_ff, held_ff) = insert_in_contact(true);
-    let (d_no, off_no, _, held_no) = insert_in_contact(false);
+    let ff = insert_in_contact(with_ff(true), 0.0015);
+    let no = insert_in_contact(with_ff(false), 0.0015);
+    let (d_ff, off_ff, f_ff, held_ff) = (ff.depth, ff.off_true, ff.f_max, ff.held);
+    let (d_no, off_no, held_no) = (no.depth, no.off_true, no.held);
     eprintln!(
         "contact: FF depth {:.1} mm, {:.2} mm off the true axis, max {f_ff:.1} N; \
          no FF depth {:.1} mm, {:.2} mm off",
@@ -227,4 +256,32 @@ fn keeps_inserting_while_yielding_across_the_axis() {
         "without FF the tip should stay on the seen axis: {off_no}"
     );
     assert!(off_ff < off_no - 0.0003, "FF did not yield: {off_ff} vs {off_no}");
+}
+
+/// A trocar estimate 2.5 mm beside the true port: the wall holds the tip well off the goal
+/// on the estimated axis, beyond the 1 mm goal tolerance. The seated test ends the run in
+/// DONE, saying how far off the scope sat; without it the run stays in INSERT.
+#[test]
+fn a_scope_seated_beside_a_biased_estimate_is_done_and_says_so() {
+    let depth = ControllerParams::default().insertion_depth;
+    let run = insert_in_contact(with_ff(true), 0.0025);
+    eprintln!("seated: {:?} {:?}", run.phase, run.reason);
+    assert!(!run.held);
+    assert_eq!(run.phase, Phase::Done, "{:?}", run.reason);
+    let why = run.reason.expect("a DONE reason");
+    assert!(
+        why.contains("off the estimated axis") && why.contains("hand-eye"),
+        "{why}"
+    );
+    assert!((run.depth - depth).abs() < 0.001, "depth {}", run.depth);
+    assert!(run.f_max < 10.0, "{} N", run.f_max);
+    let off = ControllerParams {
+        seated: trocar_docking::seated::SeatedParams {
+            lateral_tolerance: 0.0,
+            ..Default::default()
+        },
+        ..with_ff(true)
+    };
+    let stuck = insert_in_contact(off, 0.0025);
+    assert_eq!(stuck.phase, Phase::Insert, "the failure the seated test is for");
 }
