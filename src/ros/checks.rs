@@ -31,6 +31,8 @@ pub struct CheckParams {
     pub call_start: bool,
     /// For `stale_hold`: the hold reason must contain this text.
     pub hold_reason_contains: String,
+    /// For `docking`: the status reason at DONE must contain this text ('' = anything).
+    pub done_reason_contains: String,
     /// For `stale_hold`: how long the command must stay still once held, s.
     pub hold_observe: f64,
     /// For `replay`: the minimum number of status messages expected.
@@ -69,6 +71,7 @@ impl Default for CheckParams {
             startup_timeout: 30.0,
             call_start: true,
             hold_reason_contains: "trocar".into(),
+            done_reason_contains: String::new(),
             hold_observe: 1.0,
             min_status: 10,
             allowed_phases: vec!["HOLD".into(), "APPROACH".into(), "INSERT".into(), "DONE".into()],
@@ -251,10 +254,22 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             done.metric_m, p.max_metric_m
         ));
     }
+    if !done.hold_reason.contains(&p.done_reason_contains) {
+        return Err(format!(
+            "DONE, but its reason '{}' does not mention '{}'",
+            done.hold_reason, p.done_reason_contains
+        ));
+    }
     let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
+    // How DONE was reached, when not plainly at the goal (see `crate::seated`).
+    let note = if done.hold_reason.is_empty() {
+        String::new()
+    } else {
+        format!("; {}", done.hold_reason)
+    };
     Ok(format!(
         "success: DONE in {:.2} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), max force {:.2} N, \
-         tip {:.1} mm from the goal, latency trocar->command p50 {:.2} / p99 {:.2} ms, loop {:.1} Hz, {} steps",
+         tip {:.1} mm from the goal, latency trocar->command p50 {:.2} / p99 {:.2} ms, loop {:.1} Hz, {} steps{}",
         done.elapsed,
         t0.elapsed().as_secs_f64(),
         done.metric_m,
@@ -264,7 +279,8 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         done.latency_p50_ms,
         done.latency_p99_ms,
         done.loop_rate_hz,
-        done.steps
+        done.steps,
+        note
     ))
 }
 
