@@ -155,6 +155,11 @@ fn mean<T: Copy + Into<f64>>(v: &[T]) -> f64 {
     v.iter().map(|x| (*x).into()).sum::<f64>() / v.len().max(1) as f64
 }
 
+/// Per-step counts as `u32`, for [`mean`] (saturating; a step never does 4e9 QPs).
+fn counts(v: &[usize]) -> Vec<u32> {
+    v.iter().map(|i| u32::try_from(*i).unwrap_or(u32::MAX)).collect()
+}
+
 /// The report of one scenario run with `params`: wall-clock statistics as the latency,
 /// thread-CPU statistics and the solver's work as extra figures.
 pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Option<SuiteReport> {
@@ -165,11 +170,7 @@ pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Opt
         .enumerate()
         .max_by(|a, b| a.1.total_cmp(b.1))
         .map_or(0, |(i, _)| i);
-    let iterations: Vec<u32> = s
-        .iterations
-        .iter()
-        .map(|i| u32::try_from(*i).unwrap_or(u32::MAX))
-        .collect();
+    let iterations = counts(&s.iterations);
     let mut extra = serde_json::Map::new();
     let mut put = |k: &str, v: serde_json::Value| {
         extra.insert(k.into(), v);
@@ -181,11 +182,7 @@ pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Opt
     put("max_iterations", serde_json::json!(iterations.iter().max()));
     put("mean_qp_iterations", serde_json::json!(mean(&s.qp_iterations)));
     put("max_qp_iterations", serde_json::json!(s.qp_iterations.iter().max()));
-    let clarabel_qps: Vec<u32> = s
-        .clarabel_qps
-        .iter()
-        .map(|i| u32::try_from(*i).unwrap_or(u32::MAX))
-        .collect();
+    let clarabel_qps = counts(&s.clarabel_qps);
     put("mean_clarabel_qps", serde_json::json!(mean(&clarabel_qps)));
     // The steps where Clarabel solved at least one QP, timed apart: the warm start's
     // misses, the slow tail of the distribution.

@@ -59,6 +59,19 @@ pub fn certify(
     hi: &JointVector,
     set: &ActiveSet,
 ) -> Option<JointVector> {
+    reduced_minimiser(h, g, lo, hi, set).filter(|x| is_optimal(h, g, lo, hi, set, x))
+}
+
+/// The minimiser with the joints of `set` fixed on their bounds and the others free (not
+/// checked against the box); `None` for an empty box, a reduced Hessian that is not
+/// numerically positive definite, or a non-finite result.
+fn reduced_minimiser(
+    h: &Matrix7,
+    g: &JointVector,
+    lo: &JointVector,
+    hi: &JointVector,
+    set: &ActiveSet,
+) -> Option<JointVector> {
     let n = N_JOINTS;
     // An empty box has no solution to certify (Clarabel reports it infeasible).
     if !(0..n).all(|i| lo[i] <= hi[i]) {
@@ -87,18 +100,26 @@ pub fn certify(
         }
     }
     let x = m.cholesky()?.solve(&rhs);
-    if !x.iter().all(|v| v.is_finite()) {
-        return None;
-    }
+    x.iter().all(|v| v.is_finite()).then_some(x)
+}
+
+/// Whether `x`, the reduced minimiser for `set`, meets the box QP's KKT conditions.
+fn is_optimal(
+    h: &Matrix7,
+    g: &JointVector,
+    lo: &JointVector,
+    hi: &JointVector,
+    set: &ActiveSet,
+    x: &JointVector,
+) -> bool {
     let r = h * x + g;
     let r_tol = MULTIPLIER_TOL * g.amax().max(1.0);
-    let ok = (0..n).all(|i| match set[i] {
+    (0..N_JOINTS).all(|i| match set[i] {
         Bound::Free => x[i] >= lo[i] - FEASIBILITY_TOL && x[i] <= hi[i] + FEASIBILITY_TOL,
         _ if lo[i] == hi[i] => true,
         Bound::Lower => r[i] >= -r_tol,
         Bound::Upper => r[i] <= r_tol,
-    });
-    ok.then_some(x)
+    })
 }
 
 /// The active set of a solution `x` of the box QP (as Clarabel returns it: an active
@@ -127,10 +148,16 @@ pub fn solve_from_guesses(
     hi: &JointVector,
     hint: &ActiveSet,
 ) -> Option<(JointVector, ActiveSet)> {
-    if let Some(x) = certify(h, g, lo, hi, hint) {
+    let at_hint = reduced_minimiser(h, g, lo, hi, hint);
+    if let Some(x) = at_hint.filter(|x| is_optimal(h, g, lo, hi, hint, x)) {
         return Some((x, *hint));
     }
-    let unconstrained = h.cholesky()?.solve(&(-g));
+    // With no bound in the hint, its reduced minimiser is the unconstrained one: no need
+    // to factorise H again.
+    let unconstrained = match at_hint {
+        Some(x) if *hint == NONE_ACTIVE => x,
+        _ => reduced_minimiser(h, g, lo, hi, &NONE_ACTIVE)?,
+    };
     let mut set = NONE_ACTIVE;
     for i in 0..N_JOINTS {
         if unconstrained[i] > hi[i] {
