@@ -3,9 +3,9 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use trocar_docking::bench::controller::{run_scenario, Scenario};
-use trocar_docking::controller::ControllerParams;
+use trocar_docking::control::ControllerParams;
+use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::LbrKinematics;
-use trocar_docking::robot_model::{LbrModel, ToolParams};
 
 fn bench(c: &mut Criterion) {
     let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("model");

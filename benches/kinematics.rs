@@ -2,8 +2,8 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use std::hint::black_box;
+use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
-use trocar_docking::robot_model::{LbrModel, ToolParams};
 
 fn bench(c: &mut Criterion) {
     let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("model");

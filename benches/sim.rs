@@ -6,11 +6,11 @@ use std::sync::Arc;
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use trocar_docking::bench::sim::world_in_contact;
+use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{Kinematics, LbrKinematics};
-use trocar_docking::robot_model::{LbrModel, ToolParams};
-use trocar_docking::sim::config::SimConfig;
-use trocar_docking::sim::trial::run_trial;
 use trocar_docking::sim::SimWorld;
+use trocar_docking::trials::config::SimConfig;
+use trocar_docking::trials::run::run_trial;
 
 fn bench(c: &mut Criterion) {
     let cfg = SimConfig::load_default().expect("config");
@@ -27,7 +27,7 @@ fn bench(c: &mut Criterion) {
     let mut g = c.benchmark_group("closed_loop");
     g.sample_size(10);
     for ff in [false, true] {
-        let factory = trocar_docking::sim::policy::factory(&cfg, ff, kin.limits());
+        let factory = trocar_docking::trials::policy::factory(&cfg, ff, kin.limits());
         if factory(1).is_err() {
             continue;
         }

@@ -2,26 +2,26 @@
 //! surgical trocar, from vision (a marker on the trocar) and contact (external joint
 //! torques), as ROS 1 nodes.
 //!
-//! The pure core (no ROS, no C++) is testable without roscore; the bridges wrap C++
-//! (KDL, ViSP, OpenCV) behind safe Rust; `ros` holds only topic and parameter glue.
+//! One folder per job; imports point down only:
+//! `ros`, `cli`, `bench` -> `trials` -> `sim`, `control` -> `vision`, `kinematics` -> `ffi`.
+//! - [`kinematics`]: the `Kinematics` trait, the KDL chain, the LBR Med models and URDFs.
+//! - [`control`]: the docking controller (pure Rust: no ROS, no C++).
+//! - [`vision`]: marker pose (OpenCV/ViSP through the bridge), synthetic camera, hand-eye,
+//!   the trocar estimator and the joint history it pairs images with.
+//! - [`sim`]: the simulated plant (pure Rust); [`trials`]: the paper's experiment on it.
+//! - [`ros`]: the ROS 1 nodes (rosrust): parameters, message conversions, wiring.
+//! - [`cli`], [`bench`]: the offline `trocar_docking` command and its benchmark suites.
+//! - [`realtime`]: SCHED_FIFO and memory locking for the real-time loops.
+//! - `ffi` (crate-private): the cxx bridges to KDL, ViSP and OpenCV.
 #![warn(missing_docs)]
 
-pub mod admittance;
 pub mod bench;
 pub mod cli;
-pub mod controller;
-pub mod docking;
-pub mod ffi;
-pub mod geometry;
+pub mod control;
+mod ffi;
 pub mod kinematics;
-pub mod metrics;
-pub mod plot;
 pub mod realtime;
-pub mod robot_model;
 pub mod ros;
-pub mod safety;
-pub mod seated;
 pub mod sim;
-pub mod supervisor;
-pub mod timeline;
+pub mod trials;
 pub mod vision;

@@ -4,10 +4,10 @@
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
-use trocar_docking::controller::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
-use trocar_docking::geometry::InsertionAxis;
+use trocar_docking::control::geometry::InsertionAxis;
+use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
+use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
-use trocar_docking::robot_model::{LbrModel, ToolParams};
 
 fn kin() -> LbrKinematics {
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap()

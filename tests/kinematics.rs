@@ -3,10 +3,10 @@
 
 use nalgebra::{Isometry3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
+use trocar_docking::kinematics::lbr::{urdf, LbrModel, ToolParams};
 use trocar_docking::kinematics::{
     JointVector, KdlChain, Kinematics, KinematicsError, LbrKinematics, BASE_LINK, TIP_LINK,
 };
-use trocar_docking::robot_model::{urdf, LbrModel, ToolParams};
 
 fn med7() -> LbrKinematics {
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("Med 7 model")

@@ -2,10 +2,10 @@
 
 use std::sync::Arc;
 
+use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointLimits, Kinematics, LbrKinematics};
-use trocar_docking::robot_model::{LbrModel, ToolParams};
-use trocar_docking::sim::config::SimConfig;
-use trocar_docking::sim::trials::{run_arm, ArmReport};
+use trocar_docking::trials::batch::{run_arm, ArmReport};
+use trocar_docking::trials::config::SimConfig;
 
 fn kin() -> Result<Arc<dyn Kinematics>, String> {
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())
@@ -16,7 +16,7 @@ fn kin() -> Result<Arc<dyn Kinematics>, String> {
 fn run(cfg: &SimConfig, ff: bool, threads: usize) -> ArmReport {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
     let seeds: Vec<u64> = (10..16).collect();
-    let factory = trocar_docking::sim::policy::factory(cfg, ff, &JointLimits::of_model(LbrModel::Med7));
+    let factory = trocar_docking::trials::policy::factory(cfg, ff, &JointLimits::of_model(LbrModel::Med7));
     let done = std::sync::atomic::AtomicUsize::new(0);
     let tick = || {
         done.fetch_add(1, std::sync::atomic::Ordering::Relaxed);

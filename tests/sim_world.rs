@@ -3,12 +3,12 @@
 
 use std::sync::Arc;
 
+use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{Kinematics, LbrKinematics};
-use trocar_docking::robot_model::{LbrModel, ToolParams};
-use trocar_docking::sim::baseline::Baseline;
 use trocar_docking::sim::noise::NoiseModel;
-use trocar_docking::sim::trial::{run_trial, Outcome, TrialParams};
 use trocar_docking::sim::{SimParams, SimWorld};
+use trocar_docking::trials::baseline::Baseline;
+use trocar_docking::trials::run::{run_trial, Outcome, TrialParams};
 
 fn kin() -> Arc<dyn Kinematics> {
     Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("model"))

@@ -13,10 +13,10 @@
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 
 use super::{scheduler_name, time_wall_and_cpu, LatencyStats, SuiteReport};
-use crate::controller::{ControlInput, Controller, ControllerParams, Stamped};
-use crate::docking::SqpStatus;
+use crate::control::sqp::SqpStatus;
+use crate::control::{ControlInput, Controller, ControllerParams, Stamped};
+use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, KinematicsError, LbrKinematics};
-use crate::robot_model::{LbrModel, ToolParams};
 
 /// A benchmark scenario.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -3,8 +3,8 @@
 use rand::{RngExt, SeedableRng};
 
 use super::{time_each, LatencyStats, SuiteReport};
+use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, KinematicsError, LbrKinematics};
-use crate::robot_model::{LbrModel, ToolParams};
 
 /// Run the suite with `n` samples.
 pub fn run(n: usize) -> Result<Vec<SuiteReport>, KinematicsError> {

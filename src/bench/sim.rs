@@ -7,12 +7,12 @@ use std::time::Instant;
 use nalgebra::{Isometry3, Translation3};
 
 use super::{time_each, LatencyStats, SuiteReport};
+use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{Kinematics, LbrKinematics};
-use crate::robot_model::{LbrModel, ToolParams};
-use crate::sim::config::SimConfig;
 use crate::sim::scenario::Scenario;
-use crate::sim::trial::run_trial;
 use crate::sim::{SimError, SimWorld};
+use crate::trials::config::SimConfig;
+use crate::trials::run::run_trial;
 
 /// A world whose tip sits 20 mm deep in the port, 3 mm off its axis: the shaft presses
 /// the bore wall (1 mm clearance) along its length.
@@ -67,7 +67,7 @@ pub fn run(
         });
     }
     for ff in [false, true] {
-        let factory = crate::sim::policy::factory(cfg, ff, kin.limits());
+        let factory = crate::trials::policy::factory(cfg, ff, kin.limits());
         let mut per_sim_second = vec![];
         let (mut wall, mut simulated) = (0.0, 0.0);
         for seed in 1..=trials.max(1) as u64 {

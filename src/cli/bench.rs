@@ -51,16 +51,16 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
         reports.extend(crate::bench::kinematics::run(a.samples)?);
     }
     if all || a.suite == Suite::Sim {
-        let cfg = crate::sim::config::SimConfig::load_default()?;
+        let cfg = crate::trials::config::SimConfig::load_default()?;
         reports.extend(crate::bench::sim::run(&cfg, a.samples, 10)?);
     }
     if all || a.suite == Suite::Controller {
         let params = match &a.controller_config {
             Some(path) => {
                 let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-                crate::controller::ControllerParams::from_yaml_str(&text)?
+                crate::control::ControllerParams::from_yaml_str(&text)?
             }
-            None => crate::controller::ControllerParams::default(),
+            None => crate::control::ControllerParams::default(),
         };
         reports.extend(crate::bench::controller::run(a.samples.min(5000), &params)?);
     }

@@ -52,7 +52,7 @@ pub fn run(cli: Cli) -> CliResult {
         Command::Render(a) => vision::run_render(&a),
         Command::HandEye(a) => vision::run_hand_eye(&a),
         Command::Versions => {
-            println!("{}", crate::ffi::vision::ffi::vision_backend_versions());
+            println!("{}", crate::vision::backend_versions());
             Ok(())
         }
     }

@@ -10,12 +10,12 @@ use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
+use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointLimits, Kinematics, LbrKinematics};
-use crate::robot_model::{LbrModel, ToolParams};
-use crate::sim::config::{PolicyKind, SimConfig};
 use crate::sim::noise::NoiseModel;
-use crate::sim::trial::TrialResult;
-use crate::sim::trials::{run_arm, ArmReport, ArmSummary, PolicyFactory, Stats};
+use crate::trials::batch::{run_arm, ArmReport, ArmSummary, PolicyFactory, Stats};
+use crate::trials::config::{PolicyKind, SimConfig};
+use crate::trials::run::TrialResult;
 
 use super::CliResult;
 
@@ -97,7 +97,7 @@ fn load_config(a: &TrialsArgs) -> Result<SimConfig, Box<dyn std::error::Error + 
 
 /// The policy of one arm.
 fn factory(c: &SimConfig, ff: bool) -> Box<PolicyFactory> {
-    crate::sim::policy::factory(c, ff, &JointLimits::of_model(LbrModel::Med7))
+    crate::trials::policy::factory(c, ff, &JointLimits::of_model(LbrModel::Med7))
 }
 
 /// Run `trials`.
@@ -253,7 +253,7 @@ fn write_outputs(a: &TrialsArgs, cfg: &SimConfig, r: &[ArmReport]) -> CliResult 
                 t.outcome,
                 t.time_s,
                 t.m_est,
-                crate::sim::trial::PAPER_CODE_SCALE * t.m_est,
+                crate::trials::run::PAPER_CODE_SCALE * t.m_est,
                 t.m_true,
                 t.max_f_est,
                 t.max_f_true,
@@ -285,7 +285,7 @@ fn write_outputs(a: &TrialsArgs, cfg: &SimConfig, r: &[ArmReport]) -> CliResult 
                 )
             })
             .collect();
-        crate::plot::force_over_time(&a.out.join(format!("force_{noise}.png")), &labelled)?;
+        crate::trials::plot::force_over_time(&a.out.join(format!("force_{noise}.png")), &labelled)?;
         let groups: Vec<(String, Vec<f64>)> = r
             .iter()
             .map(|x| {
@@ -295,7 +295,7 @@ fn write_outputs(a: &TrialsArgs, cfg: &SimConfig, r: &[ArmReport]) -> CliResult 
                 )
             })
             .collect();
-        crate::plot::box_plot(
+        crate::trials::plot::box_plot(
             &a.out.join(format!("m_box_{noise}.png")),
             &format!("M per successful trial ({noise} noise)"),
             "M [N]",

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use crate::robot_model::{urdf, LbrModel, ToolParams};
+use crate::kinematics::lbr::{urdf, LbrModel, ToolParams};
 
 /// Arguments of `urdf`.
 #[derive(Debug, clap::Args)]

@@ -19,10 +19,10 @@ use super::node::{lock, ros_err, CommandType, NodeError};
 use super::optimal_core::OptimalCore;
 use super::params;
 use super::stats::LoopStats;
-use crate::controller::{Controller, ControllerParams};
+use crate::control::{Controller, ControllerParams};
+use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::Kinematics;
 use crate::kinematics::{JointVector, LbrKinematics, TIP_LINK};
-use crate::robot_model::LbrModel;
 
 /// Parameters of the node (its private namespace; `config/docking_controller.yaml`).
 #[derive(Debug, Clone, serde::Deserialize)]

@@ -1,6 +1,6 @@
 //! The node's view of a docking core: what the `docking_controller` node hands it each
 //! control step and what it gets back. The node's topic glue talks to [`DockingCore`] only;
-//! the optimal controller (`crate::controller`) implements it in `optimal_core`, and a test
+//! the optimal controller (`crate::control`) implements it in `optimal_core`, and a test
 //! double or another controller can stand in.
 
 use nalgebra::{Isometry3, Point3, Vector3};

@@ -18,15 +18,15 @@ use std::time::{Duration, Instant};
 use nalgebra::Isometry3;
 
 use super::convert;
-use super::image_msgs;
+use super::convert::image as image_msgs;
 use super::msgs::{geometry_msgs, sensor_msgs};
 use super::node::{lock, ros_err, NodeError, Throttle};
 use super::params;
 use super::stats::LoopStats;
+use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
-use crate::robot_model::LbrModel;
-use crate::timeline::JointHistory;
 use crate::vision::estimator::PoseYaml;
+use crate::vision::joint_history::JointHistory;
 use crate::vision::{
     CameraModel, EstimateStatus, EstimatorParams, MarkerDetector, MarkerSpec, RgbImage, TrackingDetector,
     TrocarEstimator,

@@ -1,16 +1,12 @@
-//! ROS 1 glue (rosrust): message types, parameter loading, message conversions, the JUnit
-//! writer rostest needs, and the node wiring. No maths here: the nodes convert messages,
-//! call the pure core, and publish.
+//! ROS 1 glue (rosrust): message types, parameter loading, message conversions and the
+//! node wiring. The nodes hold no control or estimation maths: each reads its parameters,
+//! converts messages, calls the pure core (`crate::control`, `crate::vision`, `crate::sim`),
+//! and publishes. The rostest programs are a binary of their own (`src/bin/rostest_checks`).
 
-pub mod camera_checks;
-pub mod checks;
 pub mod controller_node;
 pub mod convert;
 pub mod core;
 pub mod estimator_node;
-pub mod fault_injection;
-pub mod image_msgs;
-pub mod junit;
 pub mod markers;
 pub mod msgs;
 pub mod node;

@@ -1,10 +1,10 @@
-//! [`DockingCore`] on the optimal controller ([`crate::controller::Controller`]: SQP on
+//! [`DockingCore`] on the optimal controller ([`crate::control::Controller`]: SQP on
 //! Clarabel, admittance, safety guard, supervisor). Only type conversion happens here.
 
 use nalgebra::Point3;
 
 use super::core::{DockingCore, StepInput, StepOutput};
-use crate::controller::{ControlInput, Controller, Stamped};
+use crate::control::{ControlInput, Controller, Stamped};
 use crate::kinematics::Kinematics;
 
 /// The optimal controller behind the node's core interface.

@@ -11,13 +11,13 @@ use std::time::{Duration, Instant};
 use nalgebra::Isometry3;
 
 use super::convert;
-use super::image_msgs;
+use super::convert::image as image_msgs;
 use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs};
 use super::params;
+use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
-use crate::robot_model::{LbrModel, ToolParams};
-use crate::sim::config::SimConfig;
 use crate::sim::SimWorld;
+use crate::trials::config::SimConfig;
 use crate::vision::estimator::{marker_in_camera, PoseYaml};
 use crate::vision::render::add_gaussian_noise;
 use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions};

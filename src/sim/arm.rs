@@ -120,7 +120,7 @@ impl Arm {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::robot_model::LbrModel;
+    use crate::kinematics::lbr::LbrModel;
 
     fn arm() -> Arm {
         Arm::new(

@@ -1,24 +1,18 @@
-//! The simulator of the paper's experiment: an LBR Med in FRI position mode ([`arm`]) holding
-//! an endoscope whose shaft touches ([`contact`]) a compliantly mounted trocar ([`trocar`]),
-//! measured by a noisy pose sensor ([`noise`]) and the arm's joint torque sensors
-//! ([`torque`]). [`world::SimWorld`] steps it all at 1 kHz; [`trials`] runs the closed-loop
-//! comparison with and without force feedback.
+//! The plant: an LBR Med in FRI position mode ([`arm`]) holding an endoscope whose shaft
+//! touches ([`contact`]) a compliantly mounted trocar ([`trocar`]), measured by a noisy pose
+//! sensor ([`noise`]) and the arm's joint torque sensors ([`torque`]), from randomised starts
+//! ([`scenario`]). [`world::SimWorld`] steps it all at 1 kHz. The experiment that closes
+//! the loop around it (policies, trials, statistics) is [`crate::trials`].
 //!
 //! Pure Rust, no ROS, no C++: the arm is seen through the [`Kinematics`](crate::kinematics::Kinematics)
 //! trait. Every random draw comes from a seeded ChaCha stream, so a seed fixes a run.
 //! Parameters are plain serde structs with defaults, read from `config/sim.yaml`.
 
 pub mod arm;
-pub mod baseline;
-pub mod config;
 pub mod contact;
-pub mod controller_policy;
 pub mod noise;
-pub mod policy;
 pub mod scenario;
 pub mod torque;
-pub mod trial;
-pub mod trials;
 pub mod trocar;
 pub mod world;
 

@@ -9,6 +9,7 @@ pub mod camera;
 pub mod estimator;
 pub mod hand_eye;
 pub mod image;
+pub mod joint_history;
 pub mod marker;
 pub mod overlay;
 pub mod render;
@@ -21,6 +22,11 @@ pub use overlay::{ChannelOrder, RgbImage};
 pub use render::{facing_pose, render_marker_image, RenderOptions};
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
+
+/// The OpenCV and ViSP versions the vision bridge was built against.
+pub fn backend_versions() -> String {
+    crate::ffi::vision::ffi::vision_backend_versions()
+}
 
 /// Errors of the vision layer.
 #[derive(Debug, thiserror::Error)]

@@ -220,8 +220,8 @@ impl Admittance {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kinematics::lbr::{LbrModel, ToolParams};
     use crate::kinematics::{Kinematics, LbrKinematics};
-    use crate::robot_model::{LbrModel, ToolParams};
 
     #[test]
     fn force_recovered_from_torques() {

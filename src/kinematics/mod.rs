@@ -12,7 +12,9 @@ use std::sync::Arc;
 use nalgebra::{Isometry3, Matrix3, Rotation3, SMatrix, SVector, Translation3, UnitQuaternion};
 
 use crate::ffi::kdl::ffi as kdl;
-use crate::robot_model::{self, LbrModel, ToolParams};
+pub mod lbr;
+
+use lbr::{LbrModel, ToolParams};
 
 /// Number of joints of an LBR Med arm.
 pub const N_JOINTS: usize = 7;
@@ -60,7 +62,7 @@ pub enum KinematicsError {
     },
     /// A tool parameter is invalid.
     #[error(transparent)]
-    Model(#[from] robot_model::ModelError),
+    Model(#[from] lbr::ModelError),
 }
 
 /// Joint limits of a 7-joint arm.
@@ -134,8 +136,16 @@ impl KdlChain {
         if chain.is_null() {
             return Err(KinematicsError::Urdf("KDL returned no chain".into()));
         }
+        let names = chain.joint_names();
+        if names.len() != chain.n_joints() {
+            return Err(KinematicsError::Urdf(format!(
+                "KDL chain has {} joints but {} joint names",
+                chain.n_joints(),
+                names.len()
+            )));
+        }
         Ok(Self {
-            names: chain.joint_names(),
+            names,
             lower: chain.lower(),
             upper: chain.upper(),
             velocity: chain.velocity(),
@@ -264,14 +274,14 @@ impl LbrKinematics {
 
     /// The built-in model with an endoscope, chain to `endoscope_tip`.
     pub fn from_model(model: LbrModel, tool: &ToolParams) -> Result<Self, KinematicsError> {
-        Self::from_urdf_str(&robot_model::urdf(model, tool)?, TIP_LINK)
+        Self::from_urdf_str(&lbr::urdf(model, tool)?, TIP_LINK)
     }
 
     /// The chain `lbr_link_0` -> `tip` of `urdf_file`, or of the built-in `model` (default
     /// endoscope) when `urdf_file` is empty: how the nodes build their chains.
     pub fn from_model_or_file(model: LbrModel, urdf_file: &str, tip: &str) -> Result<Self, KinematicsError> {
         if urdf_file.is_empty() {
-            Self::from_urdf_str(&robot_model::urdf(model, &ToolParams::default())?, tip)
+            Self::from_urdf_str(&lbr::urdf(model, &ToolParams::default())?, tip)
         } else {
             Self::from_urdf_file(Path::new(urdf_file), tip)
         }

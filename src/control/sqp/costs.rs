@@ -21,7 +21,7 @@
 use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::geometry::InsertionAxis;
+use crate::control::geometry::InsertionAxis;
 use crate::kinematics::{Jacobian, JointVector};
 
 /// 7 x 7 matrix of the QP.
@@ -172,8 +172,8 @@ pub fn quadratic_model(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::kinematics::lbr::{LbrModel, ToolParams};
     use crate::kinematics::{Kinematics, LbrKinematics};
-    use crate::robot_model::{LbrModel, ToolParams};
     use nalgebra::{Translation3, UnitQuaternion};
 
     #[test]

@@ -1,12 +1,15 @@
 //! Conversions between ROS messages and the core's nalgebra types, with every check a
 //! message from the wire needs: joint names and count, finite values, frames, unit
 //! quaternions, stamps that move forward. A bad message becomes an [`InputError`] whose text
-//! the node logs and hands to the supervisor as the hold reason.
+//! the node logs and hands to the supervisor as the hold reason. [`image`] converts camera
+//! images and intrinsics.
+
+pub mod image;
 
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
-use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, std_msgs, trajectory_msgs};
 use crate::kinematics::{JointVector, N_JOINTS};
+use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, std_msgs, trajectory_msgs};
 
 /// Why an incoming message was rejected.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

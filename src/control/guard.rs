@@ -271,7 +271,7 @@ impl CommandGuard {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::robot_model::LbrModel;
+    use crate::kinematics::lbr::LbrModel;
     use proptest::prelude::*;
 
     fn guard() -> CommandGuard {

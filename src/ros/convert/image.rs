@@ -4,8 +4,8 @@
 
 use std::borrow::Cow;
 
-use super::convert::header;
-use super::msgs::sensor_msgs;
+use super::header;
+use crate::ros::msgs::sensor_msgs;
 use crate::vision::{CameraModel, ChannelOrder, ImageView, VisionError};
 
 /// The 8-bit encodings the estimator reads: channels and colour order.

@@ -12,9 +12,9 @@
 //! tip never slides across the trocar face, and never leaps). INSERT advances the target
 //! along the axis to the goal depth with c1 keeping the tip on the axis; the axial force
 //! slows the advance but never stops it, and the lateral force moves r so the tip yields
-//! sideways (see [`crate::admittance`]). DONE when the tip is within the position and angle
+//! sideways (see [`crate::control::admittance`]). DONE when the tip is within the position and angle
 //! tolerance of the goal, or when it has settled at the goal depth held off the estimated
-//! axis by the port itself (a biased trocar estimate; see [`crate::seated`]).
+//! axis by the port itself (a biased trocar estimate; see [`crate::control::seated`]).
 //!
 //! **Linearisation point.** The SQP starts from the previous command, not the measured
 //! position: the command is what the position-controlled arm tracks, the velocity box is
@@ -26,15 +26,15 @@
 use nalgebra::{Isometry3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::admittance::{Admittance, AdmittanceParams};
-use crate::docking::{CostWeights, LimitAvoidance, SqpSettings, SqpSolver, Targets};
-use crate::geometry::{pose_is_finite, InsertionAxis};
+use crate::control::admittance::{Admittance, AdmittanceParams};
+use crate::control::geometry::{pose_is_finite, InsertionAxis};
+use crate::control::guard::{CommandGuard, GuardParams, HoldReason};
+use crate::control::metrics::ForceMetric;
+use crate::control::seated::{SeatedCheck, SeatedParams, TipState};
+use crate::control::sqp::{CostWeights, LimitAvoidance, SqpSettings, SqpSolver, Targets};
+pub use crate::control::supervisor::Phase;
+use crate::control::supervisor::Supervisor;
 use crate::kinematics::{JointLimits, JointVector, Kinematics};
-use crate::metrics::ForceMetric;
-use crate::safety::{CommandGuard, GuardParams, HoldReason};
-use crate::seated::{SeatedCheck, SeatedParams, TipState};
-pub use crate::supervisor::Phase;
-use crate::supervisor::Supervisor;
 
 /// Errors in the controller's parameters.
 #[derive(Debug, thiserror::Error)]
@@ -76,7 +76,7 @@ pub struct ControllerParams {
     /// ... and the optical axis within this angle, deg.
     pub goal_angle_tolerance_deg: f64,
     /// DONE also for a scope seated in the port beside a biased trocar estimate; see
-    /// [`crate::seated`].
+    /// [`crate::control::seated`].
     pub seated: SeatedParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant: f64,
@@ -238,7 +238,7 @@ pub struct ControlOutput {
     /// SQP wall time, µs.
     pub solve_time_us: f64,
     /// SQP status text ("converged", "iteration_limit", "time_budget",
-    /// "qp_iteration_budget", "qp_failed: …", "not_run"); see [`crate::docking::SqpStatus`].
+    /// "qp_iteration_budget", "qp_failed: …", "not_run"); see [`crate::control::sqp::SqpStatus`].
     pub solver_status: String,
     /// Filtered tip force estimate, base frame, N.
     pub f_ext: Vector3<f64>,

@@ -10,11 +10,11 @@
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
-use super::noise::TrocarMeasurement;
-use super::{check_range, SimError, SimWorld};
 use crate::kinematics::{JointVector, Kinematics};
+use crate::sim::noise::TrocarMeasurement;
+use crate::sim::{check_range, SimError, SimWorld};
 
-pub use crate::metrics::PAPER_CODE_SCALE;
+pub use crate::control::metrics::PAPER_CODE_SCALE;
 
 /// What a policy sees at a control tick.
 #[derive(Debug, Clone, Copy, PartialEq)]

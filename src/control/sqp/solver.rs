@@ -490,9 +490,9 @@ impl SqpSolver {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::geometry::InsertionAxis;
+    use crate::control::geometry::InsertionAxis;
+    use crate::kinematics::lbr::{LbrModel, ToolParams};
     use crate::kinematics::LbrKinematics;
-    use crate::robot_model::{LbrModel, ToolParams};
     use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 
     fn setup() -> (LbrKinematics, JointVector, Targets) {

@@ -7,9 +7,9 @@ use std::sync::Arc;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use super::trial::{run_trial, Outcome, Policy, TrialParams, TrialResult, PAPER_CODE_SCALE};
-use super::{SimParams, SimWorld};
+use super::run::{run_trial, Outcome, Policy, TrialParams, TrialResult, PAPER_CODE_SCALE};
 use crate::kinematics::Kinematics;
+use crate::sim::{SimParams, SimWorld};
 
 /// Mean, standard deviation (sample, n - 1), min and max of a set of values.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]

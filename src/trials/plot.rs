@@ -9,7 +9,7 @@ use std::sync::OnceLock;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
-use crate::sim::trial::TrialResult;
+use crate::trials::run::TrialResult;
 
 /// Where the plot font is read from.
 pub const FONT_PATH: &str = "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf";
@@ -54,7 +54,7 @@ fn draw_err(path: &Path) -> impl Fn(String) -> PlotError + '_ {
 }
 
 /// The force the plots show for a sample: the estimate, or the true force without one.
-fn shown_force(s: &crate::sim::trial::Sample) -> f64 {
+fn shown_force(s: &crate::trials::run::Sample) -> f64 {
     if s.f_est.is_finite() {
         s.f_est
     } else {

@@ -19,14 +19,14 @@ use std::time::Duration;
 
 use nalgebra::{Isometry3, Translation3, Vector3};
 
-use super::checks::{subscribe_latest, trigger, wait_for, CheckParams};
-use super::convert;
-use super::image_msgs;
-use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
-use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
-use crate::robot_model::{LbrModel, ToolParams};
-use crate::vision::estimator::marker_in_camera;
-use crate::vision::{render_marker_image, CameraModel, EstimatorParams, MarkerSpec, RenderOptions};
+use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
+use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
+use ::trocar_docking::ros::convert;
+use ::trocar_docking::ros::convert::image as image_msgs;
+use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
+use ::trocar_docking::vision::estimator::marker_in_camera;
+use ::trocar_docking::vision::{render_marker_image, CameraModel, EstimatorParams, MarkerSpec, RenderOptions};
 
 /// One camera frame: the marker seen from the arm at `q0` with the nominal mount, for a
 /// trocar 12 cm ahead of the tip on its optical axis.

@@ -10,11 +10,11 @@ use std::time::Duration;
 
 use nalgebra::{Isometry3, Translation3, Vector3};
 
-use super::checks::{subscribe_latest, trigger, wait_for, CheckParams};
-use super::convert;
-use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
-use crate::kinematics::{JointVector, Kinematics, LbrKinematics};
-use crate::robot_model::{LbrModel, ToolParams};
+use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
+use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
+use ::trocar_docking::ros::convert;
+use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
 
 /// One way to break the inputs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -1,10 +1,10 @@
 //! The policies the trials run, by arm of the comparison.
 
 use super::baseline::Baseline;
+use super::batch::PolicyFactory;
 use super::config::{PolicyKind, SimConfig};
 use super::controller_policy::ControllerPolicy;
-use super::trial::Policy;
-use super::trials::PolicyFactory;
+use super::run::Policy;
 use crate::kinematics::JointLimits;
 
 /// The policy factory of one arm: with (`ff`) or without force feedback, everything else

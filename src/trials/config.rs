@@ -5,9 +5,9 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::baseline::BaselineParams;
-use super::trial::TrialParams;
-use super::{SimError, SimParams};
-use crate::controller::ControllerParams;
+use super::run::TrialParams;
+use crate::control::ControllerParams;
+use crate::sim::{SimError, SimParams};
 
 /// Default location of the simulator configuration, relative to the package root.
 pub const DEFAULT_PATH: &str = "config/sim.yaml";
@@ -33,7 +33,7 @@ pub struct SimConfig {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum PolicyKind {
-    /// The docking controller (paper eq. 1), `crate::controller`.
+    /// The docking controller (paper eq. 1), `crate::control`.
     #[default]
     Controller,
     /// The resolved-rate baseline, [`super::baseline`].

@@ -1,9 +1,9 @@
-//! The docking controller ([`crate::controller::Controller`]) as a trial [`Policy`]: the
+//! The docking controller ([`crate::control::Controller`]) as a trial [`Policy`]: the
 //! observation becomes a `ControlInput` (joints and torques stamped now, the trocar pose
 //! stamped at capture), its output the commanded joints and the f_ext estimate.
 
-use super::trial::{Action, Observation, Policy};
-use crate::controller::{ControlInput, Controller, ControllerParams, Phase, Stamped};
+use super::run::{Action, Observation, Policy};
+use crate::control::{ControlInput, Controller, ControllerParams, Phase, Stamped};
 use crate::kinematics::{JointLimits, Kinematics};
 
 /// The controller driving a simulated trial.

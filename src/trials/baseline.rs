@@ -9,7 +9,7 @@
 use nalgebra::{Matrix6, Point3, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
-use super::trial::{Action, Observation, Policy};
+use super::run::{Action, Observation, Policy};
 use crate::kinematics::{JointVector, Kinematics};
 
 /// Tunables of the baseline (the `baseline:` section of `config/sim.yaml`).
@@ -86,7 +86,7 @@ impl Policy for Baseline {
         let Ok((tip, jac)) = kin.fk_jacobian(&obs.q) else {
             return hold("kinematics failed");
         };
-        let f_ext = crate::admittance::tip_force(&jac, &obs.tau_ext, 0.0, 0.05).unwrap_or_else(Vector3::zeros);
+        let f_ext = crate::control::admittance::tip_force(&jac, &obs.tau_ext, 0.0, 0.05).unwrap_or_else(Vector3::zeros);
         let Some(m) = obs.trocar else {
             return Action {
                 command: None,

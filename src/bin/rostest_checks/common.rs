@@ -1,0 +1,160 @@
+//! What every check shares: the test node's parameters, a latest-message subscriber,
+//! bounded waits and service calls.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use ::trocar_docking::ros::msgs::std_srvs;
+
+/// Settings of the test node (private parameters), every bound a parameter.
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct CheckParams {
+    /// The controller node's name (its services are `<name>/start` etc.).
+    pub controller: String,
+    /// Status topic.
+    pub status_topic: String,
+    /// Command topic (JointTrajectory).
+    pub command_topic: String,
+    /// Wall-clock limit for the whole docking, s.
+    pub time_limit: f64,
+    /// Upper bound on M (N) for a successful docking.
+    pub max_metric_m: f64,
+    /// Wall time to wait for the graph (services, first messages), s.
+    pub startup_timeout: f64,
+    /// Whether the check calls `~start` itself.
+    pub call_start: bool,
+    /// For `stale_hold`: the hold reason must contain this text.
+    pub hold_reason_contains: String,
+    /// For `docking`: the status reason at DONE must contain this text ('' = anything).
+    pub done_reason_contains: String,
+    /// For `stale_hold`: how long the command must stay still once held, s.
+    pub hold_observe: f64,
+    /// For `replay`: the minimum number of status messages expected.
+    pub min_status: usize,
+    /// For `replay`: the phases the controller may report.
+    pub allowed_phases: Vec<String>,
+    /// For `replay`: the estimated trocar pose topic.
+    pub pose_topic: String,
+    /// For `replay`: the recorded true trocar pose topic.
+    pub true_pose_topic: String,
+    /// For `replay`: the largest accepted distance between estimate and truth, m.
+    pub max_position_error: f64,
+    /// `replay`: trocar poses the check must see before it judges.
+    pub min_poses: usize,
+    /// `replay`: a HOLD whose reason contains this is accepted too ('' = none is), e.g. the
+    /// tracking hold when a bag's arm does not follow the live commands.
+    pub allowed_hold_reason: String,
+    /// `latency`: the camera calibration YAML of the played camera.
+    pub camera_calibration: String,
+    /// `latency`: the played camera's rate, Hz.
+    pub camera_rate_hz: f64,
+    /// `latency`: the largest accepted 99th percentile of image -> command, ms.
+    pub max_latency_ms: f64,
+    /// `latency`: the largest accepted median of image -> command, ms.
+    pub max_latency_p50_ms: f64,
+}
+
+impl Default for CheckParams {
+    fn default() -> Self {
+        Self {
+            controller: "/docking_controller".into(),
+            status_topic: "/docking/status".into(),
+            command_topic: "/lbr/PositionJointInterface_trajectory_controller/command".into(),
+            time_limit: 60.0,
+            max_metric_m: 10.0,
+            startup_timeout: 30.0,
+            call_start: true,
+            hold_reason_contains: "trocar".into(),
+            done_reason_contains: String::new(),
+            hold_observe: 1.0,
+            min_status: 10,
+            allowed_phases: vec!["HOLD".into(), "APPROACH".into(), "INSERT".into(), "DONE".into()],
+            pose_topic: "/trocar/pose".into(),
+            true_pose_topic: "/trocar/pose_true".into(),
+            max_position_error: 0.01,
+            min_poses: 1,
+            allowed_hold_reason: String::new(),
+            camera_calibration: String::new(),
+            camera_rate_hz: 30.0,
+            max_latency_ms: 10.0,
+            max_latency_p50_ms: 10.0,
+        }
+    }
+}
+
+/// The newest message of a topic, shared between the subscriber thread and a reader.
+#[derive(Debug)]
+pub struct Latest<T> {
+    slot: Arc<Mutex<(Option<T>, usize)>>,
+}
+
+impl<T> Clone for Latest<T> {
+    fn clone(&self) -> Self {
+        Self {
+            slot: self.slot.clone(),
+        }
+    }
+}
+
+impl<T> Default for Latest<T> {
+    fn default() -> Self {
+        Self {
+            slot: Arc::new(Mutex::new((None, 0))),
+        }
+    }
+}
+
+impl<T: Clone> Latest<T> {
+    /// Store a message.
+    pub fn put(&self, msg: T) {
+        if let Ok(mut s) = self.slot.lock() {
+            s.0 = Some(msg);
+            s.1 += 1;
+        }
+    }
+    /// The newest message, if any.
+    pub fn get(&self) -> Option<T> {
+        self.slot.lock().ok().and_then(|s| s.0.clone())
+    }
+    /// How many messages arrived.
+    pub fn count(&self) -> usize {
+        self.slot.lock().map(|s| s.1).unwrap_or(0)
+    }
+}
+
+/// Subscribe `topic` into a [`Latest`].
+pub fn subscribe_latest<T: rosrust::Message>(topic: &str) -> Result<(Latest<T>, rosrust::Subscriber), String> {
+    let latest = Latest::default();
+    let l = latest.clone();
+    let sub = rosrust::subscribe(topic, 10, move |m: T| l.put(m)).map_err(|e| format!("subscribe {topic}: {e}"))?;
+    Ok((latest, sub))
+}
+
+/// Poll `f` every 10 ms until it gives `Some` or `timeout` passes (wall clock).
+pub fn wait_for<T, F: FnMut() -> Option<T>>(timeout: f64, mut f: F) -> Option<T> {
+    let t0 = Instant::now();
+    while t0.elapsed().as_secs_f64() < timeout && rosrust::is_ok() {
+        if let Some(v) = f() {
+            return Some(v);
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    None
+}
+
+/// Call a std_srvs/Trigger service, waiting for it to appear.
+pub fn trigger(service: &str, timeout: f64) -> Result<String, String> {
+    rosrust::wait_for_service(service, Some(Duration::from_secs_f64(timeout)))
+        .map_err(|e| format!("service {service} did not appear: {e}"))?;
+    let client = rosrust::client::<std_srvs::Trigger>(service).map_err(|e| format!("client {service}: {e}"))?;
+    let res = client
+        .req(&std_srvs::TriggerReq {})
+        .map_err(|e| format!("{service}: {e}"))?
+        .map_err(|e| format!("{service}: {e}"))?;
+    if res.success {
+        Ok(res.message)
+    } else {
+        Err(format!("{service} refused: {}", res.message))
+    }
+}

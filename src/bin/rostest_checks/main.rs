@@ -1,0 +1,80 @@
+//! rostest test node: `rostest_checks <check>` runs one check against the running graph
+//! and writes the JUnit XML to the path rostest passes as `--gtest_output=xml:PATH`; exit
+//! code 0 when it passed. The checks: `roundtrip`, `docking`, `stale_hold`, `replay`
+//! ([`docking_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
+//! ([`camera_checks`]).
+
+mod camera_checks;
+mod common;
+mod docking_checks;
+mod fault_injection;
+mod junit;
+
+use ::trocar_docking::ros::params;
+use common::CheckParams;
+use junit::TestReport;
+
+/// Append a line to `$ROS_HOME/rostest_summary.txt`, which scripts/run-rostest prints
+/// (rostest keeps a test node's stdout in its logs only).
+fn append_summary(line: &str) {
+    use std::io::Write as _;
+    let Some(home) = std::env::var_os("ROS_HOME") else {
+        return;
+    };
+    let path = std::path::Path::new(&home).join("rostest_summary.txt");
+    if let Ok(mut f) = std::fs::OpenOptions::new().create(true).append(true).open(path) {
+        let _ = writeln!(f, "{line}");
+    }
+}
+
+/// Run the check named `name`, write the JUnit XML to `out` if given; true if it passed.
+fn run(name: &str, out: Option<&std::path::Path>) -> bool {
+    let mut report = TestReport::new(&format!("trocar_docking_{name}"));
+    let params = params::load_private::<CheckParams>();
+    report.check(name, || {
+        let p = params.map_err(|e| e.to_string())?;
+        let summary = match name {
+            "roundtrip" => docking_checks::roundtrip(&p).map(|()| "round trip ok".to_string()),
+            "docking" => docking_checks::docking(&p),
+            "stale_hold" => docking_checks::stale_hold(&p),
+            "replay" => docking_checks::replay(&p),
+            "bad_input" => fault_injection::bad_input(&p),
+            "latency" => camera_checks::latency(&p),
+            "bad_images" => camera_checks::bad_images(&p),
+            other => Err(format!("unknown check {other}")),
+        }?;
+        rosrust::ros_info!("{name}: {summary}");
+        println!("{name}: {summary}");
+        append_summary(&format!("{name}: {summary}"));
+        Ok(())
+    });
+    if let Some(c) = report.cases().iter().find(|c| c.failure.is_some()) {
+        let why = c.failure.clone().unwrap_or_default();
+        eprintln!("{name} FAILED: {why}");
+        append_summary(&format!("{name} FAILED: {why}"));
+    }
+    if let Some(path) = out {
+        if let Err(e) = report.write(path) {
+            eprintln!("cannot write {}: {e}", path.display());
+            return false;
+        }
+    }
+    report.passed()
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let out = junit::gtest_output_path(&args);
+    let check = args
+        .iter()
+        .skip(1)
+        .find(|a| !a.starts_with("--") && !a.contains(":="))
+        .cloned()
+        .unwrap_or_default();
+    if let Err(e) = rosrust::try_init("rostest_checks") {
+        eprintln!("rostest_checks: cannot reach the ROS master: {e}");
+        std::process::exit(2);
+    }
+    let ok = run(&check, out.as_deref());
+    std::process::exit(if ok { 0 } else { 1 });
+}

@@ -1,0 +1,18 @@
+//! The docking controller and its parts, pure Rust (no ROS, no C++): the optimal control
+//! law ([`sqp`]: costs, Gauss–Newton SQP on Clarabel, active-set warm start), the force
+//! estimate and admittance law ([`admittance`]), the command guard ([`guard`]), the phase
+//! state machine ([`supervisor`]), seated completion ([`seated`]), the metric M
+//! ([`metrics`]) and the insertion-axis geometry ([`geometry`]); [`controller`] runs them
+//! in one step per control period.
+
+pub mod admittance;
+pub mod controller;
+pub mod geometry;
+pub mod guard;
+pub mod metrics;
+pub mod seated;
+pub mod sqp;
+pub mod supervisor;
+
+pub use controller::{ControlInput, ControlOutput, Controller, ControllerParams, ParamError, Stamped};
+pub use supervisor::Phase;

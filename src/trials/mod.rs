@@ -1,0 +1,13 @@
+//! The paper's experiment on the simulated plant ([`crate::sim`]): a policy (the docking
+//! controller, [`controller_policy`], or the resolved-rate [`baseline`]) closes the loop
+//! around a [`crate::sim::SimWorld`] for one trial ([`run`]); [`batch`] runs many trials
+//! per arm (with and without force feedback) in parallel and sums them up; [`plot`] draws
+//! the force traces and the M box plot. [`config`] reads `config/sim.yaml`.
+
+pub mod baseline;
+pub mod batch;
+pub mod config;
+pub mod controller_policy;
+pub mod plot;
+pub mod policy;
+pub mod run;
