@@ -5,6 +5,7 @@
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
 use trocar_docking::control::geometry::InsertionAxis;
+use trocar_docking::control::sqp::SqpStatus;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -122,9 +123,10 @@ fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
     let q0 = q_start();
     for k in 1..=20 {
         let out = c.step(&kin, &input(k as f64 * 0.01, q0, JointVector::zeros(), troc));
-        assert_eq!(out.phase, Phase::Approach, "{:?}", out.reason);
-        assert_eq!(out.solver_status, "time_budget");
-        assert_eq!(out.iterations, 0);
+        assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);
+        let solve = out.solve.as_ref().expect("the SQP ran");
+        assert_eq!(solve.status, SqpStatus::TimeBudget);
+        assert_eq!(solve.iterations, 0);
         // No QP finished in time: the command stays where the arm is, finite and in the box.
         assert_eq!(out.command, Some(q0));
         assert_safe(&out, &q0, &kin, &p);
@@ -134,7 +136,8 @@ fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
     let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
     c.start().unwrap();
     let out = c.step(&kin, &input(0.01, q0, JointVector::zeros(), troc));
-    assert!(out.iterations >= 1, "{}", out.solver_status);
+    let solve = out.solve.as_ref().expect("the SQP ran");
+    assert!(solve.iterations >= 1, "{:?}", solve.status);
     assert!((out.command.unwrap() - q0).amax() > 1e-6);
     assert_safe(&out, &q0, &kin, &p);
 }
@@ -168,11 +171,7 @@ fn force_over_threshold_latches_a_hold() {
     }
     let out = out.unwrap();
     assert_eq!(out.phase, Phase::Hold);
-    assert!(
-        out.reason.as_deref().unwrap_or("").contains("force"),
-        "{:?}",
-        out.reason
-    );
+    assert_eq!(out.reason_code(), "FORCE_LIMIT", "{:?}", out.hold);
     // Held: the command no longer changes, even when the force is gone (latched).
     let at_hold = q;
     assert!((at_hold - held).amax() < 0.1);
@@ -214,7 +213,7 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
         q = o.command.unwrap();
         if now > 0.1 + p.guard.trocar_timeout + 0.011 {
             assert_eq!(o.phase, Phase::Hold, "at {now}");
-            assert!(o.reason.as_deref().unwrap().contains("stale"));
+            assert_eq!(o.reason_code(), "STALE_TROCAR_POSE");
             assert_eq!(q, last, "holding means not moving");
         }
         last = q;
@@ -222,25 +221,31 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
     // Back: resumes by itself.
     let o = c.step(&kin, &input(1.01, q, JointVector::zeros(), troc));
     assert_eq!(o.phase, Phase::Approach);
+    let last_command = o.command.unwrap();
     // Joint state stale, missing, wrong: hold at the last command.
     let mut inp = input(1.5, q, JointVector::zeros(), troc);
     inp.joints = Some(Stamped { stamp: 1.0, value: q });
     let o = c.step(&kin, &inp);
     assert_eq!(o.phase, Phase::Hold);
-    assert_eq!(o.command, Some(o.command.unwrap()));
+    assert_eq!(o.reason_code(), "STALE_JOINT_STATE");
+    assert_eq!(o.command, Some(last_command), "a hold commands the last command");
     inp.joints = None;
-    assert_eq!(c.step(&kin, &inp).phase, Phase::Hold);
+    let o = c.step(&kin, &inp);
+    assert_eq!(o.phase, Phase::Hold);
+    assert_eq!(o.reason_code(), "NO_JOINT_STATE");
+    assert_eq!(o.command, Some(last_command));
     let mut bad = q;
     bad[3] = f64::NAN;
     inp.joints = Some(Stamped { stamp: 1.5, value: bad });
     let o = c.step(&kin, &inp);
-    assert!(o.reason.unwrap().contains("NaN"));
+    assert_eq!(o.reason_code(), "NON_FINITE_JOINT_STATE");
+    assert_eq!(o.command, Some(last_command));
     // Missing torques with force monitoring required: hold.
     let mut inp = input(1.6, q, JointVector::zeros(), troc);
     inp.tau_ext = None;
     let o = c.step(&kin, &inp);
     assert_eq!(o.phase, Phase::Hold);
-    assert!(o.reason.unwrap().contains("torques"));
+    assert_eq!(o.reason_code(), "STALE_TORQUES");
 }
 
 #[test]
@@ -277,7 +282,7 @@ fn abort_and_reset() {
     c.start().unwrap();
     assert_eq!(c.phase(), Phase::Approach);
     let o = c.step(&kin, &input(0.05, moved, JointVector::zeros(), troc));
-    assert_eq!(o.phase, Phase::Approach, "{:?}", o.reason);
+    assert_eq!(o.phase, Phase::Approach, "{:?}", o.hold);
     let next = o.command.unwrap();
     let vmax = kin.limits().velocity * ControllerParams::default().guard.velocity_scale * 0.01;
     for i in 0..7 {
@@ -359,11 +364,7 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
         last = out.command.unwrap();
         if out.phase == Phase::Hold {
-            assert!(
-                out.reason.as_deref().unwrap_or("").contains("does not follow"),
-                "{:?}",
-                out.reason
-            );
+            assert_eq!(out.reason_code(), "TRACKING_ERROR", "{:?}", out.hold);
             held_at = Some(k);
             break;
         }
@@ -382,5 +383,5 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     }
     // The arm catches up: docking resumes.
     let out = c.step(&kin, &input(2.11, last, JointVector::zeros(), troc));
-    assert_eq!(out.phase, Phase::Approach, "{:?}", out.reason);
+    assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);
 }

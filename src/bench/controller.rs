@@ -124,7 +124,7 @@ pub fn run_scenario(
                     "{}: no progress ({:?}: {:?})",
                     scenario.name(),
                     out.phase,
-                    out.reason
+                    out.reason_text()
                 ));
             }
             c.reset();
@@ -134,11 +134,12 @@ pub fn run_scenario(
         }
         s.wall_us.push(wall);
         s.cpu_us.push(cpu);
-        s.iterations.push(out.iterations);
-        s.qp_iterations.push(out.qp_iterations);
-        s.clarabel_qps.push(out.clarabel_qps);
-        s.time_budget_steps += usize::from(out.solver_status == SqpStatus::TimeBudget.as_text());
-        s.qp_iteration_budget_steps += usize::from(out.solver_status == SqpStatus::QpIterationBudget.as_text());
+        let solve = out.solve.as_ref();
+        s.iterations.push(solve.map_or(0, |r| r.iterations));
+        s.qp_iterations.push(solve.map_or(0, |r| r.qp_iterations));
+        s.clarabel_qps.push(solve.map_or(0, |r| r.clarabel_qps));
+        s.time_budget_steps += usize::from(solve.is_some_and(|r| r.status == SqpStatus::TimeBudget));
+        s.qp_iteration_budget_steps += usize::from(solve.is_some_and(|r| r.status == SqpStatus::QpIterationBudget));
         q = out.command.unwrap_or(q);
     }
     Ok(s)

@@ -7,6 +7,9 @@
 //! operator) needs an explicit `start` to resume.
 
 use std::fmt;
+use std::sync::Arc;
+
+use super::hold::HoldReason;
 
 /// The phase of a docking run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
@@ -56,7 +59,8 @@ pub struct Supervisor {
     phase: Phase,
     resume: Phase,
     latched: bool,
-    reason: Option<String>,
+    reason: Option<HoldReason>,
+    note: Option<Arc<str>>,
 }
 
 impl Default for Supervisor {
@@ -73,6 +77,7 @@ impl Supervisor {
             resume: Phase::Approach,
             latched: false,
             reason: None,
+            note: None,
         }
     }
 
@@ -81,10 +86,15 @@ impl Supervisor {
         self.phase
     }
 
-    /// The reason of the last hold or abort, or how DONE was reached (see
-    /// [`Supervisor::goal_reached`]).
-    pub fn reason(&self) -> Option<&str> {
-        self.reason.as_deref()
+    /// The reason of the last hold or abort (cleared by a new start from IDLE and when the
+    /// goal is reached).
+    pub fn reason(&self) -> Option<&HoldReason> {
+        self.reason.as_ref()
+    }
+
+    /// How DONE was reached, when not plainly at the goal (see [`Supervisor::goal_reached`]).
+    pub fn note(&self) -> Option<&Arc<str>> {
+        self.note.as_ref()
     }
 
     /// Start (from IDLE) or resume (from HOLD). Refused after DONE or ABORTED.
@@ -93,6 +103,7 @@ impl Supervisor {
             Phase::Idle => {
                 self.phase = Phase::Approach;
                 self.reason = None;
+                self.note = None;
                 Ok(())
             }
             Phase::Hold => {
@@ -104,7 +115,9 @@ impl Supervisor {
             Phase::Done => Err("docking is done; reset before starting again".into()),
             Phase::Aborted => Err(format!(
                 "aborted ({}); reset before starting again",
-                self.reason.as_deref().unwrap_or("no reason")
+                self.reason
+                    .as_ref()
+                    .map_or_else(|| "no reason".to_string(), ToString::to_string)
             )),
         }
     }
@@ -112,7 +125,7 @@ impl Supervisor {
     /// Abort from any phase.
     pub fn abort(&mut self, why: &str) {
         self.phase = Phase::Aborted;
-        self.reason = Some(why.to_string());
+        self.reason = Some(HoldReason::Operator(why.into()));
     }
 
     /// Back to IDLE, forgetting any hold.
@@ -122,7 +135,7 @@ impl Supervisor {
 
     /// Hold for `reason`. A latched hold needs `start` to resume. Outside APPROACH and
     /// INSERT the phase does not change (nothing moves there anyway) but the reason is kept.
-    pub fn hold(&mut self, reason: String, latched: bool) {
+    pub fn hold(&mut self, reason: HoldReason, latched: bool) {
         match self.phase {
             Phase::Approach | Phase::Insert => {
                 self.resume = self.phase;
@@ -155,11 +168,12 @@ impl Supervisor {
     }
 
     /// The goal is reached: INSERT -> DONE. `note` says how, when not plainly at the goal;
-    /// it replaces the reason of any earlier hold.
-    pub fn goal_reached(&mut self, note: Option<String>) {
+    /// the reason of any earlier hold is cleared.
+    pub fn goal_reached(&mut self, note: Option<Arc<str>>) {
         if self.phase == Phase::Insert {
             self.phase = Phase::Done;
-            self.reason = note;
+            self.reason = None;
+            self.note = note;
         }
     }
 }
@@ -181,11 +195,12 @@ mod tests {
         assert_eq!(s.phase(), Phase::Approach, "no skipping the insertion");
         s.approach_reached();
         assert_eq!(s.phase(), Phase::Insert);
-        s.hold("trocar pose stale".into(), false);
+        s.hold(HoldReason::StaleTrocarPose { age: 1.0 }, false);
         s.clear_hold();
         s.goal_reached(Some("seated".into()));
         assert_eq!(s.phase(), Phase::Done);
-        assert_eq!(s.reason(), Some("seated"), "the note replaces the old hold's reason");
+        assert_eq!(s.note().map(|n| &**n), Some("seated"));
+        assert_eq!(s.reason(), None, "DONE clears the old hold's reason");
         assert!(s.start().is_err());
         s.reset();
         assert_eq!(s.phase(), Phase::Idle);
@@ -196,12 +211,18 @@ mod tests {
         let mut s = Supervisor::new();
         s.start().unwrap();
         s.approach_reached();
-        s.hold("trocar pose stale".into(), false);
+        s.hold(HoldReason::StaleTrocarPose { age: 1.0 }, false);
         assert_eq!(s.phase(), Phase::Hold);
-        assert_eq!(s.reason(), Some("trocar pose stale"));
+        assert_eq!(s.reason().map(HoldReason::code), Some("STALE_TROCAR_POSE"));
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Insert, "resumes the interrupted phase");
-        s.hold("force".into(), true);
+        s.hold(
+            HoldReason::ForceLimit {
+                force: 30.0,
+                limit: 20.0,
+            },
+            true,
+        );
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Hold, "a latched hold needs start");
         assert!(s.is_latched());
@@ -214,7 +235,7 @@ mod tests {
         assert_eq!(Phase::Aborted.as_str(), "ABORTED");
         // Holding in IDLE keeps IDLE.
         let mut s = Supervisor::new();
-        s.hold("no joint state".into(), false);
+        s.hold(HoldReason::NoJointState, false);
         assert_eq!(s.phase(), Phase::Idle);
     }
 }
