@@ -127,3 +127,117 @@ impl<S: CommandSource> Guarded<S> {
         out
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::guard::GuardParams;
+    use crate::control::Stamped;
+    use crate::kinematics::lbr::{LbrModel, ToolParams};
+    use crate::kinematics::{JointLimits, LbrKinematics};
+
+    /// A stand-in source that proposes whatever it is told to.
+    struct Scripted {
+        propose: JointVector,
+        last: Option<JointVector>,
+        phase: Phase,
+        rejected: Option<HoldReason>,
+    }
+
+    impl CommandSource for Scripted {
+        fn period(&self) -> f64 {
+            0.01
+        }
+        fn phase(&self) -> Phase {
+            self.phase
+        }
+        fn start(&mut self) -> Result<(), String> {
+            self.phase = Phase::Approach;
+            Ok(())
+        }
+        fn abort(&mut self, _why: &str) {
+            self.phase = Phase::Aborted;
+        }
+        fn reset(&mut self) {
+            self.phase = Phase::Idle;
+        }
+        fn last_command(&self) -> Option<JointVector> {
+            self.last
+        }
+        fn step(&mut self, _kin: &dyn Kinematics, _input: &ControlInput, _ctx: &StepContext<'_>) -> ControlOutput {
+            self.last = Some(self.propose);
+            ControlOutput {
+                command: Some(self.propose),
+                phase: self.phase,
+                hold: None,
+                note: None,
+                solve: None,
+                f_ext: nalgebra::Vector3::zeros(),
+                reference: None,
+                tip: None,
+                goal: None,
+                metric_m: 0.0,
+            }
+        }
+        fn reject(&mut self, reason: HoldReason, hold_at: JointVector) {
+            self.phase = Phase::Hold;
+            self.last = Some(hold_at);
+            self.rejected = Some(reason);
+        }
+    }
+
+    fn run(propose: JointVector, joints: JointVector) -> (ControlOutput, Guarded<Scripted>) {
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let limits = JointLimits::of_model(LbrModel::Med7);
+        let source = Scripted {
+            propose,
+            last: None,
+            phase: Phase::Approach,
+            rejected: None,
+        };
+        let mut g = Guarded::wrap(source, CommandGuard::new(GuardParams::default(), &limits));
+        let input = ControlInput {
+            now: 1.0,
+            joints: Some(Stamped { stamp: 1.0, value: joints }),
+            tau_ext: None,
+            trocar: None,
+        };
+        let out = g.step(&kin, &input);
+        (out, g)
+    }
+
+    #[test]
+    fn no_source_gets_a_bad_command_past_the_guard() {
+        let q = JointVector::from_column_slice(&[0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0]);
+        // A small step passes unchanged.
+        let mut ok = q;
+        ok[0] += 1e-4;
+        let (out, g) = run(ok, q);
+        assert_eq!(out.command, Some(ok));
+        assert!(g.source().rejected.is_none());
+        // A jump, a NaN, a step out of the limits: held at the measured joints, latched,
+        // with the guard's reason.
+        let mut jump = q;
+        jump[2] += 0.3;
+        let mut nan = q;
+        nan[4] = f64::NAN;
+        // At the upper limit less the margin, one small step further out.
+        let mut at_limit = q;
+        at_limit[1] = JointLimits::of_model(LbrModel::Med7).upper[1] - GuardParams::default().position_margin;
+        let mut beyond = at_limit;
+        beyond[1] += 1e-4;
+        for (bad, measured, code) in [
+            (jump, q, "VELOCITY_LIMIT"),
+            (nan, q, "NON_FINITE_COMMAND"),
+            (beyond, at_limit, "POSITION_LIMIT"),
+        ] {
+            let (out, g) = run(bad, measured);
+            let q = measured;
+            assert_eq!(out.command, Some(q), "{code}: held where the arm is");
+            assert_eq!(out.phase, Phase::Hold);
+            assert_eq!(out.reason_code(), code);
+            assert_eq!(g.source().rejected.as_ref().map(HoldReason::code), Some(code));
+            assert_eq!(g.source().last_command(), Some(q), "the source holds too");
+        }
+    }
+}
