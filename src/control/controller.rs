@@ -37,6 +37,7 @@ pub use super::params::{ControllerParams, ParamError};
 use super::seated::{SeatedCheck, TipState};
 use super::sqp::{CostTerms, CostWeights, LimitAvoidance, SqpSolver, SqpStatus, Targets};
 use super::supervisor::{Phase, Supervisor};
+use super::tare::{Tare, TareStep};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
 
 /// A value with the time it was measured, s (same clock as [`ControlInput::now`]).
@@ -145,6 +146,7 @@ struct RunState {
     /// Time spent at the stand-off point without the alignment, s.
     stalled_for: f64,
     seated: SeatedCheck,
+    tare: Tare,
     /// `Some(None)`: a retreat is due and begins from the tip's depth.
     retreat: Option<Option<Retreat>>,
 }
@@ -158,6 +160,7 @@ struct Early {
 
 /// The measured arm of one step.
 struct Arm {
+    q: JointVector,
     tip: Isometry3<f64>,
     jac: Jacobian,
     /// The previous command (the measured joints at the start of a run).
@@ -292,7 +295,7 @@ impl OptimalController {
                 .check_tracking(&q, &prev)
                 .map_err(|r| early(r, Some(prev), Some(tip)))?;
         }
-        Ok(Arm { tip, jac, prev })
+        Ok(Arm { q, tip, jac, prev })
     }
 
     /// Update the force estimate from the torques; the metric while moving; the force stop.
@@ -308,9 +311,10 @@ impl OptimalController {
                 if t.value.iter().all(|x| x.is_finite())
                     && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout) =>
             {
+                let tau = self.run.tare.correct(&t.value);
                 self.run
                     .admittance
-                    .update_force(&self.params.admittance, &arm.jac, &t.value, dt);
+                    .update_force(&self.params.admittance, &arm.jac, &tau, dt);
             }
             Some(t) if self.params.require_torques => {
                 return Err(early(HoldReason::StaleTorques {
@@ -504,6 +508,41 @@ impl OptimalController {
         }
     }
 
+    /// One step of the TARE phase: hold still at the start pose while the torques are
+    /// averaged; then APPROACH, or IDLE with the reason.
+    fn tare_step(&mut self, input: &ControlInput, arm: &Arm, guard: &CommandGuard, dt: f64) -> ControlOutput {
+        let p = &self.params;
+        let tau = input.tau_ext.filter(|t| {
+            t.value.iter().all(|x| x.is_finite())
+                && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout)
+        });
+        let r = &mut self.run;
+        match tau {
+            _ if p.tare.window_s <= 0.0 => {
+                r.tare.skip();
+                r.supervisor.tare_done();
+            }
+            None if !p.require_torques => {
+                r.tare.skip();
+                r.supervisor.tare_done();
+            }
+            None => {
+                // Torques missing or stale: start the window again once they are back.
+                r.tare = Tare::default();
+                let age = input.tau_ext.map_or(f64::INFINITY, |t| input.now - t.stamp);
+                r.supervisor.hold(HoldReason::StaleTorques { age }, false);
+            }
+            Some(t) => match r.tare.collect(&p.tare, &arm.q, &t.value, dt) {
+                TareStep::Collecting => {}
+                TareStep::Done => r.supervisor.tare_done(),
+                TareStep::Refused(why) => r.supervisor.tare_refused(why),
+            },
+        }
+        let still = (self.run.supervisor.phase() != Phase::Idle).then_some(arm.prev);
+        self.run.last_command = still;
+        self.output(still, Some(arm.tip), None)
+    }
+
     #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
     fn step_checked(
         &mut self,
@@ -513,11 +552,19 @@ impl OptimalController {
     ) -> Result<ControlOutput, Early> {
         let dt = ctx.dt;
         let arm = self.measured_arm(kin, input, ctx.guard)?;
+        if self.run.supervisor.phase() == Phase::Tare {
+            return Ok(self.tare_step(input, &arm, ctx.guard, dt));
+        }
         self.update_force(input, &arm, ctx.guard, dt)?;
         let trocar = self.trocar_pose(input, &arm, ctx.guard)?;
         let axis = InsertionAxis::from_pose(&trocar);
         let goal = axis.point_at(self.params.insertion_depth);
         let tip_p = Point3::from(arm.tip.translation.vector);
+        if let (Phase::Approach, Some(t)) = (self.run.supervisor.phase(), input.tau_ext) {
+            self.run
+                .tare
+                .track(&self.params.tare, &t.value, axis.depth_of(&tip_p), dt);
+        }
 
         // Every input is good: an unlatched hold (stale data) resumes.
         self.run.supervisor.clear_hold();

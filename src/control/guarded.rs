@@ -198,7 +198,10 @@ mod tests {
         let mut g = Guarded::wrap(source, CommandGuard::new(GuardParams::default(), &limits));
         let input = ControlInput {
             now: 1.0,
-            joints: Some(Stamped { stamp: 1.0, value: joints }),
+            joints: Some(Stamped {
+                stamp: 1.0,
+                value: joints,
+            }),
             tau_ext: None,
             trocar: None,
         };

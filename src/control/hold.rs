@@ -72,6 +72,20 @@ pub enum HoldReason {
     },
     /// The operator asked to stop.
     Operator(Arc<str>),
+    /// The start was refused: the arm moved while the torques were tared.
+    TareMotion {
+        /// Largest joint motion in the window, rad.
+        moved_rad: f64,
+    },
+    /// The start was refused: a torque was implausible while taring.
+    TareImplausible {
+        /// Joint index (0-based).
+        joint: usize,
+        /// Its mean over the window, Nm.
+        offset_nm: f64,
+        /// Its standard deviation over the window, Nm.
+        sigma_nm: f64,
+    },
 }
 
 impl HoldReason {
@@ -95,11 +109,13 @@ impl HoldReason {
             HoldReason::TrackingError { .. } => "TRACKING_ERROR",
             HoldReason::AlignmentStall { .. } => "ALIGNMENT_STALL",
             HoldReason::Operator(_) => "OPERATOR",
+            HoldReason::TareMotion { .. } => "TARE_MOTION",
+            HoldReason::TareImplausible { .. } => "TARE_IMPLAUSIBLE",
         }
     }
 
     /// Every code, for documentation and tests.
-    pub const CODES: [&'static str; 16] = [
+    pub const CODES: [&'static str; 18] = [
         "NO_JOINT_STATE",
         "STALE_JOINT_STATE",
         "NON_FINITE_JOINT_STATE",
@@ -116,6 +132,8 @@ impl HoldReason {
         "TRACKING_ERROR",
         "ALIGNMENT_STALL",
         "OPERATOR",
+        "TARE_MOTION",
+        "TARE_IMPLAUSIBLE",
     ];
 }
 
@@ -149,6 +167,20 @@ impl fmt::Display for HoldReason {
                 "cannot align at the stand-off point: {angle_deg:.1} deg off after {after_s:.1} s (a joint limit in the way? reposition the arm or the trocar)"
             ),
             HoldReason::Operator(s) => write!(f, "operator: {s}"),
+            HoldReason::TareMotion { moved_rad } => write!(
+                f,
+                "start refused: the arm moved {:.2} deg while the torques were tared (keep it still and start again)",
+                moved_rad.to_degrees()
+            ),
+            HoldReason::TareImplausible {
+                joint,
+                offset_nm,
+                sigma_nm,
+            } => write!(
+                f,
+                "start refused: joint {} reads {offset_nm:.1} Nm (spread {sigma_nm:.2} Nm) with the arm still: in contact, or wrong load data?",
+                joint + 1
+            ),
         }
     }
 }
@@ -181,6 +213,12 @@ mod tests {
                 after_s: 3.0,
             },
             HoldReason::Operator("x".into()),
+            HoldReason::TareMotion { moved_rad: 0.01 },
+            HoldReason::TareImplausible {
+                joint: 3,
+                offset_nm: 7.0,
+                sigma_nm: 0.1,
+            },
         ]
     }
 

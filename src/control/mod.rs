@@ -16,6 +16,7 @@ pub mod params;
 pub mod seated;
 pub mod sqp;
 pub mod supervisor;
+pub mod tare;
 
 pub use controller::{ControlInput, ControlOutput, Controller, OptimalController, SolveReport, Stamped};
 pub use guard::HoldReason;

@@ -7,6 +7,7 @@ use super::admittance::AdmittanceParams;
 use super::guard::GuardParams;
 use super::seated::SeatedParams;
 use super::sqp::{CostWeights, SqpSettings};
+use super::tare::TareParams;
 
 /// Errors in the controller's parameters.
 #[derive(Debug, thiserror::Error)]
@@ -63,6 +64,8 @@ pub struct ControllerParams {
     /// Hold (latched) when the tip has sat at the stand-off point this long without
     /// reaching the alignment tolerance (e.g. a joint limit in the way), s.
     pub approach_stall_timeout: f64,
+    /// Taring the external torques at start, and tracking their offset out of contact.
+    pub tare: TareParams,
     /// Force estimate and admittance law.
     pub admittance: AdmittanceParams,
     /// Safety guard.
@@ -105,6 +108,7 @@ impl Default for ControllerParams {
             limit_avoidance_weight: 1.0,
             limit_avoidance_zone: 0.9,
             approach_stall_timeout: 3.0,
+            tare: TareParams::default(),
             admittance: AdmittanceParams::default(),
             guard: GuardParams::default(),
             sqp: SqpSettings::default(),
@@ -161,6 +165,7 @@ impl ControllerParams {
                 self.limit_avoidance_zone
             ));
         }
+        self.tare.validate()?;
         self.admittance.validate()?;
         self.guard.validate()?;
         self.sqp.validate()

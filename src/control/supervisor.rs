@@ -16,6 +16,9 @@ use super::hold::HoldReason;
 pub enum Phase {
     /// Waiting for start; nothing moves.
     Idle,
+    /// Started: the arm is held still while the external torques are tared
+    /// ([`crate::control::tare`]); then APPROACH, or back to IDLE with the reason.
+    Tare,
     /// Moving the tip to the stand-off point on the insertion axis, aligning the scope.
     Approach,
     /// Sliding along the axis through the port to the goal depth.
@@ -33,6 +36,7 @@ impl Phase {
     pub fn as_str(&self) -> &'static str {
         match self {
             Phase::Idle => "IDLE",
+            Phase::Tare => "TARE",
             Phase::Approach => "APPROACH",
             Phase::Insert => "INSERT",
             Phase::Done => "DONE",
@@ -101,7 +105,7 @@ impl Supervisor {
     pub fn start(&mut self) -> Result<(), String> {
         match self.phase {
             Phase::Idle => {
-                self.phase = Phase::Approach;
+                self.phase = Phase::Tare;
                 self.reason = None;
                 self.note = None;
                 Ok(())
@@ -111,7 +115,7 @@ impl Supervisor {
                 self.latched = false;
                 Ok(())
             }
-            Phase::Approach | Phase::Insert => Ok(()),
+            Phase::Tare | Phase::Approach | Phase::Insert => Ok(()),
             Phase::Done => Err("docking is done; reset before starting again".into()),
             Phase::Aborted => Err(format!(
                 "aborted ({}); reset before starting again",
@@ -160,6 +164,21 @@ impl Supervisor {
         self.phase == Phase::Hold && self.latched
     }
 
+    /// The torques are tared: TARE -> APPROACH.
+    pub fn tare_done(&mut self) {
+        if self.phase == Phase::Tare {
+            self.phase = Phase::Approach;
+        }
+    }
+
+    /// The tare refused the start: TARE -> IDLE, with the reason.
+    pub fn tare_refused(&mut self, reason: HoldReason) {
+        if self.phase == Phase::Tare {
+            self.phase = Phase::Idle;
+            self.reason = Some(reason);
+        }
+    }
+
     /// The stand-off point is reached: APPROACH -> INSERT.
     pub fn approach_reached(&mut self) {
         if self.phase == Phase::Approach {
@@ -190,6 +209,10 @@ mod tests {
         s.goal_reached(None);
         assert_eq!(s.phase(), Phase::Idle, "nothing happens before start");
         s.start().unwrap();
+        assert_eq!(s.phase(), Phase::Tare, "a start tares first");
+        s.approach_reached();
+        assert_eq!(s.phase(), Phase::Tare);
+        s.tare_done();
         assert_eq!(s.phase(), Phase::Approach);
         s.goal_reached(None);
         assert_eq!(s.phase(), Phase::Approach, "no skipping the insertion");
@@ -210,6 +233,11 @@ mod tests {
     fn holds_resume_or_latch() {
         let mut s = Supervisor::new();
         s.start().unwrap();
+        s.tare_refused(HoldReason::TareMotion { moved_rad: 0.01 });
+        assert_eq!(s.phase(), Phase::Idle, "a refused tare is a refused start");
+        assert_eq!(s.reason().map(HoldReason::code), Some("TARE_MOTION"));
+        s.start().unwrap();
+        s.tare_done();
         s.approach_reached();
         s.hold(HoldReason::StaleTrocarPose { age: 1.0 }, false);
         assert_eq!(s.phase(), Phase::Hold);
