@@ -195,7 +195,7 @@ pub fn urdf(model: LbrModel, tool: &ToolParams) -> Result<String, ModelError> {
     }
     for j in 0..7 {
         let lim = s.limit_deg[j].to_radians();
-        let _ = writeln!(w, "  <joint name=\"lbr_joint_{}\" type=\"revolute\">", j + 1);
+        let _ = writeln!(w, "  <joint name=\"{}\" type=\"revolute\">", super::joint_name(j + 1));
         let _ = writeln!(
             w,
             "    <parent link=\"lbr_link_{j}\"/><child link=\"lbr_link_{}\"/>",
