@@ -146,6 +146,8 @@ struct RunState {
     /// Time spent at the stand-off point without the alignment, s.
     stalled_for: f64,
     seated: SeatedCheck,
+    /// The tip-to-goal error and the alignment angle, averaged during INSERT.
+    goal_error: Option<(Vector3<f64>, f64)>,
     tare: Tare,
     /// `Some(None)`: a retreat is due and begins from the tip's depth.
     retreat: Option<Option<Retreat>>,
@@ -485,7 +487,14 @@ impl OptimalController {
                 }
             }
             Phase::Insert => {
-                if (tip_p - goal).norm() < p.goal_tolerance && angle < p.goal_angle_tolerance_deg.to_radians() {
+                let (err, ang) = (tip_p - goal, angle);
+                let tc = p.goal_filter_time_constant;
+                let a = if tc > 0.0 { dt / (tc + dt) } else { 1.0 };
+                let (e, g) = r
+                    .goal_error
+                    .map_or((err, ang), |(e, g)| (e + (err - e) * a, g + (ang - g) * a));
+                r.goal_error = Some((e, g));
+                if e.norm() < p.goal_tolerance && g < p.goal_angle_tolerance_deg.to_radians() {
                     r.supervisor.goal_reached(None);
                 } else {
                     let state = TipState {
@@ -505,6 +514,7 @@ impl OptimalController {
         }
         if r.supervisor.phase() != Phase::Insert {
             r.seated.reset();
+            r.goal_error = None;
         }
     }
 
