@@ -295,7 +295,7 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
     for a in r {
         for t in &a.trials {
             println!(
-                "{:<6} {:>6} {:<12} {:>7.2} {:>8.3} {:>8.3} {:>8.3} {:>9.2}  {} {}",
+                "{:<6} {:>6} {:<12} {:>7.2} {:>8.3} {:>8.3} {:>8.3} {:>9.2}  {} {} {}",
                 a.summary.label,
                 t.seed,
                 t.outcome.name(),
@@ -305,6 +305,7 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
                 t.m_lateral_true,
                 t.max_f_true,
                 t.final_phase,
+                t.final_hold,
                 t.reason
             );
         }

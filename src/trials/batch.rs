@@ -88,8 +88,8 @@ pub struct ArmSummary {
     pub max_force_true_n: f64,
     /// Largest estimated force over every trial, N.
     pub max_force_est_n: f64,
-    /// Failed trials by reason: the outcome and the policy's phase at the end, e.g.
-    /// `timeout in HOLD`.
+    /// Failed trials by reason: the outcome, the policy's phase and hold code at the end,
+    /// e.g. `timeout in HOLD (APPROACH_STALL)`.
     pub failures: BTreeMap<String, usize>,
 }
 
@@ -99,10 +99,10 @@ impl ArmSummary {
         let ok: Vec<&TrialResult> = r.iter().filter(|x| x.success()).collect();
         let mut failures = BTreeMap::new();
         for x in r.iter().filter(|x| !x.success()) {
-            let key = if x.final_phase.is_empty() {
-                x.outcome.name().to_string()
-            } else {
-                format!("{} in {}", x.outcome.name(), x.final_phase)
+            let key = match (x.final_phase, x.final_hold) {
+                ("", _) => x.outcome.name().to_string(),
+                (phase, "") => format!("{} in {phase}", x.outcome.name()),
+                (phase, hold) => format!("{} in {phase} ({hold})", x.outcome.name()),
             };
             *failures.entry(key).or_insert(0) += 1;
         }
@@ -190,6 +190,7 @@ fn one(
         max_f_est: 0.0,
         max_f_true: 0.0,
         final_phase: "",
+        final_hold: "",
         samples: vec![],
     };
     let kin = match kin() {
@@ -233,6 +234,7 @@ mod tests {
             max_f_est: 3.0 * m,
             max_f_true: 4.0 * m,
             final_phase: phase,
+            final_hold: if phase == "HOLD" { "FORCE_LIMIT" } else { "" },
             samples: vec![],
         }
     }
@@ -251,7 +253,7 @@ mod tests {
         assert!((s.m_true_all.mean - 4.0).abs() < 1e-12 && (s.m_true.mean - 1.0).abs() < 1e-12);
         assert!((s.m_lateral_true_all.mean - 2.0).abs() < 1e-12);
         assert!((s.time_s.mean - 2.0).abs() < 1e-12 && s.max_force_true_n == 28.0);
-        assert_eq!(s.failures.get("timeout in HOLD"), Some(&2));
+        assert_eq!(s.failures.get("timeout in HOLD (FORCE_LIMIT)"), Some(&2));
         assert_eq!(s.failures.get("force_abort in INSERT"), Some(&1));
         assert_eq!(s.failures.len(), 2);
     }

@@ -39,6 +39,8 @@ pub struct Action {
     pub f_ext: Option<Vector3<f64>>,
     /// Phase name, e.g. `APPROACH`.
     pub phase: &'static str,
+    /// The code of the reason the policy holds, if it does (e.g. `FORCE_LIMIT`).
+    pub hold_code: Option<&'static str>,
     /// Set when the policy gave up (its reason).
     pub aborted: Option<String>,
 }
@@ -140,6 +142,8 @@ pub struct Sample {
     pub trocar_shift: f64,
     /// Policy phase.
     pub phase: &'static str,
+    /// The policy's hold code ('' when it does not hold).
+    pub hold: &'static str,
 }
 
 /// The result of one trial.
@@ -165,6 +169,8 @@ pub struct TrialResult {
     pub max_f_true: f64,
     /// The policy's phase when the trial ended.
     pub final_phase: &'static str,
+    /// The policy's hold code when the trial ended ('' when it did not hold).
+    pub final_hold: &'static str,
     /// Time series at the control rate.
     #[serde(skip)]
     pub samples: Vec<Sample>,
@@ -196,6 +202,7 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
         max_f_est: m.max_f_est,
         max_f_true: m.max_f_true,
         final_phase: samples.last().map_or("", |x| x.phase),
+        final_hold: samples.last().map_or("", |x| x.hold),
         samples,
     }
 }
@@ -233,6 +240,7 @@ fn drive(
             goal_dist: (port.coords - Vector3::new(0.0, 0.0, p.goal_depth_m)).norm(),
             trocar_shift: world.trocar().deviation().0,
             phase: action.phase,
+            hold: action.hold_code.unwrap_or(""),
         });
         if world.docked(p.goal_depth_m, p.tolerance_m) {
             return Ok((Outcome::Docked, String::new()));
@@ -311,6 +319,7 @@ mod tests {
             goal_dist: 0.0,
             trocar_shift: 0.0,
             phase: "X",
+            hold: "",
         }
     }
 
