@@ -330,6 +330,70 @@ fn world_config(p: &SimNodeParams) -> Result<SimConfig, NodeError> {
         .map_err(|e| NodeError::Invalid(format!("world_protocol '{}': {e}", p.world_protocol)))
 }
 
+/// A publisher on `topic` when `on`.
+fn optional<T: rosrust::Message>(
+    on: bool,
+    topic: &str,
+    queue: usize,
+) -> Result<Option<rosrust::Publisher<T>>, NodeError> {
+    if on {
+        rosrust::publish::<T>(topic, queue).map(Some).map_err(ros_err)
+    } else {
+        Ok(None)
+    }
+}
+
+/// The node's publishers (the camera's live on its thread).
+struct Outputs {
+    joint_states: rosrust::Publisher<sensor_msgs::JointState>,
+    lbr_state: rosrust::Publisher<lbr_msgs::LBRState>,
+    clock: Option<rosrust::Publisher<rosgraph_msgs::Clock>>,
+    pose: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
+    truth: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
+}
+
+impl Outputs {
+    fn new(p: &SimNodeParams) -> Result<Self, NodeError> {
+        Ok(Self {
+            joint_states: rosrust::publish(&p.joint_states_topic, 10).map_err(ros_err)?,
+            lbr_state: rosrust::publish(&p.lbr_state_topic, 10).map_err(ros_err)?,
+            clock: optional(p.publish_clock, "/clock", 10)?,
+            pose: optional(p.direct_pose_enabled, &p.trocar_pose_topic, 10)?,
+            truth: optional(!p.trocar_true_topic.is_empty(), &p.trocar_true_topic, 2)?,
+        })
+    }
+
+    /// The driver's topics: joint states and LBRState (motor-side joints, as the LBR).
+    fn driver(&self, p: &SimNodeParams, world: &SimWorld, stamp: rosrust::Time, sample_time: f64) {
+        let q = world.joint_positions();
+        let tau_ext = world.external_torques();
+        let tau = JointVector::zeros();
+        let _ = self
+            .joint_states
+            .send(convert::joint_state(stamp, &p.joint_names, &q, &tau));
+        let _ = self
+            .lbr_state
+            .send(convert::lbr_state(stamp, sample_time, &q, &tau, &tau_ext));
+    }
+
+    /// In the direct mode, a pose measurement newer than `last` (its stamp, updated),
+    /// stamped at capture: the controller's latency then counts the sensor delay.
+    fn direct_pose(&self, p: &SimNodeParams, world: &SimWorld, t0: f64, stamp: rosrust::Time, last: &mut f64) {
+        let (Some(publ), Some(m)) = (&self.pose, world.measure_trocar(world.time())) else {
+            return;
+        };
+        if m.stamp > *last {
+            *last = m.stamp;
+            let capture = if p.publish_clock {
+                convert::ros_time(t0 + m.stamp)
+            } else {
+                stamp
+            };
+            let _ = publ.send(convert::pose_stamped(capture, &p.base_frame, &m.pose));
+        }
+    }
+}
+
 /// Run the node until shutdown. Call after `rosrust::init`.
 pub fn run() -> Result<(), NodeError> {
     let p: SimNodeParams = params::load_private()?;
@@ -345,23 +409,7 @@ pub fn run() -> Result<(), NodeError> {
 
     let command: CommandSlot = Arc::new(Mutex::new(None));
     let _sub = subscribe_command(&p, &command)?;
-    let pub_js = rosrust::publish::<sensor_msgs::JointState>(&p.joint_states_topic, 10).map_err(ros_err)?;
-    let pub_lbr = rosrust::publish::<lbr_msgs::LBRState>(&p.lbr_state_topic, 10).map_err(ros_err)?;
-    let pub_clock = if p.publish_clock {
-        Some(rosrust::publish::<rosgraph_msgs::Clock>("/clock", 10).map_err(ros_err)?)
-    } else {
-        None
-    };
-    let pub_pose = if p.direct_pose_enabled {
-        Some(rosrust::publish::<geometry_msgs::PoseStamped>(&p.trocar_pose_topic, 10).map_err(ros_err)?)
-    } else {
-        None
-    };
-    let pub_true = if p.trocar_true_topic.is_empty() {
-        None
-    } else {
-        Some(rosrust::publish::<geometry_msgs::PoseStamped>(&p.trocar_true_topic, 2).map_err(ros_err)?)
-    };
+    let out = Outputs::new(&p)?;
     let mut camera = if p.camera_enabled {
         Some(SimCamera::start(&p)?)
     } else {
@@ -399,15 +447,11 @@ pub fn run() -> Result<(), NodeError> {
         } else {
             rosrust::now()
         };
-        if let Some(c) = &pub_clock {
+        if let Some(c) = &out.clock {
             let _ = c.send(rosgraph_msgs::Clock { clock: stamp });
         }
         if fri.due(t) {
-            let q = world.joint_positions();
-            let tau_ext = world.external_torques();
-            let tau = JointVector::zeros();
-            let _ = pub_js.send(convert::joint_state(stamp, &p.joint_names, &q, &tau));
-            let _ = pub_lbr.send(convert::lbr_state(stamp, sample_time, &q, &tau, &tau_ext));
+            out.driver(&p, &world, stamp, sample_time);
         }
         let live = p.trocar_dropout_after < 0.0 || world.time() < p.trocar_dropout_after;
         if let (true, Some(cam)) = (live, camera.as_mut()) {
@@ -415,20 +459,11 @@ pub fn run() -> Result<(), NodeError> {
                 cam.capture(&world, stamp);
             }
         }
-        if let (true, Some(publ), Some(m)) = (live, &pub_pose, world.measure_trocar(world.time())) {
-            if m.stamp > last_measurement {
-                last_measurement = m.stamp;
-                // Stamped at capture: the controller's latency then counts the sensor delay.
-                let capture = if p.publish_clock {
-                    convert::ros_time(t0 + m.stamp)
-                } else {
-                    stamp
-                };
-                let _ = publ.send(convert::pose_stamped(capture, &p.base_frame, &m.pose));
-            }
+        if live {
+            out.direct_pose(&p, &world, t0, stamp, &mut last_measurement);
         }
         if truth.due(t) {
-            if let Some(publ) = &pub_true {
+            if let Some(publ) = &out.truth {
                 let _ = publ.send(convert::pose_stamped(stamp, &p.base_frame, &world.trocar_pose_true()));
             }
         }
