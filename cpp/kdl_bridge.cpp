@@ -2,6 +2,7 @@
 
 #include <limits>
 #include <stdexcept>
+#include <string>
 
 #include <mutex>
 
@@ -81,7 +82,19 @@ static void write_pose(const KDL::Frame& f, rust::Slice<double> pose) {
   for (int i = 0; i < 9; ++i) pose[3 + i] = f.M.data[i];
 }
 
+namespace {
+// The lengths fk and fk_jacobian index with, checked before any access.
+void check_lengths(size_t joints, rust::Slice<const double> q, rust::Slice<double> pose) {
+  if (q.size() != joints)
+    throw std::invalid_argument("wrong joint count: the chain has " + std::to_string(joints) + " joints, got " +
+                                std::to_string(q.size()));
+  if (pose.size() != 12)
+    throw std::invalid_argument("pose buffer must hold 12 values, got " + std::to_string(pose.size()));
+}
+}  // namespace
+
 void KdlChain::fk(rust::Slice<const double> q, rust::Slice<double> pose) const {
+  check_lengths(n_joints(), q, pose);
   KDL::Frame t = KDL::Frame::Identity();
   unsigned j = 0;
   for (const auto& s : segs_) {
@@ -92,6 +105,10 @@ void KdlChain::fk(rust::Slice<const double> q, rust::Slice<double> pose) const {
 
 void KdlChain::fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose,
                            rust::Slice<double> jac) const {
+  check_lengths(n_joints(), q, pose);
+  if (jac.size() != 6 * n_joints())
+    throw std::invalid_argument("Jacobian buffer must hold 6 x " + std::to_string(n_joints()) + " values, got " +
+                                std::to_string(jac.size()));
   // One pass down the chain: store each joint's axis (angular rows) and origin (linear
   // rows) in the base frame, then turn the origins into lever arms once the tip is known.
   KDL::Frame t = KDL::Frame::Identity();

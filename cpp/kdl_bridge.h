@@ -25,7 +25,9 @@ class KdlChain {
   rust::Vec<double> effort() const;
   // Tip pose: pose[0..3] position, pose[3..12] rotation row-major. Jacobian 6 x n,
   // column-major, rows (vx vy vz wx wy wz), base frame, reference point at the tip.
-  // Lengths are checked by the Rust side; this allocates nothing.
+  // Throws std::invalid_argument (an Err in Rust) unless q has n_joints(), pose 12 and jac
+  // 6 n_joints() values: the Rust side checks the same, and neither trusts the other.
+  // Allocates nothing unless it throws.
   void fk_jacobian(rust::Slice<const double> q, rust::Slice<double> pose,
                    rust::Slice<double> jac) const;
   void fk(rust::Slice<const double> q, rust::Slice<double> pose) const;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <initializer_list>
 #include <random>
 #include <stdexcept>
 #include <string>
@@ -53,6 +54,28 @@ cv::aruco::PREDEFINED_DICTIONARY_NAME dictionary_by_name(const std::string &name
   throw std::invalid_argument("unknown marker family `" + name + "`");
 }
 
+// Image dimensions every function accepts: 2..=20000 px a side (the bilinear sampling
+// below reads a 2 x 2 neighbourhood).
+constexpr int kMaxSide = 20000;
+void check_size(int width, int height) {
+  if (width < 2 || height < 2 || width > kMaxSide || height > kMaxSide)
+    throw std::invalid_argument("image size " + std::to_string(width) + "x" + std::to_string(height) +
+                                " out of range (2..=" + std::to_string(kMaxSide) + " px a side)");
+}
+
+// A pixel buffer of exactly width x height x channels bytes, channels one of `allowed`.
+void check_pixels(rust::Slice<const uint8_t> pixels, int width, int height, int channels,
+                  std::initializer_list<int> allowed) {
+  check_size(width, height);
+  if (std::find(allowed.begin(), allowed.end(), channels) == allowed.end())
+    throw std::invalid_argument("unsupported channel count " + std::to_string(channels));
+  const size_t want = static_cast<size_t>(width) * static_cast<size_t>(height) * static_cast<size_t>(channels);
+  if (pixels.size() != want)
+    throw std::invalid_argument("pixel buffer has " + std::to_string(pixels.size()) + " bytes, " +
+                                std::to_string(width) + "x" + std::to_string(height) + "x" +
+                                std::to_string(channels) + " needs " + std::to_string(want));
+}
+
 void check_intrinsics(rust::Slice<const double> k, rust::Slice<const double> dist, int width, int height) {
   if (k.size() != 4) throw std::invalid_argument("intrinsics must be fx, fy, cx, cy");
   for (double v : k)
@@ -63,8 +86,7 @@ void check_intrinsics(rust::Slice<const double> k, rust::Slice<const double> dis
     throw std::invalid_argument("distortion must have 0, 4, 5, 8, 12 or 14 coefficients");
   for (double v : dist)
     if (!std::isfinite(v)) throw std::invalid_argument("distortion must be finite");
-  if (width <= 0 || height <= 0 || width > 20000 || height > 20000)
-    throw std::invalid_argument("image size out of range");
+  check_size(width, height);
 }
 
 cv::Matx33d camera_matrix(rust::Slice<const double> k) {
@@ -79,11 +101,9 @@ cv::Mat dist_mat(rust::Slice<const double> d) {
 
 // A grey cv::Mat view (or conversion) of the caller's pixels.
 cv::Mat grey_view(rust::Slice<const uint8_t> pixels, int width, int height, int channels) {
-  if (width <= 0 || height <= 0) throw std::invalid_argument("empty image");
   if (channels != 1 && channels != 3 && channels != 4)
     throw std::invalid_argument("channels must be 1 (grey), 3 (RGB8/BGR8) or 4 (BGRA8/RGBA8)");
-  if (pixels.size() != static_cast<size_t>(width) * height * channels)
-    throw std::invalid_argument("pixel buffer size does not match width x height x channels");
+  check_pixels(pixels, width, height, channels, {1, 3, 4});
   cv::Mat m(height, width, CV_8UC(channels), const_cast<uint8_t *>(pixels.data()));
   if (channels == 1) return m;
   cv::Mat g;
@@ -307,7 +327,13 @@ void pose_from_corners(const MarkerDetectorCpp::Impl &d, const cv::Mat &grey, in
 
 rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8_t> pixels, int width, int height,
                                  int channels, int id, double size, rust::Slice<const int> roi) {
+  if (!det.impl) throw std::invalid_argument("detector is not initialised");
   auto &d = *det.impl;
+  if (roi.size() != 0 && roi.size() != 4)
+    throw std::invalid_argument("search window must be empty or x, y, w, h; got " + std::to_string(roi.size()) +
+                                " numbers");
+  if (roi.size() == 4 && (roi[2] < 0 || roi[3] < 0))
+    throw std::invalid_argument("search window width and height must be >= 0");
   if (width != d.width || height != d.height)
     throw std::invalid_argument("image is " + std::to_string(width) + "x" + std::to_string(height) +
                                 " but the camera model is " + std::to_string(d.width) + "x" + std::to_string(d.height));
@@ -396,6 +422,9 @@ cv::Mat make_texture(const std::string &family, int id, double size, double plan
   cv::resize(grid, tex, cv::Size(plane_px, plane_px), 0, 0, cv::INTER_CUBIC);
   const int quiet = per_cell;  // one cell of white around the marker
   const int off = (plane_px - marker_px) / 2;
+  if (off < quiet)
+    throw std::invalid_argument("plane too small for the marker and its quiet zone (plane_size >= " +
+                                std::to_string(size * (cells + 2.0) / cells) + " m)");
   tex(cv::Rect(off - quiet, off - quiet, marker_px + 2 * quiet, marker_px + 2 * quiet)).setTo(255);
   marker.copyTo(tex(cv::Rect(off, off, marker_px, marker_px)));
   return tex;
@@ -535,10 +564,8 @@ rust::Vec<uint8_t> read_image(rust::Str path, int channels, rust::Slice<int32_t>
 }
 
 void write_image(rust::Str path, rust::Slice<const uint8_t> pixels, int width, int height, int channels) {
-  if (width <= 0 || height <= 0) throw std::invalid_argument("empty image");
   if (channels != 1 && channels != 3) throw std::invalid_argument("channels must be 1 or 3");
-  if (pixels.size() != static_cast<size_t>(width) * height * channels)
-    throw std::invalid_argument("pixel buffer size does not match width x height x channels");
+  check_pixels(pixels, width, height, channels, {1, 3});
   cv::Mat m(height, width, channels == 1 ? CV_8UC1 : CV_8UC3, const_cast<uint8_t *>(pixels.data()));
   cv::Mat w = m;
   if (channels == 3) cv::cvtColor(m, w, cv::COLOR_RGB2BGR);
@@ -550,6 +577,8 @@ rust::Vec<double> hand_eye_calibrate(rust::Slice<const double> cmo, rust::Slice<
   if (cmo.size() != rme.size() || cmo.size() % 12 != 0) throw std::invalid_argument("pose arrays must be n x 12");
   const size_t n = cmo.size() / 12;
   if (n < 3) throw std::invalid_argument("hand-eye calibration needs at least 3 pose pairs");
+  for (size_t i = 0; i < cmo.size(); ++i)
+    if (!std::isfinite(cmo[i]) || !std::isfinite(rme[i])) throw std::invalid_argument("poses must be finite");
   auto to_h = [](rust::Slice<const double> s, size_t k) {
     vpRotationMatrix R;
     vpTranslationVector t;

@@ -11,7 +11,8 @@
 //! - [`sim`]: the simulated plant (pure Rust); [`trials`]: the paper's experiment on it.
 //! - [`ros`]: the ROS 1 nodes (rosrust): parameters, message conversions, wiring.
 //! - [`cli`], [`bench`]: the offline `trocar_docking` command and its benchmark suites.
-//! - [`realtime`]: SCHED_FIFO and memory locking for the real-time loops.
+//! - [`realtime`]: the SCHED_FIFO class and the thread CPU clock for the real-time loops.
+//! - [`validate`]: range checks of configuration values, one style for nodes and CLI.
 //! - `ffi` (crate-private): the cxx bridges to KDL, ViSP and OpenCV.
 #![warn(missing_docs)]
 
@@ -23,5 +24,8 @@ pub mod kinematics;
 pub mod realtime;
 pub mod ros;
 pub mod sim;
+#[cfg(test)]
+mod test_alloc;
 pub mod trials;
+pub mod validate;
 pub mod vision;

@@ -66,10 +66,7 @@ impl SweepResult {
 fn median_max(v: &[f64]) -> (f64, f64) {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
-    if s.is_empty() {
-        return (f64::NAN, f64::NAN);
-    }
-    (s[s.len() / 2], s[s.len() - 1])
+    (super::percentile(&s, 0.5), super::percentile(&s, 1.0))
 }
 
 /// Random frames within the target envelope: 1280x720, fx 700–1000 px, marker 4–8 cm,

@@ -42,7 +42,10 @@ pub struct BenchArgs {
 
 /// Run `bench`.
 pub fn run(a: &BenchArgs) -> super::CliResult {
+    let samples = i64::try_from(a.samples).unwrap_or(i64::MAX);
+    crate::validate::integer_in_range("--samples", samples, 1, 100_000_000)?;
     if let Some(p) = a.realtime_priority {
+        crate::validate::integer_in_range("--realtime-priority", i64::from(p), 1, 99)?;
         crate::bench::set_realtime_priority(p)?;
     }
     let mut reports: Vec<SuiteReport> = vec![];

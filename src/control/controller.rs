@@ -553,6 +553,8 @@ impl OptimalController {
         let dt = ctx.dt;
         let arm = self.measured_arm(kin, input, ctx.guard)?;
         if self.run.supervisor.phase() == Phase::Tare {
+            // Tare with every input present, so that APPROACH begins with all of them.
+            self.trocar_pose(input, &arm, ctx.guard)?;
             return Ok(self.tare_step(input, &arm, ctx.guard, dt));
         }
         self.update_force(input, &arm, ctx.guard, dt)?;

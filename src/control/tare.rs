@@ -57,7 +57,7 @@ impl Default for TareParams {
             max_motion_rad: 0.002,
             max_offset_nm: 5.0,
             max_noise_nm: 1.0,
-            deadband_sigmas: 3.0,
+            deadband_sigmas: 2.0,
             track_time_constant_s: 0.3,
             track_clearance_m: 0.01,
         }
@@ -222,11 +222,11 @@ mod tests {
         );
         assert_eq!(r, TareStep::Done);
         assert!((t.offset() - offset).amax() < 0.02, "{}", t.offset());
-        assert!((t.deadband() - JointVector::repeat(0.9)).amax() < 0.05);
+        assert!((t.deadband() - JointVector::repeat(0.6)).amax() < 0.05);
         // The offset is gone and the noise is inside the dead-band.
         assert_eq!(t.correct(&(offset.add_scalar(0.3))), JointVector::zeros());
         let push = offset + JointVector::repeat(2.0);
-        assert!((t.correct(&push) - JointVector::repeat(2.0 - 0.9)).amax() < 0.05);
+        assert!((t.correct(&push) - JointVector::repeat(2.0 - 0.6)).amax() < 0.05);
     }
 
     #[test]

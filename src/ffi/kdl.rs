@@ -23,10 +23,11 @@ pub mod ffi {
         fn velocity(self: &KdlChain) -> Vec<f64>;
         /// Effort limits, Nm.
         fn effort(self: &KdlChain) -> Vec<f64>;
-        /// FK and Jacobian; lengths must be n, 12 and 6n.
-        fn fk_jacobian(self: &KdlChain, q: &[f64], pose: &mut [f64], jac: &mut [f64]);
-        /// FK only; lengths must be n and 12.
-        fn fk(self: &KdlChain, q: &[f64], pose: &mut [f64]);
+        /// FK and Jacobian; lengths must be n, 12 and 6n (checked on both sides: a wrong
+        /// length is an `Err`, never an out-of-bounds access).
+        fn fk_jacobian(self: &KdlChain, q: &[f64], pose: &mut [f64], jac: &mut [f64]) -> Result<()>;
+        /// FK only; lengths must be n and 12 (checked on both sides).
+        fn fk(self: &KdlChain, q: &[f64], pose: &mut [f64]) -> Result<()>;
     }
 }
 
@@ -36,3 +37,37 @@ pub mod ffi {
 unsafe impl Send for ffi::KdlChain {}
 // SAFETY: see above.
 unsafe impl Sync for ffi::KdlChain {}
+
+#[cfg(test)]
+mod tests {
+    use super::ffi;
+    use crate::kinematics::lbr::{urdf, LbrModel, ToolParams};
+    use crate::kinematics::{BASE_LINK, TIP_LINK};
+
+    fn chain() -> cxx::UniquePtr<ffi::KdlChain> {
+        let xml = urdf(LbrModel::Med7, &ToolParams::default()).unwrap();
+        ffi::kdl_chain_from_urdf(&xml, BASE_LINK, TIP_LINK).unwrap()
+    }
+
+    #[test]
+    fn the_cpp_side_rejects_wrong_lengths_itself() {
+        // Called past the Rust wrappers' own checks: the C++ checks must hold on their own.
+        let c = chain();
+        let n = c.n_joints();
+        let (q, mut pose, mut jac) = (vec![0.1; n], [0.0; 12], vec![0.0; 6 * n]);
+        c.fk(&q, &mut pose).unwrap();
+        c.fk_jacobian(&q, &mut pose, &mut jac).unwrap();
+        let short_q = vec![0.1; n - 1];
+        let long_q = vec![0.1; n + 1];
+        for (q, what) in [(&short_q, "joint"), (&long_q, "joint")] {
+            let e = c.fk(q, &mut pose).unwrap_err();
+            assert!(e.what().contains(what), "{}", e.what());
+            assert!(c.fk_jacobian(q, &mut pose, &mut jac).is_err());
+        }
+        assert!(c.fk(&q, &mut [0.0; 11]).is_err());
+        assert!(c.fk_jacobian(&q, &mut [0.0; 11], &mut jac).is_err());
+        let e = c.fk_jacobian(&q, &mut pose, &mut vec![0.0; 6 * n - 1]).unwrap_err();
+        assert!(e.what().contains("Jacobian"), "{}", e.what());
+        assert!(c.fk_jacobian(&q, &mut pose, &mut []).is_err());
+    }
+}

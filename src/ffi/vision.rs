@@ -68,3 +68,96 @@ unsafe impl Send for ffi::MarkerDetectorCpp {}
 
 /// Number of f64 per detection record returned by `detect_markers`.
 pub const DETECTION_RECORD_LEN: usize = 22;
+
+#[cfg(test)]
+mod tests {
+    use super::ffi;
+
+    const K: [f64; 4] = [500.0, 500.0, 32.0, 24.0];
+
+    fn detector() -> cxx::UniquePtr<ffi::MarkerDetectorCpp> {
+        ffi::new_marker_detector("DICT_4X4_50", &K, &[], 64, 48).unwrap()
+    }
+
+    fn refused<T>(r: Result<T, cxx::Exception>, what: &str) {
+        match r {
+            Ok(_) => panic!("accepted: {what}"),
+            Err(e) => assert!(e.what().contains(what), "{what}: {}", e.what()),
+        }
+    }
+
+    // Called past the safe wrappers' own checks: the C++ side must refuse on its own.
+    #[test]
+    fn detector_construction_checks_every_length_and_dimension() {
+        refused(
+            ffi::new_marker_detector("DICT_4X4_50", &K[..3], &[], 64, 48),
+            "fx, fy, cx, cy",
+        );
+        refused(
+            ffi::new_marker_detector("DICT_4X4_50", &K, &[0.0; 3], 64, 48),
+            "distortion",
+        );
+        refused(ffi::new_marker_detector("DICT_4X4_50", &K, &[], 0, 48), "image size");
+        refused(
+            ffi::new_marker_detector("DICT_4X4_50", &K, &[], 64, 20001),
+            "image size",
+        );
+        refused(
+            ffi::new_marker_detector("DICT_9X9", &K, &[], 64, 48),
+            "unknown marker family",
+        );
+    }
+
+    #[test]
+    fn detection_checks_the_buffer_the_size_and_the_window() {
+        let mut d = detector();
+        let grey = vec![128u8; 64 * 48];
+        let out = ffi::detect_markers(d.pin_mut(), &grey, 64, 48, 1, -1, 0.05, &[]).unwrap();
+        assert!(out.is_empty());
+        refused(
+            ffi::detect_markers(d.pin_mut(), &grey[1..], 64, 48, 1, -1, 0.05, &[]),
+            "pixel buffer",
+        );
+        refused(
+            ffi::detect_markers(d.pin_mut(), &grey, 64, 48, 3, -1, 0.05, &[]),
+            "pixel buffer",
+        );
+        refused(
+            ffi::detect_markers(d.pin_mut(), &grey, 48, 64, 1, -1, 0.05, &[]),
+            "camera model",
+        );
+        refused(
+            ffi::detect_markers(d.pin_mut(), &grey, 64, 48, 2, -1, 0.05, &[]),
+            "channels",
+        );
+        refused(
+            ffi::detect_markers(d.pin_mut(), &grey, 64, 48, 1, -1, 0.05, &[0, 0, 8]),
+            "search window",
+        );
+        refused(
+            ffi::detect_markers(d.pin_mut(), &grey, 64, 48, 1, -1, 0.05, &[0, 0, -8, 8]),
+            "search window",
+        );
+        refused(
+            ffi::detect_markers(d.pin_mut(), &grey, 64, 48, 1, -1, f64::NAN, &[]),
+            "marker size",
+        );
+    }
+
+    #[test]
+    fn rendering_images_and_hand_eye_check_their_inputs() {
+        let mut cmo = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.5].to_vec();
+        let render =
+            |cmo: &[f64], plane: f64| ffi::render_marker("DICT_4X4_50", 7, 0.05, plane, cmo, &K, &[], 64, 48, 0.0, 1);
+        assert_eq!(render(&cmo, 0.15).unwrap().len(), 64 * 48);
+        refused(render(&cmo[..11], 0.15), "12 numbers");
+        refused(render(&cmo, 0.065), "quiet zone");
+        cmo[11] = f64::NAN;
+        refused(render(&cmo, 0.15), "finite");
+        refused(ffi::read_image("/nonexistent.png", 1, &mut [0; 1]), "dims");
+        refused(ffi::write_image("/tmp/x.png", &[0; 10], 4, 4, 1), "pixel buffer");
+        refused(ffi::write_image("/tmp/x.png", &[0; 1], 1, 1, 1), "image size");
+        refused(ffi::hand_eye_calibrate(&[0.0; 36], &[0.0; 35]), "n x 12");
+        refused(ffi::hand_eye_calibrate(&[f64::NAN; 36], &[0.0; 36]), "finite");
+    }
+}

@@ -151,8 +151,18 @@ pub fn urdf(model: LbrModel, tool: &ToolParams) -> Result<String, ModelError> {
     check_tool(tool)?;
     let s = model.spec();
     let mut x = String::new();
-    let w = &mut x;
-    // `write!` into a String cannot fail.
+    write_header(&mut x, model, tool, &s);
+    write_arm_links(&mut x, &s);
+    write_arm_joints(&mut x, &s);
+    write_endoscope(&mut x, tool);
+    write_camera(&mut x);
+    Ok(x)
+}
+
+// `write!` into a String cannot fail: the results below are ignored.
+
+/// The XML header, the robot element and the materials.
+fn write_header(w: &mut String, model: LbrModel, tool: &ToolParams, s: &ArmSpec) {
     let _ = writeln!(w, "<?xml version=\"1.0\"?>");
     let _ = writeln!(
         w,
@@ -176,7 +186,11 @@ pub fn urdf(model: LbrModel, tool: &ToolParams) -> Result<String, ModelError> {
         w,
         "  <material name=\"dark\"><color rgba=\"0.15 0.15 0.17 1\"/></material>"
     );
-    // Link i spans from its joint to the next joint: a cylinder of the arm's radius.
+}
+
+/// Links 0..=7: link i spans from its joint to the next joint, a cylinder of the arm's
+/// radius.
+fn write_arm_links(w: &mut String, s: &ArmSpec) {
     for i in 0..=7 {
         let next = s.origins[i];
         let len = (next[0].powi(2) + next[1].powi(2) + next[2].powi(2)).sqrt();
@@ -193,9 +207,13 @@ pub fn urdf(model: LbrModel, tool: &ToolParams) -> Result<String, ModelError> {
         let _ = writeln!(w, "    <collision>{geometry}</collision>");
         let _ = writeln!(w, "  </link>");
     }
+}
+
+/// Joints `lbr_joint_1..7` with their limits, then the flange `lbr_link_ee`.
+fn write_arm_joints(w: &mut String, s: &ArmSpec) {
     for j in 0..7 {
         let lim = s.limit_deg[j].to_radians();
-        let _ = writeln!(w, "  <joint name=\"lbr_joint_{}\" type=\"revolute\">", j + 1);
+        let _ = writeln!(w, "  <joint name=\"{}\" type=\"revolute\">", super::joint_name(j + 1));
         let _ = writeln!(
             w,
             "    <parent link=\"lbr_link_{j}\"/><child link=\"lbr_link_{}\"/>",
@@ -222,7 +240,10 @@ pub fn urdf(model: LbrModel, tool: &ToolParams) -> Result<String, ModelError> {
     let _ = writeln!(w, "    <parent link=\"lbr_link_7\"/><child link=\"lbr_link_ee\"/>");
     let _ = writeln!(w, "    <origin xyz=\"{}\" rpy=\"0 0 0\"/>", v3(s.origins[7]));
     let _ = writeln!(w, "  </joint>");
-    // Endoscope: a mount disc on the flange, a camera body beside it, and the shaft.
+}
+
+/// The endoscope: a mount disc on the flange, the shaft, and the tip frame.
+fn write_endoscope(w: &mut String, tool: &ToolParams) {
     let (len, d) = (tool.length, tool.diameter);
     let _ = writeln!(w, "  <link name=\"endoscope_link\">");
     let _ = writeln!(
@@ -255,8 +276,11 @@ pub fn urdf(model: LbrModel, tool: &ToolParams) -> Result<String, ModelError> {
         "    <parent link=\"endoscope_link\"/><child link=\"endoscope_tip\"/><origin xyz=\"0 0 {len}\" rpy=\"0 0 0\"/>"
     );
     let _ = writeln!(w, "  </joint>");
-    // Nominal camera (ZED mini left optical frame) beside the scope; the calibrated
-    // hand-eye transform in config/ overrides it for vision.
+}
+
+/// The nominal camera (ZED mini left optical frame) beside the scope; the calibrated
+/// hand-eye transform in config/ overrides it for vision. Closes the robot element.
+fn write_camera(w: &mut String) {
     let _ = writeln!(w, "  <link name=\"camera_optical_frame\">");
     let _ = writeln!(
         w,
@@ -267,7 +291,6 @@ pub fn urdf(model: LbrModel, tool: &ToolParams) -> Result<String, ModelError> {
     let _ = writeln!(w, "    <parent link=\"lbr_link_ee\"/><child link=\"camera_optical_frame\"/><origin xyz=\"0 0.07 0.04\" rpy=\"0 0 0\"/>");
     let _ = writeln!(w, "  </joint>");
     let _ = writeln!(w, "</robot>");
-    Ok(x)
 }
 
 #[cfg(test)]

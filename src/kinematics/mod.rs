@@ -23,6 +23,20 @@ pub type JointVector = SVector<f64, N_JOINTS>;
 /// The arm's 6 x 7 geometric Jacobian.
 pub type Jacobian = SMatrix<f64, 6, N_JOINTS>;
 
+/// The joints of the LBR chain are named this prefix and 1..=7 (`lbr_joint_1`), as the
+/// lbr_fri_ros driver names them.
+pub const JOINT_NAME_PREFIX: &str = "lbr_joint_";
+
+/// The name of joint `i` (1-based, base to tip): `lbr_joint_{i}`.
+pub fn joint_name(i: usize) -> String {
+    format!("{JOINT_NAME_PREFIX}{i}")
+}
+
+/// The seven joint names in chain order, `lbr_joint_1` .. `lbr_joint_7`.
+pub fn joint_names() -> Vec<String> {
+    (1..=N_JOINTS).map(joint_name).collect()
+}
+
 /// The base link of the LBR chain.
 pub const BASE_LINK: &str = "lbr_link_0";
 /// The tool tip link: its z axis is the endoscope's optical axis.
@@ -60,6 +74,9 @@ pub enum KinematicsError {
         /// Its value.
         value: f64,
     },
+    /// The C++ side refused a call (it checks every slice length itself).
+    #[error("KDL bridge: {0}")]
+    Bridge(String),
     /// A tool parameter is invalid.
     #[error(transparent)]
     Model(#[from] lbr::ModelError),
@@ -120,6 +137,11 @@ impl std::fmt::Debug for KdlChain {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("KdlChain").field("joints", &self.names).finish()
     }
+}
+
+/// An error the C++ side raised (its own checks of the slice lengths).
+fn bridge_err(e: cxx::Exception) -> KinematicsError {
+    KinematicsError::Bridge(e.what().to_string())
 }
 
 fn pose_from_raw(p: &[f64; 12]) -> Isometry3<f64> {
@@ -205,7 +227,7 @@ impl KdlChain {
     pub fn fk_slice(&self, q: &[f64]) -> Result<Isometry3<f64>, KinematicsError> {
         self.check(q)?;
         let mut raw = [0.0; 12];
-        self.chain.fk(q, &mut raw);
+        self.chain.fk(q, &mut raw).map_err(bridge_err)?;
         Ok(pose_from_raw(&raw))
     }
 
@@ -220,7 +242,7 @@ impl KdlChain {
             });
         }
         let mut raw = [0.0; 12];
-        self.chain.fk_jacobian(q, &mut raw, jac);
+        self.chain.fk_jacobian(q, &mut raw, jac).map_err(bridge_err)?;
         Ok(pose_from_raw(&raw))
     }
 }

@@ -23,8 +23,10 @@ use super::msgs::{geometry_msgs, sensor_msgs};
 use super::node::{lock, ros_err, NodeError, Throttle};
 use super::params;
 use super::stats::LoopStats;
+use super::topics;
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
+use crate::validate;
 use crate::vision::estimator::PoseYaml;
 use crate::vision::joint_history::JointHistory;
 use crate::vision::{
@@ -85,12 +87,12 @@ impl Default for EstimatorNodeParams {
         Self {
             model: LbrModel::Med7,
             urdf_file: String::new(),
-            joint_names: (1..=7).map(|i| format!("lbr_joint_{i}")).collect(),
+            joint_names: crate::kinematics::joint_names(),
             base_frame: crate::kinematics::BASE_LINK.into(),
-            image_topic: "/zedm/zed_node/left/image_rect_color".into(),
-            camera_info_topic: "/zedm/zed_node/left/camera_info".into(),
-            joint_states_topic: "/lbr/joint_states".into(),
-            trocar_pose_topic: "/trocar/pose".into(),
+            image_topic: topics::CAMERA_IMAGE.into(),
+            camera_info_topic: topics::CAMERA_INFO.into(),
+            joint_states_topic: topics::JOINT_STATES.into(),
+            trocar_pose_topic: topics::TROCAR_POSE.into(),
             marker_pose_topic: "~marker_pose".into(),
             debug_image_topic: "~debug_image".into(),
             hand_eye_file: String::new(),
@@ -125,7 +127,8 @@ impl EstimatorNodeParams {
         Ok(e)
     }
 
-    fn validate(&self) -> Result<(), NodeError> {
+    /// Check every value once at start-up: a bad one stops the node with its key named.
+    pub fn validate(&self) -> Result<(), NodeError> {
         if self.joint_names.len() != crate::kinematics::N_JOINTS {
             return Err(NodeError::Invalid(format!(
                 "joint_names has {} names, expected 7",
@@ -135,18 +138,18 @@ impl EstimatorNodeParams {
         self.marker
             .validate()
             .map_err(|e| NodeError::Invalid(format!("marker: {e}")))?;
-        for (v, n) in [
-            (self.joint_history_s, "joint_history_s"),
-            (self.max_joint_gap_s, "max_joint_gap_s"),
-        ] {
-            if !(v.is_finite() && v > 0.0 && v <= 60.0) {
-                return Err(NodeError::Invalid(format!("{n} = {v} must be in (0, 60]")));
-            }
-        }
-        if !(self.max_joint_extrapolation_s.is_finite() && self.max_joint_extrapolation_s >= 0.0) {
-            return Err(NodeError::Invalid("max_joint_extrapolation_s must be >= 0".into()));
-        }
+        validate::positive_at_most("joint_history_s", self.joint_history_s, 60.0)?;
+        validate::positive_at_most("max_joint_gap_s", self.max_joint_gap_s, 60.0)?;
+        validate::non_negative("max_joint_extrapolation_s", self.max_joint_extrapolation_s)?;
+        validate::non_negative("search_margin", self.search_margin)?;
+        self.report_period()?;
+        validate::integer_in_range("realtime_priority", i64::from(self.realtime_priority), 0, 99)?;
         Ok(())
+    }
+
+    /// How often to log the frame statistics; `None` = never (`report_period_s: 0`).
+    pub fn report_period(&self) -> Result<Option<Duration>, NodeError> {
+        Ok(validate::period_or_never("report_period_s", self.report_period_s)?)
     }
 }
 
@@ -252,126 +255,211 @@ impl Pipeline {
     }
 }
 
+/// What the callbacks share: the joint history, the last camera model, the pipeline.
+#[derive(Clone)]
+struct Shared {
+    history: Arc<Mutex<JointHistory>>,
+    camera: Arc<Mutex<Option<CameraModel>>>,
+    pipeline: Arc<Mutex<Pipeline>>,
+}
+
+impl Shared {
+    fn new(p: &EstimatorNodeParams) -> Result<Self, NodeError> {
+        let estimator =
+            TrocarEstimator::new(p.estimator_params()?).map_err(|e| NodeError::Invalid(format!("estimator: {e}")))?;
+        let flange = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, FLANGE_LINK)?;
+        let capacity = (p.joint_history_s * 1000.0).ceil() as usize;
+        let history = JointHistory::new(capacity, p.max_joint_gap_s, p.max_joint_extrapolation_s);
+        let pipeline = Pipeline {
+            p: p.clone(),
+            flange,
+            detector: None,
+            estimator,
+            last_stamp: None,
+            counts: FrameCounts::default(),
+            processing: LoopStats::new(1.0, 1000),
+            arrival_age: LoopStats::new(1.0, 1000),
+            warn: Throttle::new(Duration::from_secs(2)),
+        };
+        Ok(Self {
+            history: Arc::new(Mutex::new(history)),
+            camera: Arc::new(Mutex::new(None)),
+            pipeline: Arc::new(Mutex::new(pipeline)),
+        })
+    }
+}
+
+/// The node's publishers.
+struct Publishers {
+    pose: rosrust::Publisher<geometry_msgs::PoseStamped>,
+    marker: rosrust::Publisher<geometry_msgs::PoseStamped>,
+    debug: rosrust::Publisher<sensor_msgs::Image>,
+}
+
+impl Publishers {
+    fn new(p: &EstimatorNodeParams) -> Result<Self, NodeError> {
+        Ok(Self {
+            pose: rosrust::publish(&p.trocar_pose_topic, 10).map_err(ros_err)?,
+            marker: rosrust::publish(&p.marker_pose_topic, 10).map_err(ros_err)?,
+            debug: rosrust::publish(&p.debug_image_topic, 1).map_err(ros_err)?,
+        })
+    }
+
+    /// Publish what one frame produced, stamped with the image's stamp.
+    fn frame(&self, img: &sensor_msgs::Image, base_frame: &str, out: FrameOutput) {
+        if let Some(t) = &out.trocar {
+            let _ = self.pose.send(convert::pose_stamped(img.header.stamp, base_frame, t));
+        }
+        if let Some(m) = &out.marker {
+            let _ = self
+                .marker
+                .send(convert::pose_stamped(img.header.stamp, &img.header.frame_id, m));
+        }
+        if let Some(d) = out.debug {
+            let _ = self.debug.send(image_msgs::image(
+                img.header.stamp,
+                &img.header.frame_id,
+                d.width,
+                d.height,
+                "rgb8",
+                3,
+                d.data,
+            ));
+        }
+    }
+}
+
+/// Joint states into the history (each image is paired with the arm's pose at its stamp).
+fn subscribe_joint_states(p: &EstimatorNodeParams, shared: &Shared) -> Result<rosrust::Subscriber, NodeError> {
+    let (history, topic, names) = (
+        shared.history.clone(),
+        p.joint_states_topic.clone(),
+        p.joint_names.clone(),
+    );
+    let warn = Throttle::new(Duration::from_secs(2));
+    rosrust::subscribe(
+        &p.joint_states_topic,
+        50,
+        move |m: sensor_msgs::JointState| match convert::joint_positions(&topic, &m, &names) {
+            Ok(q) => lock(&history).push(convert::seconds(m.header.stamp), q),
+            Err(e) => {
+                if warn.ready() {
+                    rosrust::ros_warn!("joint state rejected: {e}");
+                }
+            }
+        },
+    )
+    .map_err(ros_err)
+}
+
+/// The camera model from CameraInfo; a bad one clears it, so frames are dropped.
+fn subscribe_camera_info(p: &EstimatorNodeParams, shared: &Shared) -> Result<rosrust::Subscriber, NodeError> {
+    let camera = shared.camera.clone();
+    let warn = Throttle::new(Duration::from_secs(2));
+    rosrust::subscribe(
+        &p.camera_info_topic,
+        2,
+        move |m: sensor_msgs::CameraInfo| match image_msgs::camera_model(&m) {
+            Ok(c) => *lock(&camera) = Some(c),
+            Err(e) => {
+                *lock(&camera) = None;
+                if warn.ready() {
+                    rosrust::ros_warn!("camera_info rejected, frames are dropped until a valid one: {e}");
+                }
+            }
+        },
+    )
+    .map_err(ros_err)
+}
+
+/// Move the calling thread (rosrust's image callback thread) to SCHED_FIFO `priority`.
+fn raise_priority(priority: i32) {
+    match crate::realtime::set_realtime_priority(priority) {
+        Ok(()) => {
+            rosrust::ros_info!("image processing runs at SCHED_FIFO {priority}");
+        }
+        Err(e) => {
+            rosrust::ros_warn!("image processing at normal priority: {e}");
+        }
+    }
+}
+
+/// One image: process it, publish what it gave, count its processing time and age.
+fn on_image(img: &sensor_msgs::Image, shared: &Shared, publishers: &Publishers, base_frame: &str) {
+    let t0 = Instant::now();
+    let age_ms = (convert::seconds(rosrust::now()) - convert::seconds(img.header.stamp)) * 1e3;
+    let cam = lock(&shared.camera).clone();
+    let mut pl = lock(&shared.pipeline);
+    let want_debug = publishers.debug.subscriber_count() > 0;
+    match pl.frame(img, cam.as_ref(), &shared.history, want_debug) {
+        Ok(out) => {
+            if out.marker.is_none() && pl.warn.ready() {
+                rosrust::ros_warn!("no marker {} in the image", pl.p.marker.family);
+            }
+            publishers.frame(img, base_frame, out);
+        }
+        Err(e) => {
+            if pl.warn.ready() {
+                rosrust::ros_warn!("frame dropped: {e}");
+            }
+        }
+    }
+    pl.processing.latency(t0.elapsed().as_secs_f64() * 1e3);
+    pl.arrival_age.latency(age_ms);
+}
+
+/// Images: the work happens in this callback, on rosrust's thread for the topic.
+fn subscribe_images(
+    p: &EstimatorNodeParams,
+    shared: &Shared,
+    publishers: Publishers,
+) -> Result<rosrust::Subscriber, NodeError> {
+    let shared = shared.clone();
+    let base_frame = p.base_frame.clone();
+    let priority = p.realtime_priority;
+    let realtime_set = std::sync::Once::new();
+    // Queue of one: a slow frame never makes the next one stale.
+    rosrust::subscribe(&p.image_topic, 1, move |img: sensor_msgs::Image| {
+        if priority != 0 {
+            realtime_set.call_once(|| raise_priority(priority));
+        }
+        on_image(&img, &shared, &publishers, &base_frame);
+    })
+    .map_err(ros_err)
+}
+
+/// Log the frame statistics since the last report, and start counting afresh.
+fn report(pipeline: &Mutex<Pipeline>) {
+    let mut pl = lock(pipeline);
+    let (c, lat, age) = (pl.counts, pl.processing.percentiles(), pl.arrival_age.percentiles());
+    if c.frames > 0 {
+        rosrust::ros_info!(
+            "trocar_estimator: {} frames, marker in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms, p99 {:.1} ms",
+            c.frames,
+            c.detected,
+            c.published,
+            lat.p50,
+            lat.p99,
+            lat.max,
+            age.p50,
+            age.p99
+        );
+    }
+    pl.counts = FrameCounts::default();
+}
+
 /// Run the node until shutdown. Call after `rosrust::init`.
 pub fn run() -> Result<(), NodeError> {
     let p: EstimatorNodeParams = params::load_private()?;
     p.validate()?;
-    let estimator =
-        TrocarEstimator::new(p.estimator_params()?).map_err(|e| NodeError::Invalid(format!("estimator: {e}")))?;
-    let flange = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, FLANGE_LINK)?;
-    let capacity = (p.joint_history_s * 1000.0).ceil() as usize;
-    let history = Arc::new(Mutex::new(JointHistory::new(
-        capacity,
-        p.max_joint_gap_s,
-        p.max_joint_extrapolation_s,
-    )));
-    let camera: Arc<Mutex<Option<CameraModel>>> = Arc::new(Mutex::new(None));
-
-    let pub_pose = rosrust::publish::<geometry_msgs::PoseStamped>(&p.trocar_pose_topic, 10).map_err(ros_err)?;
-    let pub_marker = rosrust::publish::<geometry_msgs::PoseStamped>(&p.marker_pose_topic, 10).map_err(ros_err)?;
-    let pub_debug = rosrust::publish::<sensor_msgs::Image>(&p.debug_image_topic, 1).map_err(ros_err)?;
-
-    let _sub_js =
-        {
-            let (history, topic, names) = (history.clone(), p.joint_states_topic.clone(), p.joint_names.clone());
-            let warn = Throttle::new(Duration::from_secs(2));
-            rosrust::subscribe(&p.joint_states_topic, 50, move |m: sensor_msgs::JointState| {
-                match convert::joint_positions(&topic, &m, &names) {
-                    Ok(q) => lock(&history).push(convert::seconds(m.header.stamp), q),
-                    Err(e) => {
-                        if warn.ready() {
-                            rosrust::ros_warn!("joint state rejected: {e}");
-                        }
-                    }
-                }
-            })
-            .map_err(ros_err)?
-        };
-    let _sub_info = {
-        let camera = camera.clone();
-        let warn = Throttle::new(Duration::from_secs(2));
-        rosrust::subscribe(
-            &p.camera_info_topic,
-            2,
-            move |m: sensor_msgs::CameraInfo| match image_msgs::camera_model(&m) {
-                Ok(c) => *lock(&camera) = Some(c),
-                Err(e) => {
-                    *lock(&camera) = None;
-                    if warn.ready() {
-                        rosrust::ros_warn!("camera_info rejected, frames are dropped until a valid one: {e}");
-                    }
-                }
-            },
-        )
-        .map_err(ros_err)?
-    };
-    let pipeline = Arc::new(Mutex::new(Pipeline {
-        p: p.clone(),
-        flange,
-        detector: None,
-        estimator,
-        last_stamp: None,
-        counts: FrameCounts::default(),
-        processing: LoopStats::new(1.0, 1000),
-        arrival_age: LoopStats::new(1.0, 1000),
-        warn: Throttle::new(Duration::from_secs(2)),
-    }));
-    let _sub_image = {
-        let (pipeline, camera, history) = (pipeline.clone(), camera.clone(), history.clone());
-        let base_frame = p.base_frame.clone();
-        let priority = p.realtime_priority;
-        let realtime_set = std::sync::Once::new();
-        // Queue of one: a slow frame never makes the next one stale.
-        rosrust::subscribe(&p.image_topic, 1, move |img: sensor_msgs::Image| {
-            // rosrust runs this callback on its own thread: raise that thread once.
-            if priority != 0 {
-                realtime_set.call_once(|| match crate::realtime::set_realtime_priority(priority) {
-                    Ok(()) => {
-                        rosrust::ros_info!("image processing runs at SCHED_FIFO {priority}");
-                    }
-                    Err(e) => {
-                        rosrust::ros_warn!("image processing at normal priority: {e}");
-                    }
-                });
-            }
-            let t0 = Instant::now();
-            let age_ms = (convert::seconds(rosrust::now()) - convert::seconds(img.header.stamp)) * 1e3;
-            let cam = lock(&camera).clone();
-            let mut pl = lock(&pipeline);
-            match pl.frame(&img, cam.as_ref(), &history, pub_debug.subscriber_count() > 0) {
-                Ok(out) => {
-                    if let Some(t) = &out.trocar {
-                        let _ = pub_pose.send(convert::pose_stamped(img.header.stamp, &base_frame, t));
-                    }
-                    if let Some(m) = &out.marker {
-                        let _ = pub_marker.send(convert::pose_stamped(img.header.stamp, &img.header.frame_id, m));
-                    }
-                    if out.marker.is_none() && pl.warn.ready() {
-                        rosrust::ros_warn!("no marker {} in the image", pl.p.marker.family);
-                    }
-                    if let Some(d) = out.debug {
-                        let _ = pub_debug.send(image_msgs::image(
-                            img.header.stamp,
-                            &img.header.frame_id,
-                            d.width,
-                            d.height,
-                            "rgb8",
-                            3,
-                            d.data,
-                        ));
-                    }
-                }
-                Err(e) => {
-                    if pl.warn.ready() {
-                        rosrust::ros_warn!("frame dropped: {e}");
-                    }
-                }
-            }
-            pl.processing.latency(t0.elapsed().as_secs_f64() * 1e3);
-            pl.arrival_age.latency(age_ms);
-        })
-        .map_err(ros_err)?
-    };
+    let report_period = p.report_period()?;
+    let shared = Shared::new(&p)?;
+    let publishers = Publishers::new(&p)?;
+    let _subs = [
+        subscribe_joint_states(&p, &shared)?,
+        subscribe_camera_info(&p, &shared)?,
+        subscribe_images(&p, &shared, publishers)?,
+    ];
     rosrust::ros_info!(
         "trocar_estimator: {} on {}, marker {} id {:?} {} m, pose on {}",
         p.image_topic,
@@ -381,31 +469,68 @@ pub fn run() -> Result<(), NodeError> {
         p.marker.size,
         p.trocar_pose_topic
     );
-    let report = Throttle::new(Duration::from_secs_f64(if p.report_period_s > 0.0 {
-        p.report_period_s
-    } else {
-        f64::MAX / 4.0
-    }));
+    // The images are processed in their callback; this thread only reports.
+    let mut last_report = Instant::now();
     while rosrust::is_ok() {
         std::thread::sleep(Duration::from_millis(200));
-        if p.report_period_s > 0.0 && report.ready() {
-            let mut pl = lock(&pipeline);
-            let (c, lat, age) = (pl.counts, pl.processing.percentiles(), pl.arrival_age.percentiles());
-            if c.frames > 0 {
-                rosrust::ros_info!(
-                    "trocar_estimator: {} frames, marker in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms, p99 {:.1} ms",
-                    c.frames,
-                    c.detected,
-                    c.published,
-                    lat.p50,
-                    lat.p99,
-                    lat.max,
-                    age.p50,
-                    age.p99
-                );
-            }
-            pl.counts = FrameCounts::default();
+        if report_period.is_some_and(|period| last_report.elapsed() >= period) {
+            last_report = Instant::now();
+            report(&shared.pipeline);
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn with(yaml: &str) -> Result<(), NodeError> {
+        params::from_yaml_str::<EstimatorNodeParams>("t", yaml)?.validate()
+    }
+
+    #[test]
+    fn defaults_and_the_shipped_config_are_valid() {
+        assert!(EstimatorNodeParams::default().validate().is_ok());
+        let text =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/trocar_estimator.yaml")).unwrap();
+        with(&text).unwrap();
+    }
+
+    #[test]
+    fn report_period_zero_is_never_and_negative_or_nan_is_an_error() {
+        let p: EstimatorNodeParams = params::from_yaml_str("t", "report_period_s: 0\n").unwrap();
+        assert_eq!(p.report_period().unwrap(), None);
+        let p: EstimatorNodeParams = params::from_yaml_str("t", "report_period_s: 2.5\n").unwrap();
+        assert_eq!(p.report_period().unwrap(), Some(Duration::from_millis(2500)));
+        // NaN and infinity cannot come through YAML (JSON has neither): set them directly.
+        for bad in [-1.0, f64::NAN, f64::INFINITY, 1e300] {
+            let p = EstimatorNodeParams {
+                report_period_s: bad,
+                ..Default::default()
+            };
+            let e = p.validate().unwrap_err().to_string();
+            assert!(e.contains("`report_period_s`"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn bad_durations_name_their_key() {
+        for (yaml, key) in [
+            ("joint_history_s: 0", "joint_history_s"),
+            ("joint_history_s: 61", "joint_history_s"),
+            ("max_joint_gap_s: -0.1", "max_joint_gap_s"),
+            ("max_joint_extrapolation_s: -1", "max_joint_extrapolation_s"),
+            ("search_margin: -1", "search_margin"),
+            ("realtime_priority: 100", "realtime_priority"),
+        ] {
+            let e = with(yaml).unwrap_err().to_string();
+            assert!(e.contains(&format!("`{key}`")), "{yaml}: {e}");
+        }
+        let p = EstimatorNodeParams {
+            max_joint_gap_s: f64::NAN,
+            ..Default::default()
+        };
+        assert!(p.validate().unwrap_err().to_string().contains("`max_joint_gap_s`"));
+    }
 }

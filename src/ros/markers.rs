@@ -142,40 +142,7 @@ pub fn docking_markers(
 ) -> visualization_msgs::MarkerArray {
     let mut markers = Vec::with_capacity(9);
     match &scene.trocar {
-        Some(t) => {
-            let port = Point3::from(t.translation.vector);
-            let dir = t.rotation * Vector3::z();
-            let from = port - dir * style.axis_length;
-            let to = port + dir * style.axis_length;
-            markers.push(arrow(stamp, frame, Id::Axis, from, to, color(0.1, 0.8, 1.0)));
-            markers.push(sphere(
-                stamp,
-                frame,
-                Id::Port,
-                port,
-                style.sphere * 1.5,
-                color(1.0, 0.6, 0.0),
-            ));
-            // The cannula: a translucent cylinder from the port into the body along z.
-            let mut body = base(
-                stamp,
-                frame,
-                Id::TrocarBody,
-                visualization_msgs::Marker::CYLINDER as i32,
-            );
-            let centre = t * Point3::new(0.0, 0.0, style.trocar_length / 2.0);
-            body.pose = pose_msg(&Isometry3::from_parts(centre.coords.into(), t.rotation));
-            body.scale.x = style.trocar_diameter;
-            body.scale.y = style.trocar_diameter;
-            body.scale.z = style.trocar_length;
-            body.color = std_msgs::ColorRGBA {
-                r: 0.6,
-                g: 0.6,
-                b: 0.9,
-                a: 0.6,
-            };
-            markers.push(body);
-        }
+        Some(t) => trocar_markers(&mut markers, stamp, frame, t, style),
         None => {
             for id in [Id::Axis, Id::Port, Id::TrocarBody] {
                 markers.push(delete(stamp, frame, id));
@@ -187,42 +154,7 @@ pub fn docking_markers(
         None => markers.push(delete(stamp, frame, Id::Goal)),
     }
     match &scene.tip {
-        Some(tip) => {
-            let at = Point3::from(tip.translation.vector);
-            markers.push(sphere(stamp, frame, Id::Tip, at, style.sphere, color(1.0, 1.0, 1.0)));
-            let axis = tip.rotation * Vector3::z() * style.optical_axis_length;
-            markers.push(arrow(
-                stamp,
-                frame,
-                Id::OpticalAxis,
-                at,
-                at + axis,
-                color(1.0, 1.0, 0.2),
-            ));
-            let f = scene.f_ext;
-            let len = (f.norm() * style.force_scale).min(style.force_max_length);
-            if f.iter().all(|x| x.is_finite()) && len > 1e-3 {
-                let to = at + f.normalize() * len;
-                let mut a = arrow(stamp, frame, Id::Force, at, to, color(1.0, 0.1, 0.1));
-                // Thicker than the geometry arrows: the force is what the surgeon watches.
-                (a.scale.x, a.scale.y, a.scale.z) = (0.007, 0.014, 0.02);
-                markers.push(a);
-                let mut label = base(
-                    stamp,
-                    frame,
-                    Id::ForceLabel,
-                    visualization_msgs::Marker::TEXT_VIEW_FACING as i32,
-                );
-                label.pose = pose_msg(&Isometry3::translation(to.x, to.y, to.z + 0.015));
-                label.scale.z = 0.015;
-                label.color = color(1.0, 0.3, 0.3);
-                label.text = format!("|f_ext| {:.2} N", f.norm());
-                markers.push(label);
-            } else {
-                markers.push(delete(stamp, frame, Id::Force));
-                markers.push(delete(stamp, frame, Id::ForceLabel));
-            }
-        }
+        Some(tip) => tip_markers(&mut markers, stamp, frame, tip, &scene.f_ext, style),
         None => {
             for id in [Id::Tip, Id::OpticalAxis, Id::Force, Id::ForceLabel] {
                 markers.push(delete(stamp, frame, id));
@@ -241,6 +173,93 @@ pub fn docking_markers(
         None => markers.push(delete(stamp, frame, Id::Reference)),
     }
     visualization_msgs::MarkerArray { markers }
+}
+
+/// The insertion axis, the port and the cannula of the trocar at `t`.
+fn trocar_markers(
+    markers: &mut Vec<visualization_msgs::Marker>,
+    stamp: rosrust::Time,
+    frame: &str,
+    t: &Isometry3<f64>,
+    style: &MarkerStyle,
+) {
+    let port = Point3::from(t.translation.vector);
+    let dir = t.rotation * Vector3::z();
+    let from = port - dir * style.axis_length;
+    let to = port + dir * style.axis_length;
+    markers.push(arrow(stamp, frame, Id::Axis, from, to, color(0.1, 0.8, 1.0)));
+    markers.push(sphere(
+        stamp,
+        frame,
+        Id::Port,
+        port,
+        style.sphere * 1.5,
+        color(1.0, 0.6, 0.0),
+    ));
+    // The cannula: a translucent cylinder from the port into the body along z.
+    let mut body = base(
+        stamp,
+        frame,
+        Id::TrocarBody,
+        visualization_msgs::Marker::CYLINDER as i32,
+    );
+    let centre = t * Point3::new(0.0, 0.0, style.trocar_length / 2.0);
+    body.pose = pose_msg(&Isometry3::from_parts(centre.coords.into(), t.rotation));
+    body.scale.x = style.trocar_diameter;
+    body.scale.y = style.trocar_diameter;
+    body.scale.z = style.trocar_length;
+    body.color = std_msgs::ColorRGBA {
+        r: 0.6,
+        g: 0.6,
+        b: 0.9,
+        a: 0.6,
+    };
+    markers.push(body);
+}
+
+/// The tip, its optical axis, and the force arrow with its label (deleted when the force
+/// is too small to draw).
+fn tip_markers(
+    markers: &mut Vec<visualization_msgs::Marker>,
+    stamp: rosrust::Time,
+    frame: &str,
+    tip: &Isometry3<f64>,
+    f: &Vector3<f64>,
+    style: &MarkerStyle,
+) {
+    let at = Point3::from(tip.translation.vector);
+    markers.push(sphere(stamp, frame, Id::Tip, at, style.sphere, color(1.0, 1.0, 1.0)));
+    let axis = tip.rotation * Vector3::z() * style.optical_axis_length;
+    markers.push(arrow(
+        stamp,
+        frame,
+        Id::OpticalAxis,
+        at,
+        at + axis,
+        color(1.0, 1.0, 0.2),
+    ));
+    let len = (f.norm() * style.force_scale).min(style.force_max_length);
+    if !(f.iter().all(|x| x.is_finite()) && len > 1e-3) {
+        markers.push(delete(stamp, frame, Id::Force));
+        markers.push(delete(stamp, frame, Id::ForceLabel));
+        return;
+    }
+    let to = at + f.normalize() * len;
+    let mut a = arrow(stamp, frame, Id::Force, at, to, color(1.0, 0.1, 0.1));
+    // Thicker than the geometry arrows: the force is what the surgeon watches.
+    (a.scale.x, a.scale.y, a.scale.z) = (0.007, 0.014, 0.02);
+    markers.push(a);
+    let mut label = base(
+        stamp,
+        frame,
+        Id::ForceLabel,
+        visualization_msgs::Marker::TEXT_VIEW_FACING as i32,
+    );
+    label.pose = pose_msg(&Isometry3::translation(to.x, to.y, to.z + 0.015));
+    label.scale.z = 0.015;
+    label.color = color(1.0, 0.3, 0.3);
+    label.text = format!("|f_ext| {:.2} N", f.norm());
+    markers.push(label);
 }
 
 #[cfg(test)]

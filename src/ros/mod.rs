@@ -1,14 +1,26 @@
-//! ROS 1 glue (rosrust): message types, parameter loading, message conversions and the
-//! node wiring. The nodes hold no control or estimation maths: each reads its parameters,
-//! converts messages, calls the pure core (`crate::control`, `crate::vision`, `crate::sim`),
-//! and publishes. The rostest programs are a binary of their own (`src/bin/rostest_checks`).
+//! ROS 1 glue (rosrust): the three nodes and what they share. The nodes hold no control or
+//! estimation maths: each reads and validates its parameters, converts messages, calls the
+//! pure core (`crate::control`, `crate::vision`, `crate::sim`), and publishes.
+//!
+//! - Nodes: [`controller_node`] (`docking_controller`, driving a [`core::DockingCore`],
+//!   [`optimal_core`] the optimal controller's), [`estimator_node`] (`trocar_estimator`),
+//!   [`sim_node`] (`lbr_med_sim`).
+//! - Shared: [`node`] (start-up errors, `main`, throttled logs), [`params`] (parameters from
+//!   the server, checked with [`crate::validate`]), [`topics`] (default topic names),
+//!   [`msgs`] (the generated message types), [`convert`] (messages <-> core types, input
+//!   checks), [`markers`] (RViz), [`stats`] (allocation-free loop statistics), [`handover`]
+//!   (lock-free hand-over between the real-time loop and the rosrust threads).
+//!
+//! The rostest programs are a binary of their own (`src/bin/rostest_checks`).
 
 pub mod controller_node;
 pub mod convert;
 pub mod estimator_node;
+pub mod handover;
 pub mod markers;
 pub mod msgs;
 pub mod node;
 pub mod params;
 pub mod sim_node;
 pub mod stats;
+pub mod topics;

@@ -32,6 +32,12 @@ pub enum NodeError {
     Invalid(String),
 }
 
+impl From<crate::validate::RangeError> for NodeError {
+    fn from(e: crate::validate::RangeError) -> Self {
+        Self::Params(e.into())
+    }
+}
+
 /// A rosrust error as a [`NodeError`].
 pub fn ros_err<E: std::fmt::Display>(e: E) -> NodeError {
     NodeError::Ros(e.to_string())

@@ -1,7 +1,8 @@
 //! Node parameters: each node keeps its settings in one serde struct with defaults, filled
 //! from its private namespace on the parameter server (which the launch files load from the
 //! YAML in `config/`). Unknown keys are an error, so a typo in a YAML file is reported
-//! instead of silently ignored.
+//! instead of silently ignored. Values are then range-checked with [`crate::validate`]
+//! (each node's `validate`), so a bad value stops the node at start-up with the key named.
 
 use serde::de::DeserializeOwned;
 
@@ -19,6 +20,9 @@ pub enum ParamError {
         /// What is wrong.
         message: String,
     },
+    /// A value is out of its range.
+    #[error("parameter {0}")]
+    Range(#[from] crate::validate::RangeError),
     /// A YAML file could not be read.
     #[error("cannot read {path}: {message}")]
     File {
@@ -70,13 +74,6 @@ pub fn load_private<T: DeserializeOwned>() -> Result<T, ParamError> {
     }
     let value: serde_json::Value = param.get().map_err(|e| ParamError::Server(e.to_string()))?;
     from_value(&ns, value)
-}
-
-/// Whether the global `/use_sim_time` parameter is set (time then follows `/clock`).
-pub fn use_sim_time() -> bool {
-    rosrust::param("/use_sim_time")
-        .and_then(|p| p.get::<bool>().ok())
-        .unwrap_or(false)
 }
 
 #[cfg(test)]

@@ -25,6 +25,7 @@ use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics, FLANG
 use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::convert::image as image_msgs;
 use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
+use ::trocar_docking::ros::topics;
 use ::trocar_docking::vision::estimator::marker_in_camera;
 use ::trocar_docking::vision::{render_marker_image, CameraModel, EstimatorParams, MarkerSpec, RenderOptions};
 
@@ -101,11 +102,11 @@ fn play(
     stop: Arc<AtomicBool>,
 ) -> Result<std::thread::JoinHandle<()>, String> {
     let e = |e: rosrust::error::Error| e.to_string();
-    let js = rosrust::publish::<sensor_msgs::JointState>("/lbr/joint_states", 10).map_err(e)?;
-    let lbr = rosrust::publish::<lbr_msgs::LBRState>("/lbr/states", 10).map_err(e)?;
-    let img = rosrust::publish::<sensor_msgs::Image>("/zedm/zed_node/left/image_rect_color", 2).map_err(e)?;
-    let info = rosrust::publish::<sensor_msgs::CameraInfo>("/zedm/zed_node/left/camera_info", 2).map_err(e)?;
-    let names: Vec<String> = (1..=7).map(|i| format!("lbr_joint_{i}")).collect();
+    let js = rosrust::publish::<sensor_msgs::JointState>(topics::JOINT_STATES, 10).map_err(e)?;
+    let lbr = rosrust::publish::<lbr_msgs::LBRState>(topics::LBR_STATE, 10).map_err(e)?;
+    let img = rosrust::publish::<sensor_msgs::Image>(topics::CAMERA_IMAGE, 2).map_err(e)?;
+    let info = rosrust::publish::<sensor_msgs::CameraInfo>(topics::CAMERA_INFO, 2).map_err(e)?;
+    let names: Vec<String> = ::trocar_docking::kinematics::joint_names();
     let every = (500.0 / camera_hz.clamp(1.0, 100.0)).round().max(1.0) as u64;
     Ok(std::thread::spawn(move || {
         let rate = rosrust::rate(500.0);

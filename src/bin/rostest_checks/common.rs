@@ -5,6 +5,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use ::trocar_docking::ros::msgs::std_srvs;
+use ::trocar_docking::ros::topics;
+use ::trocar_docking::validate::{self, RangeError};
 
 /// Settings of the test node (private parameters), every bound a parameter.
 #[derive(Debug, Clone, serde::Deserialize)]
@@ -60,8 +62,8 @@ impl Default for CheckParams {
     fn default() -> Self {
         Self {
             controller: "/docking_controller".into(),
-            status_topic: "/docking/status".into(),
-            command_topic: "/lbr/PositionJointInterface_trajectory_controller/command".into(),
+            status_topic: topics::DOCKING_STATUS.into(),
+            command_topic: topics::COMMAND.into(),
             time_limit: 60.0,
             max_metric_m: 10.0,
             startup_timeout: 30.0,
@@ -71,8 +73,8 @@ impl Default for CheckParams {
             hold_observe: 1.0,
             min_status: 10,
             allowed_phases: vec!["HOLD".into(), "APPROACH".into(), "INSERT".into(), "DONE".into()],
-            pose_topic: "/trocar/pose".into(),
-            true_pose_topic: "/trocar/pose_true".into(),
+            pose_topic: topics::TROCAR_POSE.into(),
+            true_pose_topic: topics::TROCAR_POSE_TRUE.into(),
             max_position_error: 0.01,
             min_poses: 1,
             allowed_hold_code: String::new(),
@@ -81,6 +83,22 @@ impl Default for CheckParams {
             max_latency_ms: 10.0,
             max_latency_p50_ms: 10.0,
         }
+    }
+}
+
+impl CheckParams {
+    /// Check every bound and duration once, before a check runs: a bad one fails the check
+    /// with its key named, instead of a panic in `Duration::from_secs_f64` mid-test.
+    pub fn validate(&self) -> Result<(), RangeError> {
+        validate::duration("time_limit", self.time_limit)?;
+        validate::duration("startup_timeout", self.startup_timeout)?;
+        validate::non_negative("hold_observe", self.hold_observe)?;
+        validate::positive("max_metric_m", self.max_metric_m)?;
+        validate::positive("max_position_error", self.max_position_error)?;
+        validate::period_of_rate("camera_rate_hz", self.camera_rate_hz)?;
+        validate::positive("max_latency_ms", self.max_latency_ms)?;
+        validate::positive("max_latency_p50_ms", self.max_latency_p50_ms)?;
+        Ok(())
     }
 }
 
@@ -157,5 +175,32 @@ pub fn trigger(service: &str, timeout: f64) -> Result<String, String> {
         Ok(res.message)
     } else {
         Err(format!("{service} refused: {}", res.message))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_valid_and_bad_durations_are_named() {
+        CheckParams::default().validate().unwrap();
+        let bad = [
+            CheckParams {
+                hold_observe: -1.0,
+                ..Default::default()
+            },
+            CheckParams {
+                startup_timeout: f64::NAN,
+                ..Default::default()
+            },
+            CheckParams {
+                camera_rate_hz: 0.0,
+                ..Default::default()
+            },
+        ];
+        for (p, key) in bad.iter().zip(["hold_observe", "startup_timeout", "camera_rate_hz"]) {
+            assert_eq!(p.validate().unwrap_err().key, key);
+        }
     }
 }

@@ -15,6 +15,7 @@ use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
+use ::trocar_docking::ros::topics;
 
 /// One way to break the inputs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -48,10 +49,10 @@ fn play_driver(
     fault: Arc<Mutex<Fault>>,
     stop: Arc<AtomicBool>,
 ) -> Result<std::thread::JoinHandle<()>, String> {
-    let js = rosrust::publish::<sensor_msgs::JointState>("/lbr/joint_states", 10).map_err(|e| e.to_string())?;
-    let lbr = rosrust::publish::<lbr_msgs::LBRState>("/lbr/states", 10).map_err(|e| e.to_string())?;
-    let pose = rosrust::publish::<geometry_msgs::PoseStamped>("/trocar/pose", 10).map_err(|e| e.to_string())?;
-    let names: Vec<String> = (1..=7).map(|i| format!("lbr_joint_{i}")).collect();
+    let js = rosrust::publish::<sensor_msgs::JointState>(topics::JOINT_STATES, 10).map_err(|e| e.to_string())?;
+    let lbr = rosrust::publish::<lbr_msgs::LBRState>(topics::LBR_STATE, 10).map_err(|e| e.to_string())?;
+    let pose = rosrust::publish::<geometry_msgs::PoseStamped>(topics::TROCAR_POSE, 10).map_err(|e| e.to_string())?;
+    let names: Vec<String> = ::trocar_docking::kinematics::joint_names();
     Ok(std::thread::spawn(move || {
         let rate = rosrust::rate(100.0);
         let zeros = JointVector::zeros();

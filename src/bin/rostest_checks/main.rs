@@ -33,6 +33,7 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
     let params = params::load_private::<CheckParams>();
     report.check(name, || {
         let p = params.map_err(|e| e.to_string())?;
+        p.validate().map_err(|e| format!("parameter {e}"))?;
         let summary = match name {
             "roundtrip" => docking_checks::roundtrip(&p).map(|()| "round trip ok".to_string()),
             "docking" => docking_checks::docking(&p),

@@ -379,7 +379,7 @@ mod tests {
     use super::*;
 
     fn names() -> Vec<String> {
-        (1..=7).map(|i| format!("lbr_joint_{i}")).collect()
+        crate::kinematics::joint_names()
     }
 
     fn state(names: Vec<String>, pos: Vec<f64>) -> sensor_msgs::JointState {
@@ -403,7 +403,7 @@ mod tests {
     fn bad_joint_states_are_rejected_with_a_reason() {
         let e = joint_positions("t", &state(names()[..6].to_vec(), vec![0.0; 6]), &names()).unwrap_err();
         assert!(
-            matches!(e, InputError::MissingJoint { ref name, .. } if name == "lbr_joint_7"),
+            matches!(e, InputError::MissingJoint { ref name, .. } if *name == crate::kinematics::joint_name(7)),
             "{e}"
         );
         let e = joint_positions("t", &state(names(), vec![0.0; 6]), &names()).unwrap_err();

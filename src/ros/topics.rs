@@ -1,0 +1,29 @@
+//! Default topic names of the stack, one constant each: the LBR driver's (`lbr_fri_ros`,
+//! namespace `/lbr`), the ZED mini camera's, and ours. Every node takes its topics as
+//! parameters; these are the defaults the parameter structs, the simulator and the rostest
+//! checks share (`config/*.yaml` spell the same names for the launch files).
+
+/// Joint states of the arm (sensor_msgs/JointState), from the driver or the simulator.
+pub const JOINT_STATES: &str = "/lbr/joint_states";
+/// The driver's LBRState (external torques), once per FRI cycle.
+pub const LBR_STATE: &str = "/lbr/states";
+/// The joint command (trajectory_msgs/JointTrajectory, or Float64MultiArray).
+pub const COMMAND: &str = "/lbr/PositionJointInterface_trajectory_controller/command";
+/// The camera image (ZED mini, left, rectified).
+pub const CAMERA_IMAGE: &str = "/zedm/zed_node/left/image_rect_color";
+/// The camera's CameraInfo.
+pub const CAMERA_INFO: &str = "/zedm/zed_node/left/camera_info";
+/// The trocar pose in the base frame (geometry_msgs/PoseStamped).
+pub const TROCAR_POSE: &str = "/trocar/pose";
+/// The simulator's true trocar pose.
+pub const TROCAR_POSE_TRUE: &str = "/trocar/pose_true";
+/// The controller's status (trocar_docking/DockingStatus).
+pub const DOCKING_STATUS: &str = "/docking/status";
+/// The estimated external force at the tip (geometry_msgs/WrenchStamped).
+pub const DOCKING_F_EXT: &str = "/docking/f_ext";
+/// RViz markers (visualization_msgs/MarkerArray).
+pub const DOCKING_MARKERS: &str = "/docking/markers";
+/// tf.
+pub const TF: &str = "/tf";
+/// The simulated clock (with `/use_sim_time`).
+pub const CLOCK: &str = "/clock";
