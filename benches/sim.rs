@@ -26,8 +26,9 @@ fn bench(c: &mut Criterion) {
     });
     let mut g = c.benchmark_group("closed_loop");
     g.sample_size(10);
+    let controller = trocar_docking::trials::config::load_controller(None).expect("controller config");
     for ff in [false, true] {
-        let factory = trocar_docking::trials::policy::factory(&cfg, ff, kin.limits());
+        let factory = trocar_docking::trials::policy::factory(&cfg, &controller, ff, kin.limits());
         if factory(1).is_err() {
             continue;
         }

@@ -5,7 +5,7 @@ use std::sync::Arc;
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointLimits, Kinematics, LbrKinematics};
 use trocar_docking::trials::batch::{run_arm, ArmReport};
-use trocar_docking::trials::config::SimConfig;
+use trocar_docking::trials::config::{load_controller, SimConfig};
 
 fn kin() -> Result<Arc<dyn Kinematics>, String> {
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())
@@ -16,7 +16,8 @@ fn kin() -> Result<Arc<dyn Kinematics>, String> {
 fn run(cfg: &SimConfig, ff: bool, threads: usize) -> ArmReport {
     let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
     let seeds: Vec<u64> = (10..16).collect();
-    let factory = trocar_docking::trials::policy::factory(cfg, ff, &JointLimits::of_model(LbrModel::Med7));
+    let controller = load_controller(None).unwrap();
+    let factory = trocar_docking::trials::policy::factory(cfg, &controller, ff, &JointLimits::of_model(LbrModel::Med7));
     let done = std::sync::atomic::AtomicUsize::new(0);
     let tick = || {
         done.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
@@ -26,9 +27,13 @@ fn run(cfg: &SimConfig, ff: bool, threads: usize) -> ArmReport {
     r
 }
 
+fn protocol(name: &str) -> SimConfig {
+    SimConfig::load_default().unwrap().with_protocol(name).unwrap()
+}
+
 #[test]
 fn same_seeds_same_numbers_in_parallel() {
-    let mut cfg = SimConfig::load_default().unwrap();
+    let mut cfg = protocol("realistic");
     cfg.trial.timeout_s = 4.0;
     for ff in [false, true] {
         let a = run(&cfg, ff, 1);
@@ -43,7 +48,7 @@ fn same_seeds_same_numbers_in_parallel() {
 
 #[test]
 fn force_feedback_lowers_contact_forces() {
-    let mut cfg = SimConfig::load_default().unwrap();
+    let mut cfg = protocol("paper");
     cfg.trial.timeout_s = 8.0;
     let no_ff = run(&cfg, false, 2);
     let ff = run(&cfg, true, 2);

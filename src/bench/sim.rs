@@ -66,8 +66,9 @@ pub fn run(
             extra,
         });
     }
+    let controller = crate::trials::config::load_controller(None)?;
     for ff in [false, true] {
-        let factory = crate::trials::policy::factory(cfg, ff, kin.limits());
+        let factory = crate::trials::policy::factory(cfg, &controller, ff, kin.limits());
         let mut per_sim_second = vec![];
         let (mut wall, mut simulated) = (0.0, 0.0);
         for seed in 1..=trials.max(1) as u64 {

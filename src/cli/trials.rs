@@ -1,8 +1,10 @@
 //! `trocar_docking trials`: the paper's experiment at scale. N closed-loop trials per arm
-//! (with and without force feedback) on the same seeds and noise, in parallel, with a
+//! (with and without force feedback) on the same seeds, under one protocol of
+//! `config/sim.yaml` (`paper` or `realistic`), with the controller of
+//! `config/controller.yaml` unchanged but for `dt` and `force_feedback`; in parallel, with a
 //! progress bar on stderr; prints a summary and a per-trial table (JSON with `--json`) and
 //! writes to `--out`: `summary.json`, `trials.csv`, `series/<arm>_<seed>.csv` and the
-//! plots `force_<noise>.png`, `m_box_<noise>.png`.
+//! plots `force_<protocol>.png`, `m_box_<protocol>.png`.
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
@@ -10,11 +12,12 @@ use std::sync::Arc;
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
+use crate::control::ControllerParams;
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointLimits, Kinematics, LbrKinematics};
 use crate::sim::noise::NoiseModel;
 use crate::trials::batch::{run_arm, ArmReport, ArmSummary, PolicyFactory, Stats};
-use crate::trials::config::{PolicyKind, SimConfig};
+use crate::trials::config::{load_controller, PolicyKind, Protocol, SimConfig};
 use crate::trials::run::TrialResult;
 
 use super::CliResult;
@@ -37,7 +40,10 @@ pub struct TrialsArgs {
     /// Both arms (the default).
     #[arg(long)]
     pub both: bool,
-    /// Trocar pose noise (default: the config's).
+    /// The protocol (a block of `protocols:` in the configuration).
+    #[arg(long, value_enum, default_value_t = Protocol::Realistic)]
+    pub protocol: Protocol,
+    /// Trocar pose noise (default: the protocol's).
     #[arg(long, value_enum)]
     pub noise: Option<NoiseModel>,
     /// Timeout per trial, s (default: the config's).
@@ -46,6 +52,10 @@ pub struct TrialsArgs {
     /// Configuration file (default: config/sim.yaml when present, else built-in defaults).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Controller configuration (default: config/controller.yaml when present, else the
+    /// copy built into the binary): run unchanged but for `dt` and `force_feedback`.
+    #[arg(long)]
+    pub controller_config: Option<PathBuf>,
     /// Output directory for CSV, JSON and PNG.
     #[arg(long, default_value = "out/trials")]
     pub out: PathBuf,
@@ -78,10 +88,11 @@ fn arm_label(ff: bool) -> &'static str {
 }
 
 fn load_config(a: &TrialsArgs) -> Result<SimConfig, Box<dyn std::error::Error + Send + Sync>> {
-    let mut c = match &a.config {
+    let base = match &a.config {
         Some(p) => SimConfig::from_file(p)?,
         None => SimConfig::load_default()?,
     };
+    let mut c = base.with_protocol(a.protocol.name())?;
     if let Some(n) = a.noise {
         c.sim.measurement.model = n;
     }
@@ -96,8 +107,15 @@ fn load_config(a: &TrialsArgs) -> Result<SimConfig, Box<dyn std::error::Error + 
 }
 
 /// The policy of one arm.
-fn factory(c: &SimConfig, ff: bool) -> Box<PolicyFactory> {
-    crate::trials::policy::factory(c, ff, &JointLimits::of_model(LbrModel::Med7))
+fn factory(c: &SimConfig, controller: &ControllerParams, ff: bool) -> Box<PolicyFactory> {
+    crate::trials::policy::factory(c, controller, ff, &JointLimits::of_model(LbrModel::Med7))
+}
+
+/// What one run ran: protocol, world, controller.
+struct RunSetup {
+    protocol: Protocol,
+    cfg: SimConfig,
+    controller: ControllerParams,
 }
 
 /// Run `trials`.
@@ -105,15 +123,43 @@ pub fn run(a: &TrialsArgs) -> CliResult {
     if a.trials == 0 {
         return Err("--trials must be at least 1".into());
     }
-    let cfg = load_config(a)?;
+    let setup = RunSetup {
+        protocol: a.protocol,
+        cfg: load_config(a)?,
+        controller: load_controller(a.controller_config.as_deref())?,
+    };
     // Fail early on a broken model; each trial then builds its own chain (see KinematicsFactory).
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())?;
+    let seeds: Vec<u64> = (0..a.trials as u64).map(|k| a.seed.wrapping_add(k)).collect();
+    let t0 = std::time::Instant::now();
+    let reports = run_arms(a, &setup, &seeds)?;
+    let wall = t0.elapsed().as_secs_f64();
+    let simulated: f64 = reports.iter().flat_map(|r| r.trials.iter()).map(|t| t.time_s).sum();
+    write_outputs(a, &setup, &reports)?;
+    let ratio = ratio(&reports);
+    if a.json {
+        let mut v = run_json(&setup, &reports, ratio);
+        v["seeds"] = serde_json::json!([a.seed, a.seed.wrapping_add(a.trials as u64 - 1)]);
+        v["wall_s"] = wall.into();
+        v["simulated_s"] = simulated.into();
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        print_text(&reports, &setup, ratio, wall, simulated, &a.out);
+    }
+    Ok(())
+}
+
+/// Run every requested arm on `seeds`, with a progress bar.
+fn run_arms(
+    a: &TrialsArgs,
+    s: &RunSetup,
+    seeds: &[u64],
+) -> Result<Vec<ArmReport>, Box<dyn std::error::Error + Send + Sync>> {
     let kin = || -> Result<Arc<dyn Kinematics>, String> {
         LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())
             .map(|k| Arc::new(k) as Arc<dyn Kinematics>)
             .map_err(|e| e.to_string())
     };
-    let seeds: Vec<u64> = (0..a.trials as u64).map(|k| a.seed.wrapping_add(k)).collect();
     let arms = arms(a);
     let bar = ProgressBar::with_draw_target(Some((seeds.len() * arms.len()) as u64), ProgressDrawTarget::stderr());
     bar.set_style(
@@ -121,62 +167,89 @@ pub fn run(a: &TrialsArgs) -> CliResult {
             .map_err(|e| e.to_string())?
             .progress_chars("=> "),
     );
-    bar.set_prefix(format!("trials ({} noise)", cfg.sim.measurement.model));
-    let t0 = std::time::Instant::now();
+    bar.set_prefix(format!("trials ({} protocol)", s.protocol));
     let tick = || bar.inc(1);
-    let reports: Vec<ArmReport> = arms
+    let reports = arms
         .iter()
         .map(|&ff| {
             run_arm(
                 arm_label(ff),
-                &cfg.sim,
-                &cfg.trial,
+                &s.cfg.sim,
+                &s.cfg.trial,
                 &kin,
-                &seeds,
-                factory(&cfg, ff).as_ref(),
+                seeds,
+                factory(&s.cfg, &s.controller, ff).as_ref(),
                 &tick,
             )
         })
         .collect();
     bar.finish_and_clear();
-    let wall = t0.elapsed().as_secs_f64();
-    let simulated: f64 = reports.iter().flat_map(|r| r.trials.iter()).map(|t| t.time_s).sum();
-    write_outputs(a, &cfg, &reports)?;
-    let ratio = ratio(&reports);
-    if a.json {
-        let v = serde_json::json!({
-            "noise": cfg.sim.measurement.model.to_string(),
-            "seeds": [a.seed, a.seed.wrapping_add(a.trials as u64 - 1)],
-            "wall_s": wall,
-            "simulated_s": simulated,
-            "m_ratio_no_ff_over_ff": ratio.map(|r| r.0),
-            "m_true_ratio_no_ff_over_ff": ratio.map(|r| r.1),
-            "arms": reports,
-        });
-        println!("{}", serde_json::to_string_pretty(&v)?);
-    } else {
-        print_text(&reports, &cfg, ratio, wall, simulated, &a.out);
-    }
-    Ok(())
+    Ok(reports)
 }
 
-/// Mean M without FF over mean M with FF, when both arms ran: (estimated, true force).
-fn ratio(r: &[ArmReport]) -> Option<(f64, f64)> {
+/// The JSON record of a run: protocol, the controller's full parameter set (as the FF arm
+/// ran it; the no-FF arm differs only in `force_feedback`), the world, and per arm (`ff`,
+/// `no_ff`) its summary and trials.
+fn run_json(s: &RunSetup, r: &[ArmReport], ratio: Option<(f64, f64)>) -> serde_json::Value {
+    let ff = r.iter().any(|x| x.summary.label == "ff");
+    let arms: serde_json::Map<String, serde_json::Value> = r
+        .iter()
+        .map(|x| {
+            let mut v = serde_json::to_value(&x.summary).unwrap_or_default();
+            v["force_feedback"] = (x.summary.label == "ff").into();
+            (x.summary.label.clone(), v)
+        })
+        .collect();
+    let trials: serde_json::Map<String, serde_json::Value> = r
+        .iter()
+        .map(|x| {
+            (
+                x.summary.label.clone(),
+                serde_json::to_value(&x.trials).unwrap_or_default(),
+            )
+        })
+        .collect();
+    serde_json::json!({
+        "protocol": s.protocol.name(),
+        "controller": crate::trials::policy::controller_params(&s.cfg, &s.controller, ff),
+        "world": {"sim": &s.cfg.sim, "trial": &s.cfg.trial, "policy": s.cfg.policy},
+        "m_ratio_no_ff_over_ff": ratio.map(|r| r.0),
+        "m_true_ratio_no_ff_over_ff": ratio.map(|r| r.1),
+        "m_lateral_true_all_ratio_no_ff_over_ff": lateral_ratio(r),
+        "arms": arms,
+        "trials": trials,
+    })
+}
+
+/// `f(no_ff) / f(ff)` of the two arms' summaries, when both ran.
+fn arm_ratio(r: &[ArmReport], f: impl Fn(&ArmSummary) -> f64) -> Option<f64> {
     let arm = |l: &str| r.iter().find(|x| x.summary.label == l).map(|x| &x.summary);
     let div = |a: f64, b: f64| if b > 0.0 && a.is_finite() { a / b } else { f64::NAN };
     match (arm("no_ff"), arm("ff")) {
-        (Some(a), Some(b)) => Some((div(a.m_est.mean, b.m_est.mean), div(a.m_true.mean, b.m_true.mean))),
+        (Some(a), Some(b)) => Some(div(f(a), f(b))),
         _ => None,
     }
+}
+
+/// Mean M without FF over mean M with FF on the successes: (estimated, true force).
+fn ratio(r: &[ArmReport]) -> Option<(f64, f64)> {
+    Some((arm_ratio(r, |s| s.m_est.mean)?, arm_ratio(r, |s| s.m_true.mean)?))
+}
+
+/// Mean lateral M (true force, every trial) without FF over with FF.
+fn lateral_ratio(r: &[ArmReport]) -> Option<f64> {
+    arm_ratio(r, |s| s.m_lateral_true_all.mean)
 }
 
 fn ms(s: &Stats) -> String {
     format!("{:.2} ± {:.2}", s.mean, s.std)
 }
 
-fn print_text(r: &[ArmReport], cfg: &SimConfig, ratio: Option<(f64, f64)>, wall: f64, simulated: f64, out: &Path) {
+fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f64, simulated: f64, out: &Path) {
+    let cfg = &s.cfg;
     println!(
-        "noise {}; {} trials per arm; timeout {} s; success = tip within {} mm of the goal {} mm deep, inside the port",
+        "protocol {}; noise {}; {} trials per arm; timeout {} s; success = tip within {} mm of the goal {} mm deep, inside the port",
+        s.protocol,
         cfg.sim.measurement.model,
         r.first().map_or(0, |x| x.trials.len()),
         cfg.trial.timeout_s,
@@ -184,50 +257,55 @@ fn print_text(r: &[ArmReport], cfg: &SimConfig, ratio: Option<(f64, f64)>, wall:
         cfg.trial.goal_depth_m * 1e3
     );
     println!(
-        "{:<7} {:>9} {:>15} {:>17} {:>15} {:>15} {:>7} {:>9} {:>9}",
-        "arm", "success", "M [N]", "2.4xM (paper-code)", "M true [N]", "T [s]", "T max", "max f [N]", "outcomes"
+        "{:<6} {:>8} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9}  failures",
+        "arm", "success", "M true all [N]", "M true [N]", "M est [N]", "M lat all [N]", "T [s]", "max f [N]"
     );
     for a in r {
-        let s: &ArmSummary = &a.summary;
+        let x: &ArmSummary = &a.summary;
         println!(
-            "{:<7} {:>3}/{:<3}{:>3} {:>15} {:>17} {:>15} {:>15} {:>7.2} {:>9.1} {:?}",
-            s.label,
-            s.successes,
-            s.trials,
-            "",
-            ms(&s.m_est),
-            ms(&s.m_paper_code_scale),
-            ms(&s.m_true),
-            ms(&s.time_s),
-            s.time_s.max,
-            s.max_force_true_n,
-            s.outcomes
+            "{:<6} {:>3}/{:<4} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9.1}  {:?}",
+            x.label,
+            x.successes,
+            x.trials,
+            ms(&x.m_true_all),
+            ms(&x.m_true),
+            ms(&x.m_est),
+            ms(&x.m_lateral_true_all),
+            ms(&x.time_s),
+            x.max_force_true_n,
+            x.failures
         );
     }
+    println!("M true all, M lat all: every trial (failures included); M true, M est, T: successes only");
     if let Some((e, t)) = ratio {
-        println!("M(no FF) / M(FF) = {e:.2} (true contact force: {t:.2}; paper: 21.4 / 3.4 = 6.3)");
+        println!(
+            "M(no FF) / M(FF) on successes = {e:.2} estimated, {t:.2} true (paper: 21.4 / 3.4 = 6.3); lateral, all trials: {:.2}",
+            lateral_ratio(r).unwrap_or(f64::NAN)
+        );
     }
-    println!("outcomes: [docked, timeout, force abort, policy abort, sim error]");
     println!(
         "wall {wall:.2} s for {simulated:.0} s simulated ({:.0}x real time across cores)",
         simulated / wall.max(1e-9)
     );
     println!("\nper trial:");
     println!(
-        "{:<7} {:>6} {:<12} {:>7} {:>8} {:>8} {:>9}  reason",
-        "arm", "seed", "outcome", "T [s]", "M [N]", "M true", "max f [N]"
+        "{:<6} {:>6} {:<12} {:>7} {:>8} {:>8} {:>8} {:>9}  reason",
+        "arm", "seed", "outcome", "T [s]", "M est", "M true", "M lat", "max f [N]"
     );
     for a in r {
         for t in &a.trials {
             println!(
-                "{:<7} {:>6} {:<12} {:>7.2} {:>8.3} {:>8.3} {:>9.2}  {}",
+                "{:<6} {:>6} {:<12} {:>7.2} {:>8.3} {:>8.3} {:>8.3} {:>9.2}  {} {} {}",
                 a.summary.label,
                 t.seed,
-                format!("{:?}", t.outcome),
+                t.outcome.name(),
                 t.time_s,
                 t.m_est,
                 t.m_true,
+                t.m_lateral_true,
                 t.max_f_true,
+                t.final_phase,
+                t.final_hold,
                 t.reason
             );
         }
@@ -235,73 +313,73 @@ fn print_text(r: &[ArmReport], cfg: &SimConfig, ratio: Option<(f64, f64)>, wall:
     println!("\noutputs in {}", out.display());
 }
 
-fn write_outputs(a: &TrialsArgs, cfg: &SimConfig, r: &[ArmReport]) -> CliResult {
-    let series = a.out.join("series");
-    std::fs::create_dir_all(&series)?;
-    let mut table = std::io::BufWriter::new(std::fs::File::create(a.out.join("trials.csv"))?);
+fn write_table(path: &Path, r: &[ArmReport]) -> CliResult {
+    let mut table = std::io::BufWriter::new(std::fs::File::create(path)?);
     writeln!(
         table,
-        "arm,seed,outcome,time_s,m_est_n,m_paper_code_scale,m_true_n,max_f_est_n,max_f_true_n,reason"
+        "arm,seed,outcome,final_phase,time_s,m_est_n,m_paper_code_scale,m_true_n,m_lateral_true_n,max_f_est_n,max_f_true_n,reason"
     )?;
     for arm in r {
         for t in &arm.trials {
             writeln!(
                 table,
-                "{},{},{:?},{:.4},{:.5},{:.5},{:.5},{:.4},{:.4},\"{}\"",
+                "{},{},{},{},{:.4},{:.5},{:.5},{:.5},{:.5},{:.4},{:.4},\"{}\"",
                 arm.summary.label,
                 t.seed,
-                t.outcome,
+                t.outcome.name(),
+                t.final_phase,
                 t.time_s,
                 t.m_est,
                 crate::trials::run::PAPER_CODE_SCALE * t.m_est,
                 t.m_true,
+                t.m_lateral_true,
                 t.max_f_est,
                 t.max_f_true,
                 t.reason.replace('"', "'")
             )?;
-            write_series(&series.join(format!("{}_{}.csv", arm.summary.label, t.seed)), t)?;
         }
     }
     table.flush()?;
-    let summary = serde_json::json!({
-        "noise": cfg.sim.measurement.model.to_string(),
-        "config": cfg,
-        "arms": r.iter().map(|x| &x.summary).collect::<Vec<_>>(),
-        "trials": r.iter().map(|x| serde_json::json!({"arm": x.summary.label, "results": x.trials})).collect::<Vec<_>>(),
-    });
-    std::fs::write(a.out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
-    if !a.no_plots {
-        let noise = cfg.sim.measurement.model.to_string();
-        let labelled: Vec<(&str, &[TrialResult])> = r
-            .iter()
-            .map(|x| {
-                (
-                    if x.summary.label == "ff" {
-                        "with FF"
-                    } else {
-                        "without FF"
-                    },
-                    x.trials.as_slice(),
-                )
-            })
-            .collect();
-        crate::trials::plot::force_over_time(&a.out.join(format!("force_{noise}.png")), &labelled)?;
-        let groups: Vec<(String, Vec<f64>)> = r
-            .iter()
-            .map(|x| {
-                (
-                    x.summary.label.clone(),
-                    x.trials.iter().filter(|t| t.success()).map(|t| t.m_est).collect(),
-                )
-            })
-            .collect();
-        crate::trials::plot::box_plot(
-            &a.out.join(format!("m_box_{noise}.png")),
-            &format!("M per successful trial ({noise} noise)"),
-            "M [N]",
-            &groups,
-        )?;
+    Ok(())
+}
+
+fn write_outputs(a: &TrialsArgs, s: &RunSetup, r: &[ArmReport]) -> CliResult {
+    let series = a.out.join("series");
+    std::fs::create_dir_all(&series)?;
+    write_table(&a.out.join("trials.csv"), r)?;
+    for arm in r {
+        for t in &arm.trials {
+            write_series(&series.join(format!("{}_{}.csv", arm.summary.label, t.seed)), t)?;
+        }
     }
+    let summary = run_json(s, r, ratio(r));
+    std::fs::write(a.out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    if a.no_plots {
+        return Ok(());
+    }
+    let protocol = s.protocol.name();
+    let labelled: Vec<(&str, &[TrialResult])> = r
+        .iter()
+        .map(|x| {
+            let name = if x.summary.label == "ff" {
+                "with FF"
+            } else {
+                "without FF"
+            };
+            (name, x.trials.as_slice())
+        })
+        .collect();
+    crate::trials::plot::force_over_time(&a.out.join(format!("force_{protocol}.png")), &labelled)?;
+    let groups: Vec<(String, Vec<f64>)> = r
+        .iter()
+        .map(|x| (x.summary.label.clone(), x.trials.iter().map(|t| t.m_true).collect()))
+        .collect();
+    crate::trials::plot::box_plot(
+        &a.out.join(format!("m_box_{protocol}.png")),
+        &format!("M on the true contact force, every trial ({protocol} protocol)"),
+        "M [N]",
+        &groups,
+    )?;
     Ok(())
 }
 
@@ -309,13 +387,13 @@ fn write_series(path: &Path, t: &TrialResult) -> CliResult {
     let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
     writeln!(
         f,
-        "t_s,f_est_n,f_true_n,depth_m,radial_m,goal_dist_m,trocar_shift_m,phase"
+        "t_s,f_est_n,f_true_n,f_lateral_true_n,depth_m,radial_m,goal_dist_m,trocar_shift_m,phase"
     )?;
     for s in &t.samples {
         writeln!(
             f,
-            "{:.3},{:.5},{:.5},{:.6},{:.6},{:.6},{:.6},{}",
-            s.t, s.f_est, s.f_true, s.depth, s.radial, s.goal_dist, s.trocar_shift, s.phase
+            "{:.3},{:.5},{:.5},{:.5},{:.6},{:.6},{:.6},{:.6},{}",
+            s.t, s.f_est, s.f_true, s.f_lateral_true, s.depth, s.radial, s.goal_dist, s.trocar_shift, s.phase
         )?;
     }
     f.flush()?;

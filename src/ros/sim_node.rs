@@ -56,8 +56,8 @@ pub struct SimNodeParams {
     pub image_topic: String,
     /// CameraInfo out.
     pub camera_info_topic: String,
-    /// Publish the simulator's noisy trocar pose measurement directly (the paper's mode; its
-    /// rate, latency and noise are `world.sim.measurement`).
+    /// Publish the simulator's noisy trocar pose measurement directly (its rate, latency,
+    /// noise and hand-eye bias are the world protocol's `sim.measurement`).
     pub direct_pose_enabled: bool,
     /// Direct trocar pose out.
     pub trocar_pose_topic: String,
@@ -70,8 +70,11 @@ pub struct SimNodeParams {
     /// The simulated camera: its model, mount and the marker it sees.
     pub camera: SimCameraParams,
     /// The simulator's own parameters (`config/sim.yaml`, loaded under `~world`; its
-    /// `sim:` section is used).
+    /// `sim:` section, with the protocol `world_protocol` applied, is used).
     pub world: SimConfig,
+    /// The protocol of `world` the plant runs (`realistic`: seal, breathing, torque
+    /// errors, elastic joints; `paper`; '' = the base `sim:` section).
+    pub world_protocol: String,
 }
 
 /// The simulated camera (`camera:` in `config/lbr_med_sim.yaml`): a marker on the trocar
@@ -210,7 +213,8 @@ impl SimCamera {
 
     /// Capture a frame of `world` now (skipped while the last one renders).
     fn capture(&mut self, world: &SimWorld, stamp: rosrust::Time) {
-        let Ok(base_t_flange) = self.flange_kin.fk(&world.joint_positions()) else {
+        // The camera rides on the link side: where the (elastic) arm really is.
+        let Ok(base_t_flange) = self.flange_kin.fk(&world.joint_positions_link()) else {
             return;
         };
         let camera_t_marker = marker_in_camera(
@@ -252,6 +256,7 @@ impl Default for SimNodeParams {
             trocar_dropout_after: -1.0,
             camera: SimCameraParams::default(),
             world: SimConfig::default(),
+            world_protocol: "realistic".into(),
         }
     }
 }
@@ -315,6 +320,80 @@ impl Every {
     }
 }
 
+/// The world the node simulates: `~world` with `~world_protocol` applied.
+fn world_config(p: &SimNodeParams) -> Result<SimConfig, NodeError> {
+    if p.world_protocol.is_empty() {
+        return Ok(p.world.clone());
+    }
+    p.world
+        .with_protocol(&p.world_protocol)
+        .map_err(|e| NodeError::Invalid(format!("world_protocol '{}': {e}", p.world_protocol)))
+}
+
+/// A publisher on `topic` when `on`.
+fn optional<T: rosrust::Message>(
+    on: bool,
+    topic: &str,
+    queue: usize,
+) -> Result<Option<rosrust::Publisher<T>>, NodeError> {
+    if on {
+        rosrust::publish::<T>(topic, queue).map(Some).map_err(ros_err)
+    } else {
+        Ok(None)
+    }
+}
+
+/// The node's publishers (the camera's live on its thread).
+struct Outputs {
+    joint_states: rosrust::Publisher<sensor_msgs::JointState>,
+    lbr_state: rosrust::Publisher<lbr_msgs::LBRState>,
+    clock: Option<rosrust::Publisher<rosgraph_msgs::Clock>>,
+    pose: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
+    truth: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
+}
+
+impl Outputs {
+    fn new(p: &SimNodeParams) -> Result<Self, NodeError> {
+        Ok(Self {
+            joint_states: rosrust::publish(&p.joint_states_topic, 10).map_err(ros_err)?,
+            lbr_state: rosrust::publish(&p.lbr_state_topic, 10).map_err(ros_err)?,
+            clock: optional(p.publish_clock, "/clock", 10)?,
+            pose: optional(p.direct_pose_enabled, &p.trocar_pose_topic, 10)?,
+            truth: optional(!p.trocar_true_topic.is_empty(), &p.trocar_true_topic, 2)?,
+        })
+    }
+
+    /// The driver's topics: joint states and LBRState (motor-side joints, as the LBR).
+    fn driver(&self, p: &SimNodeParams, world: &SimWorld, stamp: rosrust::Time, sample_time: f64) {
+        let q = world.joint_positions();
+        let tau_ext = world.external_torques();
+        let tau = JointVector::zeros();
+        let _ = self
+            .joint_states
+            .send(convert::joint_state(stamp, &p.joint_names, &q, &tau));
+        let _ = self
+            .lbr_state
+            .send(convert::lbr_state(stamp, sample_time, &q, &tau, &tau_ext));
+    }
+
+    /// In the direct mode, a pose measurement newer than `last` (its stamp, updated),
+    /// stamped at capture: the controller's latency then counts the sensor delay.
+    fn direct_pose(&self, p: &SimNodeParams, world: &SimWorld, t0: f64, stamp: rosrust::Time, last: &mut f64) {
+        let (Some(publ), Some(m)) = (&self.pose, world.measure_trocar(world.time())) else {
+            return;
+        };
+        if m.stamp > *last {
+            *last = m.stamp;
+            let capture = if p.publish_clock {
+                convert::ros_time(t0 + m.stamp)
+            } else {
+                stamp
+            };
+            let _ = publ.send(convert::pose_stamped(capture, &p.base_frame, &m.pose));
+        }
+    }
+}
+
 /// Run the node until shutdown. Call after `rosrust::init`.
 pub fn run() -> Result<(), NodeError> {
     let p: SimNodeParams = params::load_private()?;
@@ -323,29 +402,14 @@ pub fn run() -> Result<(), NodeError> {
     }
     let kin = LbrKinematics::from_model(p.model, &ToolParams::default())?;
     let shared_kin: Arc<dyn Kinematics> = Arc::new(kin.clone());
+    let world_cfg = world_config(&p)?;
     let mut world =
-        SimWorld::new(&p.world.sim, shared_kin, p.seed).map_err(|e| NodeError::Invalid(format!("sim: {e}")))?;
-    let dt = p.world.sim.dt();
+        SimWorld::new(&world_cfg.sim, shared_kin, p.seed).map_err(|e| NodeError::Invalid(format!("sim: {e}")))?;
+    let dt = world_cfg.sim.dt();
 
     let command: CommandSlot = Arc::new(Mutex::new(None));
     let _sub = subscribe_command(&p, &command)?;
-    let pub_js = rosrust::publish::<sensor_msgs::JointState>(&p.joint_states_topic, 10).map_err(ros_err)?;
-    let pub_lbr = rosrust::publish::<lbr_msgs::LBRState>(&p.lbr_state_topic, 10).map_err(ros_err)?;
-    let pub_clock = if p.publish_clock {
-        Some(rosrust::publish::<rosgraph_msgs::Clock>("/clock", 10).map_err(ros_err)?)
-    } else {
-        None
-    };
-    let pub_pose = if p.direct_pose_enabled {
-        Some(rosrust::publish::<geometry_msgs::PoseStamped>(&p.trocar_pose_topic, 10).map_err(ros_err)?)
-    } else {
-        None
-    };
-    let pub_true = if p.trocar_true_topic.is_empty() {
-        None
-    } else {
-        Some(rosrust::publish::<geometry_msgs::PoseStamped>(&p.trocar_true_topic, 2).map_err(ros_err)?)
-    };
+    let out = Outputs::new(&p)?;
     let mut camera = if p.camera_enabled {
         Some(SimCamera::start(&p)?)
     } else {
@@ -360,8 +424,9 @@ pub fn run() -> Result<(), NodeError> {
     let mut last_measurement = f64::NEG_INFINITY;
     let sample_time = 1.0 / p.fri_rate_hz;
     rosrust::ros_info!(
-        "lbr_med_sim: {:?}, FRI {} Hz, physics {} s, x{} real time, clock {}",
+        "lbr_med_sim: {:?}, world protocol '{}', FRI {} Hz, physics {} s, x{} real time, clock {}",
         p.model,
+        p.world_protocol,
         p.fri_rate_hz,
         dt,
         p.real_time_factor,
@@ -382,15 +447,11 @@ pub fn run() -> Result<(), NodeError> {
         } else {
             rosrust::now()
         };
-        if let Some(c) = &pub_clock {
+        if let Some(c) = &out.clock {
             let _ = c.send(rosgraph_msgs::Clock { clock: stamp });
         }
         if fri.due(t) {
-            let q = world.joint_positions();
-            let tau_ext = world.external_torques();
-            let tau = JointVector::zeros();
-            let _ = pub_js.send(convert::joint_state(stamp, &p.joint_names, &q, &tau));
-            let _ = pub_lbr.send(convert::lbr_state(stamp, sample_time, &q, &tau, &tau_ext));
+            out.driver(&p, &world, stamp, sample_time);
         }
         let live = p.trocar_dropout_after < 0.0 || world.time() < p.trocar_dropout_after;
         if let (true, Some(cam)) = (live, camera.as_mut()) {
@@ -398,20 +459,11 @@ pub fn run() -> Result<(), NodeError> {
                 cam.capture(&world, stamp);
             }
         }
-        if let (true, Some(publ), Some(m)) = (live, &pub_pose, world.measure_trocar(world.time())) {
-            if m.stamp > last_measurement {
-                last_measurement = m.stamp;
-                // Stamped at capture: the controller's latency then counts the sensor delay.
-                let capture = if p.publish_clock {
-                    convert::ros_time(t0 + m.stamp)
-                } else {
-                    stamp
-                };
-                let _ = publ.send(convert::pose_stamped(capture, &p.base_frame, &m.pose));
-            }
+        if live {
+            out.direct_pose(&p, &world, t0, stamp, &mut last_measurement);
         }
         if truth.due(t) {
-            if let Some(publ) = &pub_true {
+            if let Some(publ) = &out.truth {
                 let _ = publ.send(convert::pose_stamped(stamp, &p.base_frame, &world.trocar_pose_true()));
             }
         }
@@ -422,4 +474,43 @@ pub fn run() -> Result<(), NodeError> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The node's parameters as the launch file loads them: `config/lbr_med_sim.yaml` in
+    /// the private namespace, `config/sim.yaml` under `~world` (through JSON, as the
+    /// parameter server hands them over).
+    fn shipped() -> SimNodeParams {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+        let read = |f: &str| -> serde_json::Value {
+            serde_yaml::from_str(&std::fs::read_to_string(dir.join(f)).unwrap()).unwrap()
+        };
+        let mut tree = read("lbr_med_sim.yaml");
+        tree["world"] = read("sim.yaml");
+        params::from_value("lbr_med_sim", tree).unwrap()
+    }
+
+    #[test]
+    fn the_node_runs_the_realistic_world_by_default() {
+        let p = shipped();
+        assert_eq!(p.world_protocol, "realistic");
+        let w = world_config(&p).unwrap();
+        assert_eq!(w.sim.trocar.port_diameter_m, 0.0055);
+        assert!(w.sim.seal.static_friction_n > 0.0 && w.sim.breathing.amplitude_axial_m > 0.0);
+        assert!(w.sim.torque_sensor.bias_nm > 0.0 && w.sim.arm.joint_stiffness_nm_per_rad[0] > 0.0);
+        let paper = world_config(&SimNodeParams {
+            world_protocol: "paper".into(),
+            ..p.clone()
+        })
+        .unwrap();
+        assert_eq!(paper.sim.trocar.port_diameter_m, 0.007);
+        assert!(world_config(&SimNodeParams {
+            world_protocol: "nope".into(),
+            ..p
+        })
+        .is_err());
+    }
 }

@@ -7,8 +7,19 @@
 //! a   = w^2 (r - q) - 2 z w qd                                   (critically damped lag)
 //! qd <- clamp(qd + a dt, -v_max, v_max);  q <- clamp(q + qd dt, q_min, q_max)
 //! ```
-//! with w = 1 / lag_time_constant_s, z = damping_ratio, s = velocity_scale. The arm is
-//! position-controlled and far stiffer than the trocar mount, so contact does not deflect it.
+//! with w = 1 / lag_time_constant_s, z = damping_ratio, s = velocity_scale.
+//!
+//! **Joint elasticity.** The LBR's joints are elastic (harmonic drive, torque sensor): the
+//! position controller holds the motor side at q, and an external torque tau_ext twists
+//! the link side by K^-1 tau_ext (K = diag of `joint_stiffness_nm_per_rad`, 0 = rigid). The
+//! link-side deflection d relaxes to it with the time constant T of the joints' link-side
+//! mode (first order, so the penalty contact stays stable at the sub-step):
+//! ```text
+//! d <- d + (K^-1 tau_ext - d) h / (T + h);   q_link = q + d
+//! ```
+//! At rest under a tip force f, the tip moves by J K^-1 J^T f. The joint positions the
+//! arm reports are the motor side q (as the LBR's position sensors sit before the elastic
+//! element), so the controller does not see d.
 
 use serde::{Deserialize, Serialize};
 
@@ -25,6 +36,10 @@ pub struct ArmParams {
     pub damping_ratio: f64,
     /// Fraction of the joint velocity limits the reference may move at.
     pub velocity_scale: f64,
+    /// Joint stiffness per joint, Nm/rad (0 = rigid).
+    pub joint_stiffness_nm_per_rad: [f64; 7],
+    /// Time constant of the link-side deflection, s.
+    pub deflection_time_constant_s: f64,
 }
 
 impl Default for ArmParams {
@@ -33,6 +48,8 @@ impl Default for ArmParams {
             lag_time_constant_s: 0.01,
             damping_ratio: 1.0,
             velocity_scale: 1.0,
+            joint_stiffness_nm_per_rad: [0.0; 7],
+            deflection_time_constant_s: 0.005,
         }
     }
 }
@@ -42,7 +59,18 @@ impl ArmParams {
     pub fn validate(&self) -> Result<(), SimError> {
         check_range("arm.lag_time_constant_s", self.lag_time_constant_s, 1e-4, 1.0)?;
         check_range("arm.damping_ratio", self.damping_ratio, 0.1, 10.0)?;
-        check_range("arm.velocity_scale", self.velocity_scale, 0.01, 1.0)
+        check_range("arm.velocity_scale", self.velocity_scale, 0.01, 1.0)?;
+        for k in self.joint_stiffness_nm_per_rad {
+            if k != 0.0 {
+                check_range("arm.joint_stiffness_nm_per_rad", k, 100.0, 1e8)?;
+            }
+        }
+        check_range(
+            "arm.deflection_time_constant_s",
+            self.deflection_time_constant_s,
+            1e-4,
+            1.0,
+        )
     }
 }
 
@@ -55,6 +83,9 @@ pub struct Arm {
     qd: JointVector,
     reference: JointVector,
     command: JointVector,
+    /// 1 / stiffness per joint (0 = rigid), rad/Nm.
+    compliance: JointVector,
+    deflection: JointVector,
 }
 
 impl Arm {
@@ -72,6 +103,15 @@ impl Arm {
             qd: JointVector::zeros(),
             reference: q,
             command: q,
+            compliance: JointVector::from_fn(|i, _| {
+                let k = params.joint_stiffness_nm_per_rad[i];
+                if k > 0.0 {
+                    1.0 / k
+                } else {
+                    0.0
+                }
+            }),
+            deflection: JointVector::zeros(),
         })
     }
 
@@ -103,7 +143,26 @@ impl Arm {
         }
     }
 
-    /// Measured joint positions, rad.
+    /// Relax the link-side deflection for `h` seconds under the external torque `tau`.
+    pub fn relax(&mut self, tau: &JointVector, h: f64) {
+        let a = h / (self.params.deflection_time_constant_s + h);
+        for i in 0..self.q.len() {
+            let step = (self.compliance[i] * tau[i] - self.deflection[i]) * a;
+            self.deflection[i] += step;
+        }
+    }
+
+    /// Link-side deflection from the motor side, rad.
+    pub fn deflection(&self) -> &JointVector {
+        &self.deflection
+    }
+
+    /// Link-side joint positions (motor side plus deflection), rad: where the arm is.
+    pub fn q_link(&self) -> JointVector {
+        self.q + self.deflection
+    }
+
+    /// Measured (motor-side) joint positions, rad.
     pub fn q(&self) -> &JointVector {
         &self.q
     }
@@ -151,6 +210,38 @@ mod tests {
             b.step(1e-3);
         }
         assert!(b.q()[0] < 0.2 * 0.99);
+    }
+
+    #[test]
+    fn an_elastic_joint_deflects_by_torque_over_stiffness() {
+        let p = ArmParams {
+            joint_stiffness_nm_per_rad: [2e4, 2e4, 2e4, 2e4, 1e4, 1e4, 0.0],
+            ..Default::default()
+        };
+        let mut a = Arm::new(&p, &JointLimits::of_model(LbrModel::Med7), &JointVector::zeros()).unwrap();
+        let tau = JointVector::from_column_slice(&[4.0, -2.0, 1.0, 0.0, 3.0, -1.0, 5.0]);
+        for _ in 0..500 {
+            a.relax(&tau, 2e-4);
+        }
+        for i in 0..7 {
+            let k = p.joint_stiffness_nm_per_rad[i];
+            let want = if k > 0.0 { tau[i] / k } else { 0.0 };
+            assert!(
+                (a.deflection()[i] - want).abs() < 1e-3 * want.abs() + 1e-12,
+                "joint {i}"
+            );
+        }
+        assert_eq!(a.q(), &JointVector::zeros());
+        assert_eq!(a.q_link(), *a.deflection());
+        assert!(Arm::new(
+            &ArmParams {
+                joint_stiffness_nm_per_rad: [-1.0; 7],
+                ..Default::default()
+            },
+            &JointLimits::of_model(LbrModel::Med7),
+            &JointVector::zeros()
+        )
+        .is_err());
     }
 
     #[test]

@@ -104,6 +104,17 @@ pub struct ContactWrench {
     pub max_depth: f64,
 }
 
+impl ContactWrench {
+    /// Add the force `f` on the arm acting at the point `q` (base frame): its moment about
+    /// the arm's `tip`, and the reaction -f on the trocar with its torque about `pivot`.
+    pub fn add_point_force(&mut self, f: &Vector3<f64>, q: &Point3<f64>, tip: &Point3<f64>, pivot: &Point3<f64>) {
+        self.force += f;
+        self.moment += (q - tip).cross(f);
+        self.trocar_force -= f;
+        self.trocar_torque -= (q - pivot).cross(f);
+    }
+}
+
 /// A sphere-vs-trocar contact in the port frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LocalContact {
@@ -150,16 +161,6 @@ impl ContactModel {
             segments,
             trocar: trocar.clone(),
         })
-    }
-
-    /// Number of spheres on the shaft.
-    pub fn spheres(&self) -> usize {
-        self.offsets.len()
-    }
-
-    /// Shaft radius, m.
-    pub fn shaft_radius(&self) -> f64 {
-        self.radius
     }
 
     fn inside(&self, rho: f64, z: f64) -> bool {
@@ -251,11 +252,7 @@ impl ContactModel {
             let fn_ = (p.stiffness_n_per_m * lc.depth - p.damping_ns_per_m * vn).max(0.0);
             let vt = v_rel - n * vn;
             let ft = vt * (-p.friction * fn_ / (vt.norm_squared() + p.slip_velocity_m_s * p.slip_velocity_m_s).sqrt());
-            let f = n * fn_ + ft;
-            out.force += f;
-            out.moment += (q - tip).cross(&f);
-            out.trocar_force -= f;
-            out.trocar_torque -= (q - pivot).cross(&f);
+            out.add_point_force(&(n * fn_ + ft), &q, &tip, &pivot);
             out.contacts += 1;
             out.max_depth = out.max_depth.max(lc.depth);
         }

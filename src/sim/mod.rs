@@ -1,7 +1,8 @@
-//! The plant: an LBR Med in FRI position mode ([`arm`]) holding an endoscope whose shaft
-//! touches ([`contact`]) a compliantly mounted trocar ([`trocar`]), measured by a noisy pose
-//! sensor ([`noise`]) and the arm's joint torque sensors ([`torque`]), from randomised starts
-//! ([`scenario`]). [`world::SimWorld`] steps it all at 1 kHz. The experiment that closes
+//! The plant: an LBR Med in FRI position mode with elastic joints ([`arm`]) holding an
+//! endoscope whose shaft touches ([`contact`]) a compliantly mounted, breathing trocar
+//! ([`trocar`]) and slides through its seal ([`seal`]), measured by a noisy pose sensor
+//! ([`noise`]) and the arm's joint torque sensors with the LBR's model error ([`torque`]),
+//! from randomised starts ([`scenario`]). [`world::SimWorld`] steps it all at 1 kHz. The experiment that closes
 //! the loop around it (policies, trials, statistics) is [`crate::trials`].
 //!
 //! Pure Rust, no ROS, no C++: the arm is seen through the [`Kinematics`](crate::kinematics::Kinematics)
@@ -12,6 +13,7 @@ pub mod arm;
 pub mod contact;
 pub mod noise;
 pub mod scenario;
+pub mod seal;
 pub mod torque;
 pub mod trocar;
 pub mod world;
@@ -22,8 +24,9 @@ pub use arm::ArmParams;
 pub use contact::ContactParams;
 pub use noise::MeasurementParams;
 pub use scenario::{Scenario, ScenarioParams};
+pub use seal::SealParams;
 pub use torque::TorqueSensorParams;
-pub use trocar::TrocarParams;
+pub use trocar::{BreathingParams, TrocarParams};
 pub use world::SimWorld;
 
 /// Errors of the simulator.
@@ -80,6 +83,10 @@ pub struct SimParams {
     pub arm: ArmParams,
     /// The trocar geometry and its compliant mount.
     pub trocar: TrocarParams,
+    /// The cannula's seal (axial stick-slip friction).
+    pub seal: SealParams,
+    /// Breathing motion of the trocar's mount.
+    pub breathing: BreathingParams,
     /// Shaft-trocar contact.
     pub contact: ContactParams,
     /// The joint torque sensors (external torque estimate).
@@ -97,6 +104,8 @@ impl Default for SimParams {
             substeps: 5,
             arm: ArmParams::default(),
             trocar: TrocarParams::default(),
+            seal: SealParams::default(),
+            breathing: BreathingParams::default(),
             contact: ContactParams::default(),
             torque_sensor: TorqueSensorParams::default(),
             measurement: MeasurementParams::default(),
@@ -124,6 +133,8 @@ impl SimParams {
         }
         self.arm.validate()?;
         self.trocar.validate()?;
+        self.seal.validate()?;
+        self.breathing.validate()?;
         self.contact.validate()?;
         self.torque_sensor.validate()?;
         self.measurement.validate()?;

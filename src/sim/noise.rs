@@ -8,8 +8,9 @@
 //! - `none`: the true pose.
 //!
 //! On top of the noise, an optional per-trial constant calibration bias (the hand-eye and
-//! marker calibration errors of a real setup): a position offset U(-c, c) per axis and a
-//! rotation of U(0, c_r) about a random axis, drawn once per trial, in the port frame.
+//! marker calibration errors of a real setup): a position offset of length U(0, c) in a
+//! random direction and a rotation of U(0, c_r) about a random axis, drawn once per trial,
+//! in the port frame.
 
 use std::collections::VecDeque;
 
@@ -60,7 +61,7 @@ pub struct MeasurementParams {
     pub gaussian_position_m: f64,
     /// Gaussian: standard deviation of the rotation per axis, rad.
     pub gaussian_rotation_rad: f64,
-    /// Calibration bias: half-range per position axis, m (0: none).
+    /// Calibration bias: largest position offset, m (0: none).
     pub bias_position_m: f64,
     /// Calibration bias: largest rotation, rad (0: none).
     pub bias_rotation_rad: f64,
@@ -102,17 +103,18 @@ impl MeasurementParams {
 
     /// Draw the per-trial calibration bias (identity when both ranges are zero).
     pub fn draw_bias(&self, rng: &mut impl rand::Rng) -> Isometry3<f64> {
-        let c = self.bias_position_m;
-        let mut u = |h: f64| if h > 0.0 { rng.random_range(-h..=h) } else { 0.0 };
-        let t = Vector3::new(u(c), u(c), u(c));
-        let axis = Vector3::new(u(1.0), u(1.0), u(1.0));
-        let ang = if self.bias_rotation_rad > 0.0 {
-            rng.random_range(0.0..=self.bias_rotation_rad)
-        } else {
-            0.0
+        let direction = |rng: &mut dyn rand::Rng| {
+            let v = Vector3::new(
+                rng.random_range(-1.0..=1.0),
+                rng.random_range(-1.0..=1.0),
+                rng.random_range(-1.0..=1.0),
+            );
+            nalgebra::Unit::try_new(v, 1e-9).unwrap_or(Vector3::x_axis())
         };
-        let rot = nalgebra::Unit::try_new(axis, 1e-9)
-            .map_or(UnitQuaternion::identity(), |a| UnitQuaternion::from_axis_angle(&a, ang));
+        let length = |rng: &mut dyn rand::Rng, max: f64| if max > 0.0 { rng.random_range(0.0..=max) } else { 0.0 };
+        let t = direction(rng).into_inner() * length(rng, self.bias_position_m);
+        let axis = direction(rng);
+        let rot = UnitQuaternion::from_axis_angle(&axis, length(rng, self.bias_rotation_rad));
         Isometry3::from_parts(Translation3::from(t), rot)
     }
 }

@@ -2,22 +2,25 @@
 //! physics rate. A seed fixes everything: the start (scenario) and every noise draw.
 //!
 //! One physics step of dt: the arm tracks its command over dt; FK and the Jacobian at the
-//! new joints give the tip pose and twist (J qd); the trocar and the contact are integrated
-//! in `substeps` sub-steps with the tip moving linearly over the step; the sub-step mean of
-//! the contact wrench on the arm gives tau_ext = J^T [F; M], read by the torque sensor;
-//! the pose sensor captures the trocar when due.
+//! link-side joints (motor side plus the joints' elastic deflection) give the tip pose and
+//! twist; the trocar (its mount's anchor moving with breathing), the contact, the seal and
+//! the joints' deflection are integrated in `substeps` sub-steps, the tip moving linearly
+//! over the step and with the deflection (through J); the sub-step mean of the wrench on
+//! the arm gives tau_ext = J^T [F; M], read by the torque sensor with the LBR's model
+//! error; the pose sensor captures the trocar when due.
 
 use std::sync::Arc;
 
-use nalgebra::{Isometry3, Point3, Vector3, Vector6};
+use nalgebra::{Isometry3, Point3, UnitQuaternion, Vector3, Vector6};
 use rand_chacha::ChaCha8Rng;
 
 use super::arm::Arm;
 use super::contact::{ContactModel, ContactWrench, ShaftMotion};
 use super::noise::{TrocarMeasurement, TrocarSensor};
 use super::scenario::Scenario;
+use super::seal::Seal;
 use super::torque::TorqueSensor;
-use super::trocar::Trocar;
+use super::trocar::{Breathing, Trocar};
 use super::{stream, SimError, SimParams};
 use crate::kinematics::{Jacobian, JointVector, Kinematics};
 
@@ -25,6 +28,7 @@ use crate::kinematics::{Jacobian, JointVector, Kinematics};
 const STREAM_SCENARIO: u64 = 1;
 const STREAM_MEASUREMENT: u64 = 2;
 const STREAM_TORQUE: u64 = 3;
+const STREAM_BREATHING: u64 = 4;
 
 /// The simulated world: an LBR with an endoscope and a compliant trocar.
 pub struct SimWorld {
@@ -35,7 +39,9 @@ pub struct SimWorld {
     carry: f64,
     arm: Arm,
     trocar: Trocar,
+    breathing: Breathing,
     contact: ContactModel,
+    seal: Seal,
     torque: TorqueSensor,
     sensor: TrocarSensor,
     rng_meas: ChaCha8Rng,
@@ -43,7 +49,6 @@ pub struct SimWorld {
     tip: Isometry3<f64>,
     jac: Jacobian,
     wrench: ContactWrench,
-    tau_true: JointVector,
     tau_meas: JointVector,
 }
 
@@ -56,6 +61,15 @@ impl std::fmt::Debug for SimWorld {
     }
 }
 
+/// `pose` moved by the small joint displacement `dq` through the Jacobian `jac`.
+fn moved(pose: &Isometry3<f64>, jac: &Jacobian, dq: &JointVector) -> Isometry3<f64> {
+    let d: Vector6<f64> = jac * dq;
+    let mut out = *pose;
+    out.translation.vector += Vector3::new(d[0], d[1], d[2]);
+    out.rotation = UnitQuaternion::from_scaled_axis(Vector3::new(d[3], d[4], d[5])) * out.rotation;
+    out
+}
+
 impl SimWorld {
     /// A world whose start (arm configuration, trocar rest pose) is drawn from `seed`.
     pub fn new(params: &SimParams, kin: Arc<dyn Kinematics>, seed: u64) -> Result<Self, SimError> {
@@ -64,7 +78,7 @@ impl SimWorld {
         Self::with_scenario(params, kin, &scenario, seed)
     }
 
-    /// A world with a given start; `seed` drives the sensor noise.
+    /// A world with a given start; `seed` drives the sensor noise and the breathing.
     pub fn with_scenario(
         params: &SimParams,
         kin: Arc<dyn Kinematics>,
@@ -75,10 +89,12 @@ impl SimWorld {
         let mut rng_torque = stream(seed, STREAM_TORQUE);
         let mut rng_meas = stream(seed, STREAM_MEASUREMENT);
         let arm = Arm::new(&params.arm, kin.limits(), &scenario.q0())?;
-        let (tip, jac) = kin.fk_jacobian(arm.q())?;
+        let (tip, jac) = kin.fk_jacobian(&arm.q_link())?;
         Ok(Self {
             trocar: Trocar::new(&params.trocar, &scenario.trocar_rest)?,
+            breathing: Breathing::sample(&params.breathing, &mut stream(seed, STREAM_BREATHING)),
             contact: ContactModel::new(&params.contact, &params.trocar)?,
+            seal: Seal::new(&params.seal)?,
             torque: TorqueSensor::new(&params.torque_sensor, &mut rng_torque)?,
             sensor: TrocarSensor::new(&params.measurement, &mut rng_meas)?,
             rng_meas,
@@ -92,15 +108,18 @@ impl SimWorld {
             tip,
             jac,
             wrench: ContactWrench::default(),
-            tau_true: JointVector::zeros(),
             tau_meas: JointVector::zeros(),
         }
         .primed())
     }
 
     fn primed(mut self) -> Self {
+        self.trocar.set_anchor_offset(&self.breathing.offset(0.0));
         let pose = self.trocar.pose();
         self.sensor.update(0.0, &pose, &mut self.rng_meas);
+        self.tau_meas = self
+            .torque
+            .measure(&JointVector::zeros(), &self.tip, &self.jac, &mut self.rng_torque);
         self
     }
 
@@ -115,6 +134,14 @@ impl SimWorld {
     /// The start of this world.
     pub fn scenario(&self) -> &Scenario {
         &self.scenario
+    }
+    /// This trial's breathing (frequency, phase, amplitude).
+    pub fn breathing(&self) -> &Breathing {
+        &self.breathing
+    }
+    /// The torque sensor (its bias and model error).
+    pub fn torque_sensor(&self) -> &TorqueSensor {
+        &self.torque
     }
     /// Simulated time, s.
     pub fn time(&self) -> f64 {
@@ -147,24 +174,28 @@ impl SimWorld {
     pub fn step_physics(&mut self) -> Result<(), SimError> {
         let dt = self.params.dt();
         self.arm.step(dt);
-        let (tip, jac) = self.kin.fk_jacobian(self.arm.q())?;
-        let twist: Vector6<f64> = jac * self.arm.qd();
-        let v = Vector3::new(twist[0], twist[1], twist[2]);
-        let w = Vector3::new(twist[3], twist[4], twist[5]);
+        let (tip, jac) = self.kin.fk_jacobian(&self.arm.q_link())?;
+        let v_track: Vector6<f64> = jac * self.arm.qd();
+        let d0 = *self.arm.deflection();
         let n = self.params.substeps;
         let h = dt / n as f64;
-        let mut force = Vector3::zeros();
-        let mut moment = Vector3::zeros();
+        let mut sum = ContactWrench::default();
         let mut last = ContactWrench::default();
         for i in 0..n {
             let back = dt - (i + 1) as f64 * h;
-            let mut at = tip;
-            at.translation.vector -= v * back;
-            let m = ShaftMotion { tip: at, v, w };
-            last = self.contact.evaluate(&m, &self.trocar);
-            self.trocar.step(h, &last.trocar_force, &last.trocar_torque);
-            force += last.force;
-            moment += last.moment;
+            let mut at = moved(&tip, &jac, &(self.arm.deflection() - d0));
+            at.translation.vector -= Vector3::new(v_track[0], v_track[1], v_track[2]) * back;
+            // The deflection moves the tip but is not fed to the contact as a velocity: as a
+            // velocity it would meet the friction's steep regularisation in an explicit
+            // loop and chatter at the sub-step rate.
+            let m = ShaftMotion {
+                tip: at,
+                v: Vector3::new(v_track[0], v_track[1], v_track[2]),
+                w: Vector3::new(v_track[3], v_track[4], v_track[5]),
+            };
+            last = self.substep(&m, &jac, h, self.t + (i + 1) as f64 * h);
+            sum.force += last.force;
+            sum.moment += last.moment;
         }
         self.t += dt;
         if !self.trocar.is_finite() {
@@ -174,57 +205,58 @@ impl SimWorld {
             });
         }
         let inv = 1.0 / n as f64;
-        last.force = force * inv;
-        last.moment = moment * inv;
+        last.force = sum.force * inv;
+        last.moment = sum.moment * inv;
         self.wrench = last;
-        let wrench = Vector6::new(
-            last.force.x,
-            last.force.y,
-            last.force.z,
-            last.moment.x,
-            last.moment.y,
-            last.moment.z,
-        );
-        self.tau_true = jac.transpose() * wrench;
-        self.tau_meas = self.torque.measure(&self.tau_true, &mut self.rng_torque);
-        self.tip = tip;
+        self.tip = moved(&tip, &jac, &(self.arm.deflection() - d0));
         self.jac = jac;
+        let tau_true = self.tau_of(&last);
+        self.tau_meas = self.torque.measure(&tau_true, &self.tip, &jac, &mut self.rng_torque);
         let pose = self.trocar.pose();
         self.sensor.update(self.t, &pose, &mut self.rng_meas);
         Ok(())
     }
 
-    /// Measured joint positions, rad.
+    /// J^T [F; M] of a wrench on the arm, at the current Jacobian.
+    fn tau_of(&self, w: &ContactWrench) -> JointVector {
+        let wrench = Vector6::new(w.force.x, w.force.y, w.force.z, w.moment.x, w.moment.y, w.moment.z);
+        self.jac.transpose() * wrench
+    }
+
+    /// One sub-step of `h` ending at time `t`: breathing, contact, seal, trocar, deflection.
+    fn substep(&mut self, m: &ShaftMotion, jac: &Jacobian, h: f64, t: f64) -> ContactWrench {
+        self.trocar.set_anchor_offset(&self.breathing.offset(t));
+        let mut w = self.contact.evaluate(m, &self.trocar);
+        if let Some((f, q)) = self.seal.evaluate(m, &self.trocar, h) {
+            let tip = Point3::from(m.tip.translation.vector);
+            w.add_point_force(&f, &q, &tip, &self.trocar.pivot());
+        }
+        self.trocar.step(h, &w.trocar_force, &w.trocar_torque);
+        let wrench = Vector6::new(w.force.x, w.force.y, w.force.z, w.moment.x, w.moment.y, w.moment.z);
+        self.arm.relax(&(jac.transpose() * wrench), h);
+        w
+    }
+
+    /// Measured joint positions (motor side, as the LBR reports them), rad.
     pub fn joint_positions(&self) -> JointVector {
         *self.arm.q()
     }
-    /// Joint velocities, rad/s.
-    pub fn joint_velocities(&self) -> JointVector {
-        *self.arm.qd()
+    /// Link-side joint positions (with the joints' elastic deflection), rad.
+    pub fn joint_positions_link(&self) -> JointVector {
+        self.arm.q_link()
     }
-    /// The last accepted joint command.
-    pub fn commanded_positions(&self) -> JointVector {
-        *self.arm.command()
-    }
-    /// External joint torques as the LBR reports them (bias, noise, dead-band), Nm.
+    /// External joint torques as the LBR reports them (bias, model error, noise,
+    /// dead-band), Nm.
     pub fn external_torques(&self) -> JointVector {
         self.tau_meas
-    }
-    /// True external joint torques J^T w of the contact, Nm.
-    pub fn external_torques_true(&self) -> JointVector {
-        self.tau_true
     }
     /// The contact wrench of the last physics step (force on the arm, moment about the tip).
     pub fn contact(&self) -> &ContactWrench {
         &self.wrench
     }
-    /// Tip pose (base frame).
+    /// The true tip pose (base frame, link side).
     pub fn tip_pose(&self) -> Isometry3<f64> {
         self.tip
-    }
-    /// Geometric Jacobian at the current joints.
-    pub fn jacobian(&self) -> &Jacobian {
-        &self.jac
     }
     /// The trocar's true current port pose (base frame, z into the body).
     pub fn trocar_pose_true(&self) -> Isometry3<f64> {
@@ -304,12 +336,16 @@ mod tests {
     }
 
     fn world(tip: [f64; 3]) -> SimWorld {
-        let mut p = SimParams::default();
+        world_with(tip, SimParams::default())
+    }
+
+    fn world_with(tip: [f64; 3], mut p: SimParams) -> SimWorld {
         p.measurement.model = super::super::noise::NoiseModel::None;
         p.torque_sensor = super::super::TorqueSensorParams {
             noise_sigma_nm: 0.0,
             bias_nm: 0.0,
             deadband_nm: 0.0,
+            ..Default::default()
         };
         let down = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
         let scenario = Scenario {
@@ -343,6 +379,32 @@ mod tests {
         let (dev, tilt) = w.trocar().deviation();
         assert!(dev < 1e-4 && tilt < 1e-3, "not back at rest: {dev} m, {tilt} rad");
         assert!(w.trocar().energy() < 1e-6);
+    }
+
+    #[test]
+    fn elastic_joints_deflect_by_j_kinv_jt_f() {
+        // The double's J is the identity on joints 1-3, so J K^-1 J^T f = f / k there.
+        let k = 5000.0;
+        let mut p = SimParams::default();
+        p.arm.joint_stiffness_nm_per_rad = [k; 7];
+        // A trocar that does not tilt or slide: the face's normal stays the axis.
+        p.trocar.k_tilt_nm_per_rad = 1e4;
+        p.trocar.k_lateral_n_per_m = 1e6;
+        let mut w = world_with([0.012, 0.0, 0.01], p);
+        let q_cmd = JointVector::from_column_slice(&[0.012, 0.0, -0.01, 0.0, 0.0, 0.0, 0.0]);
+        w.set_command(&q_cmd).unwrap();
+        w.step(3.0).unwrap();
+        let f = w.contact().force;
+        assert!(f.z > 3.0, "{f:?}");
+        let deflection = w.tip_pose().translation.vector - Vector3::new(q_cmd[0], q_cmd[1], q_cmd[2]);
+        assert!(
+            (deflection - f / k).norm() < 0.02 * f.norm() / k,
+            "{deflection:?} vs {:?}",
+            f / k
+        );
+        // The arm reports its motor side: the command, not the deflected link.
+        assert!((w.joint_positions() - q_cmd).amax() < 1e-9);
+        assert!((w.joint_positions_link() - w.joint_positions()).amax() > 1e-4);
     }
 
     #[test]

@@ -81,6 +81,7 @@ impl Policy for Baseline {
             command: None,
             f_ext: None,
             phase: "HOLD",
+            hold_code: None,
             aborted: Some(why.to_string()),
         };
         let Ok((tip, jac)) = kin.fk_jacobian(&obs.q) else {
@@ -92,6 +93,7 @@ impl Policy for Baseline {
                 command: None,
                 f_ext: Some(f_ext),
                 phase: "IDLE",
+                hold_code: None,
                 aborted: None,
             };
         };
@@ -125,6 +127,7 @@ impl Policy for Baseline {
             command: Some(obs.q + dq),
             f_ext: Some(f_ext),
             phase: if self.inserting { "INSERT" } else { "APPROACH" },
+            hold_code: None,
             aborted: None,
         }
     }

@@ -2,6 +2,7 @@
 //! on the same seeds, in parallel (rayon), with summary statistics. Each trial is a pure
 //! function of its seed, so the results do not depend on the thread count or order.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use rayon::prelude::*;
@@ -56,11 +57,12 @@ impl Stats {
     }
 }
 
-/// Summary of one arm of the comparison. Like the paper, M and T are over the successful
-/// trials; `m_est_all` covers every trial.
+/// Summary of one arm of the comparison. The headline is `m_true_all`: M on the true
+/// contact force over every trial, failures included. Like the paper, `m_true`, `m_est`
+/// and `time_s` cover the successful trials.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ArmSummary {
-    /// Arm label, e.g. `ff`.
+    /// Arm label: `ff` or `no_ff`.
     pub label: String,
     /// Trials run.
     pub trials: usize,
@@ -68,38 +70,41 @@ pub struct ArmSummary {
     pub successes: usize,
     /// successes / trials.
     pub success_rate: f64,
-    /// M from the estimated force, N (successful trials).
-    pub m_est: Stats,
-    /// 2.4 x M: the paper's public-code scale, for comparison with its 21.4 and 3.4.
-    pub m_paper_code_scale: Stats,
+    /// M from the true contact force over every trial, N (the headline).
+    pub m_true_all: Stats,
     /// M from the true contact force, N (successful trials).
     pub m_true: Stats,
-    /// M from the estimated force over every trial, N.
+    /// M from the controller's force estimate, N (successful trials).
+    pub m_est: Stats,
+    /// 2.4 x `m_est`: the paper's public-code scale, for comparison with its 21.4 and 3.4.
+    pub m_paper_code_scale: Stats,
+    /// M from the estimate over every trial, N.
     pub m_est_all: Stats,
-    /// Completion time, s (successful trials).
+    /// M from the true contact force across the trocar axis over every trial, N.
+    pub m_lateral_true_all: Stats,
+    /// Completion time T, s (successful trials).
     pub time_s: Stats,
     /// Largest true contact force over every trial, N.
     pub max_force_true_n: f64,
     /// Largest estimated force over every trial, N.
     pub max_force_est_n: f64,
-    /// Outcome counts: docked, timeout, force abort, policy abort, sim error.
-    pub outcomes: [usize; 5],
+    /// Failed trials by reason: the outcome, the policy's phase and hold code at the end,
+    /// e.g. `timeout in HOLD (APPROACH_STALL)`.
+    pub failures: BTreeMap<String, usize>,
 }
 
 impl ArmSummary {
     /// Summarise the results of one arm.
     pub fn of(label: &str, r: &[TrialResult]) -> Self {
         let ok: Vec<&TrialResult> = r.iter().filter(|x| x.success()).collect();
-        let m_est = Stats::of(ok.iter().map(|x| x.m_est));
-        let mut outcomes = [0; 5];
-        for x in r {
-            outcomes[match x.outcome {
-                Outcome::Docked => 0,
-                Outcome::Timeout => 1,
-                Outcome::ForceAbort => 2,
-                Outcome::PolicyAbort => 3,
-                Outcome::SimError => 4,
-            }] += 1;
+        let mut failures = BTreeMap::new();
+        for x in r.iter().filter(|x| !x.success()) {
+            let key = match (x.final_phase, x.final_hold) {
+                ("", _) => x.outcome.name().to_string(),
+                (phase, "") => format!("{} in {phase}", x.outcome.name()),
+                (phase, hold) => format!("{} in {phase} ({hold})", x.outcome.name()),
+            };
+            *failures.entry(key).or_insert(0) += 1;
         }
         Self {
             label: label.to_string(),
@@ -110,14 +115,16 @@ impl ArmSummary {
             } else {
                 ok.len() as f64 / r.len() as f64
             },
-            m_paper_code_scale: Stats::of(ok.iter().map(|x| PAPER_CODE_SCALE * x.m_est)),
-            m_est,
+            m_true_all: Stats::of(r.iter().map(|x| x.m_true)),
             m_true: Stats::of(ok.iter().map(|x| x.m_true)),
+            m_est: Stats::of(ok.iter().map(|x| x.m_est)),
+            m_paper_code_scale: Stats::of(ok.iter().map(|x| PAPER_CODE_SCALE * x.m_est)),
             m_est_all: Stats::of(r.iter().map(|x| x.m_est)),
+            m_lateral_true_all: Stats::of(r.iter().map(|x| x.m_lateral_true)),
             time_s: Stats::of(ok.iter().map(|x| x.time_s)),
             max_force_true_n: r.iter().map(|x| x.max_f_true).fold(0.0, f64::max),
             max_force_est_n: r.iter().map(|x| x.max_f_est).fold(0.0, f64::max),
-            outcomes,
+            failures,
         }
     }
 }
@@ -179,8 +186,11 @@ fn one(
         time_s: 0.0,
         m_est: f64::NAN,
         m_true: f64::NAN,
+        m_lateral_true: f64::NAN,
         max_f_est: 0.0,
         max_f_true: 0.0,
+        final_phase: "",
+        final_hold: "",
         samples: vec![],
     };
     let kin = match kin() {
@@ -210,5 +220,41 @@ mod tests {
         assert_eq!((s.min, s.max), (1.0, 4.0));
         assert!(Stats::of([]).mean.is_nan());
         assert_eq!(Stats::of([2.0]).std, 0.0);
+    }
+
+    fn result(seed: u64, outcome: Outcome, m: f64, phase: &'static str) -> TrialResult {
+        TrialResult {
+            seed,
+            outcome,
+            reason: String::new(),
+            time_s: 2.0 * m,
+            m_est: m,
+            m_true: m,
+            m_lateral_true: 0.5 * m,
+            max_f_est: 3.0 * m,
+            max_f_true: 4.0 * m,
+            final_phase: phase,
+            final_hold: if phase == "HOLD" { "FORCE_LIMIT" } else { "" },
+            samples: vec![],
+        }
+    }
+
+    #[test]
+    fn summary_counts_failures_by_reason_and_m_true_all_includes_them() {
+        let r = [
+            result(1, Outcome::Docked, 1.0, "DONE"),
+            result(2, Outcome::Timeout, 3.0, "HOLD"),
+            result(3, Outcome::Timeout, 5.0, "HOLD"),
+            result(4, Outcome::ForceAbort, 7.0, "INSERT"),
+        ];
+        let s = ArmSummary::of("ff", &r);
+        assert_eq!((s.trials, s.successes), (4, 1));
+        assert!((s.success_rate - 0.25).abs() < 1e-12);
+        assert!((s.m_true_all.mean - 4.0).abs() < 1e-12 && (s.m_true.mean - 1.0).abs() < 1e-12);
+        assert!((s.m_lateral_true_all.mean - 2.0).abs() < 1e-12);
+        assert!((s.time_s.mean - 2.0).abs() < 1e-12 && s.max_force_true_n == 28.0);
+        assert_eq!(s.failures.get("timeout in HOLD (FORCE_LIMIT)"), Some(&2));
+        assert_eq!(s.failures.get("force_abort in INSERT"), Some(&1));
+        assert_eq!(s.failures.len(), 2);
     }
 }

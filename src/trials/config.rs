@@ -1,5 +1,9 @@
-//! The file `config/sim.yaml`: the simulated world (`sim:`) and the trial rules (`trial:`).
+//! The file `config/sim.yaml`: the simulated world (`sim:`), the trial rules (`trial:`),
+//! and the named protocols (`protocols:`), each a partial `sim:`/`trial:` tree laid over
+//! the base sections ([`SimConfig::with_protocol`]). The controller the trials run is
+//! `config/controller.yaml`, unchanged ([`load_controller`]).
 
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use serde::{Deserialize, Serialize};
@@ -12,6 +16,12 @@ use crate::sim::{SimError, SimParams};
 /// Default location of the simulator configuration, relative to the package root.
 pub const DEFAULT_PATH: &str = "config/sim.yaml";
 
+/// Default location of the controller configuration (what `robot.launch` runs).
+pub const DEFAULT_CONTROLLER_PATH: &str = "config/controller.yaml";
+
+/// `config/controller.yaml` as built into the binary, for runs outside the package root.
+pub const EMBEDDED_CONTROLLER_YAML: &str = include_str!("../../config/controller.yaml");
+
 /// Everything `config/sim.yaml` holds.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -22,11 +32,11 @@ pub struct SimConfig {
     pub trial: TrialParams,
     /// Which policy the trials run.
     pub policy: PolicyKind,
-    /// The docking controller's parameters (its `dt` is set from `trial.control_rate_hz`,
-    /// `force_feedback` by the arm of the comparison).
-    pub controller: ControllerParams,
     /// The baseline policy.
     pub baseline: BaselineParams,
+    /// Named protocols: each a partial tree of `sim:` and `trial:` values that replace the
+    /// base ones (maps merge key by key, anything else is replaced).
+    pub protocols: BTreeMap<String, serde_yaml::Value>,
 }
 
 /// The policy of the trials.
@@ -40,6 +50,51 @@ pub enum PolicyKind {
     Baseline,
 }
 
+/// The protocols `config/sim.yaml` ships (the CLI's `--protocol`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Protocol {
+    /// The paper's public code: uniform pose noise redrawn every step, no bias, 7 mm port.
+    Paper,
+    /// A lab bench: sealed 5.5 mm cannula, breathing, camera-rate pose with hand-eye bias,
+    /// LBR torque errors, finite joint stiffness.
+    #[default]
+    Realistic,
+}
+
+impl Protocol {
+    /// The protocol's key in `protocols:`.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Paper => "paper",
+            Self::Realistic => "realistic",
+        }
+    }
+}
+
+impl std::fmt::Display for Protocol {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Lay `over` onto `base`: mappings merge key by key (recursively), other values replace.
+fn merge(base: &mut serde_yaml::Value, over: &serde_yaml::Value) {
+    match (base, over) {
+        (serde_yaml::Value::Mapping(b), serde_yaml::Value::Mapping(o)) => {
+            for (k, v) in o {
+                match b.get_mut(k) {
+                    Some(slot) => merge(slot, v),
+                    None => {
+                        b.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (b, o) => *b = o.clone(),
+    }
+}
+
 impl SimConfig {
     /// Parse and validate YAML.
     pub fn from_yaml_str(s: &str) -> Result<Self, SimError> {
@@ -48,14 +103,49 @@ impl SimConfig {
         Ok(c)
     }
 
-    /// Check every section.
+    /// Check every section, and that every protocol applies cleanly.
     pub fn validate(&self) -> Result<(), SimError> {
         self.sim.validate()?;
         self.trial.validate()?;
-        self.controller.validate().map_err(|why| SimError::Param {
-            name: "controller",
-            why,
-        })
+        for name in self.protocols.keys() {
+            self.with_protocol(name)?;
+        }
+        Ok(())
+    }
+
+    /// This configuration with the protocol `name` applied (its overrides laid over `sim:`
+    /// and `trial:`), validated. The result keeps the protocol table.
+    pub fn with_protocol(&self, name: &str) -> Result<Self, SimError> {
+        let over = self.protocols.get(name).ok_or_else(|| SimError::Param {
+            name: "protocols",
+            why: format!(
+                "no protocol '{name}' (have: {})",
+                self.protocols.keys().cloned().collect::<Vec<_>>().join(", ")
+            ),
+        })?;
+        if let Some(bad) = over
+            .as_mapping()
+            .and_then(|m| m.keys().find(|k| !matches!(k.as_str(), Some("sim" | "trial"))))
+        {
+            return Err(SimError::Param {
+                name: "protocols",
+                why: format!("protocol '{name}' may override only sim: and trial:, not {bad:?}"),
+            });
+        }
+        let base = Self {
+            protocols: BTreeMap::new(),
+            ..self.clone()
+        };
+        let mut tree = serde_yaml::to_value(&base)?;
+        merge(&mut tree, over);
+        let mut out: Self = serde_yaml::from_value(tree).map_err(|e| SimError::Param {
+            name: "protocols",
+            why: format!("protocol '{name}': {e}"),
+        })?;
+        out.sim.validate()?;
+        out.trial.validate()?;
+        out.protocols = self.protocols.clone();
+        Ok(out)
     }
 
     /// `config/sim.yaml` when it exists (relative to the working directory), else the
@@ -76,16 +166,70 @@ impl SimConfig {
     }
 }
 
+/// The controller's parameters: `path` when given; else `config/controller.yaml` when it
+/// exists (relative to the working directory); else the copy built into the binary.
+pub fn load_controller(path: Option<&Path>) -> Result<ControllerParams, SimError> {
+    let default = Path::new(DEFAULT_CONTROLLER_PATH);
+    let (text, from) = match path {
+        Some(p) => (
+            std::fs::read_to_string(p).map_err(|e| SimError::Input(format!("{}: {e}", p.display())))?,
+            p.display().to_string(),
+        ),
+        None if default.exists() => (
+            std::fs::read_to_string(default).map_err(|e| SimError::Input(format!("{DEFAULT_CONTROLLER_PATH}: {e}")))?,
+            DEFAULT_CONTROLLER_PATH.to_string(),
+        ),
+        None => (EMBEDDED_CONTROLLER_YAML.to_string(), "built-in controller.yaml".into()),
+    };
+    ControllerParams::from_yaml_str(&text).map_err(|e| SimError::Input(format!("{from}: {e}")))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    fn shipped() -> SimConfig {
+        SimConfig::from_file(&Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_PATH)).unwrap()
+    }
+
     #[test]
-    fn shipped_config_parses() {
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_PATH);
-        let c = SimConfig::from_file(&path).unwrap();
+    fn shipped_config_parses_with_both_protocols() {
+        let c = shipped();
         assert_eq!(c.trial.goal_depth_m, 0.03);
-        assert_eq!(c.sim.trocar.port_diameter_m, 0.007);
+        let paper = c.with_protocol("paper").unwrap();
+        assert_eq!(paper.sim.trocar.port_diameter_m, 0.007);
+        assert_eq!(paper.sim.measurement.bias_position_m, 0.0);
+        assert_eq!(paper.sim.measurement.bias_rotation_rad, 0.0);
+        assert_eq!(paper.trial.timeout_s, 30.0);
+        let real = c.with_protocol("realistic").unwrap();
+        assert_eq!(real.sim.trocar.port_diameter_m, 0.0055);
+        assert!(real.sim.seal.static_friction_n > real.sim.seal.kinetic_friction_n);
+        assert!(real.sim.breathing.amplitude_axial_m > 0.0);
         assert!(SimConfig::from_yaml_str("trial: {timeout_s: -1}").is_err());
+    }
+
+    #[test]
+    fn protocol_overrides_merge_and_bad_ones_are_errors() {
+        let c = SimConfig::from_yaml_str(
+            "sim: {trocar: {port_diameter_m: 0.007, length_m: 0.1}}\nprotocols: {p: {sim: {trocar: {port_diameter_m: 0.006}}}}",
+        )
+        .unwrap();
+        let p = c.with_protocol("p").unwrap();
+        assert_eq!(p.sim.trocar.port_diameter_m, 0.006);
+        assert_eq!(p.sim.trocar.length_m, 0.1);
+        assert!(c.with_protocol("nope").is_err());
+        assert!(SimConfig::from_yaml_str("protocols: {p: {sim: {trocar: {typo: 1}}}}").is_err());
+        assert!(SimConfig::from_yaml_str("protocols: {p: {controller: {dt: 0.1}}}").is_err());
+        assert!(SimConfig::from_yaml_str("protocols: {p: {sim: {trocar: {mass_kg: -1}}}}").is_err());
+    }
+
+    #[test]
+    fn controller_config_is_the_shipped_file() {
+        let from_file = load_controller(Some(
+            &Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_CONTROLLER_PATH),
+        ));
+        let embedded = ControllerParams::from_yaml_str(EMBEDDED_CONTROLLER_YAML).unwrap();
+        assert_eq!(from_file.unwrap(), embedded);
+        assert!(load_controller(Some(Path::new("/no/such/controller.yaml"))).is_err());
     }
 }

@@ -48,6 +48,7 @@ impl Policy for ControllerPolicy {
             command: out.command,
             f_ext: Some(out.f_ext),
             phase: out.phase.as_str(),
+            hold_code: out.hold.as_ref().map(|h| h.code()),
             aborted: (out.phase == Phase::Aborted).then(|| out.reason_text().unwrap_or_else(|| "aborted".into())),
         }
     }

@@ -53,16 +53,8 @@ fn draw_err(path: &Path) -> impl Fn(String) -> PlotError + '_ {
     }
 }
 
-/// The force the plots show for a sample: the estimate, or the true force without one.
-fn shown_force(s: &crate::trials::run::Sample) -> f64 {
-    if s.f_est.is_finite() {
-        s.f_est
-    } else {
-        s.f_true
-    }
-}
-
-/// ||f_ext|| over time, one panel per arm (`(label, trials)`), one colour per trial.
+/// The true contact force ||f|| over time (the simulator's, the headline metric's force),
+/// one panel per arm (`(label, trials)`), one colour per trial.
 pub fn force_over_time(path: &Path, arms: &[(&str, &[TrialResult])]) -> Result<(), PlotError> {
     if arms.is_empty() {
         return Err(PlotError::Empty("no arms to plot"));
@@ -81,13 +73,13 @@ pub fn force_over_time(path: &Path, arms: &[(&str, &[TrialResult])]) -> Result<(
     let f_max = arms
         .iter()
         .flat_map(|(_, r)| r.iter())
-        .flat_map(|r| r.samples.iter().map(shown_force))
+        .flat_map(|r| r.samples.iter().map(|s| s.f_true))
         .filter(|x| x.is_finite())
         .fold(1.0, f64::max)
         * 1.05;
     for ((label, trials), area) in arms.iter().zip(panels.iter()) {
         let mut chart = ChartBuilder::on(area)
-            .caption(format!("||f_ext|| over time: {label}"), (FAMILY, 22))
+            .caption(format!("true contact force over time: {label}"), (FAMILY, 22))
             .margin(12)
             .x_label_area_size(40)
             .y_label_area_size(55)
@@ -96,7 +88,7 @@ pub fn force_over_time(path: &Path, arms: &[(&str, &[TrialResult])]) -> Result<(
         chart
             .configure_mesh()
             .x_desc("time [s]")
-            .y_desc("||f_ext|| [N]")
+            .y_desc("||f|| [N]")
             .label_style((FAMILY, 14))
             .draw()
             .map_err(|x| e(x.to_string()))?;
@@ -104,7 +96,7 @@ pub fn force_over_time(path: &Path, arms: &[(&str, &[TrialResult])]) -> Result<(
             let colour = Palette99::pick(i).to_rgba();
             chart
                 .draw_series(LineSeries::new(
-                    r.samples.iter().map(|s| (s.t, shown_force(s))),
+                    r.samples.iter().map(|s| (s.t, s.f_true)),
                     colour.stroke_width(1),
                 ))
                 .map_err(|x| e(x.to_string()))?;

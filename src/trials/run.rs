@@ -5,7 +5,8 @@
 //!
 //! The metric follows the paper: M = (1/T) * integral_0^T ||f_ext|| dt over the trial, from
 //! the controller's estimate f_ext = J_lin^-T tau_ext (`m_est`) and, beside it, from the
-//! simulator's true contact force (`m_true`). The paper's public code reports 2.4 x M.
+//! simulator's true contact force (`m_true`) and its component across the trocar's true
+//! axis (`m_lateral_true`). The paper's public code reports 2.4 x M.
 
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -38,6 +39,8 @@ pub struct Action {
     pub f_ext: Option<Vector3<f64>>,
     /// Phase name, e.g. `APPROACH`.
     pub phase: &'static str,
+    /// The code of the reason the policy holds, if it does (e.g. `FORCE_LIMIT`).
+    pub hold_code: Option<&'static str>,
     /// Set when the policy gave up (its reason).
     pub aborted: Option<String>,
 }
@@ -105,6 +108,19 @@ pub enum Outcome {
     SimError,
 }
 
+impl Outcome {
+    /// The outcome's name, as in the JSON (e.g. `force_abort`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Docked => "docked",
+            Self::Timeout => "timeout",
+            Self::ForceAbort => "force_abort",
+            Self::PolicyAbort => "policy_abort",
+            Self::SimError => "sim_error",
+        }
+    }
+}
+
 /// One sample of a trial's time series (at the control rate).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Sample {
@@ -114,6 +130,8 @@ pub struct Sample {
     pub f_est: f64,
     /// ||f|| of the true contact force on the arm, N.
     pub f_true: f64,
+    /// The true contact force's component across the trocar's true axis, N.
+    pub f_lateral_true: f64,
     /// Tip depth along the true trocar axis, m.
     pub depth: f64,
     /// Tip distance from the true trocar axis, m.
@@ -124,6 +142,8 @@ pub struct Sample {
     pub trocar_shift: f64,
     /// Policy phase.
     pub phase: &'static str,
+    /// The policy's hold code ('' when it does not hold).
+    pub hold: &'static str,
 }
 
 /// The result of one trial.
@@ -141,10 +161,16 @@ pub struct TrialResult {
     pub m_est: f64,
     /// M from the true contact force, N.
     pub m_true: f64,
+    /// M from the true contact force across the trocar axis, N.
+    pub m_lateral_true: f64,
     /// Largest estimated force, N.
     pub max_f_est: f64,
     /// Largest true contact force, N.
     pub max_f_true: f64,
+    /// The policy's phase when the trial ended.
+    pub final_phase: &'static str,
+    /// The policy's hold code when the trial ended ('' when it did not hold).
+    pub final_hold: &'static str,
     /// Time series at the control rate.
     #[serde(skip)]
     pub samples: Vec<Sample>,
@@ -164,16 +190,19 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
         Ok(o) => o,
         Err(e) => (Outcome::SimError, e.to_string()),
     };
-    let (m_est, m_true, max_f_est, max_f_true) = metrics(&samples);
+    let m = metrics(&samples);
     TrialResult {
         seed,
         outcome,
         reason,
         time_s: world.time(),
-        m_est,
-        m_true,
-        max_f_est,
-        max_f_true,
+        m_est: m.m_est,
+        m_true: m.m_true,
+        m_lateral_true: m.m_lateral_true,
+        max_f_est: m.max_f_est,
+        max_f_true: m.max_f_true,
+        final_phase: samples.last().map_or("", |x| x.phase),
+        final_hold: samples.last().map_or("", |x| x.hold),
         samples,
     }
 }
@@ -199,15 +228,19 @@ fn drive(
         let action = policy.tick(world.kinematics(), &obs);
         let port = world.tip_in_port();
         let radial = (port.x * port.x + port.y * port.y).sqrt();
+        let f = world.contact().force;
+        let axis = world.trocar_pose_true().rotation * Vector3::z();
         samples.push(Sample {
             t,
             f_est: action.f_ext.map_or(f64::NAN, |f| f.norm()),
-            f_true: world.contact().force.norm(),
+            f_true: f.norm(),
+            f_lateral_true: (f - axis * f.dot(&axis)).norm(),
             depth: port.z,
             radial,
             goal_dist: (port.coords - Vector3::new(0.0, 0.0, p.goal_depth_m)).norm(),
             trocar_shift: world.trocar().deviation().0,
             phase: action.phase,
+            hold: action.hold_code.unwrap_or(""),
         });
         if world.docked(p.goal_depth_m, p.tolerance_m) {
             return Ok((Outcome::Docked, String::new()));
@@ -236,21 +269,39 @@ fn drive(
     }
 }
 
-/// (M_est, M_true, max f_est, max f_true) of a time series by the trapezoid rule; M_est
-/// falls back to the true force where the policy gave no estimate.
-fn metrics(s: &[Sample]) -> (f64, f64, f64, f64) {
+/// The force metrics of one trial's time series.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+struct Metrics {
+    m_est: f64,
+    m_true: f64,
+    m_lateral_true: f64,
+    max_f_est: f64,
+    max_f_true: f64,
+}
+
+/// The metrics of a time series, M by the trapezoid rule; the estimate falls back to the
+/// true force where the policy gave none.
+fn metrics(s: &[Sample]) -> Metrics {
     let est = |x: &Sample| if x.f_est.is_finite() { x.f_est } else { x.f_true };
-    let (mut ie, mut it) = (0.0, 0.0);
-    for w in s.windows(2) {
-        let dt = w[1].t - w[0].t;
-        ie += 0.5 * (est(&w[0]) + est(&w[1])) * dt;
-        it += 0.5 * (w[0].f_true + w[1].f_true) * dt;
-    }
     let t = s.last().map_or(0.0, |x| x.t) - s.first().map_or(0.0, |x| x.t);
-    let (me, mt) = if t > 0.0 { (ie / t, it / t) } else { (0.0, 0.0) };
-    let max_e = s.iter().map(est).fold(0.0, f64::max);
-    let max_t = s.iter().map(|x| x.f_true).fold(0.0, f64::max);
-    (me, mt, max_e, max_t)
+    let mean = |f: &dyn Fn(&Sample) -> f64| {
+        let area: f64 = s
+            .windows(2)
+            .map(|w| 0.5 * (f(&w[0]) + f(&w[1])) * (w[1].t - w[0].t))
+            .sum();
+        if t > 0.0 {
+            area / t
+        } else {
+            0.0
+        }
+    };
+    Metrics {
+        m_est: mean(&est),
+        m_true: mean(&|x| x.f_true),
+        m_lateral_true: mean(&|x| x.f_lateral_true),
+        max_f_est: s.iter().map(est).fold(0.0, f64::max),
+        max_f_true: s.iter().map(|x| x.f_true).fold(0.0, f64::max),
+    }
 }
 
 #[cfg(test)]
@@ -262,11 +313,13 @@ mod tests {
             t,
             f_est: f,
             f_true: 2.0 * f,
+            f_lateral_true: 0.5 * f,
             depth: 0.0,
             radial: 0.0,
             goal_dist: 0.0,
             trocar_shift: 0.0,
             phase: "X",
+            hold: "",
         }
     }
 
@@ -274,9 +327,10 @@ mod tests {
     fn metric_is_the_time_average() {
         // f = t on [0, 2]: mean 1; true force 2t: mean 2.
         let s: Vec<Sample> = (0..=200).map(|k| sample(k as f64 * 0.01, k as f64 * 0.01)).collect();
-        let (me, mt, maxe, maxt) = metrics(&s);
-        assert!((me - 1.0).abs() < 1e-9 && (mt - 2.0).abs() < 1e-9);
-        assert!((maxe - 2.0).abs() < 1e-12 && (maxt - 4.0).abs() < 1e-12);
-        assert_eq!(metrics(&[]), (0.0, 0.0, 0.0, 0.0));
+        let m = metrics(&s);
+        assert!((m.m_est - 1.0).abs() < 1e-9 && (m.m_true - 2.0).abs() < 1e-9);
+        assert!((m.m_lateral_true - 0.5).abs() < 1e-9);
+        assert!((m.max_f_est - 2.0).abs() < 1e-12 && (m.max_f_true - 4.0).abs() < 1e-12);
+        assert_eq!(metrics(&[]), Metrics::default());
     }
 }
