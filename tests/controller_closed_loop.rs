@@ -75,7 +75,7 @@ fn run(
         let now = k as f64 * dt;
         let input = fresh_input(now, q, trocar);
         let out = c.step(&kin, &input);
-        assert_ne!(out.phase, Phase::Hold, "unexpected hold: {:?}", out.reason);
+        assert_ne!(out.phase, Phase::Hold, "unexpected hold: {:?}", out.hold);
         let cmd = out.command.expect("a command while running");
         cmds.push(cmd);
         q = cmd; // perfect tracking
@@ -210,7 +210,7 @@ fn insert_in_contact(params: ControllerParams, bias: f64) -> ContactRun {
         let out = c.step(&kin, &input);
         held |= out.phase == Phase::Hold;
         q = out.command.expect("a command while running");
-        last = Some((out.phase, out.reason));
+        last = Some((out.phase, out.reason_text()));
     }
     let tip = Point3::from(kin.fk(&q).unwrap().translation.vector);
     let (phase, reason) = last.unwrap();

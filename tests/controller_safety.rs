@@ -5,6 +5,7 @@
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
 use trocar_docking::control::geometry::InsertionAxis;
+use trocar_docking::control::sqp::SqpStatus;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -36,6 +37,31 @@ fn input(now: f64, q: JointVector, tau: JointVector, trocar: Isometry3<f64>) -> 
             value: trocar,
         }),
     }
+}
+
+/// Start, and hold the arm still at `q` with torques `tau` until the tare is done; the
+/// time after it (the run then steps from there).
+fn start_and_tare(
+    c: &mut Controller,
+    kin: &LbrKinematics,
+    q: JointVector,
+    tau: JointVector,
+    troc: Isometry3<f64>,
+    t0: f64,
+) -> f64 {
+    c.start().unwrap();
+    assert_eq!(c.phase(), Phase::Tare, "a start tares first");
+    let mut t = t0;
+    for _ in 0..100 {
+        t += 0.01;
+        let out = c.step(kin, &input(t, q, tau, troc));
+        assert_eq!(out.command, Some(q), "the arm is held still while taring");
+        if out.phase != Phase::Tare {
+            assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);
+            return t;
+        }
+    }
+    panic!("the tare never ended");
 }
 
 /// Torques that a tip force `f` produces at `q`.
@@ -118,13 +144,14 @@ fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
     let mut p = ControllerParams::default();
     p.sqp.time_budget_us = 1e-6;
     let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
-    c.start().unwrap();
     let q0 = q_start();
+    let t0 = start_and_tare(&mut c, &kin, q0, JointVector::zeros(), troc, 0.0);
     for k in 1..=20 {
-        let out = c.step(&kin, &input(k as f64 * 0.01, q0, JointVector::zeros(), troc));
-        assert_eq!(out.phase, Phase::Approach, "{:?}", out.reason);
-        assert_eq!(out.solver_status, "time_budget");
-        assert_eq!(out.iterations, 0);
+        let out = c.step(&kin, &input(t0 + k as f64 * 0.01, q0, JointVector::zeros(), troc));
+        assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);
+        let solve = out.solve.as_ref().expect("the SQP ran");
+        assert_eq!(solve.status, SqpStatus::TimeBudget);
+        assert_eq!(solve.iterations, 0);
         // No QP finished in time: the command stays where the arm is, finite and in the box.
         assert_eq!(out.command, Some(q0));
         assert_safe(&out, &q0, &kin, &p);
@@ -132,9 +159,10 @@ fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
     // Without a time budget (the default), the same step moves the arm.
     p.sqp.time_budget_us = 0.0;
     let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
-    c.start().unwrap();
-    let out = c.step(&kin, &input(0.01, q0, JointVector::zeros(), troc));
-    assert!(out.iterations >= 1, "{}", out.solver_status);
+    let t0 = start_and_tare(&mut c, &kin, q0, JointVector::zeros(), troc, 0.0);
+    let out = c.step(&kin, &input(t0 + 0.01, q0, JointVector::zeros(), troc));
+    let solve = out.solve.as_ref().expect("the SQP ran");
+    assert!(solve.iterations >= 1, "{:?}", solve.status);
     assert!((out.command.unwrap() - q0).amax() > 1e-6);
     assert_safe(&out, &q0, &kin, &p);
 }
@@ -145,11 +173,11 @@ fn force_over_threshold_latches_a_hold() {
     let troc = trocar(&kin);
     let p = ControllerParams::default();
     let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
-    c.start().unwrap();
     let mut q = q_start();
+    let t0 = start_and_tare(&mut c, &kin, q, JointVector::zeros(), troc, 0.0);
     for k in 1..=20 {
         q = c
-            .step(&kin, &input(k as f64 * 0.01, q, JointVector::zeros(), troc))
+            .step(&kin, &input(t0 + k as f64 * 0.01, q, JointVector::zeros(), troc))
             .command
             .unwrap();
     }
@@ -159,7 +187,7 @@ fn force_over_threshold_latches_a_hold() {
     let held = q;
     let mut out = None;
     for k in 21..=40 {
-        let o = c.step(&kin, &input(k as f64 * 0.01, q, tau, troc));
+        let o = c.step(&kin, &input(t0 + k as f64 * 0.01, q, tau, troc));
         q = o.command.unwrap();
         out = Some(o);
         if c.phase() == Phase::Hold {
@@ -168,22 +196,18 @@ fn force_over_threshold_latches_a_hold() {
     }
     let out = out.unwrap();
     assert_eq!(out.phase, Phase::Hold);
-    assert!(
-        out.reason.as_deref().unwrap_or("").contains("force"),
-        "{:?}",
-        out.reason
-    );
+    assert_eq!(out.reason_code(), "FORCE_LIMIT", "{:?}", out.hold);
     // Held: the command no longer changes, even when the force is gone (latched).
     let at_hold = q;
     assert!((at_hold - held).amax() < 0.1);
     for k in 41..=60 {
-        let o = c.step(&kin, &input(k as f64 * 0.01, q, JointVector::zeros(), troc));
+        let o = c.step(&kin, &input(t0 + k as f64 * 0.01, q, JointVector::zeros(), troc));
         assert_eq!(o.phase, Phase::Hold);
         assert_eq!(o.command, Some(at_hold));
     }
     // The surgeon resumes.
     c.start().unwrap();
-    let o = c.step(&kin, &input(0.61, q, JointVector::zeros(), troc));
+    let o = c.step(&kin, &input(t0 + 0.61, q, JointVector::zeros(), troc));
     assert!(o.phase.is_moving(), "{:?}", o.phase);
 }
 
@@ -214,7 +238,7 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
         q = o.command.unwrap();
         if now > 0.1 + p.guard.trocar_timeout + 0.011 {
             assert_eq!(o.phase, Phase::Hold, "at {now}");
-            assert!(o.reason.as_deref().unwrap().contains("stale"));
+            assert_eq!(o.reason_code(), "STALE_TROCAR_POSE");
             assert_eq!(q, last, "holding means not moving");
         }
         last = q;
@@ -222,25 +246,31 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
     // Back: resumes by itself.
     let o = c.step(&kin, &input(1.01, q, JointVector::zeros(), troc));
     assert_eq!(o.phase, Phase::Approach);
+    let last_command = o.command.unwrap();
     // Joint state stale, missing, wrong: hold at the last command.
     let mut inp = input(1.5, q, JointVector::zeros(), troc);
     inp.joints = Some(Stamped { stamp: 1.0, value: q });
     let o = c.step(&kin, &inp);
     assert_eq!(o.phase, Phase::Hold);
-    assert_eq!(o.command, Some(o.command.unwrap()));
+    assert_eq!(o.reason_code(), "STALE_JOINT_STATE");
+    assert_eq!(o.command, Some(last_command), "a hold commands the last command");
     inp.joints = None;
-    assert_eq!(c.step(&kin, &inp).phase, Phase::Hold);
+    let o = c.step(&kin, &inp);
+    assert_eq!(o.phase, Phase::Hold);
+    assert_eq!(o.reason_code(), "NO_JOINT_STATE");
+    assert_eq!(o.command, Some(last_command));
     let mut bad = q;
     bad[3] = f64::NAN;
     inp.joints = Some(Stamped { stamp: 1.5, value: bad });
     let o = c.step(&kin, &inp);
-    assert!(o.reason.unwrap().contains("NaN"));
+    assert_eq!(o.reason_code(), "NON_FINITE_JOINT_STATE");
+    assert_eq!(o.command, Some(last_command));
     // Missing torques with force monitoring required: hold.
     let mut inp = input(1.6, q, JointVector::zeros(), troc);
     inp.tau_ext = None;
     let o = c.step(&kin, &inp);
     assert_eq!(o.phase, Phase::Hold);
-    assert!(o.reason.unwrap().contains("torques"));
+    assert_eq!(o.reason_code(), "STALE_TORQUES");
 }
 
 #[test]
@@ -254,13 +284,13 @@ fn abort_and_reset() {
         None,
         "idle sends nothing"
     );
-    c.start().unwrap();
+    let t0 = start_and_tare(&mut c, &kin, q, JointVector::zeros(), troc, 0.01);
     let cmd = c
-        .step(&kin, &input(0.02, q, JointVector::zeros(), troc))
+        .step(&kin, &input(t0 + 0.01, q, JointVector::zeros(), troc))
         .command
         .unwrap();
     c.abort("surgeon pressed stop");
-    let o = c.step(&kin, &input(0.03, cmd, JointVector::zeros(), troc));
+    let o = c.step(&kin, &input(t0 + 0.02, cmd, JointVector::zeros(), troc));
     assert_eq!(o.phase, Phase::Aborted);
     assert_eq!(o.command, Some(cmd), "aborted holds the last command");
     assert!(c.start().is_err());
@@ -271,13 +301,13 @@ fn abort_and_reset() {
     let mut moved = cmd;
     moved[0] += 0.3;
     assert_eq!(
-        c.step(&kin, &input(0.04, moved, JointVector::zeros(), troc)).command,
+        c.step(&kin, &input(t0 + 0.03, moved, JointVector::zeros(), troc))
+            .command,
         None
     );
-    c.start().unwrap();
-    assert_eq!(c.phase(), Phase::Approach);
-    let o = c.step(&kin, &input(0.05, moved, JointVector::zeros(), troc));
-    assert_eq!(o.phase, Phase::Approach, "{:?}", o.reason);
+    let t1 = start_and_tare(&mut c, &kin, moved, JointVector::zeros(), troc, t0 + 0.03);
+    let o = c.step(&kin, &input(t1 + 0.01, moved, JointVector::zeros(), troc));
+    assert_eq!(o.phase, Phase::Approach, "{:?}", o.hold);
     let next = o.command.unwrap();
     let vmax = kin.limits().velocity * ControllerParams::default().guard.velocity_scale * 0.01;
     for i in 0..7 {
@@ -359,11 +389,7 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
         last = out.command.unwrap();
         if out.phase == Phase::Hold {
-            assert!(
-                out.reason.as_deref().unwrap_or("").contains("does not follow"),
-                "{:?}",
-                out.reason
-            );
+            assert_eq!(out.reason_code(), "TRACKING_ERROR", "{:?}", out.hold);
             held_at = Some(k);
             break;
         }
@@ -382,5 +408,64 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     }
     // The arm catches up: docking resumes.
     let out = c.step(&kin, &input(2.11, last, JointVector::zeros(), troc));
-    assert_eq!(out.phase, Phase::Approach, "{:?}", out.reason);
+    assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);
+}
+
+#[test]
+fn a_start_tares_the_torques_and_refuses_a_moving_arm_or_implausible_torques() {
+    let kin = kin();
+    let troc = trocar(&kin);
+    let q = q_start();
+    // An LBR-like offset of up to 1 Nm per joint, the arm still.
+    let offset = JointVector::from_column_slice(&[0.9, -1.0, 0.4, 0.8, -0.5, 0.3, 0.2]);
+    let f_after_approach = |window_s: f64| {
+        let mut p = ControllerParams::default();
+        p.tare.window_s = window_s;
+        let mut c = Controller::new(p, kin.limits().clone()).unwrap();
+        let t0 = if window_s > 0.0 {
+            start_and_tare(&mut c, &kin, q, offset, troc, 0.0)
+        } else {
+            c.start().unwrap();
+            0.0
+        };
+        let mut out = None;
+        let mut qc = q;
+        for k in 1..=10 {
+            let o = c.step(&kin, &input(t0 + k as f64 * 0.01, qc, offset, troc));
+            qc = o.command.unwrap();
+            out = Some(o);
+        }
+        out.unwrap().f_ext.norm()
+    };
+    let tared = f_after_approach(0.3);
+    let untared = f_after_approach(0.0);
+    assert!(tared < 0.05, "the tared offset reads as no force: {tared} N");
+    assert!(
+        untared > 0.5,
+        "without the tare the offset is a phantom force: {untared} N"
+    );
+
+    // The arm moves during the tare: the start is refused, back to IDLE, nothing sent.
+    let mut c = Controller::new(ControllerParams::default(), kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    let mut out = None;
+    for k in 1..=10 {
+        let mut moving = q;
+        moving[0] += 0.001 * k as f64;
+        out = Some(c.step(&kin, &input(k as f64 * 0.01, moving, JointVector::zeros(), troc)));
+    }
+    let out = out.unwrap();
+    assert_eq!(out.phase, Phase::Idle);
+    assert_eq!(out.reason_code(), "TARE_MOTION");
+    assert_eq!(out.command, None);
+    // A torque of 8 Nm with the arm still (leaning on it, or in contact): refused.
+    let mut leaning = JointVector::zeros();
+    leaning[1] = 8.0;
+    c.start().unwrap();
+    for k in 11..=50 {
+        c.step(&kin, &input(k as f64 * 0.01, q, leaning, troc));
+    }
+    assert_eq!(c.phase(), Phase::Idle);
+    // Kept still with plausible torques, the next start goes on to APPROACH.
+    start_and_tare(&mut c, &kin, q, offset, troc, 0.5);
 }

@@ -14,6 +14,7 @@ use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 
 use super::{scheduler_name, time_wall_and_cpu, LatencyStats, SuiteReport};
 use crate::control::sqp::SqpStatus;
+use crate::control::Phase;
 use crate::control::{ControlInput, Controller, ControllerParams, Stamped};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, KinematicsError, LbrKinematics};
@@ -116,6 +117,11 @@ pub fn run_scenario(
             }),
         };
         let (out, wall, cpu) = time_wall_and_cpu(|| c.step(kin, &input));
+        if out.phase == Phase::Tare || (out.phase.is_moving() && out.solve.is_none()) {
+            // The torque tare at each start holds the arm still (its last step too, which
+            // ends in APPROACH): not the loop under test.
+            continue;
+        }
         if !out.phase.is_moving() {
             // Docked (or held): start over from the initial configuration.
             restarts += 1;
@@ -124,7 +130,7 @@ pub fn run_scenario(
                     "{}: no progress ({:?}: {:?})",
                     scenario.name(),
                     out.phase,
-                    out.reason
+                    out.reason_text()
                 ));
             }
             c.reset();
@@ -134,11 +140,12 @@ pub fn run_scenario(
         }
         s.wall_us.push(wall);
         s.cpu_us.push(cpu);
-        s.iterations.push(out.iterations);
-        s.qp_iterations.push(out.qp_iterations);
-        s.clarabel_qps.push(out.clarabel_qps);
-        s.time_budget_steps += usize::from(out.solver_status == SqpStatus::TimeBudget.as_text());
-        s.qp_iteration_budget_steps += usize::from(out.solver_status == SqpStatus::QpIterationBudget.as_text());
+        let solve = out.solve.as_ref();
+        s.iterations.push(solve.map_or(0, |r| r.iterations));
+        s.qp_iterations.push(solve.map_or(0, |r| r.qp_iterations));
+        s.clarabel_qps.push(solve.map_or(0, |r| r.clarabel_qps));
+        s.time_budget_steps += usize::from(solve.is_some_and(|r| r.status == SqpStatus::TimeBudget));
+        s.qp_iteration_budget_steps += usize::from(solve.is_some_and(|r| r.status == SqpStatus::QpIterationBudget));
         q = out.command.unwrap_or(q);
     }
     Ok(s)

@@ -123,43 +123,21 @@ pub fn tip_force(jac: &Jacobian, tau: &JointVector, deadband_nm: f64, damping: f
     f.iter().all(|x| x.is_finite()).then_some(f)
 }
 
-/// The force estimate and admittance state, one per controller.
-#[derive(Debug, Clone)]
+/// The force estimate and admittance state of one run (the law's parameters are passed
+/// in, so that a new run is `Admittance::default()`).
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct Admittance {
-    params: AdmittanceParams,
     force: Vector3<f64>,
     x: Vector3<f64>,
     v: Vector3<f64>,
 }
 
 impl Admittance {
-    /// A new state at rest.
-    pub fn new(params: AdmittanceParams) -> Self {
-        Self {
-            params,
-            force: Vector3::zeros(),
-            x: Vector3::zeros(),
-            v: Vector3::zeros(),
-        }
-    }
-
-    /// The parameters.
-    pub fn params(&self) -> &AdmittanceParams {
-        &self.params
-    }
-
-    /// Clear the filter and the admittance state.
-    pub fn reset(&mut self) {
-        self.force = Vector3::zeros();
-        self.x = Vector3::zeros();
-        self.v = Vector3::zeros();
-    }
-
     /// Feed a torque measurement (already known finite) and update the filtered force.
     /// Returns the filtered force; a non-finite estimate leaves the filter unchanged.
-    pub fn update_force(&mut self, jac: &Jacobian, tau: &JointVector, dt: f64) -> Vector3<f64> {
-        if let Some(f) = tip_force(jac, tau, self.params.torque_deadband, self.params.pinv_damping) {
-            let fc = self.params.filter_cutoff_hz;
+    pub fn update_force(&mut self, p: &AdmittanceParams, jac: &Jacobian, tau: &JointVector, dt: f64) -> Vector3<f64> {
+        if let Some(f) = tip_force(jac, tau, p.torque_deadband, p.pinv_damping) {
+            let fc = p.filter_cutoff_hz;
             let alpha = if fc > 0.0 && dt > 0.0 {
                 let rc = 1.0 / (2.0 * std::f64::consts::PI * fc);
                 dt / (rc + dt)
@@ -176,10 +154,9 @@ impl Admittance {
         self.force
     }
 
-    /// Advance the admittance by `dt` driven by the filtered force across `across(f)` and
+    /// Advance the admittance by `dt` driven by the filtered force across the axis and
     /// return the displacement x of the reference from the tip.
-    pub fn step(&mut self, lateral_force: Vector3<f64>, dt: f64) -> Vector3<f64> {
-        let p = &self.params;
+    pub fn step(&mut self, p: &AdmittanceParams, lateral_force: Vector3<f64>, dt: f64) -> Vector3<f64> {
         let n = lateral_force.norm();
         let f = if n > p.force_deadband && n.is_finite() {
             lateral_force * ((n - p.force_deadband) / n)
@@ -204,16 +181,17 @@ impl Admittance {
     pub fn reference(&self, tip: &Point3<f64>) -> Point3<f64> {
         tip + self.x
     }
+}
 
+impl AdmittanceParams {
     /// Insertion speed ratio for an axial force `f_axial_resisting` (N, positive when the
     /// force pushes the tip back out of the trocar).
     pub fn insert_speed_ratio(&self, f_axial_resisting: f64) -> f64 {
-        let p = &self.params;
         if !f_axial_resisting.is_finite() {
-            return p.min_insert_speed_ratio;
+            return self.min_insert_speed_ratio;
         }
         let f = f_axial_resisting.max(0.0);
-        (1.0 - f / p.axial_force_full_stop).clamp(p.min_insert_speed_ratio, 1.0)
+        (1.0 - f / self.axial_force_full_stop).clamp(self.min_insert_speed_ratio, 1.0)
     }
 }
 
@@ -256,29 +234,29 @@ mod tests {
             ..Default::default()
         };
         let k = p.stiffness;
-        let mut a = Admittance::new(p);
+        let mut a = Admittance::default();
         let f = Vector3::new(2.0, 0.0, -1.0);
         for _ in 0..5000 {
-            a.step(f, 0.001);
+            a.step(&p, f, 0.001);
         }
-        assert!((a.step(f, 0.001) - f / k).norm() < 1e-6);
+        assert!((a.step(&p, f, 0.001) - f / k).norm() < 1e-6);
         // Saturates at the largest displacement.
         let big = Vector3::new(1e4, 0.0, 0.0);
         for _ in 0..100 {
-            a.step(big, 0.01);
+            a.step(&p, big, 0.01);
         }
-        assert!(a.step(big, 0.01).norm() <= a.params().max_displacement + 1e-12);
-        a.reset();
-        assert_eq!(a.step(Vector3::zeros(), 0.01), Vector3::zeros());
+        assert!(a.step(&p, big, 0.01).norm() <= p.max_displacement + 1e-12);
+        a = Admittance::default();
+        assert_eq!(a.step(&p, Vector3::zeros(), 0.01), Vector3::zeros());
     }
 
     #[test]
     fn insertion_slows_but_never_stops() {
-        let a = Admittance::new(AdmittanceParams::default());
+        let a = AdmittanceParams::default();
         assert_eq!(a.insert_speed_ratio(-3.0), 1.0);
         assert!(a.insert_speed_ratio(2.5) < 1.0);
-        assert_eq!(a.insert_speed_ratio(100.0), a.params().min_insert_speed_ratio);
-        assert_eq!(a.insert_speed_ratio(f64::NAN), a.params().min_insert_speed_ratio);
+        assert_eq!(a.insert_speed_ratio(100.0), a.min_insert_speed_ratio);
+        assert_eq!(a.insert_speed_ratio(f64::NAN), a.min_insert_speed_ratio);
         assert!(AdmittanceParams {
             mass: 0.0,
             ..Default::default()

@@ -1,199 +1,44 @@
 //! The docking controller: one `step` per control period turns the measured joints, the
-//! external torques and the trocar pose into a guarded joint command.
+//! external torques and the trocar pose into a joint command, which leaves through the
+//! command guard ([`Controller`] = [`Guarded`]`<`[`OptimalController`]`>`).
 //!
 //! Per step: check the inputs (fresh, finite) -> tip force from torques -> admittance
 //! reference r -> phase target on the insertion axis -> SQP (costs c1..c5, joint limits with
-//! margin, per-step velocity box) -> guard the command -> supervisor transitions. Anything
-//! wrong gives a hold at the last safe command with the reason in the output; nothing moves
-//! before [`Controller::start`].
+//! margin, per-step velocity box) -> supervisor transitions; then the guard checks the
+//! command. Anything wrong gives a hold at the last safe command with the reason in the
+//! output; nothing moves before [`Controller::start`].
 //!
 //! **Phases.** APPROACH moves the tip to a stand-off point on the axis outside the port,
 //! aligning the scope on the way, with a target point that advances at a bounded speed (the
 //! tip never slides across the trocar face, and never leaps). INSERT advances the target
 //! along the axis to the goal depth with c1 keeping the tip on the axis; the axial force
 //! slows the advance but never stops it, and the lateral force moves r so the tip yields
-//! sideways (see [`crate::control::admittance`]). DONE when the tip is within the position and angle
+//! sideways (see [`super::admittance`]). DONE when the tip is within the position and angle
 //! tolerance of the goal, or when it has settled at the goal depth held off the estimated
-//! axis by the port itself (a biased trocar estimate; see [`crate::control::seated`]).
+//! axis by the port itself (a biased trocar estimate; see [`super::seated`]).
 //!
 //! **Linearisation point.** The SQP starts from the previous command, not the measured
 //! position: the command is what the position-controlled arm tracks, the velocity box is
 //! relative to it, and a lagging measurement then never causes a jump. Because commands
-//! advance from the last command, the guard also holds while a measured joint is more than
-//! `guard.max_tracking_error` from it (the arm stopped following); the hold clears once the
-//! arm has caught up.
+//! advance from the last command, the controller also holds while a measured joint is more
+//! than `guard.max_tracking_error` from it (the arm stopped following); the hold clears
+//! once the arm has caught up.
+
+use std::sync::Arc;
 
 use nalgebra::{Isometry3, Point3, Vector3};
-use serde::{Deserialize, Serialize};
 
-use crate::control::admittance::{Admittance, AdmittanceParams};
-use crate::control::geometry::{pose_is_finite, InsertionAxis};
-use crate::control::guard::{CommandGuard, GuardParams, HoldReason};
-use crate::control::metrics::ForceMetric;
-use crate::control::seated::{SeatedCheck, SeatedParams, TipState};
-use crate::control::sqp::{CostWeights, LimitAvoidance, SqpSettings, SqpSolver, Targets};
-pub use crate::control::supervisor::Phase;
-use crate::control::supervisor::Supervisor;
-use crate::kinematics::{JointLimits, JointVector, Kinematics};
-
-/// Errors in the controller's parameters.
-#[derive(Debug, thiserror::Error)]
-pub enum ParamError {
-    /// The YAML did not parse or had unknown fields.
-    #[error("controller YAML: {0}")]
-    Yaml(#[from] serde_yaml::Error),
-    /// A value is out of range.
-    #[error("controller parameter: {0}")]
-    Invalid(String),
-}
-
-/// Every parameter of the controller (`config/controller.yaml`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct ControllerParams {
-    /// Control period, s.
-    pub dt: f64,
-    /// Force feedback on (c5 active with the weights below) or off (w5 = 0).
-    pub force_feedback: bool,
-    /// Weights during APPROACH.
-    pub approach_weights: CostWeights,
-    /// Weights during INSERT.
-    pub insert_weights: CostWeights,
-    /// Goal depth past the port along the axis, m.
-    pub insertion_depth: f64,
-    /// Stand-off distance of the approach point before the port, m.
-    pub standoff: f64,
-    /// Speed of the approach target point, m/s.
-    pub approach_speed: f64,
-    /// Speed of the insertion target point, m/s.
-    pub insert_speed: f64,
-    /// APPROACH -> INSERT when the tip is this close to the stand-off point, m.
-    pub approach_tolerance: f64,
-    /// ... and the optical axis within this angle of the insertion axis, deg.
-    pub approach_angle_tolerance_deg: f64,
-    /// DONE when the tip is this close to the goal, m.
-    pub goal_tolerance: f64,
-    /// ... and the optical axis within this angle, deg.
-    pub goal_angle_tolerance_deg: f64,
-    /// DONE also for a scope seated in the port beside a biased trocar estimate; see
-    /// [`crate::control::seated`].
-    pub seated: SeatedParams,
-    /// Time constant of a first-order filter on the trocar pose, s (0 = none).
-    pub trocar_filter_time_constant: f64,
-    /// Hold when external torques are missing or stale (force monitoring blind).
-    pub require_torques: bool,
-    /// After a force stop, back out along the axis by this distance, m (0 = stay).
-    pub retreat_distance: f64,
-    /// Weight of the joint-limit avoidance cost (0 = off); see [`LimitAvoidance`].
-    pub limit_avoidance_weight: f64,
-    /// Fraction of each joint's half range (inside the guard's margin) where it starts.
-    pub limit_avoidance_zone: f64,
-    /// Hold (latched) when the tip has sat at the stand-off point this long without
-    /// reaching the alignment tolerance (e.g. a joint limit in the way), s.
-    pub approach_stall_timeout: f64,
-    /// Force estimate and admittance law.
-    pub admittance: AdmittanceParams,
-    /// Safety guard.
-    pub guard: GuardParams,
-    /// SQP settings.
-    pub sqp: SqpSettings,
-}
-
-impl Default for ControllerParams {
-    fn default() -> Self {
-        Self {
-            dt: 0.01,
-            force_feedback: true,
-            approach_weights: CostWeights {
-                axis: 0.0,
-                goal: 1000.0,
-                align: 5.0,
-                step: 0.05,
-                reference: 300.0,
-            },
-            insert_weights: CostWeights {
-                axis: 1000.0,
-                goal: 300.0,
-                align: 20.0,
-                step: 0.05,
-                reference: 300.0,
-            },
-            insertion_depth: 0.03,
-            standoff: 0.02,
-            approach_speed: 0.08,
-            insert_speed: 0.03,
-            approach_tolerance: 0.002,
-            approach_angle_tolerance_deg: 1.0,
-            goal_tolerance: 0.001,
-            goal_angle_tolerance_deg: 0.5,
-            seated: SeatedParams::default(),
-            trocar_filter_time_constant: 0.0,
-            require_torques: true,
-            retreat_distance: 0.0,
-            limit_avoidance_weight: 1.0,
-            limit_avoidance_zone: 0.9,
-            approach_stall_timeout: 3.0,
-            admittance: AdmittanceParams::default(),
-            guard: GuardParams::default(),
-            sqp: SqpSettings::default(),
-        }
-    }
-}
-
-impl ControllerParams {
-    /// Parse YAML (missing fields take their defaults) and validate.
-    pub fn from_yaml_str(s: &str) -> Result<Self, ParamError> {
-        let p: Self = serde_yaml::from_str(s)?;
-        p.validate().map_err(ParamError::Invalid)?;
-        Ok(p)
-    }
-
-    /// Check every range; the error names the field.
-    pub fn validate(&self) -> Result<(), String> {
-        let pos = |n: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("{n} must be > 0, got {v}"))
-            }
-        };
-        let nonneg = |n: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(format!("{n} must be >= 0, got {v}"))
-            }
-        };
-        pos("dt", self.dt)?;
-        if self.dt > 0.1 {
-            return Err(format!("dt must be <= 0.1 s, got {}", self.dt));
-        }
-        self.approach_weights.validate("approach_weights")?;
-        self.insert_weights.validate("insert_weights")?;
-        pos("insertion_depth", self.insertion_depth)?;
-        nonneg("standoff", self.standoff)?;
-        pos("approach_speed", self.approach_speed)?;
-        pos("insert_speed", self.insert_speed)?;
-        pos("approach_tolerance", self.approach_tolerance)?;
-        pos("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
-        pos("goal_tolerance", self.goal_tolerance)?;
-        pos("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
-        self.seated.validate()?;
-        nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
-        nonneg("retreat_distance", self.retreat_distance)?;
-        nonneg("limit_avoidance_weight", self.limit_avoidance_weight)?;
-        pos("approach_stall_timeout", self.approach_stall_timeout)?;
-        if !(0.0..1.0).contains(&self.limit_avoidance_zone) {
-            return Err(format!(
-                "limit_avoidance_zone must be in [0, 1), got {}",
-                self.limit_avoidance_zone
-            ));
-        }
-        self.admittance.validate()?;
-        self.guard.validate()?;
-        self.sqp.validate()
-    }
-}
+use super::admittance::Admittance;
+use super::geometry::{pose_is_finite, InsertionAxis};
+use super::guard::{CommandGuard, HoldReason};
+use super::guarded::{CommandSource, Guarded, StepContext};
+use super::metrics::ForceMetric;
+pub use super::params::{ControllerParams, ParamError};
+use super::seated::{SeatedCheck, TipState};
+use super::sqp::{CostTerms, CostWeights, LimitAvoidance, SqpSolver, SqpStatus, Targets};
+use super::supervisor::{Phase, Supervisor};
+use super::tare::{Tare, TareStep};
+use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
 
 /// A value with the time it was measured, s (same clock as [`ControlInput::now`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -204,8 +49,8 @@ pub struct Stamped<T> {
     pub value: T,
 }
 
-/// The inputs of one control step.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// The inputs of one control step; `None` where missing or rejected.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct ControlInput {
     /// Now, s.
     pub now: f64,
@@ -217,7 +62,24 @@ pub struct ControlInput {
     pub trocar: Option<Stamped<Isometry3<f64>>>,
 }
 
-/// The outputs of one control step.
+/// What the SQP reported, in a step that ran it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolveReport {
+    /// Unweighted c1..c5 at the solution.
+    pub costs: CostTerms,
+    /// QPs solved.
+    pub iterations: usize,
+    /// Interior-point iterations, over all the step's QPs.
+    pub qp_iterations: u32,
+    /// QPs solved by Clarabel (the others from a proven active set).
+    pub clarabel_qps: usize,
+    /// SQP wall time, µs.
+    pub solve_time_us: f64,
+    /// How the SQP ended.
+    pub status: SqpStatus,
+}
+
+/// The outputs of one control step; `None` where unknown.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ControlOutput {
     /// `None`: send nothing (idle, or no joint state yet). `Some`: a guarded joint position
@@ -226,151 +88,150 @@ pub struct ControlOutput {
     /// The phase after this step.
     pub phase: Phase,
     /// Reason of the last hold or abort.
-    pub reason: Option<String>,
-    /// Unweighted c1..c5 at the solution.
-    pub costs: [f64; 5],
-    /// QPs solved this step.
-    pub iterations: usize,
-    /// Interior-point iterations this step, over all its QPs.
-    pub qp_iterations: u32,
-    /// QPs of this step solved by Clarabel (the others from a proven active set).
-    pub clarabel_qps: usize,
-    /// SQP wall time, µs.
-    pub solve_time_us: f64,
-    /// SQP status text ("converged", "iteration_limit", "time_budget",
-    /// "qp_iteration_budget", "qp_failed: …", "not_run"); see [`crate::control::sqp::SqpStatus`].
-    pub solver_status: String,
+    pub hold: Option<HoldReason>,
+    /// How DONE was reached, when not plainly at the goal.
+    pub note: Option<Arc<str>>,
+    /// The SQP's report, when it ran this step.
+    pub solve: Option<SolveReport>,
     /// Filtered tip force estimate, base frame, N.
     pub f_ext: Vector3<f64>,
     /// Admittance reference r.
-    pub reference: Point3<f64>,
+    pub reference: Option<Point3<f64>>,
     /// Tip pose from the measured joints.
-    pub tip: Isometry3<f64>,
-    /// Goal point (NaN before a trocar pose).
-    pub goal: Point3<f64>,
+    pub tip: Option<Isometry3<f64>>,
+    /// Goal point.
+    pub goal: Option<Point3<f64>>,
     /// M so far (time average of ||f_ext|| while moving), N.
     pub metric_m: f64,
 }
 
-/// The docking controller.
-#[derive(Debug)]
-pub struct Controller {
-    params: ControllerParams,
-    guard: CommandGuard,
-    sqp: SqpSolver,
-    admittance: Admittance,
+impl ControlOutput {
+    /// The text for the surgeon: the hold reason, or how DONE was reached.
+    pub fn reason_text(&self) -> Option<String> {
+        match (&self.hold, &self.note) {
+            (Some(h), _) => Some(h.to_string()),
+            (None, Some(n)) => Some(n.to_string()),
+            (None, None) => None,
+        }
+    }
+
+    /// The stable code of [`ControlOutput::reason_text`]: the hold's code, `SEATED` for a
+    /// DONE reached by the seated test, `""` for none.
+    pub fn reason_code(&self) -> &'static str {
+        match (&self.hold, &self.note) {
+            (Some(h), _) => h.code(),
+            (None, Some(_)) => "SEATED",
+            (None, None) => "",
+        }
+    }
+}
+
+/// Retreat after a force stop: the current target depth and the final depth, m.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Retreat {
+    depth: f64,
+    end: f64,
+}
+
+/// Everything one docking run changes; a new run is `RunState::default()`.
+#[derive(Debug, Clone, Default)]
+struct RunState {
     supervisor: Supervisor,
+    admittance: Admittance,
     metric: ForceMetric,
     last_command: Option<JointVector>,
-    last_now: Option<f64>,
     trocar_filtered: Option<(Isometry3<f64>, f64)>,
     target: Option<Point3<f64>>,
-    insert_s: f64,
+    insert_depth: f64,
     /// Time spent at the stand-off point without the alignment, s.
     stalled_for: f64,
     seated: SeatedCheck,
-    /// Retreat after a force stop: (current target depth, final depth); NaN = not begun.
-    retreat_s: Option<(f64, f64)>,
+    tare: Tare,
+    /// `Some(None)`: a retreat is due and begins from the tip's depth.
+    retreat: Option<Option<Retreat>>,
 }
 
-fn nan_point() -> Point3<f64> {
-    Point3::new(f64::NAN, f64::NAN, f64::NAN)
+/// An early end of a step: hold (or stay idle) for `reason`, commanding `hold_at`.
+struct Early {
+    reason: HoldReason,
+    hold_at: Option<JointVector>,
+    tip: Option<Isometry3<f64>>,
 }
 
-impl Controller {
-    /// A controller for an arm with `limits`.
+/// The measured arm of one step.
+struct Arm {
+    q: JointVector,
+    tip: Isometry3<f64>,
+    jac: Jacobian,
+    /// The previous command (the measured joints at the start of a run).
+    prev: JointVector,
+}
+
+/// The docking controller, guarded: what the nodes, the trials and the tests run.
+pub type Controller = Guarded<OptimalController>;
+
+impl Guarded<OptimalController> {
+    /// A guarded controller for an arm with `limits`.
     pub fn new(params: ControllerParams, limits: JointLimits) -> Result<Self, ParamError> {
-        params.validate().map_err(ParamError::Invalid)?;
         let guard = CommandGuard::new(params.guard.clone(), &limits);
-        let sqp = SqpSolver::new(params.sqp.clone()).map_err(ParamError::Invalid)?;
-        Ok(Self {
-            admittance: Admittance::new(params.admittance.clone()),
-            params,
-            guard,
-            sqp,
-            supervisor: Supervisor::new(),
-            metric: ForceMetric::default(),
-            last_command: None,
-            last_now: None,
-            trocar_filtered: None,
-            target: None,
-            insert_s: 0.0,
-            stalled_for: 0.0,
-            seated: SeatedCheck::default(),
-            retreat_s: None,
-        })
+        Ok(Self::wrap(OptimalController::new(params)?, guard))
     }
 
     /// The parameters.
     pub fn params(&self) -> &ControllerParams {
-        &self.params
-    }
-
-    /// The current phase.
-    pub fn phase(&self) -> Phase {
-        self.supervisor.phase()
-    }
-
-    /// Start docking (from IDLE) or resume after a hold.
-    pub fn start(&mut self) -> Result<(), String> {
-        let was = self.supervisor.phase();
-        self.supervisor.start()?;
-        if was == Phase::Idle {
-            self.metric = ForceMetric::default();
-            self.target = None;
-            self.admittance.reset();
-            // A new run starts from where the arm is (it may have been moved by hand while
-            // idle), not from the last command of the previous run.
-            self.last_command = None;
-        }
-        self.retreat_s = None;
-        Ok(())
-    }
-
-    /// Abort: hold for good until reset.
-    pub fn abort(&mut self, why: &str) {
-        self.supervisor.abort(why);
-        self.retreat_s = None;
-    }
-
-    /// Back to IDLE; forgets the run (the last command is kept, so nothing jumps).
-    pub fn reset(&mut self) {
-        self.supervisor.reset();
-        self.metric = ForceMetric::default();
-        self.admittance.reset();
-        self.target = None;
-        self.retreat_s = None;
-        self.trocar_filtered = None;
-        self.seated.reset();
+        &self.source().params
     }
 
     /// The force metric so far.
     pub fn metric(&self) -> &ForceMetric {
-        &self.metric
+        &self.source().run.metric
+    }
+}
+
+/// The paper's optimal control law with its phases (unguarded: run it as [`Controller`]).
+#[derive(Debug)]
+pub struct OptimalController {
+    params: ControllerParams,
+    sqp: SqpSolver,
+    run: RunState,
+}
+
+impl OptimalController {
+    /// The law with `params` (validated).
+    pub fn new(params: ControllerParams) -> Result<Self, ParamError> {
+        params.validate().map_err(ParamError::Invalid)?;
+        let sqp = SqpSolver::new(params.sqp.clone()).map_err(ParamError::Invalid)?;
+        Ok(Self {
+            params,
+            sqp,
+            run: RunState::default(),
+        })
     }
 
-    fn output(&self, command: Option<JointVector>, tip: Isometry3<f64>, goal: Point3<f64>) -> ControlOutput {
+    fn output(
+        &self,
+        command: Option<JointVector>,
+        tip: Option<Isometry3<f64>>,
+        goal: Option<Point3<f64>>,
+    ) -> ControlOutput {
+        let s = &self.run.supervisor;
         ControlOutput {
             command,
-            phase: self.supervisor.phase(),
-            reason: self.supervisor.reason().map(str::to_string),
-            costs: [f64::NAN; 5],
-            iterations: 0,
-            qp_iterations: 0,
-            clarabel_qps: 0,
-            solve_time_us: 0.0,
-            solver_status: "not_run".into(),
-            f_ext: self.admittance.force(),
-            reference: self.admittance.reference(&Point3::from(tip.translation.vector)),
+            phase: s.phase(),
+            hold: s.reason().cloned(),
+            note: s.note().cloned(),
+            solve: None,
+            f_ext: self.run.admittance.force(),
+            reference: tip.map(|t| self.run.admittance.reference(&Point3::from(t.translation.vector))),
             tip,
             goal,
-            metric_m: self.metric.mean(),
+            metric_m: self.run.metric.mean(),
         }
     }
 
     fn filtered_trocar(&mut self, pose: Isometry3<f64>, stamp: f64) -> Isometry3<f64> {
         let tc = self.params.trocar_filter_time_constant;
-        let out = match self.trocar_filtered {
+        let out = match self.run.trocar_filtered {
             Some((prev, t_prev)) if tc > 0.0 && stamp > t_prev => {
                 let a = ((stamp - t_prev) / (tc + stamp - t_prev)).clamp(0.0, 1.0);
                 let p = prev.translation.vector.lerp(&pose.translation.vector, a);
@@ -383,143 +244,148 @@ impl Controller {
             Some((prev, t_prev)) if tc > 0.0 && stamp <= t_prev => return prev,
             _ => pose,
         };
-        self.trocar_filtered = Some((out, stamp));
+        self.run.trocar_filtered = Some((out, stamp));
         out
     }
 
-    /// One control step. Never panics; see [`ControlOutput`].
-    pub fn step(&mut self, kin: &dyn Kinematics, input: &ControlInput) -> ControlOutput {
-        let now = input.now;
-        let dt = match self.last_now {
-            Some(t) if now.is_finite() && now > t => (now - t).min(self.params.dt),
-            Some(_) => 0.0,
-            None => self.params.dt,
+    /// Hold (when moving) or stay idle, for `e.reason`; command `e.hold_at` when not idle.
+    fn hold_or_idle(&mut self, e: Early) -> ControlOutput {
+        self.run.supervisor.hold(e.reason, false);
+        let cmd = match self.run.supervisor.phase() {
+            Phase::Idle => None,
+            _ => self.run.last_command.or(e.hold_at),
         };
-        if now.is_finite() {
-            self.last_now = Some(self.last_now.map_or(now, |t| t.max(now)));
+        if cmd.is_some() {
+            self.run.last_command = cmd;
         }
-        let no_tip = Isometry3::identity();
-        let timeouts = self.params.guard.clone();
+        self.output(cmd, e.tip, None)
+    }
 
-        // Joint state: without it there is nothing to command.
-        let q_meas = match input.joints {
-            None => return self.hold_or_idle(HoldReason::NoJointState, None, no_tip, nan_point()),
+    /// The measured joints, checked, with the tip pose and Jacobian there.
+    #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
+    fn measured_arm(&self, kin: &dyn Kinematics, input: &ControlInput, guard: &CommandGuard) -> Result<Arm, Early> {
+        let early = |reason, hold_at, tip| Early { reason, hold_at, tip };
+        let q = match input.joints {
+            None => return Err(early(HoldReason::NoJointState, None, None)),
             Some(j) if !j.value.iter().all(|x| x.is_finite()) => {
-                return self.hold_or_idle(HoldReason::NonFiniteJointState, None, no_tip, nan_point())
+                return Err(early(HoldReason::NonFiniteJointState, None, None))
             }
-            Some(j) if !CommandGuard::fresh(now - j.stamp, timeouts.joint_timeout) => {
-                return self.hold_or_idle(
-                    HoldReason::StaleJointState { age: now - j.stamp },
+            Some(j) if !CommandGuard::fresh(input.now - j.stamp, guard.params().joint_timeout) => {
+                return Err(early(
+                    HoldReason::StaleJointState {
+                        age: input.now - j.stamp,
+                    },
                     None,
-                    no_tip,
-                    nan_point(),
-                )
+                    None,
+                ))
             }
             Some(j) => j.value,
         };
-        let (tip, jac) = match kin.fk_jacobian(&q_meas) {
-            Ok(x) => x,
-            Err(e) => {
-                return self.hold_or_idle(HoldReason::Kinematics(e.to_string()), Some(q_meas), no_tip, nan_point())
-            }
-        };
-        let prev = self.last_command.unwrap_or(q_meas);
+        let (tip, jac) = kin
+            .fk_jacobian(&q)
+            .map_err(|e| early(HoldReason::Kinematics(e.to_string().into()), Some(q), None))?;
+        let prev = self.run.last_command.unwrap_or(q);
         // The arm must follow the commands while they move (also during a retreat); an
         // unlatched hold keeps checking, so it resumes only once the arm has caught up.
-        let ph = self.supervisor.phase();
-        let commanding =
-            ph.is_moving() || (ph == Phase::Hold && (!self.supervisor.is_latched() || self.retreat_s.is_some()));
+        let s = &self.run.supervisor;
+        let ph = s.phase();
+        let commanding = ph.is_moving() || (ph == Phase::Hold && (!s.is_latched() || self.run.retreat.is_some()));
         if commanding {
-            if let Err(r) = self.guard.check_tracking(&q_meas, &prev) {
-                return self.hold_or_idle(r, Some(prev), tip, nan_point());
-            }
+            guard
+                .check_tracking(&q, &prev)
+                .map_err(|r| early(r, Some(prev), Some(tip)))?;
         }
+        Ok(Arm { q, tip, jac, prev })
+    }
 
-        // Force: estimate, monitor, and the metric while moving.
+    /// Update the force estimate from the torques; the metric while moving; the force stop.
+    #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
+    fn update_force(&mut self, input: &ControlInput, arm: &Arm, guard: &CommandGuard, dt: f64) -> Result<(), Early> {
+        let early = |reason| Early {
+            reason,
+            hold_at: Some(arm.prev),
+            tip: Some(arm.tip),
+        };
         match input.tau_ext {
             Some(t)
                 if t.value.iter().all(|x| x.is_finite())
-                    && CommandGuard::fresh(now - t.stamp, timeouts.torque_timeout) =>
+                    && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout) =>
             {
-                self.admittance.update_force(&jac, &t.value, dt);
+                let tau = self.run.tare.correct(&t.value);
+                self.run
+                    .admittance
+                    .update_force(&self.params.admittance, &arm.jac, &tau, dt);
             }
             Some(t) if self.params.require_torques => {
-                let r = HoldReason::StaleTorques { age: now - t.stamp };
-                return self.hold_or_idle(r, Some(prev), tip, nan_point());
+                return Err(early(HoldReason::StaleTorques {
+                    age: input.now - t.stamp,
+                }))
             }
-            None if self.params.require_torques => {
-                let r = HoldReason::StaleTorques { age: f64::INFINITY };
-                return self.hold_or_idle(r, Some(prev), tip, nan_point());
-            }
+            None if self.params.require_torques => return Err(early(HoldReason::StaleTorques { age: f64::INFINITY })),
             _ => {}
         }
-        let f = self.admittance.force();
-        if self.supervisor.phase().is_moving() {
-            self.metric.add(f.norm(), dt);
+        let f = self.run.admittance.force();
+        let moving = self.run.supervisor.phase().is_moving();
+        if moving {
+            self.run.metric.add(f.norm(), dt);
         }
-        if let Err(r) = self.guard.check_force(f.norm()) {
-            if self.supervisor.phase().is_moving() {
-                self.supervisor.hold(r.to_string(), true);
+        if let Err(r) = guard.check_force(f.norm()) {
+            if moving {
+                self.run.supervisor.hold(r, true);
                 if self.params.retreat_distance > 0.0 {
-                    self.retreat_s = Some((f64::NAN, f64::NAN)); // begins from the tip depth below
+                    self.run.retreat = Some(None); // begins from the tip depth
                 }
             }
         }
+        Ok(())
+    }
 
-        // Trocar pose.
-        let trocar = match input.trocar {
-            None => return self.hold_or_idle(HoldReason::NoTrocarPose, Some(prev), tip, nan_point()),
-            Some(p) if !pose_is_finite(&p.value) => {
-                return self.hold_or_idle(HoldReason::BadTrocarPose, Some(prev), tip, nan_point())
-            }
-            Some(p) if !CommandGuard::fresh(now - p.stamp, timeouts.trocar_timeout) => {
-                return self.hold_or_idle(
-                    HoldReason::StaleTrocarPose { age: now - p.stamp },
-                    Some(prev),
-                    tip,
-                    nan_point(),
-                )
-            }
-            Some(p) => self.filtered_trocar(p.value, p.stamp),
+    /// The trocar pose, checked and filtered.
+    #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
+    fn trocar_pose(&mut self, input: &ControlInput, arm: &Arm, guard: &CommandGuard) -> Result<Isometry3<f64>, Early> {
+        let early = |reason| Early {
+            reason,
+            hold_at: Some(arm.prev),
+            tip: Some(arm.tip),
         };
-        let axis = InsertionAxis::from_pose(&trocar);
-        let goal = axis.point_at(self.params.insertion_depth);
-        let tip_p = Point3::from(tip.translation.vector);
-
-        // Every input is good: an unlatched hold (stale data) resumes.
-        self.supervisor.clear_hold();
-        let phase = self.supervisor.phase();
-        let retreating = phase == Phase::Hold && self.retreat_s.is_some();
-        if !phase.is_moving() && !retreating {
-            // Idle sends nothing; DONE, HOLD and ABORTED keep commanding the last command.
-            self.last_command = if phase == Phase::Idle { None } else { Some(prev) };
-            return self.output(self.last_command, tip, goal);
+        match input.trocar {
+            None => Err(early(HoldReason::NoTrocarPose)),
+            Some(p) if !pose_is_finite(&p.value) => Err(early(HoldReason::BadTrocarPose)),
+            Some(p) if !CommandGuard::fresh(input.now - p.stamp, guard.params().trocar_timeout) => {
+                Err(early(HoldReason::StaleTrocarPose {
+                    age: input.now - p.stamp,
+                }))
+            }
+            Some(p) => Ok(self.filtered_trocar(p.value, p.stamp)),
         }
+    }
 
-        // Admittance reference from the force across the axis.
-        let f_lat = axis.across(&f);
-        let x = self.admittance.step(f_lat, dt);
-        let reference = tip_p + x;
-
-        // The target point of c2 for this phase.
+    /// The weights and the target point of c2 for this step's phase.
+    fn phase_target(
+        &mut self,
+        axis: &InsertionAxis,
+        tip: Point3<f64>,
+        f: Vector3<f64>,
+        dt: f64,
+    ) -> (CostWeights, Point3<f64>) {
         let p = &self.params;
-        let standoff = axis.point_at(-p.standoff);
-        let (weights, point) = if retreating {
+        let (mut weights, point) = if let Some(r) = self.run.retreat {
             // Back out along the axis from where the stop happened, at the insertion speed.
-            let (s_target, s_end) = match self.retreat_s {
-                Some(s) if s.0.is_finite() => s,
-                _ => {
-                    let s_now = axis.depth_of(&tip_p);
-                    (s_now, s_now - p.retreat_distance)
+            let r = r.unwrap_or_else(|| {
+                let s_now = axis.depth_of(&tip);
+                Retreat {
+                    depth: s_now,
+                    end: s_now - p.retreat_distance,
                 }
-            };
-            let s_target = (s_target - p.insert_speed * dt).max(s_end);
-            self.retreat_s = Some((s_target, s_end));
+            });
+            let depth = (r.depth - p.insert_speed * dt).max(r.end);
+            self.run.retreat = Some(Some(Retreat { depth, ..r }));
             let mut w = p.insert_weights;
             w.reference = 0.0;
-            (w, axis.point_at(s_target))
-        } else if phase == Phase::Approach {
-            let from = self.target.unwrap_or(tip_p);
+            (w, axis.point_at(depth))
+        } else if self.run.supervisor.phase() == Phase::Approach {
+            let standoff = axis.point_at(-p.standoff);
+            let from = self.run.target.unwrap_or(tip);
             let d = standoff - from;
             let step = p.approach_speed * dt;
             let t = if d.norm() > step {
@@ -527,35 +393,46 @@ impl Controller {
             } else {
                 standoff
             };
-            self.target = Some(t);
-            self.insert_s = -p.standoff;
+            self.run.target = Some(t);
+            self.run.insert_depth = -p.standoff;
             (p.approach_weights, t)
         } else {
             let f_axial_resisting = -f.dot(&axis.direction);
-            let speed = p.insert_speed * self.admittance.insert_speed_ratio(f_axial_resisting);
+            let speed = p.insert_speed * p.admittance.insert_speed_ratio(f_axial_resisting);
             // Never run ahead of the tip by more than a few millimetres.
-            let s_tip = axis.depth_of(&tip_p);
-            self.insert_s = (self.insert_s + speed * dt)
+            let s_tip = axis.depth_of(&tip);
+            let r = &mut self.run;
+            r.insert_depth = (r.insert_depth + speed * dt)
                 .min(p.insertion_depth)
-                .min(s_tip.max(self.insert_s) + 0.005);
-            let t = axis.point_at(self.insert_s);
-            self.target = Some(t);
+                .min(s_tip.max(r.insert_depth) + 0.005);
+            let t = axis.point_at(r.insert_depth);
+            r.target = Some(t);
             (p.insert_weights, t)
         };
-        let mut weights = weights;
         if !p.force_feedback {
             weights.reference = 0.0;
         }
+        (weights, point)
+    }
 
-        // Solve within the step box around the previous command.
-        let step_dt = if dt > 0.0 { dt } else { 0.0 };
-        let (lo, hi) = self.guard.step_box(&prev, step_dt);
+    /// Solve the SQP within the step box around the previous command; hold on a failure.
+    fn solve(
+        &mut self,
+        kin: &dyn Kinematics,
+        ctx: &StepContext<'_>,
+        prev: JointVector,
+        targets_for: (InsertionAxis, Point3<f64>, Point3<f64>),
+        weights: &CostWeights,
+    ) -> (JointVector, SolveReport) {
+        let (axis, point, reference) = targets_for;
+        let g = ctx.guard;
+        let (lo, hi) = g.step_box(&prev, ctx.dt);
         let start = prev.zip_zip_map(&lo, &hi, |q, l, h| q.clamp(l, h));
         let limits = LimitAvoidance {
-            center: (self.guard.upper() + self.guard.lower()) * 0.5,
-            half_range: ((self.guard.upper() - self.guard.lower()) * 0.5).map(|h| h.max(1e-3)),
-            zone: p.limit_avoidance_zone,
-            weight: p.limit_avoidance_weight,
+            center: (g.upper() + g.lower()) * 0.5,
+            half_range: ((g.upper() - g.lower()) * 0.5).map(|h| h.max(1e-3)),
+            zone: self.params.limit_avoidance_zone,
+            weight: self.params.limit_avoidance_weight,
         };
         let targets = Targets {
             axis,
@@ -564,88 +441,203 @@ impl Controller {
             q_prev: prev,
             limits: Some(limits),
         };
-        let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, &weights);
-        let mut out_cmd = prev;
-        if !sol.status.is_usable() {
-            self.supervisor
-                .hold(HoldReason::SolverFailed(sol.status.as_text()).to_string(), false);
-        } else if let Err(r) = self.guard.check_command(&sol.q, &prev, step_dt) {
-            self.supervisor.hold(r.to_string(), true);
+        let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
+        let cmd = if sol.status.is_usable() {
+            sol.q
         } else {
-            out_cmd = sol.q;
-        }
-        self.last_command = Some(out_cmd);
+            let why = HoldReason::SolverFailed(sol.status.as_text().into());
+            self.run.supervisor.hold(why, false);
+            prev
+        };
+        let report = SolveReport {
+            costs: sol.costs,
+            iterations: sol.iterations,
+            qp_iterations: sol.qp_iterations,
+            clarabel_qps: sol.clarabel_qps,
+            solve_time_us: sol.solve_time_us,
+            status: sol.status,
+        };
+        (cmd, report)
+    }
 
-        // Transitions, judged on the measured tip.
-        let angle = axis.alignment_error(&(tip.rotation * Vector3::z()));
-        match self.supervisor.phase() {
-            Phase::Approach if (tip_p - standoff).norm() < p.approach_tolerance => {
+    /// Phase transitions, judged on the measured tip.
+    fn transitions(&mut self, axis: &InsertionAxis, goal: Point3<f64>, tip: &Isometry3<f64>, f: Vector3<f64>, dt: f64) {
+        let p = &self.params;
+        let tip_p = Point3::from(tip.translation.vector);
+        let optical_axis = tip.rotation * Vector3::z();
+        let angle = axis.alignment_error(&optical_axis);
+        let r = &mut self.run;
+        match r.supervisor.phase() {
+            Phase::Approach if (tip_p - axis.point_at(-p.standoff)).norm() < p.approach_tolerance => {
                 if angle < p.approach_angle_tolerance_deg.to_radians() {
-                    self.stalled_for = 0.0;
-                    self.supervisor.approach_reached();
+                    r.stalled_for = 0.0;
+                    r.supervisor.approach_reached();
                 } else {
-                    self.stalled_for += dt;
-                    if self.stalled_for > p.approach_stall_timeout {
-                        self.stalled_for = 0.0;
-                        let why = format!(
-                            "cannot align at the stand-off point: {:.1} deg off after {:.1} s (a joint limit in the way? reposition the arm or the trocar)",
-                            angle.to_degrees(),
-                            p.approach_stall_timeout
-                        );
-                        self.supervisor.hold(why, true);
+                    r.stalled_for += dt;
+                    if r.stalled_for > p.approach_stall_timeout {
+                        r.stalled_for = 0.0;
+                        let why = HoldReason::AlignmentStall {
+                            angle_deg: angle.to_degrees(),
+                            after_s: p.approach_stall_timeout,
+                        };
+                        r.supervisor.hold(why, true);
                     }
                 }
             }
             Phase::Insert => {
                 if (tip_p - goal).norm() < p.goal_tolerance && angle < p.goal_angle_tolerance_deg.to_radians() {
-                    self.supervisor.goal_reached(None);
+                    r.supervisor.goal_reached(None);
                 } else {
                     let state = TipState {
                         tip: tip_p,
-                        optical_axis: tip.rotation * Vector3::z(),
+                        optical_axis,
                         force: f,
                     };
-                    let seated = self
+                    let seated = r
                         .seated
-                        .update(&p.seated, &axis, p.insertion_depth, p.goal_tolerance, &state, dt);
+                        .update(&p.seated, axis, p.insertion_depth, p.goal_tolerance, &state, dt);
                     if let Some(s) = seated {
-                        self.supervisor.goal_reached(Some(s.describe()));
+                        r.supervisor.goal_reached(Some(s.describe().into()));
                     }
                 }
             }
             _ => {}
         }
-        if self.supervisor.phase() != Phase::Insert {
-            self.seated.reset();
+        if r.supervisor.phase() != Phase::Insert {
+            r.seated.reset();
         }
-
-        let mut out = self.output(Some(out_cmd), tip, goal);
-        out.costs = sol.costs;
-        out.iterations = sol.iterations;
-        out.qp_iterations = sol.qp_iterations;
-        out.clarabel_qps = sol.clarabel_qps;
-        out.solve_time_us = sol.solve_time_us;
-        out.solver_status = sol.status.as_text();
-        out.reference = reference;
-        out
     }
 
-    /// Hold (when moving) or stay idle, for `reason`; command `hold_at` when not idle.
-    fn hold_or_idle(
-        &mut self,
-        reason: HoldReason,
-        hold_at: Option<JointVector>,
-        tip: Isometry3<f64>,
-        goal: Point3<f64>,
-    ) -> ControlOutput {
-        self.supervisor.hold(reason.to_string(), false);
-        let cmd = match self.supervisor.phase() {
-            Phase::Idle => None,
-            _ => self.last_command.or(hold_at),
-        };
-        if cmd.is_some() {
-            self.last_command = cmd;
+    /// One step of the TARE phase: hold still at the start pose while the torques are
+    /// averaged; then APPROACH, or IDLE with the reason.
+    fn tare_step(&mut self, input: &ControlInput, arm: &Arm, guard: &CommandGuard, dt: f64) -> ControlOutput {
+        let p = &self.params;
+        let tau = input.tau_ext.filter(|t| {
+            t.value.iter().all(|x| x.is_finite())
+                && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout)
+        });
+        let r = &mut self.run;
+        match tau {
+            _ if p.tare.window_s <= 0.0 => {
+                r.tare.skip();
+                r.supervisor.tare_done();
+            }
+            None if !p.require_torques => {
+                r.tare.skip();
+                r.supervisor.tare_done();
+            }
+            None => {
+                // Torques missing or stale: start the window again once they are back.
+                r.tare = Tare::default();
+                let age = input.tau_ext.map_or(f64::INFINITY, |t| input.now - t.stamp);
+                r.supervisor.hold(HoldReason::StaleTorques { age }, false);
+            }
+            Some(t) => match r.tare.collect(&p.tare, &arm.q, &t.value, dt) {
+                TareStep::Collecting => {}
+                TareStep::Done => r.supervisor.tare_done(),
+                TareStep::Refused(why) => r.supervisor.tare_refused(why),
+            },
         }
-        self.output(cmd, tip, goal)
+        let still = (self.run.supervisor.phase() != Phase::Idle).then_some(arm.prev);
+        self.run.last_command = still;
+        self.output(still, Some(arm.tip), None)
+    }
+
+    #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
+    fn step_checked(
+        &mut self,
+        kin: &dyn Kinematics,
+        input: &ControlInput,
+        ctx: &StepContext<'_>,
+    ) -> Result<ControlOutput, Early> {
+        let dt = ctx.dt;
+        let arm = self.measured_arm(kin, input, ctx.guard)?;
+        if self.run.supervisor.phase() == Phase::Tare {
+            // Tare with every input present, so that APPROACH begins with all of them.
+            self.trocar_pose(input, &arm, ctx.guard)?;
+            return Ok(self.tare_step(input, &arm, ctx.guard, dt));
+        }
+        self.update_force(input, &arm, ctx.guard, dt)?;
+        let trocar = self.trocar_pose(input, &arm, ctx.guard)?;
+        let axis = InsertionAxis::from_pose(&trocar);
+        let goal = axis.point_at(self.params.insertion_depth);
+        let tip_p = Point3::from(arm.tip.translation.vector);
+        if let (Phase::Approach, Some(t)) = (self.run.supervisor.phase(), input.tau_ext) {
+            self.run
+                .tare
+                .track(&self.params.tare, &t.value, axis.depth_of(&tip_p), dt);
+        }
+
+        // Every input is good: an unlatched hold (stale data) resumes.
+        self.run.supervisor.clear_hold();
+        let phase = self.run.supervisor.phase();
+        let retreating = phase == Phase::Hold && self.run.retreat.is_some();
+        if !phase.is_moving() && !retreating {
+            // Idle sends nothing; DONE, HOLD and ABORTED keep commanding the last command.
+            self.run.last_command = (phase != Phase::Idle).then_some(arm.prev);
+            return Ok(self.output(self.run.last_command, Some(arm.tip), Some(goal)));
+        }
+
+        // Admittance reference from the force across the axis.
+        let f = self.run.admittance.force();
+        let x = self.run.admittance.step(&self.params.admittance, axis.across(&f), dt);
+        let reference = tip_p + x;
+        let (weights, point) = self.phase_target(&axis, tip_p, f, dt);
+        let (cmd, report) = self.solve(kin, ctx, arm.prev, (axis, point, reference), &weights);
+        self.run.last_command = Some(cmd);
+        self.transitions(&axis, goal, &arm.tip, f, dt);
+        let mut out = self.output(Some(cmd), Some(arm.tip), Some(goal));
+        out.solve = Some(report);
+        out.reference = Some(reference);
+        Ok(out)
+    }
+}
+
+impl CommandSource for OptimalController {
+    fn period(&self) -> f64 {
+        self.params.dt
+    }
+
+    fn phase(&self) -> Phase {
+        self.run.supervisor.phase()
+    }
+
+    fn start(&mut self) -> Result<(), String> {
+        let was = self.run.supervisor.phase();
+        self.run.supervisor.start()?;
+        if was == Phase::Idle {
+            // A new run starts from where the arm is (it may have been moved by hand while
+            // idle), not from the last command of the previous run.
+            self.run = RunState {
+                supervisor: self.run.supervisor.clone(),
+                trocar_filtered: self.run.trocar_filtered,
+                ..RunState::default()
+            };
+        }
+        self.run.retreat = None;
+        Ok(())
+    }
+
+    fn abort(&mut self, why: &str) {
+        self.run.supervisor.abort(why);
+        self.run.retreat = None;
+    }
+
+    fn reset(&mut self) {
+        self.run = RunState::default();
+    }
+
+    fn last_command(&self) -> Option<JointVector> {
+        self.run.last_command
+    }
+
+    fn step(&mut self, kin: &dyn Kinematics, input: &ControlInput, ctx: &StepContext<'_>) -> ControlOutput {
+        self.step_checked(kin, input, ctx)
+            .unwrap_or_else(|e| self.hold_or_idle(e))
+    }
+
+    fn reject(&mut self, reason: HoldReason, hold_at: JointVector) {
+        self.run.supervisor.hold(reason, true);
+        self.run.last_command = Some(hold_at);
     }
 }

@@ -5,104 +5,13 @@
 //! and within the per-step velocity limit from the previous command. Otherwise the guard
 //! answers with a hold at the previous command (a hold never moves the arm). Stale joint
 //! state, a stale or missing trocar pose, and a tip force over the threshold are reasons to
-//! hold as well.
-
-use std::fmt;
+//! hold as well. [`super::guarded::Guarded`] puts the command check around any command
+//! source, so that nothing is published unchecked.
 
 use serde::{Deserialize, Serialize};
 
+pub use super::hold::HoldReason;
 use crate::kinematics::{JointLimits, JointVector};
-
-/// Why the controller holds (or stopped).
-#[derive(Debug, Clone, PartialEq)]
-pub enum HoldReason {
-    /// No joint state received yet.
-    NoJointState,
-    /// The joint state is older than the timeout.
-    StaleJointState {
-        /// Age, s.
-        age: f64,
-    },
-    /// The joint state contains NaN or infinity.
-    NonFiniteJointState,
-    /// No trocar pose received yet.
-    NoTrocarPose,
-    /// The trocar pose is older than the timeout (e.g. the marker is lost).
-    StaleTrocarPose {
-        /// Age, s.
-        age: f64,
-    },
-    /// The trocar pose is not a finite rigid transform.
-    BadTrocarPose,
-    /// The external torques are older than the timeout (force feedback is blind).
-    StaleTorques {
-        /// Age, s.
-        age: f64,
-    },
-    /// The tip force exceeded the stop threshold.
-    ForceLimit {
-        /// Force, N.
-        force: f64,
-        /// Threshold, N.
-        limit: f64,
-    },
-    /// The optimiser failed; its solution is not used.
-    SolverFailed(String),
-    /// The command was not finite.
-    NonFiniteCommand,
-    /// The command would leave the joint limits.
-    PositionLimit {
-        /// Joint index (0-based).
-        joint: usize,
-    },
-    /// The command would move a joint faster than allowed.
-    VelocityLimit {
-        /// Joint index (0-based).
-        joint: usize,
-    },
-    /// The kinematics failed.
-    Kinematics(String),
-    /// The measured joints are too far from the last command (the arm does not follow:
-    /// stopped by its own controller, blocked, or commands not reaching it).
-    TrackingError {
-        /// Joint index (0-based).
-        joint: usize,
-        /// |q_measured - q_commanded|, rad.
-        error: f64,
-    },
-    /// The operator asked to stop.
-    Operator(String),
-}
-
-impl fmt::Display for HoldReason {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            HoldReason::NoJointState => write!(f, "no joint state received"),
-            HoldReason::StaleJointState { age } => write!(f, "joint state stale ({age:.3} s old)"),
-            HoldReason::NonFiniteJointState => write!(f, "joint state has NaN or infinite values"),
-            HoldReason::NoTrocarPose => write!(f, "no trocar pose received"),
-            HoldReason::StaleTrocarPose { age } => write!(f, "trocar pose stale ({age:.3} s old): marker lost?"),
-            HoldReason::BadTrocarPose => write!(f, "trocar pose is not a finite rigid transform"),
-            HoldReason::StaleTorques { age } => write!(f, "external torques stale ({age:.3} s old)"),
-            HoldReason::ForceLimit { force, limit } => write!(f, "tip force {force:.1} N over the {limit:.1} N limit"),
-            HoldReason::SolverFailed(s) => write!(f, "optimiser failed ({s}); holding"),
-            HoldReason::NonFiniteCommand => write!(f, "command has NaN or infinite values"),
-            HoldReason::PositionLimit { joint } => {
-                write!(f, "command would pass the position limit of joint {}", joint + 1)
-            }
-            HoldReason::VelocityLimit { joint } => {
-                write!(f, "command would exceed the velocity limit of joint {}", joint + 1)
-            }
-            HoldReason::Kinematics(s) => write!(f, "kinematics: {s}"),
-            HoldReason::TrackingError { joint, error } => write!(
-                f,
-                "joint {} is {error:.3} rad from its command: the arm does not follow",
-                joint + 1
-            ),
-            HoldReason::Operator(s) => write!(f, "operator: {s}"),
-        }
-    }
-}
 
 /// Parameters of the guard.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -9,10 +9,17 @@ pub mod admittance;
 pub mod controller;
 pub mod geometry;
 pub mod guard;
+pub mod guarded;
+pub mod hold;
 pub mod metrics;
+pub mod params;
 pub mod seated;
 pub mod sqp;
 pub mod supervisor;
+pub mod tare;
 
-pub use controller::{ControlInput, ControlOutput, Controller, ControllerParams, ParamError, Stamped};
+pub use controller::{ControlInput, ControlOutput, Controller, OptimalController, SolveReport, Stamped};
+pub use guard::HoldReason;
+pub use guarded::{CommandSource, Guarded, StepContext};
+pub use params::{ControllerParams, ParamError};
 pub use supervisor::Phase;

@@ -7,12 +7,18 @@
 //! operator) needs an explicit `start` to resume.
 
 use std::fmt;
+use std::sync::Arc;
+
+use super::hold::HoldReason;
 
 /// The phase of a docking run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
 pub enum Phase {
     /// Waiting for start; nothing moves.
     Idle,
+    /// Started: the arm is held still while the external torques are tared
+    /// ([`crate::control::tare`]); then APPROACH, or back to IDLE with the reason.
+    Tare,
     /// Moving the tip to the stand-off point on the insertion axis, aligning the scope.
     Approach,
     /// Sliding along the axis through the port to the goal depth.
@@ -30,6 +36,7 @@ impl Phase {
     pub fn as_str(&self) -> &'static str {
         match self {
             Phase::Idle => "IDLE",
+            Phase::Tare => "TARE",
             Phase::Approach => "APPROACH",
             Phase::Insert => "INSERT",
             Phase::Done => "DONE",
@@ -56,7 +63,8 @@ pub struct Supervisor {
     phase: Phase,
     resume: Phase,
     latched: bool,
-    reason: Option<String>,
+    reason: Option<HoldReason>,
+    note: Option<Arc<str>>,
 }
 
 impl Default for Supervisor {
@@ -73,6 +81,7 @@ impl Supervisor {
             resume: Phase::Approach,
             latched: false,
             reason: None,
+            note: None,
         }
     }
 
@@ -81,18 +90,24 @@ impl Supervisor {
         self.phase
     }
 
-    /// The reason of the last hold or abort, or how DONE was reached (see
-    /// [`Supervisor::goal_reached`]).
-    pub fn reason(&self) -> Option<&str> {
-        self.reason.as_deref()
+    /// The reason of the last hold or abort (cleared by a new start from IDLE and when the
+    /// goal is reached).
+    pub fn reason(&self) -> Option<&HoldReason> {
+        self.reason.as_ref()
+    }
+
+    /// How DONE was reached, when not plainly at the goal (see [`Supervisor::goal_reached`]).
+    pub fn note(&self) -> Option<&Arc<str>> {
+        self.note.as_ref()
     }
 
     /// Start (from IDLE) or resume (from HOLD). Refused after DONE or ABORTED.
     pub fn start(&mut self) -> Result<(), String> {
         match self.phase {
             Phase::Idle => {
-                self.phase = Phase::Approach;
+                self.phase = Phase::Tare;
                 self.reason = None;
+                self.note = None;
                 Ok(())
             }
             Phase::Hold => {
@@ -100,11 +115,13 @@ impl Supervisor {
                 self.latched = false;
                 Ok(())
             }
-            Phase::Approach | Phase::Insert => Ok(()),
+            Phase::Tare | Phase::Approach | Phase::Insert => Ok(()),
             Phase::Done => Err("docking is done; reset before starting again".into()),
             Phase::Aborted => Err(format!(
                 "aborted ({}); reset before starting again",
-                self.reason.as_deref().unwrap_or("no reason")
+                self.reason
+                    .as_ref()
+                    .map_or_else(|| "no reason".to_string(), ToString::to_string)
             )),
         }
     }
@@ -112,7 +129,7 @@ impl Supervisor {
     /// Abort from any phase.
     pub fn abort(&mut self, why: &str) {
         self.phase = Phase::Aborted;
-        self.reason = Some(why.to_string());
+        self.reason = Some(HoldReason::Operator(why.into()));
     }
 
     /// Back to IDLE, forgetting any hold.
@@ -122,7 +139,7 @@ impl Supervisor {
 
     /// Hold for `reason`. A latched hold needs `start` to resume. Outside APPROACH and
     /// INSERT the phase does not change (nothing moves there anyway) but the reason is kept.
-    pub fn hold(&mut self, reason: String, latched: bool) {
+    pub fn hold(&mut self, reason: HoldReason, latched: bool) {
         match self.phase {
             Phase::Approach | Phase::Insert => {
                 self.resume = self.phase;
@@ -147,6 +164,21 @@ impl Supervisor {
         self.phase == Phase::Hold && self.latched
     }
 
+    /// The torques are tared: TARE -> APPROACH.
+    pub fn tare_done(&mut self) {
+        if self.phase == Phase::Tare {
+            self.phase = Phase::Approach;
+        }
+    }
+
+    /// The tare refused the start: TARE -> IDLE, with the reason.
+    pub fn tare_refused(&mut self, reason: HoldReason) {
+        if self.phase == Phase::Tare {
+            self.phase = Phase::Idle;
+            self.reason = Some(reason);
+        }
+    }
+
     /// The stand-off point is reached: APPROACH -> INSERT.
     pub fn approach_reached(&mut self) {
         if self.phase == Phase::Approach {
@@ -155,11 +187,12 @@ impl Supervisor {
     }
 
     /// The goal is reached: INSERT -> DONE. `note` says how, when not plainly at the goal;
-    /// it replaces the reason of any earlier hold.
-    pub fn goal_reached(&mut self, note: Option<String>) {
+    /// the reason of any earlier hold is cleared.
+    pub fn goal_reached(&mut self, note: Option<Arc<str>>) {
         if self.phase == Phase::Insert {
             self.phase = Phase::Done;
-            self.reason = note;
+            self.reason = None;
+            self.note = note;
         }
     }
 }
@@ -176,16 +209,21 @@ mod tests {
         s.goal_reached(None);
         assert_eq!(s.phase(), Phase::Idle, "nothing happens before start");
         s.start().unwrap();
+        assert_eq!(s.phase(), Phase::Tare, "a start tares first");
+        s.approach_reached();
+        assert_eq!(s.phase(), Phase::Tare);
+        s.tare_done();
         assert_eq!(s.phase(), Phase::Approach);
         s.goal_reached(None);
         assert_eq!(s.phase(), Phase::Approach, "no skipping the insertion");
         s.approach_reached();
         assert_eq!(s.phase(), Phase::Insert);
-        s.hold("trocar pose stale".into(), false);
+        s.hold(HoldReason::StaleTrocarPose { age: 1.0 }, false);
         s.clear_hold();
         s.goal_reached(Some("seated".into()));
         assert_eq!(s.phase(), Phase::Done);
-        assert_eq!(s.reason(), Some("seated"), "the note replaces the old hold's reason");
+        assert_eq!(s.note().map(|n| &**n), Some("seated"));
+        assert_eq!(s.reason(), None, "DONE clears the old hold's reason");
         assert!(s.start().is_err());
         s.reset();
         assert_eq!(s.phase(), Phase::Idle);
@@ -195,13 +233,24 @@ mod tests {
     fn holds_resume_or_latch() {
         let mut s = Supervisor::new();
         s.start().unwrap();
+        s.tare_refused(HoldReason::TareMotion { moved_rad: 0.01 });
+        assert_eq!(s.phase(), Phase::Idle, "a refused tare is a refused start");
+        assert_eq!(s.reason().map(HoldReason::code), Some("TARE_MOTION"));
+        s.start().unwrap();
+        s.tare_done();
         s.approach_reached();
-        s.hold("trocar pose stale".into(), false);
+        s.hold(HoldReason::StaleTrocarPose { age: 1.0 }, false);
         assert_eq!(s.phase(), Phase::Hold);
-        assert_eq!(s.reason(), Some("trocar pose stale"));
+        assert_eq!(s.reason().map(HoldReason::code), Some("STALE_TROCAR_POSE"));
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Insert, "resumes the interrupted phase");
-        s.hold("force".into(), true);
+        s.hold(
+            HoldReason::ForceLimit {
+                force: 30.0,
+                limit: 20.0,
+            },
+            true,
+        );
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Hold, "a latched hold needs start");
         assert!(s.is_latched());
@@ -214,7 +263,7 @@ mod tests {
         assert_eq!(Phase::Aborted.as_str(), "ABORTED");
         // Holding in IDLE keeps IDLE.
         let mut s = Supervisor::new();
-        s.hold("no joint state".into(), false);
+        s.hold(HoldReason::NoJointState, false);
         assert_eq!(s.phase(), Phase::Idle);
     }
 }

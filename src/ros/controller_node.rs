@@ -1,5 +1,6 @@
 //! The `docking_controller` node: subscribes the joint states, the driver's LBRState
-//! (external torques) and the trocar pose; runs a [`DockingCore`] at a fixed rate; publishes the joint command, `/docking/status`, `/docking/f_ext`,
+//! (external torques) and the trocar pose; runs the guarded [`Controller`] at a fixed rate;
+//! publishes the joint command, `/docking/status`, `/docking/f_ext`,
 //! `/docking/markers` and tf frames of the trocar and the goal; serves `~start`, `~abort`
 //! and `~reset`. Every topic and frame name is a parameter (see [`ControllerNodeParams`]).
 //!
@@ -12,14 +13,12 @@ use std::sync::{Arc, Mutex};
 use nalgebra::{Isometry3, Point3};
 
 use super::convert::{self, InputError, StampOrder};
-use super::core::{DockingCore, Stamped, StepInput, StepOutput};
 use super::markers::{self, MarkerStyle, Scene};
 use super::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, std_srvs, tf2_msgs, trocar_docking};
 use super::node::{lock, ros_err, CommandType, NodeError};
-use super::optimal_core::OptimalCore;
 use super::params;
 use super::stats::LoopStats;
-use crate::control::{Controller, ControllerParams};
+use crate::control::{ControlInput, ControlOutput, Controller, ControllerParams, Stamped};
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::Kinematics;
 use crate::kinematics::{JointVector, LbrKinematics, TIP_LINK};
@@ -202,18 +201,14 @@ fn subscribe_inputs(p: &ControllerNodeParams, inputs: &Shared<Inputs>) -> Result
 }
 
 /// A `std_srvs/Trigger` service that runs `f` on the controller.
-fn trigger_service<F>(
-    name: &str,
-    controller: &Shared<Box<dyn DockingCore>>,
-    f: F,
-) -> Result<rosrust::Service, NodeError>
+fn trigger_service<F>(name: &str, controller: &Shared<Controller>, f: F) -> Result<rosrust::Service, NodeError>
 where
-    F: Fn(&mut dyn DockingCore) -> Result<String, String> + Send + Sync + 'static,
+    F: Fn(&mut Controller) -> Result<String, String> + Send + Sync + 'static,
 {
     let controller = controller.clone();
     let label = name.to_string();
     rosrust::service::<std_srvs::Trigger, _>(name, move |_req| {
-        let r = f(lock(&controller).as_mut());
+        let r = f(&mut lock(&controller));
         match &r {
             Ok(m) => {
                 rosrust::ros_info!("{label}: {m}");
@@ -287,7 +282,7 @@ fn distance_to_axis(tip: &Isometry3<f64>, trocar: &Isometry3<f64>) -> f64 {
 fn status_msg(
     stamp: rosrust::Time,
     frame: &str,
-    out: &StepOutput,
+    out: &ControlOutput,
     trocar: Option<&Isometry3<f64>>,
     fault: Option<&String>,
     elapsed: f64,
@@ -295,25 +290,34 @@ fn status_msg(
     ages_ms: (f64, f64),
 ) -> trocar_docking::DockingStatus {
     let lat = stats.percentiles();
-    let hold_reason = match (fault, &out.reason) {
-        (Some(f), Some(r)) if !r.contains(f.as_str()) => format!("{r}; input: {f}"),
-        (_, Some(r)) => r.clone(),
-        (Some(f), None) => f.clone(),
-        (None, None) => String::new(),
+    let (hold_reason, hold_code) = match (fault, out.reason_text()) {
+        (Some(f), Some(r)) if !r.contains(f.as_str()) => (format!("{r}; input: {f}"), "INPUT_REJECTED"),
+        (Some(_), Some(r)) => (r, "INPUT_REJECTED"),
+        (None, Some(r)) => (r, out.reason_code()),
+        (Some(f), None) => (f.clone(), "INPUT_REJECTED"),
+        (None, None) => (String::new(), ""),
     };
+    let costs = out.solve.as_ref().map_or([f64::NAN; 5], |s| s.costs);
     let tip_point = out.tip.map(|t| Point3::from(t.translation.vector));
     trocar_docking::DockingStatus {
         header: convert::header(stamp, frame),
         phase: out.phase.to_string(),
         hold_reason,
-        cost_axis: out.costs[0],
-        cost_goal: out.costs[1],
-        cost_alignment: out.costs[2],
-        cost_joint_step: out.costs[3],
-        cost_admittance: out.costs[4],
-        iterations: out.iterations,
-        solve_time_us: out.solve_time_us,
-        solver_status: out.solver_status.clone(),
+        hold_code: hold_code.to_string(),
+        cost_axis: costs[0],
+        cost_goal: costs[1],
+        cost_alignment: costs[2],
+        cost_joint_step: costs[3],
+        cost_admittance: costs[4],
+        iterations: out
+            .solve
+            .as_ref()
+            .map_or(0, |s| u32::try_from(s.iterations).unwrap_or(u32::MAX)),
+        solve_time_us: out.solve.as_ref().map_or(0.0, |s| s.solve_time_us),
+        solver_status: out
+            .solve
+            .as_ref()
+            .map_or_else(|| "not_run".to_string(), |s| s.status.as_text()),
         f_ext: convert::vector_msg(&out.f_ext),
         f_ext_norm: out.f_ext.norm(),
         metric_m: out.metric_m,
@@ -341,7 +345,7 @@ fn publish_scene(
     p: &ControllerNodeParams,
     o: &Outputs,
     stamp: rosrust::Time,
-    out: &StepOutput,
+    out: &ControlOutput,
     trocar: Option<&Isometry3<f64>>,
 ) {
     let scene = Scene {
@@ -381,10 +385,9 @@ pub fn run() -> Result<(), NodeError> {
     let mut cp = p.controller.clone();
     cp.dt = 1.0 / p.rate_hz;
     cp.force_feedback = p.force_feedback;
-    let optimal =
+    let controller =
         Controller::new(cp, kin.limits().clone()).map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
-    let core: Box<dyn DockingCore> = Box::new(OptimalCore::new(optimal));
-    let controller = Arc::new(Mutex::new(core));
+    let controller = Arc::new(Mutex::new(controller));
     let inputs: Shared<Inputs> = Arc::new(Mutex::new(Inputs::default()));
     let stats = Arc::new(Mutex::new(LoopStats::new(1.0, p.latency_samples)));
     let start_time: Shared<Option<f64>> = Arc::new(Mutex::new(None));
@@ -462,7 +465,7 @@ pub fn run() -> Result<(), NodeError> {
                 i.trocar_order.reset();
                 last_latency_stamp = f64::NEG_INFINITY;
             }
-            let input = StepInput {
+            let input = ControlInput {
                 now,
                 joints: i.joints,
                 tau_ext: i.tau_ext,

@@ -15,13 +15,11 @@
 
 pub mod controller_node;
 pub mod convert;
-pub mod core;
 pub mod estimator_node;
 pub mod handover;
 pub mod markers;
 pub mod msgs;
 pub mod node;
-pub mod optimal_core;
 pub mod params;
 pub mod sim_node;
 pub mod stats;

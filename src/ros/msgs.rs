@@ -39,6 +39,7 @@ mod tests {
         for field in [
             "string phase",
             "string hold_reason",
+            "string hold_code",
             "float64 cost_axis",
             "float64 metric_m",
             "float64 latency_p99_ms",

@@ -48,7 +48,7 @@ impl Policy for ControllerPolicy {
             command: out.command,
             f_ext: Some(out.f_ext),
             phase: out.phase.as_str(),
-            aborted: (out.phase == Phase::Aborted).then(|| out.reason.unwrap_or_else(|| "aborted".into())),
+            aborted: (out.phase == Phase::Aborted).then(|| out.reason_text().unwrap_or_else(|| "aborted".into())),
         }
     }
 }

@@ -26,10 +26,11 @@ pub struct CheckParams {
     pub startup_timeout: f64,
     /// Whether the check calls `~start` itself.
     pub call_start: bool,
-    /// For `stale_hold`: the hold reason must contain this text.
-    pub hold_reason_contains: String,
-    /// For `docking`: the status reason at DONE must contain this text ('' = anything).
-    pub done_reason_contains: String,
+    /// For `stale_hold`: the hold's code (`hold_code` of the status) must be this.
+    pub hold_code: String,
+    /// For `docking`: the status `hold_code` at DONE must be this ('' = anything, e.g.
+    /// `SEATED`).
+    pub done_code: String,
     /// For `stale_hold`: how long the command must stay still once held, s.
     pub hold_observe: f64,
     /// For `replay`: the minimum number of status messages expected.
@@ -44,9 +45,9 @@ pub struct CheckParams {
     pub max_position_error: f64,
     /// `replay`: trocar poses the check must see before it judges.
     pub min_poses: usize,
-    /// `replay`: a HOLD whose reason contains this is accepted too ('' = none is), e.g. the
-    /// tracking hold when a bag's arm does not follow the live commands.
-    pub allowed_hold_reason: String,
+    /// `replay`: a HOLD with this code is accepted too ('' = none is), e.g. the tracking
+    /// hold (`TRACKING_ERROR`) when a bag's arm does not follow the live commands.
+    pub allowed_hold_code: String,
     /// `latency`: the camera calibration YAML of the played camera.
     pub camera_calibration: String,
     /// `latency`: the played camera's rate, Hz.
@@ -67,8 +68,8 @@ impl Default for CheckParams {
             max_metric_m: 10.0,
             startup_timeout: 30.0,
             call_start: true,
-            hold_reason_contains: "trocar".into(),
-            done_reason_contains: String::new(),
+            hold_code: "STALE_TROCAR_POSE".into(),
+            done_code: String::new(),
             hold_observe: 1.0,
             min_status: 10,
             allowed_phases: vec!["HOLD".into(), "APPROACH".into(), "INSERT".into(), "DONE".into()],
@@ -76,7 +77,7 @@ impl Default for CheckParams {
             true_pose_topic: topics::TROCAR_POSE_TRUE.into(),
             max_position_error: 0.01,
             min_poses: 1,
-            allowed_hold_reason: String::new(),
+            allowed_hold_code: String::new(),
             camera_calibration: String::new(),
             camera_rate_hz: 30.0,
             max_latency_ms: 10.0,

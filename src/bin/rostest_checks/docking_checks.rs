@@ -23,6 +23,7 @@ pub fn roundtrip(p: &CheckParams) -> Result<(), String> {
     let sent = trocar_docking::DockingStatus {
         phase: "INSERT".into(),
         hold_reason: "trocar pose stale (0.6 s)".into(),
+        hold_code: "STALE_TROCAR_POSE".into(),
         cost_axis: 1.5e-4,
         iterations: 3,
         metric_m: 2.25,
@@ -100,10 +101,10 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             done.metric_m, p.max_metric_m
         ));
     }
-    if !done.hold_reason.contains(&p.done_reason_contains) {
+    if !p.done_code.is_empty() && done.hold_code != p.done_code {
         return Err(format!(
-            "DONE, but its reason '{}' does not mention '{}'",
-            done.hold_reason, p.done_reason_contains
+            "DONE, but its code '{}' ({}) is not '{}'",
+            done.hold_code, done.hold_reason, p.done_code
         ));
     }
     let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
@@ -147,10 +148,10 @@ pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
     .ok_or_else(|| format!("never moved; last phase {}", status.get().unwrap_or_default().phase))?;
     let held = wait_for(p.time_limit, || status.get().filter(|s| s.phase == "HOLD"))
         .ok_or_else(|| format!("never held; last phase {}", status.get().unwrap_or_default().phase))?;
-    if !held.hold_reason.contains(&p.hold_reason_contains) {
+    if held.hold_code != p.hold_code {
         return Err(format!(
-            "hold reason '{}' does not mention '{}'",
-            held.hold_reason, p.hold_reason_contains
+            "hold code '{}' ({}) is not '{}'",
+            held.hold_code, held.hold_reason, p.hold_code
         ));
     }
     let before = command
@@ -160,11 +161,15 @@ pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
     let after = command
         .get()
         .and_then(|c| c.points.first().map(|pt| pt.positions.clone()));
-    if let (Some(a), Some(b)) = (&before, &after) {
-        let moved = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
-        if moved > 1e-9 {
-            return Err(format!("the command moved {moved:.2e} rad while holding"));
-        }
+    let (Some(a), Some(b)) = (&before, &after) else {
+        return Err("no command received around the hold: cannot tell that it stays still".into());
+    };
+    if command.count() == 0 {
+        return Err("no command received".into());
+    }
+    let moved = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+    if moved > 1e-9 {
+        return Err(format!("the command moved {moved:.2e} rad while holding"));
     }
     let s = status.get().unwrap_or_default();
     if s.phase != "HOLD" {
@@ -193,8 +198,7 @@ pub fn replay(p: &CheckParams) -> Result<String, String> {
         )
     })?;
     let s = status.get().unwrap_or_default();
-    let allowed_hold =
-        !p.allowed_hold_reason.is_empty() && s.phase == "HOLD" && s.hold_reason.contains(&p.allowed_hold_reason);
+    let allowed_hold = !p.allowed_hold_code.is_empty() && s.phase == "HOLD" && s.hold_code == p.allowed_hold_code;
     if !(p.allowed_phases.contains(&s.phase) || allowed_hold) {
         return Err(format!(
             "phase {} ({}) not among {:?}",

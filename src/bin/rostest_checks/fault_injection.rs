@@ -30,15 +30,14 @@ enum Fault {
 }
 
 impl Fault {
-    /// Text the hold reason must contain.
+    /// The hold code the status must carry (`hold_code`).
     fn expected(self) -> &'static str {
         match self {
-            Fault::WrongJointNames => "missing",
-            Fault::NanJoint => "not finite",
-            Fault::ShortTorques => "external_torque",
-            Fault::WrongFrame => "frame",
-            Fault::StampBack => "not after",
-            Fault::None | Fault::DriverStops => "",
+            Fault::WrongJointNames | Fault::NanJoint | Fault::ShortTorques | Fault::WrongFrame | Fault::StampBack => {
+                "INPUT_REJECTED"
+            }
+            Fault::DriverStops => "STALE_JOINT_STATE",
+            Fault::None => "",
         }
     }
 }
@@ -121,13 +120,14 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
             let held = wait_for(3.0, || {
                 status
                     .get()
-                    .filter(|s| s.phase == "HOLD" && s.hold_reason.contains(f.expected()))
+                    .filter(|s| s.phase == "HOLD" && s.hold_code == f.expected())
             })
             .ok_or_else(|| {
                 let s = status.get().unwrap_or_default();
                 format!(
-                    "{f:?}: phase {} reason '{}' (expected HOLD naming '{}')",
+                    "{f:?}: phase {} code '{}' reason '{}' (expected HOLD with code '{}')",
                     s.phase,
+                    s.hold_code,
                     s.hold_reason,
                     f.expected()
                 )

@@ -1,0 +1,173 @@
+//! Every parameter of the docking controller (`config/controller.yaml`, the one file that
+//! the trials, the demo, the rostests and `robot.launch` all run), with its validation.
+
+use serde::{Deserialize, Serialize};
+
+use super::admittance::AdmittanceParams;
+use super::guard::GuardParams;
+use super::seated::SeatedParams;
+use super::sqp::{CostWeights, SqpSettings};
+use super::tare::TareParams;
+
+/// Errors in the controller's parameters.
+#[derive(Debug, thiserror::Error)]
+pub enum ParamError {
+    /// The YAML did not parse or had unknown fields.
+    #[error("controller YAML: {0}")]
+    Yaml(#[from] serde_yaml::Error),
+    /// A value is out of range.
+    #[error("controller parameter: {0}")]
+    Invalid(String),
+}
+
+/// Every parameter of the controller (`config/controller.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ControllerParams {
+    /// Control period, s.
+    pub dt: f64,
+    /// Force feedback on (c5 active with the weights below) or off (w5 = 0).
+    pub force_feedback: bool,
+    /// Weights during APPROACH.
+    pub approach_weights: CostWeights,
+    /// Weights during INSERT.
+    pub insert_weights: CostWeights,
+    /// Goal depth past the port along the axis, m.
+    pub insertion_depth: f64,
+    /// Stand-off distance of the approach point before the port, m.
+    pub standoff: f64,
+    /// Speed of the approach target point, m/s.
+    pub approach_speed: f64,
+    /// Speed of the insertion target point, m/s.
+    pub insert_speed: f64,
+    /// APPROACH -> INSERT when the tip is this close to the stand-off point, m.
+    pub approach_tolerance: f64,
+    /// ... and the optical axis within this angle of the insertion axis, deg.
+    pub approach_angle_tolerance_deg: f64,
+    /// DONE when the tip is this close to the goal, m.
+    pub goal_tolerance: f64,
+    /// ... and the optical axis within this angle, deg.
+    pub goal_angle_tolerance_deg: f64,
+    /// DONE also for a scope seated in the port beside a biased trocar estimate; see
+    /// [`super::seated`].
+    pub seated: SeatedParams,
+    /// Time constant of a first-order filter on the trocar pose, s (0 = none).
+    pub trocar_filter_time_constant: f64,
+    /// Hold when external torques are missing or stale (force monitoring blind).
+    pub require_torques: bool,
+    /// After a force stop, back out along the axis by this distance, m (0 = stay).
+    pub retreat_distance: f64,
+    /// Weight of the joint-limit avoidance cost (0 = off); see [`super::sqp::LimitAvoidance`].
+    pub limit_avoidance_weight: f64,
+    /// Fraction of each joint's half range (inside the guard's margin) where it starts.
+    pub limit_avoidance_zone: f64,
+    /// Hold (latched) when the tip has sat at the stand-off point this long without
+    /// reaching the alignment tolerance (e.g. a joint limit in the way), s.
+    pub approach_stall_timeout: f64,
+    /// Taring the external torques at start, and tracking their offset out of contact.
+    pub tare: TareParams,
+    /// Force estimate and admittance law.
+    pub admittance: AdmittanceParams,
+    /// Safety guard.
+    pub guard: GuardParams,
+    /// SQP settings.
+    pub sqp: SqpSettings,
+}
+
+impl Default for ControllerParams {
+    fn default() -> Self {
+        Self {
+            dt: 0.01,
+            force_feedback: true,
+            approach_weights: CostWeights {
+                axis: 0.0,
+                goal: 1000.0,
+                align: 5.0,
+                step: 0.05,
+                reference: 300.0,
+            },
+            insert_weights: CostWeights {
+                axis: 1000.0,
+                goal: 300.0,
+                align: 20.0,
+                step: 0.05,
+                reference: 300.0,
+            },
+            insertion_depth: 0.03,
+            standoff: 0.02,
+            approach_speed: 0.08,
+            insert_speed: 0.03,
+            approach_tolerance: 0.002,
+            approach_angle_tolerance_deg: 1.0,
+            goal_tolerance: 0.001,
+            goal_angle_tolerance_deg: 0.5,
+            seated: SeatedParams::default(),
+            trocar_filter_time_constant: 0.0,
+            require_torques: true,
+            retreat_distance: 0.0,
+            limit_avoidance_weight: 1.0,
+            limit_avoidance_zone: 0.9,
+            approach_stall_timeout: 3.0,
+            tare: TareParams::default(),
+            admittance: AdmittanceParams::default(),
+            guard: GuardParams::default(),
+            sqp: SqpSettings::default(),
+        }
+    }
+}
+
+impl ControllerParams {
+    /// Parse YAML (missing fields take their defaults) and validate.
+    pub fn from_yaml_str(s: &str) -> Result<Self, ParamError> {
+        let p: Self = serde_yaml::from_str(s)?;
+        p.validate().map_err(ParamError::Invalid)?;
+        Ok(p)
+    }
+
+    /// Check every range; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let pos = |n: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("{n} must be > 0, got {v}"))
+            }
+        };
+        let nonneg = |n: &str, v: f64| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err(format!("{n} must be >= 0, got {v}"))
+            }
+        };
+        pos("dt", self.dt)?;
+        if self.dt > 0.1 {
+            return Err(format!("dt must be <= 0.1 s, got {}", self.dt));
+        }
+        self.approach_weights.validate("approach_weights")?;
+        self.insert_weights.validate("insert_weights")?;
+        pos("insertion_depth", self.insertion_depth)?;
+        nonneg("standoff", self.standoff)?;
+        pos("approach_speed", self.approach_speed)?;
+        pos("insert_speed", self.insert_speed)?;
+        pos("approach_tolerance", self.approach_tolerance)?;
+        pos("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
+        pos("goal_tolerance", self.goal_tolerance)?;
+        pos("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
+        self.seated.validate()?;
+        nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
+        nonneg("retreat_distance", self.retreat_distance)?;
+        nonneg("limit_avoidance_weight", self.limit_avoidance_weight)?;
+        pos("approach_stall_timeout", self.approach_stall_timeout)?;
+        if !(0.0..1.0).contains(&self.limit_avoidance_zone) {
+            return Err(format!(
+                "limit_avoidance_zone must be in [0, 1), got {}",
+                self.limit_avoidance_zone
+            ));
+        }
+        self.tare.validate()?;
+        self.admittance.validate()?;
+        self.guard.validate()?;
+        self.sqp.validate()
+    }
+}

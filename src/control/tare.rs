@@ -1,0 +1,290 @@
+//! Taring the external joint torques, as on the robot.
+//!
+//! The LBR's external-torque estimate carries an offset per joint (model and payload
+//! errors, of the order of 1 Nm) that changes with the pose. Without a tare that offset
+//! reads as a phantom tip force, which the admittance yields to and which holds the tip
+//! off the axis. Two mechanisms handle it:
+//!
+//! 1. **Tare before motion**, at every start from IDLE (phase TARE): the arm is held still
+//!    for [`TareParams::window_s`] while the torques are averaged. The start is refused
+//!    (back to IDLE, with the reason) when the arm moves during the window (someone leans
+//!    on it, the driver is not holding) or a torque is implausible: a mean offset above
+//!    [`TareParams::max_offset_nm`] (the arm is already in contact, or the load data is
+//!    wrong) or a spread above [`TareParams::max_noise_nm`]. The window's spread also sets
+//!    a per-joint dead-band of [`TareParams::deadband_sigmas`] standard deviations, so that
+//!    the sensor's own noise does not read as force.
+//! 2. **Tracking while out of contact**: the offset found at the start pose is not the
+//!    offset at the insertion pose. While the tip is more than
+//!    [`TareParams::track_clearance_m`] before the trocar's face (no part of the scope can
+//!    touch it there), the offset follows the measured torques with the time constant
+//!    [`TareParams::track_time_constant_s`]; once the tip is within reach of the trocar it
+//!    is frozen. The last update happens close to the stand-off point, a few centimetres
+//!    from where the insertion ends, so the pose-dependent part left during the insertion
+//!    is the change of the error over those centimetres only.
+//!
+//! Re-taring on resume from a hold is deliberately not done: a hold may happen in contact
+//! (a force stop), and taring there would zero a real force.
+
+use serde::{Deserialize, Serialize};
+
+use super::hold::HoldReason;
+use crate::kinematics::JointVector;
+
+/// Parameters of the tare (`tare:` in `config/controller.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TareParams {
+    /// Length of the still window at start, s (0 = no tare: offsets taken as zero).
+    pub window_s: f64,
+    /// Largest joint motion during the window, rad.
+    pub max_motion_rad: f64,
+    /// Largest plausible mean offset on a joint, Nm.
+    pub max_offset_nm: f64,
+    /// Largest plausible standard deviation on a joint during the window, Nm.
+    pub max_noise_nm: f64,
+    /// Per-joint dead-band, in standard deviations of the window.
+    pub deadband_sigmas: f64,
+    /// Time constant of the offset tracking out of contact, s (0 = no tracking).
+    pub track_time_constant_s: f64,
+    /// Tracking runs while the tip is at least this far before the trocar face, m.
+    pub track_clearance_m: f64,
+}
+
+impl Default for TareParams {
+    fn default() -> Self {
+        Self {
+            window_s: 0.3,
+            max_motion_rad: 0.002,
+            max_offset_nm: 5.0,
+            max_noise_nm: 1.0,
+            deadband_sigmas: 2.0,
+            track_time_constant_s: 0.3,
+            track_clearance_m: 0.01,
+        }
+    }
+}
+
+impl TareParams {
+    /// Check ranges; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let nonneg = |n: &str, v: f64| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err(format!("tare.{n} must be >= 0, got {v}"))
+            }
+        };
+        let pos = |n: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("tare.{n} must be > 0, got {v}"))
+            }
+        };
+        nonneg("window_s", self.window_s)?;
+        if self.window_s > 10.0 {
+            return Err(format!("tare.window_s must be <= 10 s, got {}", self.window_s));
+        }
+        pos("max_motion_rad", self.max_motion_rad)?;
+        pos("max_offset_nm", self.max_offset_nm)?;
+        pos("max_noise_nm", self.max_noise_nm)?;
+        nonneg("deadband_sigmas", self.deadband_sigmas)?;
+        nonneg("track_time_constant_s", self.track_time_constant_s)?;
+        nonneg("track_clearance_m", self.track_clearance_m)
+    }
+}
+
+/// What a step of the tare window says.
+#[derive(Debug, Clone, PartialEq)]
+pub enum TareStep {
+    /// Still collecting.
+    Collecting,
+    /// Done: the offsets are set.
+    Done,
+    /// Refused, for the reason.
+    Refused(HoldReason),
+}
+
+/// The tare of one run: the window's sums, then the offset and dead-band.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Tare {
+    elapsed: f64,
+    n: f64,
+    q0: Option<JointVector>,
+    sum: JointVector,
+    sum_sq: JointVector,
+    offset: JointVector,
+    band: JointVector,
+    done: bool,
+}
+
+impl Tare {
+    /// Whether the window is complete and the offsets are set.
+    pub fn is_done(&self) -> bool {
+        self.done
+    }
+
+    /// The current offset, Nm.
+    pub fn offset(&self) -> &JointVector {
+        &self.offset
+    }
+
+    /// The per-joint dead-band, Nm.
+    pub fn deadband(&self) -> &JointVector {
+        &self.band
+    }
+
+    /// Take no tare (offsets zero): torques absent and not required, or `window_s` = 0.
+    pub fn skip(&mut self) {
+        *self = Self {
+            done: true,
+            ..Self::default()
+        };
+    }
+
+    /// Feed one sample of the still window (`q` measured, `tau` finite external torques,
+    /// `dt` since the last step).
+    pub fn collect(&mut self, p: &TareParams, q: &JointVector, tau: &JointVector, dt: f64) -> TareStep {
+        let q0 = *self.q0.get_or_insert(*q);
+        let moved = (q - q0).amax();
+        if moved.is_nan() || moved > p.max_motion_rad {
+            return TareStep::Refused(HoldReason::TareMotion { moved_rad: moved });
+        }
+        self.n += 1.0;
+        self.sum += tau;
+        self.sum_sq += tau.component_mul(tau);
+        self.elapsed += dt;
+        if self.elapsed + 1e-9 < p.window_s {
+            return TareStep::Collecting;
+        }
+        let mean = self.sum / self.n;
+        let var = (self.sum_sq / self.n - mean.component_mul(&mean)).map(|v| v.max(0.0));
+        let sigma = var.map(f64::sqrt);
+        for j in 0..mean.len() {
+            if mean[j].abs() > p.max_offset_nm || sigma[j] > p.max_noise_nm {
+                return TareStep::Refused(HoldReason::TareImplausible {
+                    joint: j,
+                    offset_nm: mean[j],
+                    sigma_nm: sigma[j],
+                });
+            }
+        }
+        self.offset = mean;
+        self.band = sigma * p.deadband_sigmas;
+        self.done = true;
+        TareStep::Done
+    }
+
+    /// Follow the offset out of contact: `tip_depth` is the tip's depth along the
+    /// insertion axis (negative before the face).
+    pub fn track(&mut self, p: &TareParams, tau: &JointVector, tip_depth: f64, dt: f64) {
+        let tc = p.track_time_constant_s;
+        if !self.done || tc <= 0.0 || tip_depth.is_nan() || tip_depth >= -p.track_clearance_m || dt <= 0.0 {
+            return;
+        }
+        let a = dt / (tc + dt);
+        self.offset += (tau - self.offset) * a;
+    }
+
+    /// The torques less the offset, with the dead-band applied per joint.
+    pub fn correct(&self, tau: &JointVector) -> JointVector {
+        (tau - self.offset).zip_map(&self.band, super::admittance::deadband)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn still(tare: &mut Tare, p: &TareParams, tau: impl Fn(usize) -> JointVector, steps: usize) -> TareStep {
+        let q = JointVector::repeat(0.3);
+        let mut last = TareStep::Collecting;
+        for k in 0..steps {
+            last = tare.collect(p, &q, &tau(k), 0.01);
+            if last != TareStep::Collecting {
+                break;
+            }
+        }
+        last
+    }
+
+    #[test]
+    fn a_still_window_measures_the_offset_and_the_noise() {
+        let p = TareParams::default();
+        let mut t = Tare::default();
+        let offset = JointVector::from_column_slice(&[0.8, -0.6, 0.2, 1.0, -0.3, 0.1, 0.05]);
+        // ±0.3 Nm alternating: sigma 0.3.
+        let r = still(
+            &mut t,
+            &p,
+            |k| offset.add_scalar(if k % 2 == 0 { 0.3 } else { -0.3 }),
+            100,
+        );
+        assert_eq!(r, TareStep::Done);
+        assert!((t.offset() - offset).amax() < 0.02, "{}", t.offset());
+        assert!((t.deadband() - JointVector::repeat(0.6)).amax() < 0.05);
+        // The offset is gone and the noise is inside the dead-band.
+        assert_eq!(t.correct(&(offset.add_scalar(0.3))), JointVector::zeros());
+        let push = offset + JointVector::repeat(2.0);
+        assert!((t.correct(&push) - JointVector::repeat(2.0 - 0.6)).amax() < 0.05);
+    }
+
+    #[test]
+    fn the_window_is_at_least_its_length() {
+        let p = TareParams::default();
+        let mut t = Tare::default();
+        assert_eq!(still(&mut t, &p, |_| JointVector::zeros(), 29), TareStep::Collecting);
+        assert!(!t.is_done());
+        assert_eq!(still(&mut t, &p, |_| JointVector::zeros(), 2), TareStep::Done);
+    }
+
+    #[test]
+    fn motion_or_implausible_torques_refuse() {
+        let p = TareParams::default();
+        let mut t = Tare::default();
+        t.collect(&p, &JointVector::zeros(), &JointVector::zeros(), 0.01);
+        let r = t.collect(&p, &JointVector::repeat(0.01), &JointVector::zeros(), 0.01);
+        assert!(matches!(r, TareStep::Refused(HoldReason::TareMotion { .. })), "{r:?}");
+        let mut t = Tare::default();
+        let big = JointVector::from_column_slice(&[0.0, 0.0, 0.0, 7.0, 0.0, 0.0, 0.0]);
+        let r = still(&mut t, &p, |_| big, 100);
+        assert!(
+            matches!(r, TareStep::Refused(HoldReason::TareImplausible { joint: 3, .. })),
+            "{r:?}"
+        );
+        let mut t = Tare::default();
+        let r = still(
+            &mut t,
+            &p,
+            |k| JointVector::repeat(if k % 2 == 0 { 2.0 } else { -2.0 }),
+            100,
+        );
+        assert!(
+            matches!(r, TareStep::Refused(HoldReason::TareImplausible { .. })),
+            "{r:?}"
+        );
+        let mut t = Tare::default();
+        let r = t.collect(&p, &JointVector::repeat(f64::NAN), &JointVector::zeros(), 0.01);
+        assert!(matches!(r, TareStep::Refused(_)), "NaN joints never pass: {r:?}");
+    }
+
+    #[test]
+    fn tracking_follows_the_offset_only_out_of_contact() {
+        let p = TareParams::default();
+        let mut t = Tare::default();
+        still(&mut t, &p, |_| JointVector::zeros(), 100);
+        let drifted = JointVector::repeat(0.5);
+        for _ in 0..300 {
+            t.track(&p, &drifted, -0.05, 0.01);
+        }
+        assert!((t.offset() - drifted).amax() < 1e-3, "out of contact: follows");
+        let pushed = JointVector::repeat(3.0);
+        for _ in 0..300 {
+            t.track(&p, &pushed, -0.005, 0.01);
+        }
+        assert!(
+            (t.offset() - drifted).amax() < 1e-3,
+            "within reach of the trocar: frozen"
+        );
+    }
+}
