@@ -512,7 +512,7 @@ void check_render_inputs(rust::Slice<const double> cmo, rust::Slice<const double
   if (!(std::isfinite(size) && size > 0.0 && size < 10.0)) throw std::invalid_argument("marker size out of range");
   if (!(std::isfinite(plane_size) && plane_size >= size * 1.25 && plane_size < 100.0))
     throw std::invalid_argument("plane must be at least 1.25 x the marker size");
-  if (!(std::isfinite(blur_sigma) && blur_sigma >= 0.0 && blur_sigma < 50.0))
+  if (!(std::isfinite(blur_sigma) && blur_sigma >= 0.0 && blur_sigma <= 50.0))
     throw std::invalid_argument("blur sigma out of range");
 }
 
