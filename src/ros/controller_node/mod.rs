@@ -245,9 +245,11 @@ fn control_loop(
     mut inputs: InputReaders,
     requests: &RequestServer<Request, Reply>,
     records: &OutputSender<StepRecord>,
+    started_at: Option<f64>,
 ) {
     let rate = rosrust::rate(p.rate_hz);
     let mut st = LoopState::new(p);
+    st.start_time = started_at;
     while rosrust::is_ok() {
         let started = Instant::now();
         let stamp = rosrust::now();
@@ -337,7 +339,8 @@ pub fn run() -> Result<(), NodeError> {
             }
         }
     }
-    control_loop(&p, &kin, controller, inputs, &server, &records);
+    let started_at = p.autostart.then(|| convert::seconds(rosrust::now()));
+    control_loop(&p, &kin, controller, inputs, &server, &records, started_at);
     drop(records);
     let _ = publisher.join();
     Ok(())
