@@ -139,6 +139,10 @@ impl SimWorld {
     pub fn breathing(&self) -> &Breathing {
         &self.breathing
     }
+    /// The cannula's seal (stick or slip, its force).
+    pub fn seal(&self) -> &Seal {
+        &self.seal
+    }
     /// The torque sensor (its bias and model error).
     pub fn torque_sensor(&self) -> &TorqueSensor {
         &self.torque
