@@ -116,7 +116,7 @@ impl SimWorld {
     fn primed(mut self) -> Self {
         self.trocar.set_anchor_offset(&self.breathing.offset(0.0));
         let pose = self.trocar.pose();
-        self.sensor.update(0.0, &pose, &mut self.rng_meas);
+        self.sensor.update(0.0, &pose, &self.tip, &mut self.rng_meas);
         self.tau_meas = self
             .torque
             .measure(&JointVector::zeros(), &self.tip, &self.jac, &mut self.rng_torque);
@@ -217,7 +217,7 @@ impl SimWorld {
         let tau_true = self.tau_of(&last);
         self.tau_meas = self.torque.measure(&tau_true, &self.tip, &jac, &mut self.rng_torque);
         let pose = self.trocar.pose();
-        self.sensor.update(self.t, &pose, &mut self.rng_meas);
+        self.sensor.update(self.t, &pose, &self.tip, &mut self.rng_meas);
         Ok(())
     }
 
