@@ -432,10 +432,79 @@ cv::Mat make_texture(const std::string &family, int id, double size, double plan
 
 }  // namespace
 
-rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double plane_size,
-                                 rust::Slice<const double> cmo, rust::Slice<const double> intrinsics,
-                                 rust::Slice<const double> dist, int width, int height, double blur_sigma,
-                                 uint32_t texture_seed) {
+namespace {
+
+// Pixel box [u0, u1] x [v0, v1] of an image.
+struct PixelBox {
+  int u0, v0, u1, v1;
+};
+
+// The region to render: the bounding box of the plane's border (half side h, plane to
+// camera H = [r1 r2 t]) projected with distortion, 3 px wider; the whole image when part
+// of the plane is behind the camera.
+PixelBox render_region(const cv::Matx33d &H, double h, rust::Slice<const double> intrinsics,
+                       rust::Slice<const double> dist, int width, int height) {
+  PixelBox box{0, 0, width - 1, height - 1};
+  std::vector<cv::Point3d> border;
+  const int per_side = 32;
+  for (int i = 0; i < per_side; ++i) {
+    const double a = -h + 2 * h * i / per_side;
+    for (const auto &q : {cv::Point3d(a, h, 0), cv::Point3d(h, -a, 0), cv::Point3d(-a, -h, 0), cv::Point3d(-h, a, 0)})
+      border.push_back(q);
+  }
+  std::vector<cv::Point3d> cam_pts;
+  for (const auto &q : border) {
+    const cv::Vec3d c = H * cv::Vec3d(q.x, q.y, 1.0);
+    if (c[2] <= 1e-6) return box;
+    cam_pts.emplace_back(c[0], c[1], c[2]);
+  }
+  std::vector<cv::Point2d> img_pts;
+  cv::projectPoints(cam_pts, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), camera_matrix(intrinsics), dist_mat(dist),
+                    img_pts);
+  double umin = 1e18, umax = -1e18, vmin = 1e18, vmax = -1e18;
+  for (const auto &p : img_pts) {
+    umin = std::min(umin, p.x);
+    umax = std::max(umax, p.x);
+    vmin = std::min(vmin, p.y);
+    vmax = std::max(vmax, p.y);
+  }
+  if (std::isfinite(umin) && std::isfinite(umax) && std::isfinite(vmin) && std::isfinite(vmax)) {
+    box.u0 = static_cast<int>(std::max(0.0, std::floor(umin) - 3));
+    box.v0 = static_cast<int>(std::max(0.0, std::floor(vmin) - 3));
+    box.u1 = static_cast<int>(std::min(width - 1.0, std::ceil(umax) + 3));
+    box.v1 = static_cast<int>(std::min(height - 1.0, std::ceil(vmax) + 3));
+  }
+  return box;
+}
+
+// Grey level of pixel (xn, yn) (undistorted normalised coordinates of its centre): 3 x 3
+// supersampling (box filter) of the texture, bilinear at texel centres, `bg` off the plane.
+double shade_pixel(const cv::Mat &tex, const cv::Matx33d &Hi, double h, double xn, double yn, double fx, double fy,
+                   double bg) {
+  const int ss = 3;
+  double acc = 0;
+  for (int i = 0; i < ss; ++i)
+    for (int j = 0; j < ss; ++j) {
+      const double x = xn + ((j + 0.5) / ss - 0.5) / fx, y = yn + ((i + 0.5) / ss - 0.5) / fy;
+      const cv::Vec3d P = Hi * cv::Vec3d(x, y, 1.0);
+      if (P[2] <= 0) {  // ray hits the plane behind the camera
+        acc += bg;
+        continue;
+      }
+      const double X = P[0] / P[2], Y = P[1] / P[2];
+      const double tu = (X / (2 * h) + 0.5) * tex.cols - 0.5, tv = (0.5 - Y / (2 * h)) * tex.rows - 0.5;
+      if (tu < -0.5 || tv < -0.5 || tu > tex.cols - 0.5 || tv > tex.rows - 0.5) {
+        acc += bg;
+      } else {
+        acc += sample(tex, tu, tv);
+      }
+    }
+  return acc / (ss * ss);
+}
+
+void check_render_inputs(rust::Slice<const double> cmo, rust::Slice<const double> intrinsics,
+                         rust::Slice<const double> dist, int width, int height, double size, double plane_size,
+                         double blur_sigma) {
   check_intrinsics(intrinsics, dist, width, height);
   if (cmo.size() != 12) throw std::invalid_argument("camera pose must have 12 numbers");
   for (double v : cmo)
@@ -443,8 +512,17 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
   if (!(std::isfinite(size) && size > 0.0 && size < 10.0)) throw std::invalid_argument("marker size out of range");
   if (!(std::isfinite(plane_size) && plane_size >= size * 1.25 && plane_size < 100.0))
     throw std::invalid_argument("plane must be at least 1.25 x the marker size");
-  if (!(std::isfinite(blur_sigma) && blur_sigma >= 0.0 && blur_sigma < 50.0))
+  if (!(std::isfinite(blur_sigma) && blur_sigma >= 0.0 && blur_sigma <= 50.0))
     throw std::invalid_argument("blur sigma out of range");
+}
+
+}  // namespace
+
+rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double plane_size,
+                                 rust::Slice<const double> cmo, rust::Slice<const double> intrinsics,
+                                 rust::Slice<const double> dist, int width, int height, double blur_sigma,
+                                 uint32_t texture_seed) {
+  check_render_inputs(cmo, intrinsics, dist, width, height, size, plane_size, blur_sigma);
   int marker_px = 0;
   cv::Mat tex = make_texture(std::string(family), id, size, plane_size, texture_seed, marker_px);
   const double h = 0.5 * tex.cols * size / marker_px;  // plane half side, m
@@ -456,93 +534,35 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
   const double fx = intrinsics[0], fy = intrinsics[1], cx = intrinsics[2], cy = intrinsics[3];
   bool distorted = false;
   for (double v : dist) distorted = distorted || v != 0.0;
-  // Region to render: the bounding box of the plane's border projected with distortion
-  // (whole image when part of the plane is behind the camera).
-  int u0 = 0, v0 = 0, u1 = width - 1, v1 = height - 1;
-  {
-    std::vector<cv::Point3d> border;
-    const int per_side = 32;
-    for (int i = 0; i < per_side; ++i) {
-      const double a = -h + 2 * h * i / per_side;
-      for (const auto &q : {cv::Point3d(a, h, 0), cv::Point3d(h, -a, 0), cv::Point3d(-a, -h, 0), cv::Point3d(-h, a, 0)})
-        border.push_back(q);
-    }
-    bool ok = true;
-    std::vector<cv::Point3d> cam_pts;
-    for (const auto &q : border) {
-      const cv::Vec3d c = H * cv::Vec3d(q.x, q.y, 1.0);
-      if (c[2] <= 1e-6) ok = false;
-      cam_pts.emplace_back(c[0], c[1], c[2]);
-    }
-    if (ok) {
-      std::vector<cv::Point2d> img_pts;
-      cv::projectPoints(cam_pts, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), camera_matrix(intrinsics), dist_mat(dist),
-                        img_pts);
-      double umin = 1e18, umax = -1e18, vmin = 1e18, vmax = -1e18;
-      for (const auto &p : img_pts) {
-        umin = std::min(umin, p.x);
-        umax = std::max(umax, p.x);
-        vmin = std::min(vmin, p.y);
-        vmax = std::max(vmax, p.y);
-      }
-      if (std::isfinite(umin) && std::isfinite(umax) && std::isfinite(vmin) && std::isfinite(vmax)) {
-        u0 = static_cast<int>(std::max(0.0, std::floor(umin) - 3));
-        v0 = static_cast<int>(std::max(0.0, std::floor(vmin) - 3));
-        u1 = static_cast<int>(std::min(width - 1.0, std::ceil(umax) + 3));
-        v1 = static_cast<int>(std::min(height - 1.0, std::ceil(vmax) + 3));
-      }
-    }
-  }
+  const PixelBox r = render_region(H, h, intrinsics, dist, width, height);
   // Undistorted normalised coordinates of the pixel centres in the region.
   std::vector<cv::Point2d> normc;
-  if (distorted && u1 >= u0 && v1 >= v0) {
+  if (distorted && r.u1 >= r.u0 && r.v1 >= r.v0) {
     std::vector<cv::Point2d> grid;
-    grid.reserve(static_cast<size_t>(u1 - u0 + 1) * (v1 - v0 + 1));
-    for (int r = v0; r <= v1; ++r)
-      for (int c = u0; c <= u1; ++c) grid.emplace_back(c, r);
+    grid.reserve(static_cast<size_t>(r.u1 - r.u0 + 1) * (r.v1 - r.v0 + 1));
+    for (int v = r.v0; v <= r.v1; ++v)
+      for (int u = r.u0; u <= r.u1; ++u) grid.emplace_back(u, v);
     cv::undistortPoints(grid, normc, camera_matrix(intrinsics), dist_mat(dist));
   }
   const double bg = 96.0;
   cv::Mat img(height, width, CV_8UC1, cv::Scalar(bg));
-  // 3x3 supersampling per pixel (box filter), bilinear texture lookup at texel centres.
-  const int ss = 3;
-  for (int r = v0; r <= v1; ++r) {
-    uint8_t *row = img.ptr<uint8_t>(r);
-    for (int c = u0; c <= u1; ++c) {
-      double xn, yn;
+  for (int v = r.v0; v <= r.v1; ++v) {
+    uint8_t *row = img.ptr<uint8_t>(v);
+    for (int u = r.u0; u <= r.u1; ++u) {
+      double xn = (u - cx) / fx, yn = (v - cy) / fy;
       if (distorted) {
-        const auto &p = normc[static_cast<size_t>(r - v0) * (u1 - u0 + 1) + (c - u0)];
+        const auto &p = normc[static_cast<size_t>(v - r.v0) * (r.u1 - r.u0 + 1) + (u - r.u0)];
         xn = p.x;
         yn = p.y;
-      } else {
-        xn = (c - cx) / fx;
-        yn = (r - cy) / fy;
       }
-      double acc = 0;
-      for (int i = 0; i < ss; ++i)
-        for (int j = 0; j < ss; ++j) {
-          const double x = xn + ((j + 0.5) / ss - 0.5) / fx, y = yn + ((i + 0.5) / ss - 0.5) / fy;
-          const cv::Vec3d P = Hi * cv::Vec3d(x, y, 1.0);
-          if (P[2] <= 0) {  // ray hits the plane behind the camera
-            acc += bg;
-            continue;
-          }
-          const double X = P[0] / P[2], Y = P[1] / P[2];
-          const double tu = (X / (2 * h) + 0.5) * tex.cols - 0.5, tv = (0.5 - Y / (2 * h)) * tex.rows - 0.5;
-          if (tu < -0.5 || tv < -0.5 || tu > tex.cols - 0.5 || tv > tex.rows - 0.5) {
-            acc += bg;
-          } else {
-            acc += sample(tex, tu, tv);
-          }
-        }
-      row[c] = cv::saturate_cast<uint8_t>(acc / (ss * ss));
+      row[u] = cv::saturate_cast<uint8_t>(shade_pixel(tex, Hi, h, xn, yn, fx, fy, bg));
     }
   }
   if (blur_sigma > 0.0) cv::GaussianBlur(img, img, cv::Size(0, 0), blur_sigma);
   rust::Vec<uint8_t> out;
   out.reserve(static_cast<size_t>(width) * height);
-  for (int r = 0; r < height; ++r)
-    for (int c = 0; c < width; ++c) out.push_back(img.at<uint8_t>(r, c));
+  for (int v = 0; v < height; ++v)
+    for (int u = 0; u < width; ++u) out.push_back(img.at<uint8_t>(v, u));
   return out;
 }
 

@@ -10,7 +10,7 @@
 //!   the trocar estimator and the joint history it pairs images with.
 //! - [`sim`]: the simulated plant (pure Rust); [`trials`]: the paper's experiment on it.
 //! - [`ros`]: the ROS 1 nodes (rosrust): parameters, message conversions, wiring.
-//! - [`cli`], [`bench`]: the offline `trocar_docking` command and its benchmark suites.
+//! - [`cli`], [`bench`](mod@bench): the offline `trocar_docking` command and its benchmark suites.
 //! - [`realtime`]: the SCHED_FIFO class and the thread CPU clock for the real-time loops.
 //! - [`validate`]: range checks of configuration values, one style for nodes and CLI.
 //! - `ffi` (crate-private): the cxx bridges to KDL, ViSP and OpenCV.

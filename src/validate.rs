@@ -19,6 +19,8 @@ pub enum Rule {
     PositiveAtMost(f64),
     /// Within the closed interval.
     Within(f64, f64),
+    /// Within the open interval.
+    Between(f64, f64),
     /// A period in seconds: 0 (never) or finite and > 0, as a `Duration`.
     PeriodOrNever,
     /// An integer within the closed interval.
@@ -32,6 +34,7 @@ impl fmt::Display for Rule {
             Self::NonNegative => write!(f, "a finite number >= 0"),
             Self::PositiveAtMost(hi) => write!(f, "in (0, {hi}]"),
             Self::Within(lo, hi) => write!(f, "in [{lo}, {hi}]"),
+            Self::Between(lo, hi) => write!(f, "in ({lo}, {hi})"),
             Self::PeriodOrNever => write!(f, "0 (never) or a finite number of seconds > 0"),
             Self::IntegerWithin(lo, hi) => write!(f, "an integer in {lo}..={hi}"),
         }
@@ -85,6 +88,11 @@ pub fn positive_at_most(key: &str, value: f64, hi: f64) -> Result<f64, RangeErro
 /// `value` is in `[lo, hi]` (and so finite).
 pub fn in_range(key: &str, value: f64, lo: f64, hi: f64) -> Result<f64, RangeError> {
     check(key, value, Rule::Within(lo, hi), value >= lo && value <= hi)
+}
+
+/// `value` is in the open interval `(lo, hi)`.
+pub fn between(key: &str, value: f64, lo: f64, hi: f64) -> Result<f64, RangeError> {
+    check(key, value, Rule::Between(lo, hi), value > lo && value < hi)
 }
 
 /// An integer `value` in `lo..=hi`.
@@ -151,6 +159,9 @@ mod tests {
         assert!(positive_at_most("gap_s", 0.0, 60.0).is_err());
         assert_eq!(in_range("p", 0.5, 0.0, 1.0), Ok(0.5));
         assert!(in_range("p", f64::NAN, 0.0, 1.0).is_err());
+        assert_eq!(between("size", 0.04, 1e-4, 10.0), Ok(0.04));
+        assert!(between("size", 10.0, 1e-4, 10.0).is_err());
+        assert!(between("size", f64::NAN, 1e-4, 10.0).is_err());
         assert_eq!(integer_in_range("prio", 0, 0, 99), Ok(0));
         let e = integer_in_range("prio", 100, 0, 99).unwrap_err();
         assert_eq!(e.to_string(), "`prio` = 100: must be an integer in 0..=99");

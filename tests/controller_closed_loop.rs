@@ -208,6 +208,9 @@ fn insert_in_contact(params: ControllerParams, bias: f64) -> ContactRun {
             }),
         };
         let out = c.step(&kin, &input);
+        if out.phase == Phase::Hold && !held {
+            eprintln!("held at step {k}: {:?}", out.hold);
+        }
         held |= out.phase == Phase::Hold;
         q = out.command.expect("a command while running");
         last = Some((out.phase, out.reason_text()));

@@ -55,7 +55,7 @@ impl Default for AdmittanceParams {
             force_deadband: 0.2,
             mass: 0.5,
             damping: 60.0,
-            stiffness: 300.0,
+            stiffness: 100.0,
             max_displacement: 0.02,
             axial_force_full_stop: 5.0,
             min_insert_speed_ratio: 0.25,
@@ -235,8 +235,9 @@ mod tests {
         };
         let k = p.stiffness;
         let mut a = Admittance::default();
-        let f = Vector3::new(2.0, 0.0, -1.0);
-        for _ in 0..5000 {
+        let f = Vector3::new(1.0, 0.0, -0.5);
+        // The slow pole is about k / D: settle over many of its time constants.
+        for _ in 0..20000 {
             a.step(&p, f, 0.001);
         }
         assert!((a.step(&p, f, 0.001) - f / k).norm() < 1e-6);

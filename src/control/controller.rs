@@ -146,6 +146,8 @@ struct RunState {
     /// Time spent at the stand-off point without the alignment, s.
     stalled_for: f64,
     seated: SeatedCheck,
+    /// The tip-to-goal error and the alignment angle, averaged during INSERT.
+    target_error: Option<(Vector3<f64>, f64)>,
     tare: Tare,
     /// `Some(None)`: a retreat is due and begins from the tip's depth.
     retreat: Option<Option<Retreat>>,
@@ -466,8 +468,11 @@ impl OptimalController {
         let tip_p = Point3::from(tip.translation.vector);
         let optical_axis = tip.rotation * Vector3::z();
         let angle = axis.alignment_error(&optical_axis);
+        let tc = p.goal_filter_time_constant;
+        let a = if tc > 0.0 { dt / (tc + dt) } else { 1.0 };
         let r = &mut self.run;
-        match r.supervisor.phase() {
+        let phase = r.supervisor.phase();
+        match phase {
             Phase::Approach if (tip_p - axis.point_at(-p.standoff)).norm() < p.approach_tolerance => {
                 if angle < p.approach_angle_tolerance_deg.to_radians() {
                     r.stalled_for = 0.0;
@@ -485,7 +490,15 @@ impl OptimalController {
                 }
             }
             Phase::Insert => {
-                if (tip_p - goal).norm() < p.goal_tolerance && angle < p.goal_angle_tolerance_deg.to_radians() {
+                // DONE is judged on the error and angle averaged over the filter's time
+                // constant, so that one lucky sample of a noisy trocar estimate never ends
+                // the docking.
+                let (err, ang) = (tip_p - goal, angle);
+                let (e, g) = r
+                    .target_error
+                    .map_or((err, ang), |(e, g)| (e + (err - e) * a, g + (ang - g) * a));
+                r.target_error = Some((e, g));
+                if e.norm() < p.goal_tolerance && g < p.goal_angle_tolerance_deg.to_radians() {
                     r.supervisor.goal_reached(None);
                 } else {
                     let state = TipState {
@@ -505,6 +518,9 @@ impl OptimalController {
         }
         if r.supervisor.phase() != Phase::Insert {
             r.seated.reset();
+        }
+        if r.supervisor.phase() != phase {
+            r.target_error = None;
         }
     }
 

@@ -48,6 +48,10 @@ pub struct ControllerParams {
     pub goal_tolerance: f64,
     /// ... and the optical axis within this angle, deg.
     pub goal_angle_tolerance_deg: f64,
+    /// DONE is judged on the tip-to-goal error and the angle averaged with this time
+    /// constant (a first-order filter), s, so that one lucky sample of a noisy trocar
+    /// estimate does not end the docking (0 = judged on each sample).
+    pub goal_filter_time_constant: f64,
     /// DONE also for a scope seated in the port beside a biased trocar estimate; see
     /// [`super::seated`].
     pub seated: SeatedParams,
@@ -91,7 +95,7 @@ impl Default for ControllerParams {
                 goal: 300.0,
                 align: 20.0,
                 step: 0.05,
-                reference: 300.0,
+                reference: 3000.0,
             },
             insertion_depth: 0.03,
             standoff: 0.02,
@@ -101,6 +105,7 @@ impl Default for ControllerParams {
             approach_angle_tolerance_deg: 1.0,
             goal_tolerance: 0.001,
             goal_angle_tolerance_deg: 0.5,
+            goal_filter_time_constant: 0.3,
             seated: SeatedParams::default(),
             trocar_filter_time_constant: 0.0,
             require_torques: true,
@@ -154,6 +159,7 @@ impl ControllerParams {
         pos("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
         pos("goal_tolerance", self.goal_tolerance)?;
         pos("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
+        nonneg("goal_filter_time_constant", self.goal_filter_time_constant)?;
         self.seated.validate()?;
         nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
         nonneg("retreat_distance", self.retreat_distance)?;

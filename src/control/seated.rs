@@ -121,7 +121,8 @@ impl Seated {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct SeatedCheck {
     held_for: f64,
-    last_tip: Option<Point3<f64>>,
+    /// The tip's last position relative to the axis: depth and lateral offset.
+    last_tip: Option<(f64, Vector3<f64>)>,
 }
 
 impl SeatedCheck {
@@ -142,12 +143,14 @@ impl SeatedCheck {
         s: &TipState,
         dt: f64,
     ) -> Option<Seated> {
+        // Speed relative to the port, which moves with breathing: seated means still in it.
+        let offset_v = axis.lateral_offset(&s.tip);
+        let depth = axis.depth_of(&s.tip);
         let speed = match self.last_tip {
-            Some(last) if dt > 0.0 => (s.tip - last).norm() / dt,
+            Some((d, o)) if dt > 0.0 => ((depth - d).powi(2) + (offset_v - o).norm_squared()).sqrt() / dt,
             _ => f64::INFINITY,
         };
-        self.last_tip = Some(s.tip);
-        let offset_v = axis.lateral_offset(&s.tip);
+        self.last_tip = Some((depth, offset_v));
         let offset = offset_v.norm();
         let angle_deg = axis.alignment_error(&s.optical_axis).to_degrees();
         let lateral_force = if offset > 0.0 {
@@ -156,7 +159,7 @@ impl SeatedCheck {
             0.0
         };
         let ok = p.lateral_tolerance > 0.0
-            && (axis.depth_of(&s.tip) - goal_depth).abs() < depth_tolerance
+            && (depth - goal_depth).abs() < depth_tolerance
             && offset <= p.lateral_tolerance
             && angle_deg <= p.angle_tolerance_deg
             && speed <= p.max_speed
@@ -219,6 +222,37 @@ mod tests {
             "the axial component does not count"
         );
         assert!(s.describe().contains("2.0 mm"), "{}", s.describe());
+    }
+
+    #[test]
+    fn a_tip_still_in_a_breathing_port_is_seated_and_one_sliding_in_it_is_not() {
+        let p = SeatedParams::default();
+        // The port moves 6 mm/s along its axis (breathing), the tip with it: seated.
+        let mut c = SeatedCheck::default();
+        let moving = |k: usize, slide: f64| {
+            let shift = Vector3::z() * (0.006 * 0.01 * k as f64);
+            let axis = InsertionAxis::from_pose(&Isometry3::from_parts(
+                Translation3::from(shift),
+                UnitQuaternion::identity(),
+            ));
+            let mut t = seated_tip(1.0);
+            // `slide`: the tip also wobbles across the axis, 0.5 mm at 2 Hz (6 mm/s).
+            let wobble = slide * (4.0 * std::f64::consts::PI * 0.01 * k as f64).sin();
+            t.tip += shift + Vector3::x() * wobble;
+            (axis, t)
+        };
+        let seated = (0..60).any(|k| {
+            let (a, t) = moving(k, 0.0);
+            c.update(&p, &a, 0.03, 0.001, &t, 0.01).is_some()
+        });
+        assert!(seated, "still relative to the port");
+        // The tip wobbling in the port (while it moves): not seated.
+        let mut c = SeatedCheck::default();
+        let seated = (0..200).any(|k| {
+            let (a, t) = moving(k, 0.0005);
+            c.update(&p, &a, 0.03, 0.001, &t, 0.01).is_some()
+        });
+        assert!(!seated, "sliding in the port");
     }
 
     #[test]

@@ -116,30 +116,15 @@ impl LbrModel {
 /// Errors in the tool parameters.
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum ModelError {
-    /// A tool dimension is not a positive finite length of sane size.
-    #[error("tool {what} must be finite and in ({min}, {max}] m, got {value}")]
-    BadTool {
-        /// Which dimension.
-        what: &'static str,
-        /// The value given.
-        value: f64,
-        /// Lower bound (exclusive).
-        min: f64,
-        /// Upper bound (inclusive).
-        max: f64,
-    },
+    /// A tool dimension (m) is not a positive finite length of sane size.
+    #[error("tool {0}")]
+    BadTool(#[from] crate::validate::RangeError),
 }
 
 fn check_tool(tool: &ToolParams) -> Result<(), ModelError> {
-    let check = |what, value: f64, min, max| {
-        if value.is_finite() && value > min && value <= max {
-            Ok(())
-        } else {
-            Err(ModelError::BadTool { what, value, min, max })
-        }
-    };
-    check("length", tool.length, 0.0, 1.0)?;
-    check("diameter", tool.diameter, 0.0, 0.05)
+    crate::validate::positive_at_most("length", tool.length, 1.0)?;
+    crate::validate::positive_at_most("diameter", tool.diameter, 0.05)?;
+    Ok(())
 }
 
 fn v3(v: [f64; 3]) -> String {
@@ -306,10 +291,13 @@ mod tests {
             (2.0, 0.005),
             (0.25, f64::INFINITY),
         ] {
-            assert!(
-                urdf(LbrModel::Med7, &ToolParams { length: l, diameter: d }).is_err(),
-                "{l} {d}"
-            );
+            let e = urdf(LbrModel::Med7, &ToolParams { length: l, diameter: d }).unwrap_err();
+            let key = if (0.0..=1.0).contains(&l) && l > 0.0 {
+                "`diameter`"
+            } else {
+                "`length`"
+            };
+            assert!(e.to_string().starts_with(&format!("tool {key} = ")), "{l} {d}: {e}");
         }
     }
 

@@ -495,6 +495,18 @@ mod tests {
         let text =
             std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/trocar_estimator.yaml")).unwrap();
         with(&text).unwrap();
+        // The YAML spells the same defaults as the code (topics::*, the joint names).
+        let shipped: EstimatorNodeParams = params::from_yaml_str("t", &text).unwrap();
+        let d = EstimatorNodeParams::default();
+        assert_eq!(shipped.joint_names, d.joint_names);
+        for (a, b) in [
+            (&shipped.image_topic, &d.image_topic),
+            (&shipped.camera_info_topic, &d.camera_info_topic),
+            (&shipped.joint_states_topic, &d.joint_states_topic),
+            (&shipped.trocar_pose_topic, &d.trocar_pose_topic),
+        ] {
+            assert_eq!(a, b);
+        }
     }
 
     #[test]

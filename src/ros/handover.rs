@@ -26,6 +26,22 @@
 //! whatever the handler itself does) and [`OutputSender::push`], allocate nothing and take
 //! no lock. One rare exception is stated where it applies: when a caller gave up on a
 //! request and dropped its ticket, the loop frees that ticket.
+//!
+//! How a control node uses them (a sketch):
+//!
+//! ```text
+//! set-up:   (joints_w, joints_r) = latest(None)            one slot per input, and one
+//!           (fault_w, fault_r) = latest(None::<FaultText>)  fault slot per input
+//!           (client, server) = requests::<Request, Result<String, String>>(8)
+//!           (tx, rx) = outputs::<StepSummary>(64)          StepSummary: Copy, fixed size
+//!           subscriber callback: joints_w.write(Some(stamped)) or fault_w.write(Some(text))
+//!           service callback:    client.call(Request::Start, timeout) -> Trigger reply
+//!           publisher thread:    loop { rx.recv_timeout(..) -> build and send messages }
+//! loop:     read:  joints = joints_r.read(); a new fault = fault_r.read_new()
+//!           serve: server.serve(|r| match r { Start => core.start(), .. })
+//!           step:  out = core.step(..)
+//!           write: tx.push(summary of out)
+//! ```
 
 use std::fmt;
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, Ordering};

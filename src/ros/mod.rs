@@ -2,9 +2,9 @@
 //! estimation maths: each reads and validates its parameters, converts messages, calls the
 //! pure core (`crate::control`, `crate::vision`, `crate::sim`), and publishes.
 //!
-//! - Nodes: [`controller_node`] (`docking_controller`, driving a [`core::DockingCore`],
-//!   [`optimal_core`] the optimal controller's), [`estimator_node`] (`trocar_estimator`),
-//!   [`sim_node`] (`lbr_med_sim`).
+//! - Nodes: [`controller_node`] (`docking_controller`, driving the guarded
+//!   [`crate::control::Controller`]), [`estimator_node`] (`trocar_estimator`), [`sim_node`]
+//!   (`lbr_med_sim`).
 //! - Shared: [`node`] (start-up errors, `main`, throttled logs), [`params`] (parameters from
 //!   the server, checked with [`crate::validate`]), [`topics`] (default topic names),
 //!   [`msgs`] (the generated message types), [`convert`] (messages <-> core types, input

@@ -12,6 +12,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::VisionError;
+use crate::validate;
 
 /// A pose as YAML: translation (m) and quaternion x, y, z, w.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -108,20 +109,11 @@ impl EstimatorParams {
     pub fn validate(&self) -> Result<(), VisionError> {
         self.flange_t_camera.to_isometry()?;
         self.marker_t_trocar.to_isometry()?;
-        let pos = |v: f64, n: &str| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(VisionError::InvalidInput(format!("{n} must be > 0")))
-            }
-        };
-        pos(self.gate_translation_m, "gate_translation_m")?;
-        pos(self.gate_rotation_rad, "gate_rotation_rad")?;
-        pos(self.max_reprojection_error_px, "max_reprojection_error_px")?;
-        pos(self.stale_after_s, "stale_after_s")?;
-        if !(self.time_constant_s.is_finite() && self.time_constant_s >= 0.0) {
-            return Err(VisionError::InvalidInput("time_constant_s must be >= 0".into()));
-        }
+        validate::positive("gate_translation_m", self.gate_translation_m)?;
+        validate::positive("gate_rotation_rad", self.gate_rotation_rad)?;
+        validate::positive("max_reprojection_error_px", self.max_reprojection_error_px)?;
+        validate::positive("stale_after_s", self.stale_after_s)?;
+        validate::non_negative("time_constant_s", self.time_constant_s)?;
         Ok(())
     }
 }

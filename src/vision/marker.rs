@@ -129,12 +129,7 @@ impl Default for MarkerSpec {
 impl MarkerSpec {
     /// Check size and id.
     pub fn validate(&self) -> Result<(), VisionError> {
-        if !(self.size.is_finite() && self.size > 1e-4 && self.size < 10.0) {
-            return Err(VisionError::InvalidInput(format!(
-                "marker size {} m out of range",
-                self.size
-            )));
-        }
+        crate::validate::between("marker size", self.size, 1e-4, 10.0)?;
         if let Some(id) = self.id {
             if id >= self.family.id_count() {
                 return Err(VisionError::InvalidInput(format!(

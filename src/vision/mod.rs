@@ -42,6 +42,12 @@ pub enum VisionError {
     Io(String),
 }
 
+impl From<crate::validate::RangeError> for VisionError {
+    fn from(e: crate::validate::RangeError) -> Self {
+        VisionError::InvalidInput(e.to_string())
+    }
+}
+
 impl From<cxx::Exception> for VisionError {
     fn from(e: cxx::Exception) -> Self {
         VisionError::Backend(e.what().to_string())

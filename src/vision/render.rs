@@ -8,6 +8,7 @@ use rand_distr::{Distribution, Normal};
 
 use super::{rt_from_isometry, CameraModel, GreyImage, MarkerSpec, VisionError};
 use crate::ffi::vision::ffi;
+use crate::validate;
 
 /// Rendering options.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -43,15 +44,9 @@ pub fn render_marker_image(
 ) -> Result<GreyImage, VisionError> {
     spec.validate()?;
     camera.validate()?;
-    if !(opts.plane_scale.is_finite() && (1.25..=100.0).contains(&opts.plane_scale)) {
-        return Err(VisionError::InvalidInput("plane_scale must be in [1.25, 100]".into()));
-    }
-    if !(opts.noise_sigma.is_finite() && (0.0..=100.0).contains(&opts.noise_sigma)) {
-        return Err(VisionError::InvalidInput("noise_sigma must be in [0, 100]".into()));
-    }
-    if !(opts.blur_sigma.is_finite() && (0.0..50.0).contains(&opts.blur_sigma)) {
-        return Err(VisionError::InvalidInput("blur_sigma must be in [0, 50)".into()));
-    }
+    validate::in_range("plane_scale", opts.plane_scale, 1.25, 100.0)?;
+    validate::in_range("noise_sigma", opts.noise_sigma, 0.0, 100.0)?;
+    validate::in_range("blur_sigma", opts.blur_sigma, 0.0, 50.0)?;
     let rt = rt_from_isometry(camera_t_marker);
     if rt.iter().any(|v| !v.is_finite()) {
         return Err(VisionError::InvalidInput("pose must be finite".into()));

@@ -1,0 +1,344 @@
+//! The `docking_controller` node: subscribes the joint states, the driver's LBRState
+//! (external torques) and the trocar pose; runs the guarded [`Controller`] at a fixed rate;
+//! publishes the joint command, `/docking/status`, `/docking/f_ext`, `/docking/markers` and
+//! tf frames of the trocar and the goal; serves `~start`, `~abort` and `~reset`. Every
+//! topic and frame name is a parameter (see [`ControllerNodeParams`]).
+//!
+//! Nothing moves before `~start`. A bad message (wrong joints, NaN, wrong frame, a stamp
+//! that goes back) is dropped with a logged reason and clears that input, so the controller
+//! holds; a driver or camera that stops makes the input stale, and the controller holds.
+//!
+//! **Real time.** The control loop ([`control_loop`]) takes no lock that another thread
+//! holds and allocates nothing per step: the subscribers hand it their inputs through
+//! latest-value slots ([`inputs`]), the services their requests through a lock-free queue
+//! with a reply, and the loop hands each step's record to a publisher thread ([`outputs`]),
+//! which builds and sends the messages. (Under `/use_sim_time` rosrust's simulated clock
+//! is itself a mutex shared with the `/clock` subscriber: that is the simulator's, not the
+//! robot's, where the loop reads the wall clock.)
+
+mod inputs;
+mod outputs;
+
+use std::time::{Duration, Instant};
+
+use crate::control::{Controller, ControllerParams};
+use crate::kinematics::lbr::LbrModel;
+use crate::kinematics::{Kinematics, LbrKinematics, TIP_LINK};
+use crate::ros::convert;
+use crate::ros::handover::{self, OutputSender, RequestClient, RequestServer};
+use crate::ros::markers::MarkerStyle;
+use crate::ros::msgs::std_srvs;
+use crate::ros::node::{ros_err, CommandType, NodeError};
+use crate::ros::params;
+use crate::ros::stats::LoopStats;
+use crate::ros::topics;
+use crate::validate;
+use inputs::InputReaders;
+use outputs::{LoopSnapshot, StepRecord};
+
+/// Parameters of the node (its private namespace; `config/docking_controller.yaml`).
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ControllerNodeParams {
+    /// Control rate, Hz.
+    pub rate_hz: f64,
+    /// Arm model when `urdf_file` is empty.
+    pub model: LbrModel,
+    /// URDF to build the chain `lbr_link_0` -> `endoscope_tip` from ('' = built-in model).
+    pub urdf_file: String,
+    /// Joint names in chain order (as in the joint states and the command).
+    pub joint_names: Vec<String>,
+    /// Robot base frame (the trocar pose must be in it).
+    pub base_frame: String,
+    /// tf frame published for the trocar.
+    pub trocar_frame: String,
+    /// tf frame published for the goal.
+    pub goal_frame: String,
+    /// Joint states in.
+    pub joint_states_topic: String,
+    /// LBRState (external torques) in.
+    pub lbr_state_topic: String,
+    /// Trocar pose in.
+    pub trocar_pose_topic: String,
+    /// Joint command out.
+    pub command_topic: String,
+    /// Message type of the command.
+    pub command_type: CommandType,
+    /// `time_from_start` of the trajectory point, in control periods.
+    pub command_lookahead_periods: f64,
+    /// Status out.
+    pub status_topic: String,
+    /// Force out.
+    pub f_ext_topic: String,
+    /// Markers out.
+    pub markers_topic: String,
+    /// Status rate, Hz (0 = every control step).
+    pub status_rate_hz: f64,
+    /// Markers and tf rate, Hz.
+    pub markers_rate_hz: f64,
+    /// Start docking without a `~start` call (tests, demos).
+    pub autostart: bool,
+    /// Use the external force (admittance); false runs the controller without it.
+    pub force_feedback: bool,
+    /// Latency samples kept for the percentiles.
+    pub latency_samples: usize,
+    /// Run the control loop in the real-time class `SCHED_FIFO` at this priority (1..=99;
+    /// needs CAP_SYS_NICE or an rtprio limit); 0 = normal scheduling. If it cannot be had
+    /// the node warns and runs at normal priority.
+    pub realtime_priority: i32,
+    /// Marker sizes.
+    pub markers: MarkerStyle,
+    /// Parameters of the optimal controller (`config/controller.yaml`, loaded under
+    /// `~controller`); its `dt` is set from `rate_hz` and `force_feedback` from the node's.
+    pub controller: ControllerParams,
+}
+
+impl Default for ControllerNodeParams {
+    fn default() -> Self {
+        Self {
+            rate_hz: 100.0,
+            model: LbrModel::Med7,
+            urdf_file: String::new(),
+            joint_names: crate::kinematics::joint_names(),
+            base_frame: crate::kinematics::BASE_LINK.into(),
+            trocar_frame: "trocar".into(),
+            goal_frame: "docking_goal".into(),
+            joint_states_topic: topics::JOINT_STATES.into(),
+            lbr_state_topic: topics::LBR_STATE.into(),
+            trocar_pose_topic: topics::TROCAR_POSE.into(),
+            command_topic: topics::COMMAND.into(),
+            command_type: CommandType::Trajectory,
+            command_lookahead_periods: 1.0,
+            status_topic: topics::DOCKING_STATUS.into(),
+            f_ext_topic: topics::DOCKING_F_EXT.into(),
+            markers_topic: topics::DOCKING_MARKERS.into(),
+            status_rate_hz: 0.0,
+            markers_rate_hz: 20.0,
+            autostart: false,
+            force_feedback: true,
+            latency_samples: 5000,
+            realtime_priority: 0,
+            markers: MarkerStyle::default(),
+            controller: ControllerParams::default(),
+        }
+    }
+}
+
+impl ControllerNodeParams {
+    /// Check every rate, count and name; the error names the key.
+    pub fn validate(&self) -> Result<(), NodeError> {
+        validate::positive_at_most("rate_hz", self.rate_hz, 5000.0)?;
+        validate::non_negative("status_rate_hz", self.status_rate_hz)?;
+        validate::non_negative("markers_rate_hz", self.markers_rate_hz)?;
+        validate::positive_at_most("command_lookahead_periods", self.command_lookahead_periods, 100.0)?;
+        validate::integer_in_range("realtime_priority", i64::from(self.realtime_priority), 0, 99)?;
+        if self.latency_samples == 0 {
+            return Err(NodeError::Invalid("latency_samples must be >= 1".into()));
+        }
+        if self.joint_names.len() != crate::kinematics::N_JOINTS {
+            return Err(NodeError::Invalid(format!(
+                "joint_names has {} names, expected {}",
+                self.joint_names.len(),
+                crate::kinematics::N_JOINTS
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// A supervision request from a service thread to the loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Request {
+    Start,
+    Abort,
+    Reset,
+}
+
+type Reply = Result<String, String>;
+
+/// How long a service waits for the loop to take its request.
+const SERVICE_TIMEOUT: Duration = Duration::from_secs(1);
+
+/// A `std_srvs/Trigger` service that sends `request` to the loop and returns its reply.
+fn trigger_service(
+    name: &str,
+    client: &RequestClient<Request, Reply>,
+    request: Request,
+) -> Result<rosrust::Service, NodeError> {
+    let client = client.clone();
+    let label = name.to_string();
+    rosrust::service::<std_srvs::Trigger, _>(name, move |_req| {
+        let r = client
+            .call(request, SERVICE_TIMEOUT)
+            .unwrap_or_else(|e| Err(e.to_string()));
+        match &r {
+            Ok(m) => {
+                rosrust::ros_info!("{label}: {m}");
+            }
+            Err(m) => {
+                rosrust::ros_warn!("{label} refused: {m}");
+            }
+        }
+        let (success, message) = match r {
+            Ok(m) => (true, m),
+            Err(m) => (false, m),
+        };
+        Ok(std_srvs::TriggerRes { success, message })
+    })
+    .map_err(ros_err)
+}
+
+/// The loop's own state besides the controller.
+struct LoopState {
+    stats: LoopStats,
+    start_time: Option<f64>,
+    last_now: f64,
+    last_latency_stamp: f64,
+    last_status: f64,
+    last_markers: f64,
+    status_period: f64,
+    markers_period: f64,
+}
+
+impl LoopState {
+    fn new(p: &ControllerNodeParams) -> Self {
+        let period = |hz: f64, never: f64| if hz > 0.0 { 1.0 / hz } else { never };
+        Self {
+            stats: LoopStats::new(1.0, p.latency_samples).with_nominal_period(Duration::from_secs_f64(1.0 / p.rate_hz)),
+            start_time: None,
+            last_now: f64::NEG_INFINITY,
+            last_latency_stamp: f64::NEG_INFINITY,
+            last_status: f64::NEG_INFINITY,
+            last_markers: f64::NEG_INFINITY,
+            status_period: period(p.status_rate_hz, 0.0),
+            markers_period: period(p.markers_rate_hz, f64::INFINITY),
+        }
+    }
+
+    /// Carry out a supervision request at `now`.
+    fn handle(&mut self, controller: &mut Controller, request: Request, now: f64) -> Reply {
+        match request {
+            Request::Start => {
+                controller.start()?;
+                self.start_time = Some(now);
+                self.stats.clear();
+                Ok("docking started".into())
+            }
+            Request::Abort => {
+                controller.abort("operator abort (~abort)");
+                Ok("aborted: holding".into())
+            }
+            Request::Reset => {
+                controller.reset();
+                self.start_time = None;
+                Ok("reset to IDLE".into())
+            }
+        }
+    }
+}
+
+/// The control loop: read, step, write, until shutdown.
+fn control_loop(
+    p: &ControllerNodeParams,
+    kin: &dyn Kinematics,
+    mut controller: Controller,
+    mut inputs: InputReaders,
+    requests: &RequestServer<Request, Reply>,
+    records: &OutputSender<StepRecord>,
+) {
+    let rate = rosrust::rate(p.rate_hz);
+    let mut st = LoopState::new(p);
+    while rosrust::is_ok() {
+        let started = Instant::now();
+        let stamp = rosrust::now();
+        let now = convert::seconds(stamp);
+        st.stats.step_started(started);
+        requests.serve(|r| st.handle(&mut controller, r, now));
+        if now < st.last_now {
+            // Time went back (a bag looped, the simulator restarted): stamp orders afresh.
+            inputs.clock_went_back();
+            st.last_latency_stamp = f64::NEG_INFINITY;
+        }
+        st.last_now = now;
+        let (input, fault) = inputs.read(now);
+        let out = controller.step(kin, &input);
+        st.stats.tick(now);
+        if let (Some(_), Some(t)) = (&out.command, &input.trocar) {
+            if t.stamp > st.last_latency_stamp {
+                st.last_latency_stamp = t.stamp;
+                st.stats.latency((convert::seconds(rosrust::now()) - t.stamp) * 1e3);
+            }
+        }
+        let status = (now - st.last_status >= st.status_period).then(|| {
+            st.last_status = now;
+            LoopSnapshot {
+                steps: st.stats.steps(),
+                rate_hz: st.stats.rate_hz(),
+                latency: st.stats.percentiles(),
+            }
+        });
+        let markers = now - st.last_markers >= st.markers_period;
+        if markers {
+            st.last_markers = now;
+        }
+        let age = |s: Option<f64>| s.map_or(f64::INFINITY, |s| (now - s) * 1e3);
+        records.push(StepRecord {
+            stamp,
+            trocar: input.trocar.map(|t| t.value),
+            ages_ms: (age(input.trocar.map(|t| t.stamp)), age(input.joints.map(|j| j.stamp))),
+            elapsed: st.start_time.map_or(0.0, |t0| now - t0),
+            fault,
+            status,
+            markers,
+            out,
+        });
+        st.stats.step_finished(Instant::now());
+        rate.sleep();
+    }
+}
+
+/// Run the node until shutdown. Call after `rosrust::init`.
+pub fn run() -> Result<(), NodeError> {
+    let p: ControllerNodeParams = params::load_private()?;
+    p.validate()?;
+    let kin = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, TIP_LINK)?;
+    let mut cp = p.controller.clone();
+    cp.dt = 1.0 / p.rate_hz;
+    cp.force_feedback = p.force_feedback;
+    let mut controller =
+        Controller::new(cp, kin.limits().clone()).map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
+    let (inputs, _subs) = inputs::subscribe(&p)?;
+    let (client, server) = handover::requests::<Request, Reply>(8);
+    let _services = [
+        trigger_service("~start", &client, Request::Start)?,
+        trigger_service("~abort", &client, Request::Abort)?,
+        trigger_service("~reset", &client, Request::Reset)?,
+    ];
+    let (records, receiver) = handover::outputs::<StepRecord>(64);
+    let publisher = outputs::spawn_publisher(&p, receiver)?;
+    if p.autostart {
+        controller
+            .start()
+            .map_err(|e| NodeError::Invalid(format!("autostart: {e}")))?;
+    }
+    rosrust::ros_info!(
+        "docking_controller: {} Hz, command {:?} on {}, waiting for ~start",
+        p.rate_hz,
+        p.command_type,
+        p.command_topic
+    );
+    if p.realtime_priority != 0 {
+        match crate::realtime::set_realtime_priority(p.realtime_priority) {
+            Ok(()) => {
+                rosrust::ros_info!("control loop runs at SCHED_FIFO {}", p.realtime_priority);
+            }
+            Err(e) => {
+                rosrust::ros_warn!("control loop at normal priority: {e}");
+            }
+        }
+    }
+    control_loop(&p, &kin, controller, inputs, &server, &records);
+    drop(records);
+    let _ = publisher.join();
+    Ok(())
+}

@@ -1,0 +1,256 @@
+//! The controller node's outputs, published off the control loop: the loop pushes one
+//! [`StepRecord`] per step into a lock-free queue ([`crate::ros::handover::outputs`]) and
+//! a publisher thread turns it into messages (rosrust's publish serialises and allocates):
+//! the joint command every step, `/docking/status` and `/docking/f_ext` at the status rate,
+//! markers and tf at the markers rate.
+
+use std::time::Duration;
+
+use nalgebra::{Isometry3, Point3};
+
+use super::ControllerNodeParams;
+use crate::control::ControlOutput;
+use crate::kinematics::JointVector;
+use crate::ros::convert;
+use crate::ros::handover::{FaultText, OutputReceiver, RecvError};
+use crate::ros::markers::{self, Scene};
+use crate::ros::msgs::{geometry_msgs, std_msgs, tf2_msgs, trajectory_msgs, trocar_docking, visualization_msgs};
+use crate::ros::node::{ros_err, CommandType, NodeError};
+use crate::ros::stats::Percentiles;
+
+/// What the loop hands the publisher after a step.
+#[derive(Debug, Clone)]
+pub struct StepRecord {
+    /// The step's time.
+    pub stamp: rosrust::Time,
+    /// The controller's output.
+    pub out: ControlOutput,
+    /// The trocar pose the step used.
+    pub trocar: Option<Isometry3<f64>>,
+    /// The first input fault at this step.
+    pub fault: Option<FaultText>,
+    /// Seconds since start.
+    pub elapsed: f64,
+    /// Ages of the trocar pose and the joint state, ms.
+    pub ages_ms: (f64, f64),
+    /// Loop statistics when the status is due this step (`None`: not due).
+    pub status: Option<LoopSnapshot>,
+    /// Whether markers and tf are due this step.
+    pub markers: bool,
+}
+
+/// The loop statistics a status carries.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct LoopSnapshot {
+    /// Control steps since start.
+    pub steps: u64,
+    /// Measured loop rate, Hz.
+    pub rate_hz: f64,
+    /// Trocar measurement -> command latency, ms.
+    pub latency: Percentiles,
+}
+
+/// Publishers of the node.
+struct Outputs {
+    trajectory: Option<rosrust::Publisher<trajectory_msgs::JointTrajectory>>,
+    multiarray: Option<rosrust::Publisher<std_msgs::Float64MultiArray>>,
+    status: rosrust::Publisher<trocar_docking::DockingStatus>,
+    f_ext: rosrust::Publisher<geometry_msgs::WrenchStamped>,
+    markers: rosrust::Publisher<visualization_msgs::MarkerArray>,
+    tf: rosrust::Publisher<tf2_msgs::TFMessage>,
+}
+
+impl Outputs {
+    fn new(p: &ControllerNodeParams) -> Result<Self, NodeError> {
+        let (trajectory, multiarray) = match p.command_type {
+            CommandType::Trajectory => (Some(rosrust::publish(&p.command_topic, 1).map_err(ros_err)?), None),
+            CommandType::Float64MultiArray => (None, Some(rosrust::publish(&p.command_topic, 1).map_err(ros_err)?)),
+        };
+        Ok(Self {
+            trajectory,
+            multiarray,
+            status: rosrust::publish(&p.status_topic, 10).map_err(ros_err)?,
+            f_ext: rosrust::publish(&p.f_ext_topic, 10).map_err(ros_err)?,
+            markers: rosrust::publish(&p.markers_topic, 2).map_err(ros_err)?,
+            tf: rosrust::publish(crate::ros::topics::TF, 10).map_err(ros_err)?,
+        })
+    }
+
+    fn command(&self, p: &ControllerNodeParams, stamp: rosrust::Time, q: &JointVector) {
+        let r = match (&self.trajectory, &self.multiarray) {
+            (Some(t), _) => t.send(convert::trajectory_command(
+                stamp,
+                &p.joint_names,
+                q,
+                p.command_lookahead_periods / p.rate_hz,
+            )),
+            (_, Some(m)) => m.send(convert::multiarray_command(q)),
+            _ => Ok(()),
+        };
+        if let Err(e) = r {
+            rosrust::ros_err!("cannot publish the command: {e}");
+        }
+    }
+
+    fn publish(&self, p: &ControllerNodeParams, r: &StepRecord) {
+        if let Some(q) = &r.out.command {
+            self.command(p, r.stamp, q);
+        }
+        if let Some(snapshot) = &r.status {
+            let _ = self.status.send(status_msg(&p.base_frame, r, snapshot));
+            let _ = self.f_ext.send(geometry_msgs::WrenchStamped {
+                header: convert::header(r.stamp, &p.base_frame),
+                wrench: geometry_msgs::Wrench {
+                    force: convert::vector_msg(&r.out.f_ext),
+                    torque: geometry_msgs::Vector3::default(),
+                },
+            });
+        }
+        if r.markers {
+            self.scene(p, r);
+        }
+    }
+
+    fn scene(&self, p: &ControllerNodeParams, r: &StepRecord) {
+        let out = &r.out;
+        let scene = Scene {
+            trocar: r.trocar,
+            goal: out.goal,
+            tip: out.tip,
+            f_ext: out.f_ext,
+            reference: out.reference,
+        };
+        let _ = self
+            .markers
+            .send(markers::docking_markers(r.stamp, &p.base_frame, &scene, &p.markers));
+        if let (Some(t), Some(g)) = (&r.trocar, out.goal) {
+            let goal = Isometry3::from_parts(g.coords.into(), t.rotation);
+            let _ = self.tf.send(tf2_msgs::TFMessage {
+                transforms: vec![
+                    convert::transform_stamped(r.stamp, &p.base_frame, &p.trocar_frame, t),
+                    convert::transform_stamped(r.stamp, &p.base_frame, &p.goal_frame, &goal),
+                ],
+            });
+        }
+    }
+}
+
+/// Tip distance to the insertion axis of `trocar` (m).
+fn distance_to_axis(tip: &Isometry3<f64>, trocar: &Isometry3<f64>) -> f64 {
+    let local = trocar.inverse_transform_point(&Point3::from(tip.translation.vector));
+    local.x.hypot(local.y)
+}
+
+/// The hold reason text and code of a step: the controller's, with an input fault (a
+/// message the node dropped) as the cause when there is one.
+fn hold_text_and_code(out: &ControlOutput, fault: Option<&FaultText>) -> (String, &'static str) {
+    match (fault.map(FaultText::as_str), out.reason_text()) {
+        (Some(f), Some(r)) if !r.contains(f) => (format!("{r}; input: {f}"), "INPUT_REJECTED"),
+        (Some(_), Some(r)) => (r, "INPUT_REJECTED"),
+        (Some(f), None) => (f.to_string(), "INPUT_REJECTED"),
+        (None, Some(r)) => (r, out.reason_code()),
+        (None, None) => (String::new(), ""),
+    }
+}
+
+/// Fill a DockingStatus from a step record.
+fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::DockingStatus {
+    let out = &r.out;
+    let (hold_reason, hold_code) = hold_text_and_code(out, r.fault.as_ref());
+    let costs = out.solve.as_ref().map_or([f64::NAN; 5], |s| s.costs);
+    let tip_point = out.tip.map(|t| Point3::from(t.translation.vector));
+    trocar_docking::DockingStatus {
+        header: convert::header(r.stamp, frame),
+        phase: out.phase.to_string(),
+        hold_reason,
+        hold_code: hold_code.to_string(),
+        cost_axis: costs[0],
+        cost_goal: costs[1],
+        cost_alignment: costs[2],
+        cost_joint_step: costs[3],
+        cost_admittance: costs[4],
+        iterations: out
+            .solve
+            .as_ref()
+            .map_or(0, |s| u32::try_from(s.iterations).unwrap_or(u32::MAX)),
+        solve_time_us: out.solve.as_ref().map_or(0.0, |s| s.solve_time_us),
+        solver_status: out
+            .solve
+            .as_ref()
+            .map_or_else(|| "not_run".to_string(), |s| s.status.as_text()),
+        f_ext: convert::vector_msg(&out.f_ext),
+        f_ext_norm: out.f_ext.norm(),
+        metric_m: out.metric_m,
+        metric_m_paper_scale: crate::control::metrics::PAPER_CODE_SCALE * out.metric_m,
+        elapsed: r.elapsed,
+        tip_to_goal: match (tip_point, out.goal) {
+            (Some(t), Some(g)) => (t - g).norm(),
+            _ => f64::NAN,
+        },
+        tip_to_axis: match (&out.tip, &r.trocar) {
+            (Some(tip), Some(t)) => distance_to_axis(tip, t),
+            _ => f64::NAN,
+        },
+        steps: s.steps,
+        loop_rate_hz: s.rate_hz,
+        latency_p50_ms: s.latency.p50,
+        latency_p99_ms: s.latency.p99,
+        latency_max_ms: s.latency.max,
+        trocar_age_ms: r.ages_ms.0,
+        joints_age_ms: r.ages_ms.1,
+    }
+}
+
+/// Start the publisher thread: it publishes every record until the loop closes the queue.
+pub fn spawn_publisher(
+    p: &ControllerNodeParams,
+    records: OutputReceiver<StepRecord>,
+) -> Result<std::thread::JoinHandle<()>, NodeError> {
+    let outputs = Outputs::new(p)?;
+    let p = p.clone();
+    std::thread::Builder::new()
+        .name("docking_publisher".into())
+        .spawn(move || loop {
+            match records.recv_timeout(Duration::from_millis(200)) {
+                Ok(r) => outputs.publish(&p, &r),
+                Err(RecvError::Timeout) => {}
+                Err(RecvError::Closed) => break,
+            }
+        })
+        .map_err(|e| NodeError::Invalid(format!("cannot start the publisher thread: {e}")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::control::{HoldReason, Phase};
+
+    fn out(hold: Option<HoldReason>) -> ControlOutput {
+        ControlOutput {
+            command: None,
+            phase: Phase::Hold,
+            hold,
+            note: None,
+            solve: None,
+            f_ext: nalgebra::Vector3::zeros(),
+            reference: None,
+            tip: None,
+            goal: None,
+            metric_m: 0.0,
+        }
+    }
+
+    #[test]
+    fn an_input_fault_is_the_code_and_joins_the_text() {
+        let o = out(Some(HoldReason::NoTrocarPose));
+        let f = FaultText::new("/trocar/pose: frame 'camera' is not 'lbr_link_0'");
+        let (text, code) = hold_text_and_code(&o, Some(&f));
+        assert_eq!(code, "INPUT_REJECTED");
+        assert!(
+            text.contains("no trocar pose") && text.contains("frame 'camera'"),
+            "{text}"
+        );
+        assert_eq!(hold_text_and_code(&o, None).1, "NO_TROCAR_POSE");
+        assert_eq!(hold_text_and_code(&out(None), None), (String::new(), ""));
+    }
+}
