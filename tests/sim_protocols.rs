@@ -74,10 +74,14 @@ fn realistic_pose_sensor_has_the_camera_rate_latency_and_a_bias() {
     assert!(periods.len() >= 25, "{} poses in 2 s", stamps.len());
     let mean = periods.iter().sum::<f64>() / periods.len() as f64;
     assert!((mean - 1.0 / 15.0).abs() < 2e-3, "period {mean}");
-    // The per-trial hand-eye bias: a constant offset of up to 2 mm, well above the 0.3 mm
-    // noise and the breathing's motion over 40 ms.
+    // The per-trial hand-eye bias: up to 2 mm plus 1 deg seen from the camera, ~0.35 m
+    // from the port here; well above the 0.3 mm noise and the breathing's motion over 40 ms.
     let bias = sum / count as f64;
-    assert!(bias.norm() > 1e-4 && bias.norm() < 0.0025, "bias {}", bias.norm());
+    assert!(
+        bias.norm() > 1e-4 && bias.norm() < 0.002 + 0.0175 * 0.45,
+        "bias {}",
+        bias.norm()
+    );
 }
 
 #[test]
@@ -120,6 +124,9 @@ fn realistic_seal_resists_insertion_with_the_measured_friction() {
     assert!((1.5..2.6).contains(&mean), "mean axial resistance {mean} N");
     let peak = axial.iter().cloned().fold(0.0, f64::max);
     assert!(peak < 4.0, "peak {peak} N (seal plus bore contact), mean {mean} N");
+    // The lip held the shaft until it broke away, then slid (at a steady 20 mm/s through
+    // the damped wall it need not stick again).
+    assert!(w.seal().breakaways() >= 1 && !w.seal().stuck());
 }
 
 #[test]

@@ -317,13 +317,13 @@ fn write_table(path: &Path, r: &[ArmReport]) -> CliResult {
     let mut table = std::io::BufWriter::new(std::fs::File::create(path)?);
     writeln!(
         table,
-        "arm,seed,outcome,final_phase,time_s,m_est_n,m_paper_code_scale,m_true_n,m_lateral_true_n,max_f_est_n,max_f_true_n,reason"
+        "arm,seed,outcome,final_phase,time_s,m_est_n,m_paper_code_scale,m_true_n,m_lateral_true_n,max_f_est_n,max_f_true_n,seal_breakaways,reason"
     )?;
     for arm in r {
         for t in &arm.trials {
             writeln!(
                 table,
-                "{},{},{},{},{:.4},{:.5},{:.5},{:.5},{:.5},{:.4},{:.4},\"{}\"",
+                "{},{},{},{},{:.4},{:.5},{:.5},{:.5},{:.5},{:.4},{:.4},{},\"{}\"",
                 arm.summary.label,
                 t.seed,
                 t.outcome.name(),
@@ -335,6 +335,7 @@ fn write_table(path: &Path, r: &[ArmReport]) -> CliResult {
                 t.m_lateral_true,
                 t.max_f_est,
                 t.max_f_true,
+                t.seal_breakaways,
                 t.reason.replace('"', "'")
             )?;
         }

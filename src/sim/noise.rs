@@ -7,10 +7,15 @@
 //!   exp(N(0, s_r^2 I3));
 //! - `none`: the true pose.
 //!
-//! On top of the noise, an optional per-trial constant calibration bias (the hand-eye and
+//! On top of the noise, an optional per-trial constant calibration bias E (the hand-eye and
 //! marker calibration errors of a real setup): a position offset of length U(0, c) in a
-//! random direction and a rotation of U(0, c_r) about a random axis, drawn once per trial,
-//! in the port frame.
+//! random direction and a rotation of U(0, c_r) about a random axis, drawn once per trial.
+//! `bias_frame: port` applies it in the port frame (T E: the same offset whatever the arm
+//! does); `bias_frame: camera` applies it as a hand-eye error does, in the camera frame C
+//! (C E C^-1 T, with C the tip pose moved by `camera_in_tip_m`): the estimator maps the
+//! marker through a camera pose that is off by E, so a rotation error of theta moves the
+//! estimated port by about theta times the camera-to-port distance, and the error changes
+//! as the arm moves.
 
 use std::collections::VecDeque;
 
@@ -43,6 +48,17 @@ impl std::fmt::Display for NoiseModel {
     }
 }
 
+/// Where the calibration bias acts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum BiasFrame {
+    /// In the port frame: a constant offset of the trocar pose.
+    #[default]
+    Port,
+    /// In the camera frame: a hand-eye error, seen through the arm's pose.
+    Camera,
+}
+
 /// Parameters of the trocar pose measurement.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -65,6 +81,11 @@ pub struct MeasurementParams {
     pub bias_position_m: f64,
     /// Calibration bias: largest rotation, rad (0: none).
     pub bias_rotation_rad: f64,
+    /// The frame the calibration bias acts in.
+    pub bias_frame: BiasFrame,
+    /// With `bias_frame: camera`: the camera's position in the tip frame, m (its axes are
+    /// taken as the tip's).
+    pub camera_in_tip_m: [f64; 3],
 }
 
 impl Default for MeasurementParams {
@@ -79,6 +100,8 @@ impl Default for MeasurementParams {
             gaussian_rotation_rad: 0.006,
             bias_position_m: 0.002,
             bias_rotation_rad: 0.026,
+            bias_frame: BiasFrame::Port,
+            camera_in_tip_m: [0.0, 0.07, -0.21],
         }
     }
 }
@@ -98,7 +121,11 @@ impl MeasurementParams {
             1.0,
         )?;
         check_range("measurement.bias_position_m", self.bias_position_m, 0.0, 0.1)?;
-        check_range("measurement.bias_rotation_rad", self.bias_rotation_rad, 0.0, 0.5)
+        check_range("measurement.bias_rotation_rad", self.bias_rotation_rad, 0.0, 0.5)?;
+        for c in self.camera_in_tip_m {
+            check_range("measurement.camera_in_tip_m", c, -2.0, 2.0)?;
+        }
+        Ok(())
     }
 
     /// Draw the per-trial calibration bias (identity when both ranges are zero).
@@ -180,14 +207,25 @@ impl TrocarSensor {
         })
     }
 
-    /// Advance to time `t`: capture `true_pose` if a capture is due, deliver what is ready.
-    pub fn update(&mut self, t: f64, true_pose: &Isometry3<f64>, rng: &mut impl rand::Rng) {
+    /// The calibrated pose the sensor sees of `true_pose` with the tool tip at `tip`.
+    fn biased(&self, true_pose: &Isometry3<f64>, tip: &Isometry3<f64>) -> Isometry3<f64> {
+        match self.params.bias_frame {
+            BiasFrame::Port => true_pose * self.bias,
+            BiasFrame::Camera => {
+                let [x, y, z] = self.params.camera_in_tip_m;
+                let camera = tip * Translation3::new(x, y, z);
+                camera * self.bias * camera.inverse() * true_pose
+            }
+        }
+    }
+
+    /// Advance to time `t`: capture `true_pose` if a capture is due (the tool tip at `tip`),
+    /// deliver what is ready.
+    pub fn update(&mut self, t: f64, true_pose: &Isometry3<f64>, tip: &Isometry3<f64>, rng: &mut impl rand::Rng) {
         let period = 1.0 / self.params.rate_hz;
         if t + 1e-9 >= self.next_capture {
-            self.pending.push_back(TrocarMeasurement {
-                stamp: t,
-                pose: perturb(&self.params, &(true_pose * self.bias), rng),
-            });
+            let pose = perturb(&self.params, &self.biased(true_pose, tip), rng);
+            self.pending.push_back(TrocarMeasurement { stamp: t, pose });
             // Stay on the capture grid; skip captures missed by a coarse caller.
             while self.next_capture <= t + 1e-9 {
                 self.next_capture += period;
@@ -261,14 +299,49 @@ mod tests {
             ..Default::default()
         };
         let mut s = TrocarSensor::new(&p, &mut rng).unwrap();
-        s.update(0.0, &pose(), &mut rng);
+        s.update(0.0, &pose(), &Isometry3::identity(), &mut rng);
         let a = s.latest(0.0).unwrap().pose;
-        s.update(0.5, &pose(), &mut rng);
+        s.update(0.5, &pose(), &Isometry3::identity(), &mut rng);
         let b = s.latest(0.5).unwrap().pose;
         assert_eq!(a, b);
         let d = pose().inverse() * a;
         assert!(d.translation.vector.amax() <= 0.003 && d.translation.vector.norm() > 0.0);
         assert!(d.rotation.angle() <= 0.02 + 1e-12);
+    }
+
+    #[test]
+    fn a_hand_eye_rotation_error_grows_with_the_camera_distance() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let p = MeasurementParams {
+            model: NoiseModel::None,
+            bias_position_m: 0.0,
+            bias_rotation_rad: 0.0175,
+            bias_frame: BiasFrame::Camera,
+            camera_in_tip_m: [0.0, 0.0, 0.0],
+            ..Default::default()
+        };
+        let s = TrocarSensor::new(&p, &mut rng).unwrap();
+        let angle = s.bias.rotation.angle();
+        assert!(angle > 0.0);
+        // The port 0.1 m and 0.3 m in front of the camera: the error scales with the
+        // distance (up to theta d, less the part along the rotation axis).
+        let at = |d: f64| {
+            let tip = pose() * Translation3::new(0.0, 0.0, -d);
+            (s.biased(&pose(), &tip).translation.vector - pose().translation.vector).norm()
+        };
+        let (near, far) = (at(0.1), at(0.3));
+        assert!(
+            far <= angle * 0.3 + 1e-12 && (far / near - 3.0).abs() < 1e-6,
+            "{near} {far}"
+        );
+        // In the port frame it does not depend on the arm.
+        let q = MeasurementParams {
+            bias_frame: BiasFrame::Port,
+            ..p
+        };
+        let s = TrocarSensor::new(&q, &mut rng).unwrap();
+        let tip = pose() * Translation3::new(0.0, 0.0, -0.3);
+        assert_eq!(s.biased(&pose(), &tip), s.biased(&pose(), &Isometry3::identity()));
     }
 
     #[test]
@@ -286,7 +359,7 @@ mod tests {
         let mut stamps = vec![];
         for k in 0..=100 {
             let t = k as f64 * 1e-3;
-            s.update(t, &pose(), &mut rng);
+            s.update(t, &pose(), &Isometry3::identity(), &mut rng);
             if let Some(m) = s.latest(t) {
                 assert!(t - m.stamp >= 0.03 - 1e-9 && t - m.stamp < 0.03 + 0.02 + 1e-9);
                 if stamps.last() != Some(&m.stamp) {

@@ -83,6 +83,7 @@ pub struct Seal {
     z: f64,
     stuck: bool,
     force: f64,
+    breakaways: u32,
 }
 
 impl Seal {
@@ -94,6 +95,7 @@ impl Seal {
             z: 0.0,
             stuck: true,
             force: 0.0,
+            breakaways: 0,
         })
     }
 
@@ -106,6 +108,7 @@ impl Seal {
             self.z += v * h;
             if (k * self.z).abs() > p.static_friction_n {
                 self.stuck = false;
+                self.breakaways += 1;
             }
         }
         let f = if self.stuck {
@@ -132,6 +135,11 @@ impl Seal {
     /// True while the lip sticks to the shaft.
     pub fn stuck(&self) -> bool {
         self.stuck
+    }
+
+    /// How many times the lip broke away (stick to slip) so far.
+    pub fn breakaways(&self) -> u32 {
+        self.breakaways
     }
 
     /// The last axial force on the trocar, N.

@@ -116,7 +116,7 @@ impl SimWorld {
     fn primed(mut self) -> Self {
         self.trocar.set_anchor_offset(&self.breathing.offset(0.0));
         let pose = self.trocar.pose();
-        self.sensor.update(0.0, &pose, &mut self.rng_meas);
+        self.sensor.update(0.0, &pose, &self.tip, &mut self.rng_meas);
         self.tau_meas = self
             .torque
             .measure(&JointVector::zeros(), &self.tip, &self.jac, &mut self.rng_torque);
@@ -138,6 +138,10 @@ impl SimWorld {
     /// This trial's breathing (frequency, phase, amplitude).
     pub fn breathing(&self) -> &Breathing {
         &self.breathing
+    }
+    /// The cannula's seal (stick or slip, its force).
+    pub fn seal(&self) -> &Seal {
+        &self.seal
     }
     /// The torque sensor (its bias and model error).
     pub fn torque_sensor(&self) -> &TorqueSensor {
@@ -213,7 +217,7 @@ impl SimWorld {
         let tau_true = self.tau_of(&last);
         self.tau_meas = self.torque.measure(&tau_true, &self.tip, &jac, &mut self.rng_torque);
         let pose = self.trocar.pose();
-        self.sensor.update(self.t, &pose, &mut self.rng_meas);
+        self.sensor.update(self.t, &pose, &self.tip, &mut self.rng_meas);
         Ok(())
     }
 

@@ -88,6 +88,9 @@ pub struct ArmSummary {
     pub max_force_true_n: f64,
     /// Largest estimated force over every trial, N.
     pub max_force_est_n: f64,
+    /// Breakaways of the cannula's seal per trial (every trial): how often it stuck and
+    /// then slipped.
+    pub seal_breakaways: Stats,
     /// Failed trials by reason: the outcome, the policy's phase and hold code at the end,
     /// e.g. `timeout in HOLD (APPROACH_STALL)`.
     pub failures: BTreeMap<String, usize>,
@@ -124,6 +127,7 @@ impl ArmSummary {
             time_s: Stats::of(ok.iter().map(|x| x.time_s)),
             max_force_true_n: r.iter().map(|x| x.max_f_true).fold(0.0, f64::max),
             max_force_est_n: r.iter().map(|x| x.max_f_est).fold(0.0, f64::max),
+            seal_breakaways: Stats::of(r.iter().map(|x| f64::from(x.seal_breakaways))),
             failures,
         }
     }
@@ -191,6 +195,7 @@ fn one(
         max_f_true: 0.0,
         final_phase: "",
         final_hold: "",
+        seal_breakaways: 0,
         samples: vec![],
     };
     let kin = match kin() {
@@ -235,6 +240,7 @@ mod tests {
             max_f_true: 4.0 * m,
             final_phase: phase,
             final_hold: if phase == "HOLD" { "FORCE_LIMIT" } else { "" },
+            seal_breakaways: 0,
             samples: vec![],
         }
     }

@@ -205,6 +205,7 @@ mod tests {
         assert_eq!(real.sim.trocar.port_diameter_m, 0.0055);
         assert!(real.sim.seal.static_friction_n > real.sim.seal.kinetic_friction_n);
         assert!(real.sim.breathing.amplitude_axial_m > 0.0);
+        assert_eq!(real.sim.measurement.bias_frame, crate::sim::noise::BiasFrame::Camera);
         assert!(SimConfig::from_yaml_str("trial: {timeout_s: -1}").is_err());
     }
 

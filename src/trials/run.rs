@@ -171,6 +171,8 @@ pub struct TrialResult {
     pub final_phase: &'static str,
     /// The policy's hold code when the trial ended ('' when it did not hold).
     pub final_hold: &'static str,
+    /// How many times the cannula's seal broke away (stick to slip) in the trial.
+    pub seal_breakaways: u32,
     /// Time series at the control rate.
     #[serde(skip)]
     pub samples: Vec<Sample>,
@@ -203,6 +205,7 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
         max_f_true: m.max_f_true,
         final_phase: samples.last().map_or("", |x| x.phase),
         final_hold: samples.last().map_or("", |x| x.hold),
+        seal_breakaways: world.seal().breakaways(),
         samples,
     }
 }
