@@ -11,6 +11,7 @@
 //! - [`sim`]: the simulated plant (pure Rust); [`trials`]: the paper's experiment on it.
 //! - [`ros`]: the ROS 1 nodes (rosrust): parameters, message conversions, wiring.
 //! - [`cli`], [`bench`](mod@bench): the offline `trocar_docking` command and its benchmark suites.
+//! - [`signal`]: the dead-band shared by the controller and the simulated sensors.
 //! - [`realtime`]: the SCHED_FIFO class and the thread CPU clock for the real-time loops.
 //! - [`validate`]: range checks of configuration values, one style for nodes and CLI.
 //! - `ffi` (crate-private): the cxx bridges to KDL, ViSP and OpenCV.
@@ -23,6 +24,7 @@ mod ffi;
 pub mod kinematics;
 pub mod realtime;
 pub mod ros;
+pub mod signal;
 pub mod sim;
 #[cfg(test)]
 mod test_alloc;

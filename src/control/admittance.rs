@@ -99,16 +99,7 @@ impl AdmittanceParams {
     }
 }
 
-/// Dead-band: values within ±`band` become 0, others shrink towards 0 by `band`.
-pub fn deadband(x: f64, band: f64) -> f64 {
-    if x > band {
-        x - band
-    } else if x < -band {
-        x + band
-    } else {
-        0.0
-    }
-}
+pub use crate::signal::deadband;
 
 /// f = (J J^T + λ² I)^{-1} J tau for the linear rows of `jac`; `None` when the inputs are
 /// not finite.

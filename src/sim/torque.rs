@@ -78,7 +78,7 @@ impl TorqueSensorParams {
 }
 
 /// Symmetric dead-band: zero inside `[-band, band]`, shifted toward zero outside.
-pub use crate::control::admittance::deadband;
+pub use crate::signal::deadband;
 
 /// A torque sensor with its per-trial bias drawn.
 #[derive(Debug, Clone)]
