@@ -106,6 +106,23 @@ pub struct ControlOutput {
 }
 
 impl ControlOutput {
+    /// An output in `phase` that commands nothing and knows nothing else (no force, no
+    /// tip, no solve), for sources that fill in only what they have.
+    pub fn empty(phase: Phase) -> Self {
+        Self {
+            command: None,
+            phase,
+            hold: None,
+            note: None,
+            solve: None,
+            f_ext: Vector3::zeros(),
+            reference: None,
+            tip: None,
+            goal: None,
+            metric_m: 0.0,
+        }
+    }
+
     /// The text for the surgeon: the hold reason, or how DONE was reached.
     pub fn reason_text(&self) -> Option<String> {
         match (&self.hold, &self.note) {

@@ -168,15 +168,7 @@ mod tests {
             self.last = Some(self.propose);
             ControlOutput {
                 command: Some(self.propose),
-                phase: self.phase,
-                hold: None,
-                note: None,
-                solve: None,
-                f_ext: nalgebra::Vector3::zeros(),
-                reference: None,
-                tip: None,
-                goal: None,
-                metric_m: 0.0,
+                ..ControlOutput::empty(self.phase)
             }
         }
         fn reject(&mut self, reason: HoldReason, hold_at: JointVector) {

@@ -227,16 +227,8 @@ mod tests {
 
     fn out(hold: Option<HoldReason>) -> ControlOutput {
         ControlOutput {
-            command: None,
-            phase: Phase::Hold,
             hold,
-            note: None,
-            solve: None,
-            f_ext: nalgebra::Vector3::zeros(),
-            reference: None,
-            tip: None,
-            goal: None,
-            metric_m: 0.0,
+            ..ControlOutput::empty(Phase::Hold)
         }
     }
 
