@@ -55,7 +55,7 @@ impl Default for AdmittanceParams {
             force_deadband: 0.2,
             mass: 0.5,
             damping: 60.0,
-            stiffness: 300.0,
+            stiffness: 100.0,
             max_displacement: 0.02,
             axial_force_full_stop: 5.0,
             min_insert_speed_ratio: 0.25,

@@ -523,9 +523,7 @@ impl OptimalController {
                         optical_axis,
                         force: f,
                     };
-                    let seated = r
-                        .seated
-                        .update(&p.seated, axis, p.insertion_depth, p.goal_tolerance, &state, dt);
+                    let seated = r.seated.update(&p.seated, axis, p.insertion_depth, &state, dt);
                     if let Some(s) = seated {
                         r.supervisor.goal_reached(Some(s.describe().into()));
                     }

@@ -95,7 +95,7 @@ impl Default for ControllerParams {
                 goal: 300.0,
                 align: 20.0,
                 step: 0.05,
-                reference: 300.0,
+                reference: 3000.0,
             },
             insertion_depth: 0.03,
             standoff: 0.02,

@@ -8,14 +8,24 @@
 //!
 //! The seated test accepts that case, and only with evidence that the port is what holds the
 //! tip off the estimated axis. For [`SeatedParams::settle_time`] without a break:
-//! - the tip is at the goal depth, to within `goal_tolerance`;
+//! - the tip is at the goal depth, to within [`SeatedParams::depth_tolerance`];
 //! - it is within [`SeatedParams::lateral_tolerance`] of the estimated axis;
 //! - the optical axis is within [`SeatedParams::angle_tolerance_deg`] of it;
-//! - the tip moves slower than [`SeatedParams::max_speed`];
-//! - the measured force across the axis pushes the tip *away* from the estimated axis by at
-//!   least [`SeatedParams::min_lateral_force`]. The controller pulls towards that axis, so
-//!   only a wall can push back that way. Without contact a tip off the axis means that the
-//!   controller has not converged, and the normal test applies.
+//! - the tip stays within [`SeatedParams::max_motion`] of where it was, relative to the
+//!   estimated port, when the window began. A position range over the window, not a speed
+//!   per step: the estimate comes at the camera's rate (15 Hz) with its latency while the port
+//!   moves with breathing, so the tip seen from the estimated port jumps by a few tenths of a
+//!   millimetre at each new pose even when it sits still in the real port;
+//! - when [`SeatedParams::min_lateral_force`] is above 0, the measured force across the axis
+//!   pushes the tip away from the estimated axis by at least that much.
+//!
+//! The controller pulls towards the estimated axis, and in free space closes a lateral gap of
+//! millimetres in a few hundredths of a second; so a tip that stays still off the axis, at the
+//! goal depth, for the settle time is held there by the port. With force feedback the scope
+//! yields to the wall, so the force that holds it is small (the admittance stiffness times the
+//! part of the offset the axis term asks back: about 0.1 N for 3 mm with the shipped gains),
+//! below the force estimate's noise, and the shipped `min_lateral_force` is 0: stillness off
+//! the axis at depth is the evidence.
 //!
 //! The DONE reason then says how far off the estimated axis the scope sat, so that the
 //! surgeon knows the trocar estimate, most likely the hand-eye calibration, is biased.
@@ -31,12 +41,15 @@ use crate::control::geometry::InsertionAxis;
 pub struct SeatedParams {
     /// Largest distance of the tip from the estimated axis, m (0 = the test is off).
     pub lateral_tolerance: f64,
+    /// Largest distance of the tip from the goal depth along the estimated axis, m.
+    pub depth_tolerance: f64,
     /// Largest angle between the optical axis and the estimated axis, deg.
     pub angle_tolerance_deg: f64,
-    /// Smallest force across the axis pushing the tip away from the estimated axis, N.
+    /// Smallest force across the axis pushing the tip away from the estimated axis, N
+    /// (0 = none needed; a force pulling towards the axis still vetoes).
     pub min_lateral_force: f64,
-    /// Largest tip speed, m/s.
-    pub max_speed: f64,
+    /// Largest displacement of the tip relative to the estimated port over the window, m.
+    pub max_motion: f64,
     /// How long all of it must hold without a break, s.
     pub settle_time: f64,
 }
@@ -44,10 +57,11 @@ pub struct SeatedParams {
 impl Default for SeatedParams {
     fn default() -> Self {
         Self {
-            lateral_tolerance: 0.003,
+            lateral_tolerance: 0.005,
+            depth_tolerance: 0.002,
             angle_tolerance_deg: 2.0,
-            min_lateral_force: 0.3,
-            max_speed: 0.002,
+            min_lateral_force: 0.0,
+            max_motion: 0.0015,
             settle_time: 0.5,
         }
     }
@@ -76,9 +90,10 @@ impl SeatedParams {
         check(
             "min_lateral_force",
             self.min_lateral_force,
-            self.min_lateral_force > 0.0,
+            self.min_lateral_force >= 0.0,
         )?;
-        check("max_speed", self.max_speed, self.max_speed > 0.0)?;
+        check("depth_tolerance", self.depth_tolerance, self.depth_tolerance > 0.0)?;
+        check("max_motion", self.max_motion, self.max_motion > 0.0)?;
         check("settle_time", self.settle_time, self.settle_time > 0.0)
     }
 }
@@ -121,8 +136,8 @@ impl Seated {
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct SeatedCheck {
     held_for: f64,
-    /// The tip's last position relative to the axis: depth and lateral offset.
-    last_tip: Option<(f64, Vector3<f64>)>,
+    /// The tip relative to the estimated port when the current window began.
+    anchor: Option<Vector3<f64>>,
 }
 
 impl SeatedCheck {
@@ -131,26 +146,19 @@ impl SeatedCheck {
         *self = Self::default();
     }
 
-    /// One INSERT step of `dt` s, the goal `goal_depth` past the port along `axis` with
-    /// depth tolerance `depth_tolerance`: `Some` once every condition of the module doc has
-    /// held for the settle time. Non-finite inputs break the run of good steps.
+    /// One INSERT step of `dt` s, the goal `goal_depth` past the port along `axis`: `Some`
+    /// once every condition of the module doc has held for the settle time. Non-finite
+    /// inputs break the run of good steps.
     pub fn update(
         &mut self,
         p: &SeatedParams,
         axis: &InsertionAxis,
         goal_depth: f64,
-        depth_tolerance: f64,
         s: &TipState,
         dt: f64,
     ) -> Option<Seated> {
-        // Speed relative to the port, which moves with breathing: seated means still in it.
         let offset_v = axis.lateral_offset(&s.tip);
         let depth = axis.depth_of(&s.tip);
-        let speed = match self.last_tip {
-            Some((d, o)) if dt > 0.0 => ((depth - d).powi(2) + (offset_v - o).norm_squared()).sqrt() / dt,
-            _ => f64::INFINITY,
-        };
-        self.last_tip = Some((depth, offset_v));
         let offset = offset_v.norm();
         let angle_deg = axis.alignment_error(&s.optical_axis).to_degrees();
         let lateral_force = if offset > 0.0 {
@@ -158,17 +166,27 @@ impl SeatedCheck {
         } else {
             0.0
         };
-        let ok = p.lateral_tolerance > 0.0
-            && (depth - goal_depth).abs() < depth_tolerance
+        let force_ok = p.min_lateral_force <= 0.0 || lateral_force >= p.min_lateral_force;
+        let placed = p.lateral_tolerance > 0.0
+            && (depth - goal_depth).abs() <= p.depth_tolerance
             && offset <= p.lateral_tolerance
             && angle_deg <= p.angle_tolerance_deg
-            && speed <= p.max_speed
-            && lateral_force >= p.min_lateral_force;
-        if !ok {
-            self.held_for = 0.0;
+            && force_ok
+            && s.force.iter().all(|v| v.is_finite());
+        if !placed {
+            self.reset();
             return None;
         }
-        self.held_for += dt;
+        // Relative to the port (which moves with breathing): seated means still in it.
+        let rel = s.tip - axis.port;
+        match self.anchor {
+            Some(a) if (rel - a).norm() <= p.max_motion => self.held_for += dt,
+            _ => {
+                // A new window starts here.
+                self.anchor = Some(rel);
+                self.held_for = 0.0;
+            }
+        }
         (self.held_for >= p.settle_time - 1e-9).then_some(Seated {
             offset,
             angle_deg,
@@ -201,17 +219,14 @@ mod tests {
 
     fn run(p: &SeatedParams, states: &[TipState]) -> Vec<Option<Seated>> {
         let mut c = SeatedCheck::default();
-        states
-            .iter()
-            .map(|s| c.update(p, &axis(), 0.03, 0.001, s, 0.01))
-            .collect()
+        states.iter().map(|s| c.update(p, &axis(), 0.03, s, 0.01)).collect()
     }
 
     #[test]
     fn passes_after_the_settle_time_in_contact() {
         let p = SeatedParams::default();
         let out = run(&p, &vec![seated_tip(1.0); 60]);
-        // The first step has no speed yet; then 50 steps of 10 ms.
+        // The first step opens the window; then 50 steps of 10 ms.
         let first = out.iter().position(Option::is_some).unwrap();
         assert_eq!(first, 50);
         let s = out[first].unwrap();
@@ -236,33 +251,55 @@ mod tests {
                 UnitQuaternion::identity(),
             ));
             let mut t = seated_tip(1.0);
-            // `slide`: the tip also wobbles across the axis, 0.5 mm at 2 Hz (6 mm/s).
+            // `slide`: the tip also wobbles across the axis at 2 Hz, `slide` m of amplitude.
             let wobble = slide * (4.0 * std::f64::consts::PI * 0.01 * k as f64).sin();
             t.tip += shift + Vector3::x() * wobble;
             (axis, t)
         };
         let seated = (0..60).any(|k| {
             let (a, t) = moving(k, 0.0);
-            c.update(&p, &a, 0.03, 0.001, &t, 0.01).is_some()
+            c.update(&p, &a, 0.03, &t, 0.01).is_some()
         });
         assert!(seated, "still relative to the port");
-        // The tip wobbling in the port (while it moves): not seated.
+        // A new pose at 15 Hz jumps the estimated port by 0.3 mm: still seated.
+        let mut c = SeatedCheck::default();
+        let seated = (0..60).any(|k| {
+            let (a, mut t) = moving(k, 0.0);
+            if (k / 7) % 2 == 1 {
+                t.tip += Vector3::new(0.0002, 0.0, 0.0002);
+            }
+            c.update(&p, &a, 0.03, &t, 0.01).is_some()
+        });
+        assert!(seated, "still, seen from a jumpy estimate");
+        // The tip wobbling in the port by 2 mm (while it moves): not seated.
         let mut c = SeatedCheck::default();
         let seated = (0..200).any(|k| {
-            let (a, t) = moving(k, 0.0005);
-            c.update(&p, &a, 0.03, 0.001, &t, 0.01).is_some()
+            let (a, t) = moving(k, 0.002);
+            c.update(&p, &a, 0.03, &t, 0.01).is_some()
         });
         assert!(!seated, "sliding in the port");
     }
 
     #[test]
-    fn needs_a_wall_pushing_away_from_the_estimated_axis() {
+    fn a_force_floor_applies_only_when_set() {
+        // Shipped (no floor): still at depth off the axis suffices, whatever the small force.
         let p = SeatedParams::default();
-        // No force, too little force, or a force towards the axis (the controller's own
-        // pull, or a tip not yet converged): never.
-        for fx in [0.0, 0.2, -1.0] {
-            assert!(run(&p, &vec![seated_tip(fx); 200]).iter().all(Option::is_none), "{fx}");
+        for fx in [0.0, -0.05, 0.1] {
+            assert!(run(&p, &vec![seated_tip(fx); 60]).iter().any(Option::is_some), "{fx}");
         }
+        // With a floor of 0.3 N: no force, too little force, or a force towards the axis
+        // (the controller's own pull), never.
+        let floor = SeatedParams {
+            min_lateral_force: 0.3,
+            ..p
+        };
+        for fx in [0.0, 0.2, -1.0] {
+            assert!(
+                run(&floor, &vec![seated_tip(fx); 200]).iter().all(Option::is_none),
+                "{fx}"
+            );
+        }
+        assert!(run(&floor, &vec![seated_tip(0.3); 60]).iter().any(Option::is_some));
     }
 
     #[test]
@@ -270,11 +307,11 @@ mod tests {
         let p = SeatedParams::default();
         let bad = [
             TipState {
-                tip: Point3::new(0.002, 0.0, 0.025), // 5 mm short of the goal depth
+                tip: Point3::new(0.002, 0.0, 0.0275), // 2.5 mm short of the goal depth
                 ..seated_tip(1.0)
             },
             TipState {
-                tip: Point3::new(0.004, 0.0, 0.03), // 4 mm off the axis
+                tip: Point3::new(0.0055, 0.0, 0.03), // 5.5 mm off the axis
                 ..seated_tip(1.0)
             },
             TipState {
@@ -289,20 +326,27 @@ mod tests {
         for b in bad {
             assert!(run(&p, &vec![b; 200]).iter().all(Option::is_none), "{b:?}");
         }
-        // Moving at 5 mm/s along the axis: never still.
+        // Sliding in at 5 mm/s through the depth band: never still for the settle time.
         let moving: Vec<TipState> = (0..200)
             .map(|k| TipState {
-                tip: Point3::new(0.002, 0.0, 0.0295 + 5e-5 * (k % 20) as f64),
+                tip: Point3::new(0.002, 0.0, 0.0285 + 5e-5 * k as f64),
                 ..seated_tip(1.0)
             })
             .collect();
         assert!(run(&p, &moving).iter().all(Option::is_none));
-        // 40 good steps, one without force, then good again: the clock starts over.
+        // 40 good steps, one 2.5 mm short of the depth, then good again: the clock starts over.
         let mut states = vec![seated_tip(1.0); 40];
-        states.push(seated_tip(0.0));
+        states.push(TipState {
+            tip: Point3::new(0.002, 0.0, 0.0275),
+            ..seated_tip(1.0)
+        });
         states.extend(vec![seated_tip(1.0); 60]);
         let first = run(&p, &states).iter().position(Option::is_some).unwrap();
-        assert_eq!(first, 41 + 49);
+        assert_eq!(
+            first,
+            41 + 50,
+            "the window restarts at the first good step after the break"
+        );
         // Off: never.
         let off = SeatedParams {
             lateral_tolerance: 0.0,
@@ -314,10 +358,10 @@ mod tests {
     #[test]
     fn bad_parameters_are_named() {
         let bad = SeatedParams {
-            max_speed: f64::NAN,
+            max_motion: f64::NAN,
             ..Default::default()
         };
-        assert!(bad.validate().unwrap_err().contains("max_speed"));
+        assert!(bad.validate().unwrap_err().contains("max_motion"));
         assert!(SeatedParams::default().validate().is_ok());
         let neg = SeatedParams {
             lateral_tolerance: -1.0,

@@ -273,7 +273,7 @@ fn write_camera(w: &mut String) {
     );
     let _ = writeln!(w, "  </link>");
     let _ = writeln!(w, "  <joint name=\"camera_joint\" type=\"fixed\">");
-    let _ = writeln!(w, "    <parent link=\"lbr_link_ee\"/><child link=\"camera_optical_frame\"/><origin xyz=\"0 0.07 0.04\" rpy=\"0 0 0\"/>");
+    let _ = writeln!(w, "    <parent link=\"lbr_link_ee\"/><child link=\"camera_optical_frame\"/><origin xyz=\"0 0.07 0.04\" rpy=\"0.2617993877991494 0 0\"/>");
     let _ = writeln!(w, "  </joint>");
     let _ = writeln!(w, "</robot>");
 }

@@ -68,6 +68,9 @@ pub struct EstimatorNodeParams {
     /// After a detection, search the next frame only this many marker extents around it
     /// (0 = always the whole frame); the whole frame is searched when it is not found there.
     pub search_margin: f64,
+    /// Detections with a corner closer than this to the image border are rejected, px: a
+    /// marker cut by the border is found as a smaller quad whose pose is centimetres off.
+    pub border_margin_px: f64,
     /// Joint states kept to pair with image stamps, s.
     pub joint_history_s: f64,
     /// Joint states farther apart than this are not interpolated between, s.
@@ -99,6 +102,7 @@ impl Default for EstimatorNodeParams {
             marker: MarkerSpec::default(),
             estimator: EstimatorParams::default(),
             search_margin: 1.5,
+            border_margin_px: 4.0,
             joint_history_s: 1.0,
             max_joint_gap_s: 0.05,
             max_joint_extrapolation_s: 0.02,
@@ -142,6 +146,7 @@ impl EstimatorNodeParams {
         validate::positive_at_most("max_joint_gap_s", self.max_joint_gap_s, 60.0)?;
         validate::non_negative("max_joint_extrapolation_s", self.max_joint_extrapolation_s)?;
         validate::non_negative("search_margin", self.search_margin)?;
+        validate::non_negative("border_margin_px", self.border_margin_px)?;
         self.report_period()?;
         validate::integer_in_range("realtime_priority", i64::from(self.realtime_priority), 0, 99)?;
         Ok(())
@@ -227,6 +232,12 @@ impl Pipeline {
             });
         };
         self.counts.detected += 1;
+        let border = det.border_distance_px(view.width, view.height);
+        if border < self.p.border_margin_px {
+            return Err(format!(
+                "marker {border:.1} px from the image border (partly out of view): rejected"
+            ));
+        }
         let q: JointVector = lock(history).at(stamp).map_err(|e| e.to_string())?;
         let base_t_flange = self.flange.fk(&q).map_err(|e| e.to_string())?;
         let status = self.estimator.update(stamp, &base_t_flange, Some(&det));

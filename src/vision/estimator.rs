@@ -80,7 +80,7 @@ impl Default for EstimatorParams {
         Self {
             flange_t_camera: PoseYaml {
                 translation: [0.0, 0.07, 0.04],
-                quaternion_xyzw: [0.0, 0.0, 0.0, 1.0],
+                quaternion_xyzw: [0.130_526, 0.0, 0.0, 0.991_445],
             },
             marker_t_trocar: PoseYaml {
                 translation: [0.0, 0.0, 0.0],

@@ -156,6 +156,20 @@ pub struct MarkerDetection {
     pub reprojection_error_px: f64,
 }
 
+impl MarkerDetection {
+    /// The smallest distance of a corner from the edge of a `width` x `height` image, px
+    /// (negative when a corner lies outside it). A marker cut by the image border can still
+    /// be detected, as a smaller quad whose pose is centimetres off: callers reject
+    /// detections closer to the border than a margin.
+    pub fn border_distance_px(&self, width: u32, height: u32) -> f64 {
+        let (w, h) = (f64::from(width), f64::from(height));
+        self.corners
+            .iter()
+            .map(|[x, y]| x.min(y.min((w - 1.0 - x).min(h - 1.0 - y))))
+            .fold(f64::INFINITY, f64::min)
+    }
+}
+
 /// A detector for one marker spec and camera. Keeps its C++ state (dictionary, AprilTag
 /// detector, buffers) between frames; `Send`, not `Sync`.
 pub struct MarkerDetector {
@@ -360,6 +374,23 @@ mod tests {
         assert_eq!(search_window(&bad, 1.0, 640, 360), None);
         let outside = [[700.0, 400.0], [710.0, 400.0], [710.0, 410.0], [700.0, 410.0]];
         assert_eq!(search_window(&outside, 0.5, 640, 360), None);
+    }
+
+    #[test]
+    fn border_distance_is_the_nearest_corner_to_an_edge() {
+        let det = |c: [[f64; 2]; 4]| MarkerDetection {
+            id: 7,
+            pose_camera_marker: Isometry3::identity(),
+            corners: c,
+            reprojection_error_px: 0.1,
+        };
+        let inside = det([[100.0, 100.0], [140.0, 100.0], [140.0, 130.0], [100.0, 130.0]]);
+        assert_eq!(inside.border_distance_px(640, 360), 100.0);
+        assert_eq!(inside.border_distance_px(150, 360), 9.0);
+        let cut = det([[100.0, 0.5], [140.0, 0.0], [140.0, 30.0], [100.0, 30.0]]);
+        assert_eq!(cut.border_distance_px(640, 360), 0.0);
+        let right = det([[600.0, 100.0], [642.0, 100.0], [642.0, 130.0], [600.0, 130.0]]);
+        assert!(right.border_distance_px(640, 360) < 0.0);
     }
 
     #[test]

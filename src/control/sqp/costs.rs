@@ -9,7 +9,12 @@
 //! | c2 | e - g | tip to the current target point g on the axis |
 //! | c3 | a - g_a | optical axis alignment |
 //! | c4 | q - q_prev | joint step (velocity) |
-//! | c5 | e - r | tip to the admittance reference r |
+//! | c5 | P (e - r) | tip to the admittance reference r, across the axis |
+//!
+//! c5 acts across the insertion axis only, as the admittance does ([`crate::control::admittance`]):
+//! the paper's e - r also penalises the tip's motion along the axis, which with an arm that
+//! contact deflects (a seal's friction, finite joint stiffness) holds the tip short of the
+//! goal by the deflection times w5 / w2.
 //!
 //! Each c_i is the squared norm of its residual. For c5 the paper writes the unsquared norm
 //! ||e - r||; its gradient is undefined at e = r and its Hessian unbounded near it, which
@@ -124,7 +129,7 @@ pub fn evaluate(pose: &Isometry3<f64>, q: &JointVector, t: &Targets) -> CostTerm
         (e - t.point).norm_squared(),
         (a - t.axis.direction.into_inner()).norm_squared(),
         (q - t.q_prev).norm_squared(),
-        (e - t.reference).norm_squared(),
+        t.axis.across(&(e - t.reference)).norm_squared(),
     ]
 }
 
@@ -156,7 +161,7 @@ pub fn quadratic_model(
     add(w.axis, proj * (e - t.axis.port), proj * jv);
     add(w.goal, e - t.point, jv);
     add(w.align, a - g_a, -a.cross_matrix() * jw);
-    add(w.reference, e - t.reference, jv);
+    add(w.reference, proj * (e - t.reference), proj * jv);
     if let Some(l) = &t.limits {
         if l.weight > 0.0 {
             let (r, d) = l.residual(q_lin);
