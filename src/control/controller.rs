@@ -586,6 +586,7 @@ impl OptimalController {
         if self.run.supervisor.phase() == Phase::Tare {
             // Tare with every input present, so that APPROACH begins with all of them.
             self.trocar_pose(input, &arm, ctx.guard)?;
+            self.run.supervisor.clear_hold();
             return Ok(self.tare_step(input, &arm, ctx.guard, dt));
         }
         self.update_force(input, &arm, ctx.guard, dt)?;

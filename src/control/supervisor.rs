@@ -152,10 +152,18 @@ impl Supervisor {
         self.reason = Some(reason);
     }
 
-    /// The cause of an unlatched hold is gone: resume the interrupted phase.
+    /// Every input is good: an unlatched hold resumes the interrupted phase, and a moving
+    /// phase no longer reports the reason of a hold that has passed (the status would
+    /// otherwise say "no trocar pose received" while the arm moves). A latched hold, and the
+    /// reason of a refused start in IDLE, stay.
     pub fn clear_hold(&mut self) {
-        if self.phase == Phase::Hold && !self.latched {
-            self.phase = self.resume;
+        match self.phase {
+            Phase::Hold if !self.latched => {
+                self.phase = self.resume;
+                self.reason = None;
+            }
+            Phase::Tare | Phase::Approach | Phase::Insert => self.reason = None,
+            _ => {}
         }
     }
 
@@ -244,6 +252,7 @@ mod tests {
         assert_eq!(s.reason().map(HoldReason::code), Some("STALE_TROCAR_POSE"));
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Insert, "resumes the interrupted phase");
+        assert!(s.reason().is_none(), "and no longer reports the passed hold");
         s.hold(
             HoldReason::ForceLimit {
                 force: 30.0,
@@ -254,6 +263,7 @@ mod tests {
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Hold, "a latched hold needs start");
         assert!(s.is_latched());
+        assert_eq!(s.reason().map(HoldReason::code), Some("FORCE_LIMIT"), "and keeps its reason");
         s.start().unwrap();
         assert_eq!(s.phase(), Phase::Insert);
         s.abort("surgeon");
