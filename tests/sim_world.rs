@@ -57,3 +57,58 @@ fn baseline_docks_without_noise_and_runs_are_reproducible() {
     let b = run(3);
     assert_eq!(a, b);
 }
+
+#[test]
+fn only_reachable_set_ups_are_drawn() {
+    use rand::SeedableRng;
+    use trocar_docking::sim::scenario::{Scenario, ScenarioParams};
+    let kin = kin();
+    let margin = 5f64.to_radians();
+    let checked = ScenarioParams::default();
+    let unchecked = ScenarioParams {
+        reach_margin_deg: 0.0,
+        ..checked.clone()
+    };
+    let mut rejected = 0;
+    for seed in 0..300u64 {
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let s = Scenario::sample(&checked, kin.as_ref(), &mut rng).unwrap();
+        assert!(s.reachable(kin.as_ref(), margin).unwrap(), "seed {seed}");
+        let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+        let raw = Scenario::sample(&unchecked, kin.as_ref(), &mut rng).unwrap();
+        if !raw.reachable(kin.as_ref(), margin).unwrap() {
+            rejected += 1;
+        }
+    }
+    // Without the check some draws put the docking pose inside the wrist's last 5 deg;
+    // not so many that the experiment's distribution is a different one.
+    assert!((1..=30).contains(&rejected), "{rejected} of 300 unreachable");
+}
+
+#[test]
+fn a_trocar_out_of_reach_is_refused_by_the_check() {
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+    use trocar_docking::sim::scenario::Scenario;
+    let kin = kin();
+    let p = trocar_docking::sim::scenario::ScenarioParams::default();
+    let q0 = p.q_nominal;
+    // 2 m away: no joint configuration gets there.
+    let far = Scenario {
+        q0,
+        trocar_rest: Isometry3::from_parts(
+            Translation3::new(2.0, 0.0, 0.0),
+            UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+        ),
+    };
+    assert!(!far.reachable(kin.as_ref(), 5f64.to_radians()).unwrap());
+    // 12 cm straight below the start tip, pointing down: reachable.
+    let tip = kin.fk(&nalgebra::SVector::<f64, 7>::from_column_slice(&q0)).unwrap();
+    let near = Scenario {
+        q0,
+        trocar_rest: Isometry3::from_parts(
+            Translation3::from(tip.translation.vector - nalgebra::Vector3::z() * 0.12),
+            UnitQuaternion::from_euler_angles(std::f64::consts::PI, 0.0, 0.0),
+        ),
+    };
+    assert!(near.reachable(kin.as_ref(), 5f64.to_radians()).unwrap());
+}

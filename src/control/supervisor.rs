@@ -263,7 +263,11 @@ mod tests {
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Hold, "a latched hold needs start");
         assert!(s.is_latched());
-        assert_eq!(s.reason().map(HoldReason::code), Some("FORCE_LIMIT"), "and keeps its reason");
+        assert_eq!(
+            s.reason().map(HoldReason::code),
+            Some("FORCE_LIMIT"),
+            "and keeps its reason"
+        );
         s.start().unwrap();
         assert_eq!(s.phase(), Phase::Insert);
         s.abort("surgeon");
