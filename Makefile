@@ -1,23 +1,23 @@
 # The two README commands: `make demo` (a docking run in simulation) and `make test` (the
 # whole test suite). Each installs the Debian packages it needs first (idempotent).
 #   make demo [GUI=1]   a whole docking trial in simulation through ROS (headless; GUI=1: RViz)
-#   make test           fmt check + clippy + cargo tests + rostest (tests/ros/*.test)
+#   make test           fmt check + clippy + cargo tests + rostest (tests/ros/*.test) + the
+#                       package in a fresh catkin workspace beside a stand-in lbr_msgs
 #   make screenshot     RViz under Xvfb during a sim trial -> out/rviz.png
 SHELL := /bin/bash
 ENV := source scripts/env.sh &&
 CARGO_FLAGS ?= --release
-PROFILE := $(if $(findstring --release,$(CARGO_FLAGS)),release,debug)
 GUI ?= 0
 
-.PHONY: deps build demo test lint cargo-test rostest screenshot bench clean
+.PHONY: deps build demo test lint cargo-test rostest catkin-check screenshot bench clean
 
 deps:
 	@scripts/install-deps
 
-# Node binaries, then the ROS view of the package (one profile's nodes) and Python messages.
+# The package in the catkin workspace target/catkin_ws (catkin_make: the nodes through cargo,
+# release, in the checkout's target/; the messages through genmsg); env.sh sources its devel space.
 build: deps
-	@$(ENV) cargo build $(CARGO_FLAGS) --bins
-	@scripts/ros-package $(PROFILE)
+	@scripts/catkin-devel
 
 demo: build
 	@$(ENV) GUI=$(GUI) scripts/demo
@@ -32,7 +32,12 @@ cargo-test: deps
 rostest: build
 	@scripts/run-rostest
 
-test: lint cargo-test rostest
+# The package in a fresh catkin workspace beside a stand-in lbr_msgs: catkin_lint, devel and
+# install spaces, a docking from sim.launch, one rostest through catkin_make run_tests.
+catkin-check: build
+	@scripts/catkin-check
+
+test: lint cargo-test rostest catkin-check
 
 screenshot: build
 	@$(ENV) scripts/screenshot
