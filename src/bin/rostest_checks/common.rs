@@ -22,6 +22,8 @@ pub struct CheckParams {
     pub time_limit: f64,
     /// Upper bound on M (N) for a successful docking.
     pub max_metric_m: f64,
+    /// Upper bound on the peak force estimate over the docking (N).
+    pub max_force: f64,
     /// Wall time to wait for the graph (services, first messages), s.
     pub startup_timeout: f64,
     /// Whether the check calls `~start` itself.
@@ -66,6 +68,7 @@ impl Default for CheckParams {
             command_topic: topics::COMMAND.into(),
             time_limit: 60.0,
             max_metric_m: 10.0,
+            max_force: 60.0,
             startup_timeout: 30.0,
             call_start: true,
             hold_code: "STALE_TROCAR_POSE".into(),
@@ -94,6 +97,7 @@ impl CheckParams {
         validate::duration("startup_timeout", self.startup_timeout)?;
         validate::non_negative("hold_observe", self.hold_observe)?;
         validate::positive("max_metric_m", self.max_metric_m)?;
+        validate::positive("max_force", self.max_force)?;
         validate::positive("max_position_error", self.max_position_error)?;
         validate::period_of_rate("camera_rate_hz", self.camera_rate_hz)?;
         validate::positive("max_latency_ms", self.max_latency_ms)?;

@@ -101,13 +101,19 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             done.metric_m, p.max_metric_m
         ));
     }
+    let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
+    if fmax.is_nan() || fmax > p.max_force {
+        return Err(format!(
+            "peak force {fmax:.2} N above the bound {:.2} N (M = {:.2} N)",
+            p.max_force, done.metric_m
+        ));
+    }
     if !p.done_code.is_empty() && done.hold_code != p.done_code {
         return Err(format!(
             "DONE, but its code '{}' ({}) is not '{}'",
             done.hold_code, done.hold_reason, p.done_code
         ));
     }
-    let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
     // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::seated`).
     let note = if done.hold_reason.is_empty() {
         String::new()
