@@ -21,7 +21,7 @@ mod outputs;
 
 use std::time::{Duration, Instant};
 
-use crate::control::{Controller, ControllerParams};
+use crate::control::{Controller, ControllerParams, HoldReason};
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{Kinematics, LbrKinematics, TIP_LINK};
 use crate::ros::convert;
@@ -29,6 +29,7 @@ use crate::ros::handover::{self, OutputSender, RequestClient, RequestServer};
 use crate::ros::markers::MarkerStyle;
 use crate::ros::msgs::std_srvs;
 use crate::ros::node::{ros_err, CommandType, NodeError};
+use crate::ros::pacer::Pacer;
 use crate::ros::params;
 use crate::ros::stats::LoopStats;
 use crate::ros::topics;
@@ -247,7 +248,7 @@ fn control_loop(
     records: &OutputSender<StepRecord>,
     started_at: Option<f64>,
 ) {
-    let rate = rosrust::rate(p.rate_hz);
+    let mut pace = Pacer::new(p.rate_hz);
     let mut st = LoopState::new(p);
     st.start_time = started_at;
     while rosrust::is_ok() {
@@ -257,13 +258,24 @@ fn control_loop(
         st.stats.step_started(started);
         requests.serve(|r| st.handle(&mut controller, r, now));
         if now < st.last_now {
-            // Time went back (a bag looped, the simulator restarted): stamp orders afresh.
+            // Time went back (a bag looped, the simulator restarted): stamp orders and the
+            // publishing schedule afresh (the controller holds on it: CLOCK_BACK).
             inputs.clock_went_back();
             st.last_latency_stamp = f64::NEG_INFINITY;
+            st.last_status = f64::NEG_INFINITY;
+            st.last_markers = f64::NEG_INFINITY;
         }
         st.last_now = now;
         let (input, fault) = inputs.read(now);
         let out = controller.step(kin, &input);
+        if let Some(r) = inputs.restart() {
+            // After the step, so that a clock jump the step saw stays the named cause; the
+            // next step's status carries the hold.
+            controller.interrupt(HoldReason::DriverRestart {
+                stamp_jump_s: r.stamp_jump_s,
+                names_reordered: r.names_reordered,
+            });
+        }
         st.stats.tick(now);
         if let (Some(_), Some(t)) = (&out.command, &input.trocar) {
             if t.stamp > st.last_latency_stamp {
@@ -295,7 +307,7 @@ fn control_loop(
             out,
         });
         st.stats.step_finished(Instant::now());
-        rate.sleep();
+        pace.sleep();
     }
 }
 
