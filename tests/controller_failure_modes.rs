@@ -133,8 +133,11 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
         assert_eq!(out.reason_code(), "ARM_NOT_FOLLOWING");
     }
     // Moved by hand while held (2.5 deg on joint 2): the new start begins from there.
+    r.blocked = true;
     r.q[1] += 2.5f64.to_radians();
     let moved = r.q;
+    assert_eq!(r.step().command, Some(frozen), "held");
+    r.blocked = false;
     r.c.start().unwrap();
     let vmax = r.kin.limits().velocity * r.c.params().guard.velocity_scale;
     let mut prev = moved;
@@ -189,7 +192,10 @@ fn jump_holds_until_a_new_start(jump: f64, code: &str) {
         assert_eq!(out.reason_code(), code);
     }
     r.c.start().unwrap();
-    let moved = (0..20).map(|_| r.step()).last().unwrap();
+    let mut moved = r.step();
+    for _ in 0..20 {
+        moved = r.step();
+    }
     assert!(moved.phase.is_moving(), "{code}: {:?}", moved.hold);
     assert!(lead(&moved.command.unwrap(), &before) > 1e-4, "{code}: moves again after a start");
 }

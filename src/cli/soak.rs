@@ -77,6 +77,9 @@ pub struct SoakReport {
     pub max_step_us: f64,
     /// Controller steps over 1 ms.
     pub steps_over_1ms: u64,
+    /// Largest lead of a command over the measured joints, deg (bound:
+    /// `guard.max_command_lead`).
+    pub max_command_lead_deg: f64,
     /// RSS after the first cycle (the baseline), kB.
     pub rss_start_kb: u64,
     /// RSS at the end, kB.
@@ -108,12 +111,13 @@ struct Cycle {
     sim_s: f64,
 }
 
-/// Per-step timing over the whole run.
+/// Per-step timing (and the command's lead over the arm) over the whole run.
 #[derive(Default)]
 struct Timing {
     steps: u64,
     max: Duration,
     over_1ms: u64,
+    max_lead: f64,
 }
 
 fn run_cycle(
@@ -153,6 +157,7 @@ fn run_cycle(
             break;
         }
         if let Some(q) = out.command {
+            timing.max_lead = timing.max_lead.max((q - world.joint_positions()).amax());
             world.set_command(&q).map_err(|e| e.to_string())?;
         }
         for _ in 0..physics {
@@ -219,6 +224,7 @@ pub fn soak(a: &SoakArgs) -> Result<SoakReport, Box<dyn std::error::Error + Send
         steps: timing.steps,
         max_step_us: timing.max.as_secs_f64() * 1e6,
         steps_over_1ms: timing.over_1ms,
+        max_command_lead_deg: timing.max_lead.to_degrees(),
         rss_start_kb: rss_start,
         rss_end_kb: rss_end,
         rss_max_kb: rss_max,
@@ -237,8 +243,18 @@ pub fn run(a: &SoakArgs) -> CliResult {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
         println!(
-            "soak: {} cycles in {:.0} s ({:.0} s simulated) at {} Hz, {} DONE; max step {:.0} µs, {} over 1 ms; RSS {} -> {} kB ({:+.2} MB/h)",
-            r.cycles, r.wall_s, r.sim_s, r.rate_hz, r.done, r.max_step_us, r.steps_over_1ms, r.rss_start_kb, r.rss_end_kb, r.rss_growth_mb_per_h
+            "soak: {} cycles in {:.0} s ({:.0} s simulated) at {} Hz, {} DONE; max step {:.0} µs, {} over 1 ms; command lead <= {:.2} deg; RSS {} -> {} kB ({:+.2} MB/h)",
+            r.cycles,
+            r.wall_s,
+            r.sim_s,
+            r.rate_hz,
+            r.done,
+            r.max_step_us,
+            r.steps_over_1ms,
+            r.max_command_lead_deg,
+            r.rss_start_kb,
+            r.rss_end_kb,
+            r.rss_growth_mb_per_h
         );
         for f in &r.failures {
             println!("  seed {}: ended in {} ({})", f.seed, f.phase, f.hold_code);

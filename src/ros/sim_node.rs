@@ -458,6 +458,8 @@ pub fn run() -> Result<(), NodeError> {
     // stopped at the previous point when the next came).
     let mut follower = TrajectoryFollower::new(world.joint_positions());
     let mut report = Every::new(0.1, t0 + 10.0);
+    // The largest lead of a command over the measured joints, rad.
+    let mut max_lead = 0.0f64;
     while rosrust::is_ok() {
         let now = if p.publish_clock {
             t0 + world.time()
@@ -467,7 +469,10 @@ pub fn run() -> Result<(), NodeError> {
         if let Some(c) = command.lock().ok().and_then(|mut s| s.take()) {
             // Checked by the arm first: a point it refuses never becomes the setpoint.
             match world.set_command(&c.q) {
-                Ok(()) => follower.push(now, c.q, c.due.unwrap_or(now)),
+                Ok(()) => {
+                    max_lead = max_lead.max((c.q - world.joint_positions()).amax());
+                    follower.push(now, c.q, c.due.unwrap_or(now));
+                }
                 Err(e) => {
                     rosrust::ros_warn!("command rejected by the arm, keeping the last one: {e}");
                 }
@@ -477,10 +482,11 @@ pub fn run() -> Result<(), NodeError> {
         let _ = world.set_command(&follower.setpoint(now));
         if report.due(now) && follower.points() > 0 {
             rosrust::ros_info!(
-                "lbr_med_sim: {} trajectory points, {} late ({:.1} %): the arm had stopped at the previous point",
+                "lbr_med_sim: {} trajectory points, {} late ({:.1} %): the arm had stopped at the previous point; largest command lead {:.2} deg",
                 follower.points(),
                 follower.late(),
-                100.0 * follower.late() as f64 / follower.points() as f64
+                100.0 * follower.late() as f64 / follower.points() as f64,
+                max_lead.to_degrees()
             );
         }
         if let Err(e) = world.step(dt) {

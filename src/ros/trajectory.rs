@@ -35,7 +35,7 @@ impl TrajectoryFollower {
     /// The setpoint at time `t`, s.
     pub fn setpoint(&self, t: f64) -> JointVector {
         let span = self.t_to - self.t_from;
-        if !(span > 0.0) || t >= self.t_to {
+        if span.is_nan() || span <= 0.0 || t >= self.t_to {
             return self.to;
         }
         let s = ((t - self.t_from) / span).clamp(0.0, 1.0);

@@ -34,6 +34,7 @@ use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::convert::image as image_msgs;
+use ::trocar_docking::ros::node::lock;
 use ::trocar_docking::ros::msgs::{
     geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, trajectory_msgs, trocar_docking,
 };
@@ -88,10 +89,6 @@ struct Plant {
     stop: Arc<AtomicBool>,
     thread: Option<std::thread::JoinHandle<()>>,
     _sub: rosrust::Subscriber,
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// The publishers of the plant's thread.
@@ -176,7 +173,9 @@ impl Plant {
                 if let Some(prev) = s.last {
                     s.max_step = s.max_step.max((cmd - prev).amax());
                 }
-                s.first_lead.get_or_insert(lead);
+                if s.first_lead.is_none() {
+                    s.first_lead = Some(lead);
+                }
                 s.last = Some(cmd);
                 s.commands += 1;
                 if !lock(&mode).blocked {
@@ -274,19 +273,19 @@ fn play(
                 js.effort.reverse();
             }
             // Every tenth message twice in a flood: duplicates.
-            let copies = if flood > 1.0 && k % 10 == 0 { 2 } else { 1 };
+            let copies = if flood > 1.0 && k.is_multiple_of(10) { 2 } else { 1 };
             for _ in 0..copies {
                 let _ = pubs.js.send(js.clone());
             }
             let _ = pubs.lbr.send(convert::lbr_state(stamp, 1.0 / rate, &qm, &zeros, &zeros));
         }
-        if k % pose_every == 0 {
+        if k.is_multiple_of(pose_every) {
             let _ = pubs
                 .pose
                 .send(convert::pose_stamped(convert::ros_time(t), topics_base(), trocar));
         }
         if let Some((img, info, model, frame)) = &pubs.camera {
-            if k % camera_every == 0 {
+            if k.is_multiple_of(camera_every) {
                 let s = convert::ros_time(t);
                 let _ = info.send(image_msgs::camera_info(s, "camera_optical_frame", model));
                 let _ = img.send(image_msgs::image(
@@ -391,7 +390,7 @@ fn no_motion_until_start(
         .ok_or_else(|| format!("{code}: no commands after ~start"))?;
     let after = plant.seen();
     let first = after.first_lead.unwrap_or(f64::NAN);
-    if !(first <= plant.lead_bound + 1e-6) || after.max_step > p.max_step_deg.to_radians() {
+    if first.is_nan() || first > plant.lead_bound + 1e-6 || after.max_step > p.max_step_deg.to_radians() {
         return Err(format!(
             "{code}: the new start jumped: first command {:.3} deg from the measured joints, largest step {:.3} deg",
             first.to_degrees(),
