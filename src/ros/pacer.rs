@@ -23,11 +23,15 @@ pub struct Pacer {
 
 impl Pacer {
     /// A pace of `rate_hz` on the ROS clock (simulated under `/use_sim_time`, else the
-    /// monotonic clock). Call after `rosrust::init`.
+    /// monotonic clock). Call after `rosrust::init`; under `/use_sim_time` it waits for the
+    /// first `/clock` (as `rosrust::rate` does), so no step runs at time zero.
     pub fn new(rate_hz: f64) -> Self {
         let sim_time = rosrust::param("/use_sim_time")
             .and_then(|p| p.get::<bool>().ok())
             .unwrap_or(false);
+        while sim_time && rosrust::is_ok() && rosrust::now().seconds() <= 0.0 {
+            std::thread::sleep(Duration::from_millis(1));
+        }
         Self {
             period: Duration::from_secs_f64(1.0 / rate_hz),
             sim_time,

@@ -480,12 +480,13 @@ pub fn run() -> Result<(), NodeError> {
         }
         // Between valid points, within the same joint box: valid.
         let _ = world.set_command(&follower.setpoint(now));
-        if report.due(now) && follower.points() > 0 {
+        if report.due(now) && follower.moving() > 0 {
             rosrust::ros_info!(
-                "lbr_med_sim: {} trajectory points, {} late ({:.1} %): the arm had stopped at the previous point; largest command lead {:.2} deg",
+                "lbr_med_sim: {} trajectory points, {} moving, {} of them late ({:.1} %): the arm had stopped at the previous point; largest command lead {:.2} deg",
                 follower.points(),
+                follower.moving(),
                 follower.late(),
-                100.0 * follower.late() as f64 / follower.points() as f64,
+                100.0 * follower.late() as f64 / follower.moving() as f64,
                 max_lead.to_degrees()
             );
         }

@@ -2,8 +2,9 @@
 //! does: each new point replaces the rest of the trajectory; the setpoint moves from where
 //! it is when the point arrives to the point's positions, reaching them when the point is
 //! due (`header.stamp + time_from_start`), and stays there if no newer point comes. A point
-//! that arrives after the previous one was due finds the arm stopped: it is **late**, and
-//! [`TrajectoryFollower`] counts it (the stop-and-go a too short `time_from_start` gives).
+//! that moves the arm and arrives after the previous one was due finds the arm stopped: it
+//! is **late**, and [`TrajectoryFollower`] counts it (the stop-and-go a too short
+//! `time_from_start` gives).
 //! Pure and allocation-free; `lbr_med_sim` drives it every physics step.
 
 use crate::kinematics::JointVector;
@@ -16,6 +17,7 @@ pub struct TrajectoryFollower {
     t_from: f64,
     t_to: f64,
     points: u64,
+    moving: u64,
     late: u64,
 }
 
@@ -28,6 +30,7 @@ impl TrajectoryFollower {
             t_from: f64::NEG_INFINITY,
             t_to: f64::NEG_INFINITY,
             points: 0,
+            moving: 0,
             late: 0,
         }
     }
@@ -45,8 +48,11 @@ impl TrajectoryFollower {
     /// A point with positions `q` due at `due` arrived at `now` (both s, one clock). A
     /// point due in the past is reached at once.
     pub fn push(&mut self, now: f64, q: JointVector, due: f64) {
-        if self.points > 0 && now > self.t_to {
-            self.late += 1;
+        if self.points > 0 && q != self.to {
+            self.moving += 1;
+            if now > self.t_to {
+                self.late += 1;
+            }
         }
         self.from = self.setpoint(now);
         self.t_from = now;
@@ -60,7 +66,12 @@ impl TrajectoryFollower {
         self.points
     }
 
-    /// Points that arrived after the previous one was due (the arm had stopped).
+    /// Points (after the first) that moved the setpoint.
+    pub fn moving(&self) -> u64 {
+        self.moving
+    }
+
+    /// Moving points that arrived after the previous one was due (the arm had stopped).
     pub fn late(&self) -> u64 {
         self.late
     }
@@ -85,8 +96,11 @@ mod tests {
         f.push(1.020, q(0.5), 1.030);
         f.push(1.032, q(0.6), 1.042);
         assert_eq!(f.setpoint(1.032), q(0.5), "stopped at the last point");
-        assert_eq!((f.points(), f.late()), (4, 1));
-        assert_eq!(f.setpoint(2.0), q(0.6), "stays at the last point");
+        assert_eq!((f.points(), f.moving(), f.late()), (4, 3, 1));
+        // The same point again (holding still) is never late.
+        f.push(1.1, q(0.6), 1.11);
+        assert_eq!((f.moving(), f.late()), (3, 1));
+        assert_eq!(f.setpoint(1.5), q(0.6), "stays at the last point");
         // A point due in the past (or with no due time) is reached at once.
         f.push(2.0, q(0.7), 1.0);
         assert_eq!(f.setpoint(2.0), q(0.7));

@@ -12,7 +12,7 @@
 //! - `clock_back`, `clock_forward`: the test node's `/clock` jumps 5 s back or forward:
 //!   HOLD `CLOCK_BACK` / `CLOCK_FORWARD` within 1 s, the status keeps coming, nothing moves
 //!   until `~start`, and it moves again after one.
-//! - `driver_restart`: the driver goes silent for 0.5 s and comes back with its joint names
+//! - `driver_restart`: the driver goes silent for 1 s and comes back with its joint names
 //!   in reverse order; then its stamps step back by 50 ms: each time HOLD `DRIVER_RESTART`,
 //!   nothing moves until `~start`, and after it the commands start from the true joints
 //!   (the names were mapped by name).
@@ -482,7 +482,7 @@ pub fn driver_restart(p: &CheckParams) -> Result<String, String> {
     let (status, _sub) = start_moving(p)?;
     let mut seen = Vec::new();
     for (what, restart) in [
-        ("silent 0.5 s, names reversed", (0.5, true, 0.0)),
+        ("silent 1 s, names reversed", (1.0, true, 0.0)),
         ("stamps 50 ms back", (0.0, true, -0.05)),
     ] {
         let (silence, reversed, back) = restart;

@@ -7,7 +7,7 @@
 //! The driver's two streams (joint states, LBRState) may restart under the controller: a
 //! stamp that goes back there starts the stamp order afresh instead of rejecting every
 //! message until the old stamps are passed, and the joint-state stream's restarts (stamps
-//! back, a gap longer than the joint timeout, the names in another order; [`JointStream`])
+//! back, a gap longer than `driver_restart_gap_s`, the names in another order; [`JointStream`])
 //! reach the loop as [`Restart`] events, which hold the controller until a new start.
 //! Joint values are always picked by name. A message with the same stamp as the last one
 //! (a duplicate) is dropped without clearing the input.
@@ -192,7 +192,7 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
     let (tf, tau_ext, tfault) = feed::<JointVector>(&p.lbr_state_topic, &epoch, true);
     let (pf, trocar, pfault) = feed::<Isometry3<f64>>(&p.trocar_pose_topic, &epoch, false);
     let (restart_w, restarts) = latest(None);
-    let stream = Mutex::new(JointStream::new(p.controller.guard.joint_timeout));
+    let stream = Mutex::new(JointStream::new(p.driver_restart_gap_s));
     let names = p.joint_names.clone();
     let frame = p.base_frame.clone();
     // Queues of one: the loop only ever wants the newest message, and a flood is dropped

@@ -67,6 +67,11 @@ pub struct ControllerNodeParams {
     pub command_type: CommandType,
     /// `time_from_start` of the trajectory point, in control periods.
     pub command_lookahead_periods: f64,
+    /// Joint states that resume after a gap longer than this (s) are a driver restart: the
+    /// controller holds (`DRIVER_RESTART`) until a new start. Shorter gaps hold as stale
+    /// data and resume by themselves. Stamps that go back or names in another order are a
+    /// restart whatever the gap.
+    pub driver_restart_gap_s: f64,
     /// Status out.
     pub status_topic: String,
     /// Force out.
@@ -110,6 +115,7 @@ impl Default for ControllerNodeParams {
             command_topic: topics::COMMAND.into(),
             command_type: CommandType::Trajectory,
             command_lookahead_periods: 1.0,
+            driver_restart_gap_s: 0.5,
             status_topic: topics::DOCKING_STATUS.into(),
             f_ext_topic: topics::DOCKING_F_EXT.into(),
             markers_topic: topics::DOCKING_MARKERS.into(),
@@ -132,6 +138,7 @@ impl ControllerNodeParams {
         validate::non_negative("status_rate_hz", self.status_rate_hz)?;
         validate::non_negative("markers_rate_hz", self.markers_rate_hz)?;
         validate::positive_at_most("command_lookahead_periods", self.command_lookahead_periods, 100.0)?;
+        validate::positive_at_most("driver_restart_gap_s", self.driver_restart_gap_s, 60.0)?;
         validate::integer_in_range("realtime_priority", i64::from(self.realtime_priority), 0, 99)?;
         if self.latency_samples == 0 {
             return Err(NodeError::Invalid("latency_samples must be >= 1".into()));
