@@ -12,6 +12,10 @@ use std::time::{Duration, Instant};
 /// advance (a paused simulator), so that the loop still reports.
 const MAX_WAIT_PERIODS: u32 = 20;
 
+/// How many periods late the schedule may be and still catch up (run the ticks without
+/// sleeping); later, it starts afresh.
+pub const MAX_CATCH_UP: u32 = 5;
+
 /// A loop's pace at a fixed rate.
 #[derive(Debug)]
 pub struct Pacer {
@@ -54,8 +58,8 @@ impl Pacer {
             let now = Instant::now();
             match self.next_wall.checked_duration_since(now) {
                 Some(wait) => std::thread::sleep(wait),
-                // Late by more than a period: start afresh rather than catch up.
-                None if now.duration_since(self.next_wall) > self.period => self.next_wall = now,
+                // Far behind (a stall): start afresh rather than run the missed ticks.
+                None if now.duration_since(self.next_wall) > self.period * MAX_CATCH_UP => self.next_wall = now,
                 None => {}
             }
         }
@@ -65,8 +69,8 @@ impl Pacer {
         let period = self.period.as_secs_f64();
         let start = rosrust::now().seconds();
         self.next_ros += period;
-        if start < self.next_ros - 2.0 * period || start > self.next_ros + 2.0 * period {
-            // The clock went back, jumped forward or the loop overran: start afresh.
+        if start < self.next_ros - 2.0 * period || start > self.next_ros + f64::from(MAX_CATCH_UP) * period {
+            // The clock went back, jumped forward or the loop stalled: start afresh.
             self.next_ros = start + period;
         }
         let deadline = Instant::now() + self.period * MAX_WAIT_PERIODS;

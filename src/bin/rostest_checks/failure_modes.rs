@@ -87,7 +87,7 @@ struct Plant {
     seen: Arc<Mutex<Seen>>,
     lead_bound: f64,
     stop: Arc<AtomicBool>,
-    thread: Option<std::thread::JoinHandle<()>>,
+    threads: [Option<std::thread::JoinHandle<()>>; 2],
     _sub: rosrust::Subscriber,
 }
 
@@ -97,12 +97,37 @@ struct Pubs {
     lbr: rosrust::Publisher<lbr_msgs::LBRState>,
     pose: rosrust::Publisher<geometry_msgs::PoseStamped>,
     clock: Option<rosrust::Publisher<rosgraph_msgs::Clock>>,
-    camera: Option<(
-        rosrust::Publisher<sensor_msgs::Image>,
-        rosrust::Publisher<sensor_msgs::CameraInfo>,
-        CameraModel,
-        Vec<u8>,
-    )>,
+}
+
+/// The played camera: its publishers, model and frame.
+struct Camera {
+    img: rosrust::Publisher<sensor_msgs::Image>,
+    info: rosrust::Publisher<sensor_msgs::CameraInfo>,
+    model: CameraModel,
+    frame: Vec<u8>,
+}
+
+/// The camera's thread (wall-clock stamps): frames at `hz` until `stop`.
+fn play_camera(c: &Camera, hz: f64, stop: &AtomicBool) {
+    let period = Duration::from_secs_f64(1.0 / hz);
+    let mut next = Instant::now();
+    while rosrust::is_ok() && !stop.load(Ordering::Relaxed) {
+        let s = rosrust::now();
+        let _ = c.info.send(image_msgs::camera_info(s, "camera_optical_frame", &c.model));
+        let _ = c.img.send(image_msgs::image(
+            s,
+            "camera_optical_frame",
+            c.model.width,
+            c.model.height,
+            "mono8",
+            1,
+            c.frame.clone(),
+        ));
+        next += period;
+        if let Some(wait) = next.checked_duration_since(Instant::now()) {
+            std::thread::sleep(wait);
+        }
+    }
 }
 
 /// The plant's start pose.
@@ -131,12 +156,12 @@ impl Plant {
             let model = CameraModel::from_yaml_file(std::path::Path::new(&p.camera_calibration))
                 .map_err(|e| format!("camera_calibration: {e}"))?;
             let frame = camera_frame(&model, &q0)?;
-            Some((
-                rosrust::publish(topics::CAMERA_IMAGE, 1).map_err(e)?,
-                rosrust::publish(topics::CAMERA_INFO, 1).map_err(e)?,
+            Some(Camera {
+                img: rosrust::publish(topics::CAMERA_IMAGE, 1).map_err(e)?,
+                info: rosrust::publish(topics::CAMERA_INFO, 1).map_err(e)?,
                 model,
                 frame,
-            ))
+            })
         } else {
             None
         };
@@ -149,7 +174,6 @@ impl Plant {
             } else {
                 None
             },
-            camera,
         };
         let mode = Arc::new(Mutex::new(Mode::default()));
         let q = Arc::new(Mutex::new(q0));
@@ -190,13 +214,17 @@ impl Plant {
             let (mode, q, stop) = (mode.clone(), q.clone(), stop.clone());
             std::thread::spawn(move || play(&pubs, &mode, &q, &trocar, flood, &stop))
         };
+        let camera = camera.map(|c| {
+            let stop = stop.clone();
+            std::thread::spawn(move || play_camera(&c, CAMERA_HZ * flood, &stop))
+        });
         Ok(Self {
             mode,
             q,
             seen,
             lead_bound,
             stop,
-            thread: Some(thread),
+            threads: [Some(thread), camera],
             _sub: sub,
         })
     }
@@ -227,7 +255,7 @@ impl Plant {
 impl Drop for Plant {
     fn drop(&mut self) {
         self.stop.store(true, Ordering::Relaxed);
-        if let Some(t) = self.thread.take() {
+        for t in self.threads.iter_mut().filter_map(Option::take) {
             let _ = t.join();
         }
     }
@@ -250,7 +278,7 @@ fn play(
     let rate = FRI_HZ * flood;
     let period = Duration::from_secs_f64(1.0 / rate);
     let every = |hz: f64| ((rate / (hz * flood)).round() as u64).max(1);
-    let (pose_every, camera_every) = (every(POSE_HZ), every(CAMERA_HZ));
+    let pose_every = every(POSE_HZ);
     let wall0 = Instant::now();
     let t0 = convert::seconds(rosrust::Time::from(std::time::SystemTime::now()));
     let mut k = 0u64;
@@ -283,21 +311,6 @@ fn play(
             let _ = pubs
                 .pose
                 .send(convert::pose_stamped(convert::ros_time(t), topics_base(), trocar));
-        }
-        if let Some((img, info, model, frame)) = &pubs.camera {
-            if k.is_multiple_of(camera_every) {
-                let s = convert::ros_time(t);
-                let _ = info.send(image_msgs::camera_info(s, "camera_optical_frame", model));
-                let _ = img.send(image_msgs::image(
-                    s,
-                    "camera_optical_frame",
-                    model.width,
-                    model.height,
-                    "mono8",
-                    1,
-                    frame.clone(),
-                ));
-            }
         }
         k += 1;
         next += period;
