@@ -122,9 +122,20 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
             break;
         }
     }
-    assert!(max_lead <= bound + 1e-9, "the command led by {:.3} deg", max_lead.to_degrees());
-    let (s, h) = (saturated_at.expect("the lead reached its bound"), held_at.expect("a hold"));
-    assert!(h - s <= 0.2 + 1e-9, "held {:.3} s after the lead reached its bound", h - s);
+    assert!(
+        max_lead <= bound + 1e-9,
+        "the command led by {:.3} deg",
+        max_lead.to_degrees()
+    );
+    let (s, h) = (
+        saturated_at.expect("the lead reached its bound"),
+        held_at.expect("a hold"),
+    );
+    assert!(
+        h - s <= 0.2 + 1e-9,
+        "held {:.3} s after the lead reached its bound",
+        h - s
+    );
     // The arm frees itself: nothing moves, the hold stays (latched), its reason too.
     r.blocked = false;
     for _ in 0..50 {
@@ -165,7 +176,12 @@ fn the_command_never_leads_a_lagging_arm_by_more_than_the_bound_in_any_phase() {
         r.blocked = true;
         let out = r.step();
         if let Some(cmd) = out.command {
-            assert!(lead(&cmd, &q) <= bound + 1e-9, "{:?}: led by {:.3} deg", out.phase, lead(&cmd, &q).to_degrees());
+            assert!(
+                lead(&cmd, &q) <= bound + 1e-9,
+                "{:?}: led by {:.3} deg",
+                out.phase,
+                lead(&cmd, &q).to_degrees()
+            );
             r.q = q + (cmd - q) * 0.2;
         }
         phases.push(out.phase);
@@ -197,7 +213,10 @@ fn jump_holds_until_a_new_start(jump: f64, code: &str) {
         moved = r.step();
     }
     assert!(moved.phase.is_moving(), "{code}: {:?}", moved.hold);
-    assert!(lead(&moved.command.unwrap(), &before) > 1e-4, "{code}: moves again after a start");
+    assert!(
+        lead(&moved.command.unwrap(), &before) > 1e-4,
+        "{code}: moves again after a start"
+    );
 }
 
 #[test]

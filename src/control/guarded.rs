@@ -168,7 +168,10 @@ impl<S: CommandSource> Guarded<S> {
             }
             (_, Some(q)) => {
                 self.source.reject(reason.clone(), q);
-                self.latched = Some(Latched { reason, hold_at: Some(q) });
+                self.latched = Some(Latched {
+                    reason,
+                    hold_at: Some(q),
+                });
             }
         }
     }

@@ -90,7 +90,10 @@ mod tests {
         f.push(1.000, q(0.3), 1.030);
         assert!((f.setpoint(1.015)[0] - 0.15).abs() < 1e-12, "half way");
         f.push(1.010, q(0.4), 1.040);
-        assert!((f.setpoint(1.010)[0] - 0.1).abs() < 1e-12, "starts where the setpoint was");
+        assert!(
+            (f.setpoint(1.010)[0] - 0.1).abs() < 1e-12,
+            "starts where the setpoint was"
+        );
         assert_eq!(f.late(), 0);
         // Due 10 ms ahead and 2 ms late: the arm had stopped at the point.
         f.push(1.020, q(0.5), 1.030);

@@ -34,10 +34,10 @@ use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::convert::image as image_msgs;
-use ::trocar_docking::ros::node::lock;
 use ::trocar_docking::ros::msgs::{
     geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, trajectory_msgs, trocar_docking,
 };
+use ::trocar_docking::ros::node::lock;
 use ::trocar_docking::ros::topics;
 use ::trocar_docking::vision::CameraModel;
 
@@ -113,7 +113,9 @@ fn play_camera(c: &Camera, hz: f64, stop: &AtomicBool) {
     let mut next = Instant::now();
     while rosrust::is_ok() && !stop.load(Ordering::Relaxed) {
         let s = rosrust::now();
-        let _ = c.info.send(image_msgs::camera_info(s, "camera_optical_frame", &c.model));
+        let _ = c
+            .info
+            .send(image_msgs::camera_info(s, "camera_optical_frame", &c.model));
         let _ = c.img.send(image_msgs::image(
             s,
             "camera_optical_frame",
@@ -305,7 +307,9 @@ fn play(
             for _ in 0..copies {
                 let _ = pubs.js.send(js.clone());
             }
-            let _ = pubs.lbr.send(convert::lbr_state(stamp, 1.0 / rate, &qm, &zeros, &zeros));
+            let _ = pubs
+                .lbr
+                .send(convert::lbr_state(stamp, 1.0 / rate, &qm, &zeros, &zeros));
         }
         if k.is_multiple_of(pose_every) {
             let _ = pubs
@@ -430,7 +434,8 @@ pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
     let blocked_at = Instant::now();
     let held = wait_status(&status, 5.0, "HOLD ARM_NOT_FOLLOWING on a blocked arm", |s| {
         s.phase == "HOLD"
-    })?;
+    })
+    .map_err(|e| format!("{e}; the command led by {:.2} deg", plant.seen().max_lead.to_degrees()))?;
     let held_at = Instant::now();
     std::thread::sleep(Duration::from_millis(200));
     let seen = plant.seen();
@@ -486,7 +491,10 @@ pub fn clock_jump(p: &CheckParams, jump: f64) -> Result<String, String> {
     })?;
     let delay = jumped_at.elapsed().as_secs_f64();
     let rest = no_motion_until_start(p, &plant, &status, code)?;
-    Ok(format!("clock {jump:+} s: {} within {delay:.2} s; {rest}", held.hold_code))
+    Ok(format!(
+        "clock {jump:+} s: {} within {delay:.2} s; {rest}",
+        held.hold_code
+    ))
 }
 
 /// The `driver_restart` check.
@@ -593,7 +601,10 @@ pub fn flood(p: &CheckParams) -> Result<String, String> {
         plant.seen().commands
     );
     if rate_min < p.control_rate_hz - tol || rate_max > p.control_rate_hz + tol {
-        return Err(format!("{summary}: the loop rate left {} Hz +- {tol}", p.control_rate_hz));
+        return Err(format!(
+            "{summary}: the loop rate left {} Hz +- {tol}",
+            p.control_rate_hz
+        ));
     }
     if !growth.iter().all(|g| *g <= p.max_rss_growth_mb) {
         return Err(format!("{summary}: memory grew (bound {} MB)", p.max_rss_growth_mb));
