@@ -6,29 +6,14 @@
 //! (`Controller::interrupt`) holds; every such hold is latched, and the new start begins from
 //! the measured joints.
 
-use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use nalgebra::Isometry3;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, HoldReason, Phase, Stamped};
-use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 
+mod common;
+use common::{kin, q_start, trocar};
+
 const DT: f64 = 0.01;
-
-fn kin() -> LbrKinematics {
-    LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap()
-}
-
-fn q_start() -> JointVector {
-    JointVector::from_column_slice(&[0.0, 0.6, 0.0, -1.2, 0.0, 0.9, 0.0])
-}
-
-/// A trocar 0.1 m below the start tip, axis pointing down.
-fn trocar(kin: &LbrKinematics) -> Isometry3<f64> {
-    let tip = kin.fk(&q_start()).unwrap();
-    Isometry3::from_parts(
-        Translation3::from(tip.translation.vector + Vector3::new(0.01, 0.0, -0.1)),
-        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
-    )
-}
 
 /// The controller, an ideal plant and a clock.
 struct Rig {

@@ -7,25 +7,10 @@ use proptest::prelude::*;
 use trocar_docking::control::geometry::InsertionAxis;
 use trocar_docking::control::sqp::SqpStatus;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
-use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 
-fn kin() -> LbrKinematics {
-    LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap()
-}
-
-fn q_start() -> JointVector {
-    JointVector::from_column_slice(&[0.0, 0.6, 0.0, -1.2, 0.0, 0.9, 0.0])
-}
-
-/// A trocar 0.1 m below the start tip, axis pointing down.
-fn trocar(kin: &LbrKinematics) -> Isometry3<f64> {
-    let tip = kin.fk(&q_start()).unwrap();
-    Isometry3::from_parts(
-        Translation3::from(tip.translation.vector + Vector3::new(0.01, 0.0, -0.1)),
-        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
-    )
-}
+mod common;
+use common::{kin, q_start, trocar};
 
 fn input(now: f64, q: JointVector, tau: JointVector, trocar: Isometry3<f64>) -> ControlInput {
     ControlInput {

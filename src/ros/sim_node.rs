@@ -416,6 +416,55 @@ impl Outputs {
     }
 }
 
+/// The commands as the driver's trajectory controller takes them: the newest point becomes
+/// the setpoint's next target ([`TrajectoryFollower`]); every 10 s the late share and the
+/// largest lead of a command over the measured joints are logged.
+struct ArmCommand {
+    follower: TrajectoryFollower,
+    report: Every,
+    /// The largest lead of a command over the measured joints, rad.
+    max_lead: f64,
+}
+
+impl ArmCommand {
+    fn new(world: &SimWorld, t0: f64) -> Self {
+        Self {
+            follower: TrajectoryFollower::new(world.joint_positions()),
+            report: Every::new(0.1, t0 + 10.0),
+            max_lead: 0.0,
+        }
+    }
+
+    /// Take the newest point from `slot`, and set the arm's setpoint at `now`.
+    fn apply(&mut self, slot: &CommandSlot, world: &mut SimWorld, now: f64) {
+        if let Some(c) = slot.lock().ok().and_then(|mut s| s.take()) {
+            // Checked by the arm first: a point it refuses never becomes the setpoint.
+            match world.set_command(&c.q) {
+                Ok(()) => {
+                    self.max_lead = self.max_lead.max((c.q - world.joint_positions()).amax());
+                    self.follower.push(now, c.q, c.due.unwrap_or(now));
+                }
+                Err(e) => {
+                    rosrust::ros_warn!("command rejected by the arm, keeping the last one: {e}");
+                }
+            }
+        }
+        // Between valid points, within the same joint box: valid.
+        let _ = world.set_command(&self.follower.setpoint(now));
+        let f = &self.follower;
+        if self.report.due(now) && f.moving() > 0 {
+            rosrust::ros_info!(
+                "lbr_med_sim: {} trajectory points, {} moving, {} of them late ({:.1} %): the arm had stopped at the previous point; largest command lead {:.2} deg",
+                f.points(),
+                f.moving(),
+                f.late(),
+                100.0 * f.late() as f64 / f.moving() as f64,
+                self.max_lead.to_degrees()
+            );
+        }
+    }
+}
+
 /// Run the node until shutdown. Call after `rosrust::init`.
 pub fn run() -> Result<(), NodeError> {
     let p: SimNodeParams = params::load_private()?;
@@ -454,42 +503,14 @@ pub fn run() -> Result<(), NodeError> {
         p.real_time_factor,
         p.publish_clock
     );
-    // The trajectory controller's setpoint, reported every 10 s (late points: the arm had
-    // stopped at the previous point when the next came).
-    let mut follower = TrajectoryFollower::new(world.joint_positions());
-    let mut report = Every::new(0.1, t0 + 10.0);
-    // The largest lead of a command over the measured joints, rad.
-    let mut max_lead = 0.0f64;
+    let mut arm = ArmCommand::new(&world, t0);
     while rosrust::is_ok() {
         let now = if p.publish_clock {
             t0 + world.time()
         } else {
             convert::seconds(rosrust::now())
         };
-        if let Some(c) = command.lock().ok().and_then(|mut s| s.take()) {
-            // Checked by the arm first: a point it refuses never becomes the setpoint.
-            match world.set_command(&c.q) {
-                Ok(()) => {
-                    max_lead = max_lead.max((c.q - world.joint_positions()).amax());
-                    follower.push(now, c.q, c.due.unwrap_or(now));
-                }
-                Err(e) => {
-                    rosrust::ros_warn!("command rejected by the arm, keeping the last one: {e}");
-                }
-            }
-        }
-        // Between valid points, within the same joint box: valid.
-        let _ = world.set_command(&follower.setpoint(now));
-        if report.due(now) && follower.moving() > 0 {
-            rosrust::ros_info!(
-                "lbr_med_sim: {} trajectory points, {} moving, {} of them late ({:.1} %): the arm had stopped at the previous point; largest command lead {:.2} deg",
-                follower.points(),
-                follower.moving(),
-                follower.late(),
-                100.0 * follower.late() as f64 / follower.moving() as f64,
-                max_lead.to_degrees()
-            );
-        }
+        arm.apply(&command, &mut world, now);
         if let Err(e) = world.step(dt) {
             return Err(NodeError::Invalid(format!("simulation stopped: {e}")));
         }
