@@ -38,7 +38,7 @@ pub struct GuardParams {
     /// winding up.
     pub max_command_lead: f64,
     /// Hold (latched, `ARM_NOT_FOLLOWING`, where the arm is) once the command has sat on its
-    /// lead bound this long, s.
+    /// lead bound this long with the arm not moving on that joint, s.
     pub follow_timeout: f64,
     /// A step whose clock advanced by more than this is a clock jump (or a stalled loop):
     /// hold, latched (`CLOCK_FORWARD`), s. Any step back in time holds too (`CLOCK_BACK`).

@@ -11,8 +11,10 @@
 //! failure modes that only the wrapper sees, each a latched hold with its reason (a new
 //! start is needed, and it begins from the measured joints):
 //! - **the arm does not follow**: the command sat on its lead bound for `follow_timeout`
-//!   (`ARM_NOT_FOLLOWING`); the hold is at the measured joints, so a blocked arm that frees
-//!   itself does not jump to a command ahead of it;
+//!   while the arm moved less than [`MIN_PROGRESS`] of the bound on that joint
+//!   (`ARM_NOT_FOLLOWING`); an arm that lags but moves (a fast joint behind its trajectory
+//!   controller) only slows the command down. The hold is at the measured joints, so a
+//!   blocked arm that frees itself does not jump to a command ahead of it;
 //! - **the clock jumps**: back (`CLOCK_BACK`), or forward by more than `max_clock_jump`
 //!   (`CLOCK_FORWARD`); never a silent freeze;
 //! - **an input restarts** (the node's call to [`Guarded::interrupt`], e.g. a driver restart).
@@ -52,6 +54,10 @@ pub trait CommandSource {
     fn reject(&mut self, reason: HoldReason, hold_at: JointVector);
 }
 
+/// The least an arm must move on a joint whose command sits on the lead bound, over
+/// `follow_timeout`, as a fraction of `max_command_lead`, to count as following.
+pub const MIN_PROGRESS: f64 = 0.1;
+
 /// A hold the wrapper raised itself: its reason and where it holds (`None`: nothing is
 /// commanded, the run went back to IDLE from TARE).
 #[derive(Debug, Clone)]
@@ -68,8 +74,10 @@ pub struct Guarded<S> {
     last_now: Option<f64>,
     /// The newest finite measured joints (a new start begins from them).
     last_measured: Option<JointVector>,
-    /// How long the command has sat on its lead bound, s.
+    /// How long the command has sat on its lead bound, s, and the joint and its measured
+    /// position when it began.
     behind_for: f64,
+    behind_from: Option<(usize, f64)>,
     /// The wrapper's own latched hold, until a start, an abort or a reset.
     latched: Option<Latched>,
     /// The reason of the last output, for a start that re-anchors a hold.
@@ -85,6 +93,7 @@ impl<S: CommandSource> Guarded<S> {
             last_now: None,
             last_measured: None,
             behind_for: 0.0,
+            behind_from: None,
             latched: None,
             last_reason: None,
         }
@@ -156,6 +165,7 @@ impl<S: CommandSource> Guarded<S> {
     /// second one keeps the first reason: it is the cause.
     fn raise(&mut self, reason: HoldReason, hold_at: Option<JointVector>) {
         self.behind_for = 0.0;
+        self.behind_from = None;
         if self.latched.is_some() {
             return;
         }
@@ -198,17 +208,30 @@ impl<S: CommandSource> Guarded<S> {
         }
     }
 
-    /// The arm does not follow when the command has sat on its lead bound for the timeout.
+    /// The arm does not follow when the command has sat on its lead bound for the timeout
+    /// and the arm has not moved (by [`MIN_PROGRESS`] of the bound) on that joint meanwhile.
     fn watch_lead(&mut self, command: Option<&JointVector>, dt: f64) -> Option<HoldReason> {
         let saturated = command.and_then(|c| self.guard.lead_saturated(c));
-        match saturated {
-            Some((joint, lead)) if self.source.phase() != Phase::Idle => {
+        let q = self.guard.measured().copied();
+        match (saturated, q) {
+            (Some((joint, lead)), Some(q)) if self.source.phase() != Phase::Idle => {
+                let (j0, q0) = *self.behind_from.get_or_insert((joint, q[joint]));
                 self.behind_for += dt;
-                (self.behind_for > self.guard.params().follow_timeout)
-                    .then_some(HoldReason::ArmNotFollowing { joint, lead })
+                let p = self.guard.params();
+                if self.behind_for <= p.follow_timeout {
+                    return None;
+                }
+                if (q[j0] - q0).abs() > MIN_PROGRESS * p.max_command_lead {
+                    // Lagging, but moving: a new window from here.
+                    self.behind_for = 0.0;
+                    self.behind_from = Some((joint, q[joint]));
+                    return None;
+                }
+                Some(HoldReason::ArmNotFollowing { joint, lead })
             }
             _ => {
                 self.behind_for = 0.0;
+                self.behind_from = None;
                 None
             }
         }

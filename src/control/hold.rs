@@ -87,8 +87,8 @@ pub enum HoldReason {
         sigma_nm: f64,
     },
     /// The command sat on its lead bound (`guard.max_command_lead` ahead of the measured
-    /// joints) for `guard.follow_timeout`: the arm does not follow (blocked, stopped by its
-    /// own controller, or the commands do not reach it). Latched; the hold is where the arm
+    /// joints) for `guard.follow_timeout` with the arm not moving on that joint: the arm does
+    /// not follow (blocked, stopped by its own controller, or the commands do not reach it). Latched; the hold is where the arm
     /// is, so nothing moves when it frees itself, and a new start begins from there.
     ArmNotFollowing {
         /// Joint index (0-based).
