@@ -114,7 +114,7 @@ impl Default for ControllerNodeParams {
             trocar_pose_topic: topics::TROCAR_POSE.into(),
             command_topic: topics::COMMAND.into(),
             command_type: CommandType::Trajectory,
-            command_lookahead_periods: 3.0,
+            command_lookahead_periods: 2.0,
             driver_restart_gap_s: 0.5,
             status_topic: topics::DOCKING_STATUS.into(),
             f_ext_topic: topics::DOCKING_F_EXT.into(),
