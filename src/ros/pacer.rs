@@ -16,6 +16,11 @@ const MAX_WAIT_PERIODS: u32 = 20;
 /// sleeping); later, it starts afresh.
 pub const MAX_CATCH_UP: u32 = 5;
 
+/// On the simulated clock, how far (s) the clock may run ahead of the schedule and still be
+/// caught up, as `rosrust::rate` does (a simulator catching up after a stall advances its
+/// clock in bursts); beyond, it is a jump and the schedule starts afresh.
+pub const SIM_CATCH_UP_S: f64 = 1.0;
+
 /// A loop's pace at a fixed rate.
 #[derive(Debug)]
 pub struct Pacer {
@@ -69,7 +74,7 @@ impl Pacer {
         let period = self.period.as_secs_f64();
         let start = rosrust::now().seconds();
         self.next_ros += period;
-        if start < self.next_ros - 2.0 * period || start > self.next_ros + f64::from(MAX_CATCH_UP) * period {
+        if start < self.next_ros - 2.0 * period || start > self.next_ros + SIM_CATCH_UP_S.max(period) {
             // The clock went back, jumped forward or the loop stalled: start afresh.
             self.next_ros = start + period;
         }
