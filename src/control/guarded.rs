@@ -129,6 +129,7 @@ impl<S: CommandSource> Guarded<S> {
                     .as_ref()
                     .map(|l| l.reason.clone())
                     .or_else(|| self.last_reason.clone())
+                    // (a hold always has a reason; this only keeps the re-anchor total)
                     .unwrap_or(HoldReason::NoJointState);
                 self.source.reject(why, q);
             }
@@ -136,6 +137,7 @@ impl<S: CommandSource> Guarded<S> {
         self.source.start()?;
         self.latched = None;
         self.behind_for = 0.0;
+        self.behind_from = None;
         Ok(())
     }
 
@@ -149,6 +151,7 @@ impl<S: CommandSource> Guarded<S> {
     pub fn reset(&mut self) {
         self.latched = None;
         self.behind_for = 0.0;
+        self.behind_from = None;
         self.last_now = None;
         self.source.reset();
     }
