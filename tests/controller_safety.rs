@@ -7,25 +7,10 @@ use proptest::prelude::*;
 use trocar_docking::control::geometry::InsertionAxis;
 use trocar_docking::control::sqp::SqpStatus;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
-use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 
-fn kin() -> LbrKinematics {
-    LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap()
-}
-
-fn q_start() -> JointVector {
-    JointVector::from_column_slice(&[0.0, 0.6, 0.0, -1.2, 0.0, 0.9, 0.0])
-}
-
-/// A trocar 0.1 m below the start tip, axis pointing down.
-fn trocar(kin: &LbrKinematics) -> Isometry3<f64> {
-    let tip = kin.fk(&q_start()).unwrap();
-    Isometry3::from_parts(
-        Translation3::from(tip.translation.vector + Vector3::new(0.01, 0.0, -0.1)),
-        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
-    )
-}
+mod common;
+use common::{kin, q_start, trocar};
 
 fn input(now: f64, q: JointVector, tau: JointVector, trocar: Isometry3<f64>) -> ControlInput {
     ControlInput {
@@ -381,33 +366,47 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     let p = ControllerParams::default();
     let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
     c.start().unwrap();
-    // The arm stays at the start: commands advance until the tracking error trips.
+    // The arm stays at the start: the command waits at the lead bound, then holds (latched)
+    // where the arm is (tests/controller_failure_modes.rs has the timing).
     let frozen = q_start();
-    let mut last = frozen;
     let mut held_at = None;
     for k in 1..=200 {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
-        last = out.command.unwrap();
+        let last = out.command.unwrap();
+        for i in 0..7 {
+            assert!((last[i] - frozen[i]).abs() <= p.guard.max_command_lead + 1e-9);
+        }
         if out.phase == Phase::Hold {
-            assert_eq!(out.reason_code(), "TRACKING_ERROR", "{:?}", out.hold);
+            assert_eq!(out.reason_code(), "ARM_NOT_FOLLOWING", "{:?}", out.hold);
+            assert_eq!(last, frozen, "held where the arm is");
             held_at = Some(k);
             break;
         }
     }
-    assert!(held_at.is_some(), "no hold although the arm never moved");
-    // The command never runs further than the tolerance (plus one step) ahead of the arm.
-    let step = kin.limits().velocity * p.guard.velocity_scale * p.dt;
-    for i in 0..7 {
-        assert!((last[i] - frozen[i]).abs() <= p.guard.max_tracking_error + step[i] + 1e-9);
-    }
-    // Still frozen: the hold stays, and the command stays put.
-    for k in 201..=210 {
+    let k0 = held_at.expect("no hold although the arm never moved");
+    // Still frozen: the hold stays, and the command stays put; a start resumes.
+    for k in k0 + 1..=k0 + 10 {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
-        assert_eq!(out.phase, Phase::Hold);
-        assert_eq!(out.command, Some(last));
+        assert_eq!((out.phase, out.command), (Phase::Hold, Some(frozen)));
     }
-    // The arm catches up: docking resumes.
-    let out = c.step(&kin, &input(2.11, last, JointVector::zeros(), troc));
+    c.start().unwrap();
+    let mut q = frozen;
+    let mut t = (k0 + 10) as f64 * 0.01;
+    for _ in 0..10 {
+        t += 0.01;
+        q = c.step(&kin, &input(t, q, JointVector::zeros(), troc)).command.unwrap();
+    }
+    // Pushed off its command by more than the tracking tolerance for one step: hold at the
+    // last command; back within the follow timeout: docking resumes by itself.
+    let mut pushed = q;
+    pushed[3] += p.guard.max_tracking_error * 1.2;
+    t += 0.01;
+    let out = c.step(&kin, &input(t, pushed, JointVector::zeros(), troc));
+    assert_eq!(out.phase, Phase::Hold);
+    assert_eq!(out.reason_code(), "TRACKING_ERROR", "{:?}", out.hold);
+    assert_eq!(out.command, Some(q), "holding at the last command");
+    t += 0.01;
+    let out = c.step(&kin, &input(t, q, JointVector::zeros(), troc));
     assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);
 }
 

@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod bench;
 pub mod fk;
+pub mod soak;
 pub mod trials;
 pub mod urdf;
 pub mod vision;
@@ -29,6 +30,9 @@ pub enum Command {
     Fk(fk::FkArgs),
     /// Run the paper's experiment in simulation: trials with and without force feedback.
     Trials(trials::TrialsArgs),
+    /// Repeated docking cycles at 1 kHz for a long run: max step time, RSS growth, every
+    /// cycle DONE (not in CI).
+    Soak(soak::SoakArgs),
     /// Detect markers in an image file and print their poses.
     Detect(vision::DetectArgs),
     /// Render a synthetic marker image and print its true pose.
@@ -47,6 +51,7 @@ pub fn run(cli: Cli) -> CliResult {
         Command::Bench(a) => bench::run(&a),
         Command::Fk(a) => fk::run(&a),
         Command::Trials(a) => trials::run(&a),
+        Command::Soak(a) => soak::run(&a),
         Command::Urdf(a) => urdf::run(&a),
         Command::Detect(a) => vision::run_detect(&a),
         Command::Render(a) => vision::run_render(&a),

@@ -33,6 +33,16 @@ pub struct GuardParams {
     /// commands advance from the last command (not the measurement), so without this check
     /// an arm that stopped following would, on resuming, chase a command far ahead of it.
     pub max_tracking_error: f64,
+    /// The command never leads the measured joints by more than this on any joint, rad (the
+    /// step box is cut to it, in every phase): on a blocked arm the command waits instead of
+    /// winding up.
+    pub max_command_lead: f64,
+    /// Hold (latched, `ARM_NOT_FOLLOWING`, where the arm is) once the command has sat on its
+    /// lead bound this long with the arm not moving on that joint, s.
+    pub follow_timeout: f64,
+    /// A step whose clock advanced by more than this is a clock jump (or a stalled loop):
+    /// hold, latched (`CLOCK_FORWARD`), s. Any step back in time holds too (`CLOCK_BACK`).
+    pub max_clock_jump: f64,
 }
 
 impl Default for GuardParams {
@@ -45,6 +55,9 @@ impl Default for GuardParams {
             trocar_timeout: 0.5,
             torque_timeout: 0.1,
             max_tracking_error: 0.15,
+            max_command_lead: 2f64.to_radians(),
+            follow_timeout: 0.1,
+            max_clock_jump: 1.0,
         }
     }
 }
@@ -65,7 +78,10 @@ impl GuardParams {
         check("joint_timeout", self.joint_timeout, 0.0, 10.0)?;
         check("trocar_timeout", self.trocar_timeout, 0.0, 60.0)?;
         check("torque_timeout", self.torque_timeout, 0.0, 10.0)?;
-        check("max_tracking_error", self.max_tracking_error, 0.0, 1.0)
+        check("max_tracking_error", self.max_tracking_error, 0.0, 1.0)?;
+        check("max_command_lead", self.max_command_lead, 0.0, 0.5)?;
+        check("follow_timeout", self.follow_timeout, 0.0, 10.0)?;
+        check("max_clock_jump", self.max_clock_jump, 0.0, 60.0)
     }
 }
 
@@ -76,6 +92,9 @@ pub struct CommandGuard {
     lower: JointVector,
     upper: JointVector,
     vmax: JointVector,
+    /// The measured joints of this step, when known: commands stay within
+    /// `max_command_lead` of them.
+    measured: Option<JointVector>,
 }
 
 impl CommandGuard {
@@ -90,7 +109,29 @@ impl CommandGuard {
             lower,
             upper,
             vmax,
+            measured: None,
         }
+    }
+
+    /// The measured joints of the coming step (`None`: unknown or not finite); the step box
+    /// and the command check then keep the command within `max_command_lead` of them.
+    pub fn set_measured(&mut self, measured: Option<JointVector>) {
+        self.measured = measured.filter(|q| q.iter().all(|x| x.is_finite()));
+    }
+
+    /// The measured joints the lead bound applies to, if any.
+    pub fn measured(&self) -> Option<&JointVector> {
+        self.measured.as_ref()
+    }
+
+    /// The joint whose command `cmd` sits on (or beyond) the lead bound, with its lead
+    /// (`cmd - measured`), if any.
+    pub fn lead_saturated(&self, cmd: &JointVector) -> Option<(usize, f64)> {
+        let q = self.measured.as_ref()?;
+        let bound = self.params.max_command_lead * 0.99;
+        (0..cmd.len())
+            .map(|i| (i, cmd[i] - q[i]))
+            .find(|(_, lead)| lead.abs() >= bound)
     }
 
     /// The parameters.
@@ -111,20 +152,30 @@ impl CommandGuard {
     }
 
     /// The box a command for a step of `dt` from `prev` must lie in: the position limits
-    /// (with margin) intersected with the velocity limit. When `prev` is itself outside the
-    /// limits, the box still contains `prev`'s nearest feasible motion, never a jump.
+    /// (with margin) intersected with the velocity limit and, when the measured joints are
+    /// known, with `max_command_lead` around them. When `prev` is itself outside these
+    /// bounds, the box still contains `prev`'s nearest feasible motion, never a jump.
     pub fn step_box(&self, prev: &JointVector, dt: f64) -> (JointVector, JointVector) {
         let mut lo = JointVector::zeros();
         let mut hi = JointVector::zeros();
         for i in 0..prev.len() {
             let dq = self.vmax[i] * dt;
+            let (lead_lo, lead_hi) = self.lead_bounds(i);
             // Moving back towards the feasible range is always allowed; never a jump.
-            let l = self.lower[i].max(prev[i] - dq).min(prev[i]);
-            let h = self.upper[i].min(prev[i] + dq).max(prev[i]);
+            let l = self.lower[i].max(prev[i] - dq).max(lead_lo).min(prev[i]);
+            let h = self.upper[i].min(prev[i] + dq).min(lead_hi).max(prev[i]);
             lo[i] = l;
             hi[i] = h;
         }
         (lo, hi)
+    }
+
+    /// The lead bounds of joint `i` (infinite without measured joints).
+    fn lead_bounds(&self, i: usize) -> (f64, f64) {
+        let lead = self.params.max_command_lead;
+        self.measured
+            .as_ref()
+            .map_or((f64::NEG_INFINITY, f64::INFINITY), |q| (q[i] - lead, q[i] + lead))
     }
 
     /// Check `cmd` as the next command after `prev`, `dt` seconds later.
@@ -141,6 +192,12 @@ impl CommandGuard {
             // Outside the limits only if it moves further out.
             if (cmd[i] > self.upper[i] + tol && step > 0.0) || (cmd[i] < self.lower[i] - tol && step < 0.0) {
                 return Err(HoldReason::PositionLimit { joint: i });
+            }
+            // Further ahead of the measured joints than the lead bound, moving further out.
+            let (lead_lo, lead_hi) = self.lead_bounds(i);
+            if (cmd[i] > lead_hi + tol && step > 0.0) || (cmd[i] < lead_lo - tol && step < 0.0) {
+                let lead = self.measured.map_or(0.0, |q| cmd[i] - q[i]);
+                return Err(HoldReason::ArmNotFollowing { joint: i, lead });
             }
         }
         Ok(())

@@ -2,12 +2,22 @@
 //! commands (the optimal controller, or another law standing in), its commands leave
 //! through [`Guarded::step`], which checks each one with the [`CommandGuard`] (finite,
 //! inside the joint limits less the margin, within the per-step velocity limit from the
-//! previous command) before it can be published. A rejected command is never sent: the
-//! source is told to hold at its previous command, latched, with the reason.
+//! previous command, within `max_command_lead` of the measured joints) before it can be
+//! published. A rejected command is never sent: the source is told to hold at its previous
+//! command, latched, with the reason.
 //!
 //! The wrapper also owns the step timing (the `dt` of each step, never above the nominal
-//! period and 0 when the clock does not advance), so that the source's step box and the
-//! guard's check use the same `dt`.
+//! period), so that the source's step box and the guard's check use the same `dt`, and the
+//! failure modes that only the wrapper sees, each a latched hold with its reason (a new
+//! start is needed, and it begins from the measured joints):
+//! - **the arm does not follow**: the command sat on its lead bound for `follow_timeout`
+//!   while the arm moved less than [`MIN_PROGRESS`] of the bound on that joint
+//!   (`ARM_NOT_FOLLOWING`); an arm that lags but moves (a fast joint behind its trajectory
+//!   controller) only slows the command down. The hold is at the measured joints, so a
+//!   blocked arm that frees itself does not jump to a command ahead of it;
+//! - **the clock jumps**: back (`CLOCK_BACK`), or forward by more than `max_clock_jump`
+//!   (`CLOCK_FORWARD`); never a silent freeze;
+//! - **an input restarts** (the node's call to [`Guarded::interrupt`], e.g. a driver restart).
 
 use super::controller::{ControlInput, ControlOutput};
 use super::guard::{CommandGuard, HoldReason};
@@ -20,7 +30,7 @@ pub struct StepContext<'a> {
     /// The guard the command will be checked by (its step box, limits and input checks).
     pub guard: &'a CommandGuard,
     /// Time since the last step, s (at most the nominal period; 0 when the clock did not
-    /// advance).
+    /// advance or jumped).
     pub dt: f64,
 }
 
@@ -44,12 +54,34 @@ pub trait CommandSource {
     fn reject(&mut self, reason: HoldReason, hold_at: JointVector);
 }
 
+/// The least an arm must move on a joint whose command sits on the lead bound, over
+/// `follow_timeout`, as a fraction of `max_command_lead`, to count as following.
+pub const MIN_PROGRESS: f64 = 0.1;
+
+/// A hold the wrapper raised itself: its reason and where it holds (`None`: nothing is
+/// commanded, the run went back to IDLE from TARE).
+#[derive(Debug, Clone)]
+struct Latched {
+    reason: HoldReason,
+    hold_at: Option<JointVector>,
+}
+
 /// A command source behind the command guard.
 #[derive(Debug)]
 pub struct Guarded<S> {
     source: S,
     guard: CommandGuard,
     last_now: Option<f64>,
+    /// The newest finite measured joints (a new start begins from them).
+    last_measured: Option<JointVector>,
+    /// How long the command has sat on its lead bound, s, and the joint and its measured
+    /// position when it began.
+    behind_for: f64,
+    behind_from: Option<(usize, f64)>,
+    /// The wrapper's own latched hold, until a start, an abort or a reset.
+    latched: Option<Latched>,
+    /// The reason of the last output, for a start that re-anchors a hold.
+    last_reason: Option<HoldReason>,
 }
 
 impl<S: CommandSource> Guarded<S> {
@@ -59,6 +91,11 @@ impl<S: CommandSource> Guarded<S> {
             source,
             guard,
             last_now: None,
+            last_measured: None,
+            behind_for: 0.0,
+            behind_from: None,
+            latched: None,
+            last_reason: None,
         }
     }
 
@@ -77,39 +114,145 @@ impl<S: CommandSource> Guarded<S> {
         self.source.phase()
     }
 
-    /// Start docking (from IDLE) or resume after a hold.
+    /// Start docking (from IDLE) or resume after a hold. A resume begins from the measured
+    /// joints, not from the command held before (the arm may have been blocked behind it,
+    /// or moved while held): nothing jumps.
     pub fn start(&mut self) -> Result<(), String> {
-        self.source.start()
+        let phase = self.source.phase();
+        if phase == Phase::Idle {
+            // A new run times its steps afresh.
+            self.last_now = None;
+        } else if phase == Phase::Hold {
+            if let Some(q) = self.last_measured {
+                let why = self
+                    .latched
+                    .as_ref()
+                    .map(|l| l.reason.clone())
+                    .or_else(|| self.last_reason.clone())
+                    // (a hold always has a reason; this only keeps the re-anchor total)
+                    .unwrap_or(HoldReason::NoJointState);
+                self.source.reject(why, q);
+            }
+        }
+        self.source.start()?;
+        self.latched = None;
+        self.behind_for = 0.0;
+        self.behind_from = None;
+        Ok(())
     }
 
     /// Abort: hold for good until reset.
     pub fn abort(&mut self, why: &str) {
+        self.latched = None;
         self.source.abort(why);
     }
 
     /// Back to IDLE; forgets the run.
     pub fn reset(&mut self) {
+        self.latched = None;
+        self.behind_for = 0.0;
+        self.behind_from = None;
+        self.last_now = None;
         self.source.reset();
     }
 
-    fn step_dt(&mut self, now: f64) -> f64 {
-        let period = self.source.period();
-        let dt = match self.last_now {
-            Some(t) if now.is_finite() && now > t => (now - t).min(period),
-            Some(_) => 0.0,
-            None => period,
-        };
-        if now.is_finite() {
-            self.last_now = Some(self.last_now.map_or(now, |t| t.max(now)));
+    /// An input restarted under the controller (a driver restart, seen by the node): hold,
+    /// latched, for `reason`, at the last command; a new start is needed. Nothing happens
+    /// in IDLE; from TARE the run goes back to IDLE.
+    pub fn interrupt(&mut self, reason: HoldReason) {
+        let hold_at = self.source.last_command().or(self.last_measured);
+        self.raise(reason, hold_at);
+    }
+
+    /// The wrapper's own hold for `reason` at `hold_at` (see [`Guarded::interrupt`]). A
+    /// second one keeps the first reason: it is the cause.
+    fn raise(&mut self, reason: HoldReason, hold_at: Option<JointVector>) {
+        self.behind_for = 0.0;
+        self.behind_from = None;
+        if self.latched.is_some() {
+            return;
         }
-        dt
+        match (self.source.phase(), hold_at) {
+            (Phase::Idle, _) => {}
+            (Phase::Tare, _) | (_, None) => {
+                // Nothing moved yet (or nothing can be held): back to IDLE.
+                self.source.reset();
+                self.latched = Some(Latched { reason, hold_at: None });
+            }
+            (_, Some(q)) => {
+                self.source.reject(reason.clone(), q);
+                self.latched = Some(Latched {
+                    reason,
+                    hold_at: Some(q),
+                });
+            }
+        }
+    }
+
+    /// This step's `dt`, and the clock jump it is, if any.
+    fn step_dt(&mut self, now: f64) -> (f64, Option<HoldReason>) {
+        let period = self.source.period();
+        let Some(t) = self.last_now else {
+            if now.is_finite() {
+                self.last_now = Some(now);
+            }
+            return (period, None);
+        };
+        if !now.is_finite() {
+            return (0.0, None);
+        }
+        self.last_now = Some(now);
+        if now < t {
+            (0.0, Some(HoldReason::ClockBack { by_s: t - now }))
+        } else if now - t > self.guard.params().max_clock_jump {
+            (0.0, Some(HoldReason::ClockForward { by_s: now - t }))
+        } else {
+            ((now - t).min(period), None)
+        }
+    }
+
+    /// The arm does not follow when the command has sat on its lead bound for the timeout
+    /// and the arm has not moved (by [`MIN_PROGRESS`] of the bound) on that joint meanwhile.
+    fn watch_lead(&mut self, command: Option<&JointVector>, dt: f64) -> Option<HoldReason> {
+        let saturated = command.and_then(|c| self.guard.lead_saturated(c));
+        let q = self.guard.measured().copied();
+        match (saturated, q) {
+            (Some((joint, lead)), Some(q)) if self.source.phase() != Phase::Idle => {
+                let (j0, q0) = *self.behind_from.get_or_insert((joint, q[joint]));
+                self.behind_for += dt;
+                let p = self.guard.params();
+                if self.behind_for <= p.follow_timeout {
+                    return None;
+                }
+                if (q[j0] - q0).abs() > MIN_PROGRESS * p.max_command_lead {
+                    // Lagging, but moving: a new window from here.
+                    self.behind_for = 0.0;
+                    self.behind_from = Some((joint, q[joint]));
+                    return None;
+                }
+                Some(HoldReason::ArmNotFollowing { joint, lead })
+            }
+            _ => {
+                self.behind_for = 0.0;
+                self.behind_from = None;
+                None
+            }
+        }
     }
 
     /// One control step: the source proposes, the guard checks. Never panics. A command
     /// that cannot be checked (no previous command and no measured joints) is not sent.
     pub fn step(&mut self, kin: &dyn Kinematics, input: &ControlInput) -> ControlOutput {
-        let dt = self.step_dt(input.now);
-        let prev = self.source.last_command().or(input.joints.map(|j| j.value));
+        let (dt, jump) = self.step_dt(input.now);
+        let measured = input
+            .joints
+            .map(|j| j.value)
+            .filter(|q| q.iter().all(|x| x.is_finite()));
+        if measured.is_some() {
+            self.last_measured = measured;
+        }
+        self.guard.set_measured(measured);
+        let prev = self.source.last_command().or(measured);
         let ctx = StepContext { guard: &self.guard, dt };
         let mut out = self.source.step(kin, input, &ctx);
         match (out.command, prev) {
@@ -124,6 +267,21 @@ impl<S: CommandSource> Guarded<S> {
             (Some(_), None) => out.command = None,
             (None, _) => {}
         }
+        if let Some(why) = jump {
+            self.raise(why, out.command.or(prev));
+        } else if self.latched.is_none() {
+            if let Some(why) = self.watch_lead(out.command.as_ref(), dt) {
+                // Hold where the arm is: when it frees itself, nothing jumps.
+                self.raise(why, measured.or(out.command));
+            }
+        }
+        if let Some(l) = &self.latched {
+            out.command = out.command.and(l.hold_at);
+            out.phase = self.source.phase();
+            out.hold = Some(l.reason.clone());
+            out.solve = None;
+        }
+        self.last_reason.clone_from(&out.hold);
         out
     }
 }

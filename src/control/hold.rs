@@ -86,6 +86,35 @@ pub enum HoldReason {
         /// Its standard deviation over the window, Nm.
         sigma_nm: f64,
     },
+    /// The command sat on its lead bound (`guard.max_command_lead` ahead of the measured
+    /// joints) for `guard.follow_timeout` with the arm not moving on that joint: the arm does
+    /// not follow (blocked, stopped by its own controller, or the commands do not reach it). Latched; the hold is where the arm
+    /// is, so nothing moves when it frees itself, and a new start begins from there.
+    ArmNotFollowing {
+        /// Joint index (0-based).
+        joint: usize,
+        /// q_command - q_measured, rad.
+        lead: f64,
+    },
+    /// The clock (ROS time) went back: a bag that loops, a simulator reset. Latched.
+    ClockBack {
+        /// How far back, s.
+        by_s: f64,
+    },
+    /// The clock jumped forward by more than `guard.max_clock_jump` in one step (or the
+    /// loop stalled that long). Latched.
+    ClockForward {
+        /// How far forward, s.
+        by_s: f64,
+    },
+    /// The joint states restarted: their stamps went back, resumed after an interruption,
+    /// or the names arrived in another order (a driver restart). Latched.
+    DriverRestart {
+        /// Change of the joint-state stamp across the restart, s (negative: back).
+        stamp_jump_s: f64,
+        /// Whether the joint names arrived in another order.
+        names_reordered: bool,
+    },
 }
 
 impl HoldReason {
@@ -111,11 +140,15 @@ impl HoldReason {
             HoldReason::Operator(_) => "OPERATOR",
             HoldReason::TareMotion { .. } => "TARE_MOTION",
             HoldReason::TareImplausible { .. } => "TARE_IMPLAUSIBLE",
+            HoldReason::ArmNotFollowing { .. } => "ARM_NOT_FOLLOWING",
+            HoldReason::ClockBack { .. } => "CLOCK_BACK",
+            HoldReason::ClockForward { .. } => "CLOCK_FORWARD",
+            HoldReason::DriverRestart { .. } => "DRIVER_RESTART",
         }
     }
 
     /// Every code, for documentation and tests.
-    pub const CODES: [&'static str; 18] = [
+    pub const CODES: [&'static str; 22] = [
         "NO_JOINT_STATE",
         "STALE_JOINT_STATE",
         "NON_FINITE_JOINT_STATE",
@@ -134,6 +167,10 @@ impl HoldReason {
         "OPERATOR",
         "TARE_MOTION",
         "TARE_IMPLAUSIBLE",
+        "ARM_NOT_FOLLOWING",
+        "CLOCK_BACK",
+        "CLOCK_FORWARD",
+        "DRIVER_RESTART",
     ];
 }
 
@@ -181,6 +218,28 @@ impl fmt::Display for HoldReason {
                 "start refused: joint {} reads {offset_nm:.1} Nm (spread {sigma_nm:.2} Nm) with the arm still: in contact, or wrong load data?",
                 joint + 1
             ),
+            HoldReason::ArmNotFollowing { joint, lead } => write!(
+                f,
+                "the arm does not follow: joint {} stays {:.2} deg behind its command; holding where the arm is (free it, then start again)",
+                joint + 1,
+                lead.abs().to_degrees()
+            ),
+            HoldReason::ClockBack { by_s } => write!(
+                f,
+                "the clock went back by {by_s:.3} s (a looping bag or a simulator reset?); start again"
+            ),
+            HoldReason::ClockForward { by_s } => write!(
+                f,
+                "the clock jumped forward by {by_s:.3} s in one step (or the control loop stalled); start again"
+            ),
+            HoldReason::DriverRestart {
+                stamp_jump_s,
+                names_reordered,
+            } => write!(
+                f,
+                "the joint states restarted (stamps {stamp_jump_s:+.3} s{}): driver restarted? start again",
+                if *names_reordered { ", names in another order" } else { "" }
+            ),
         }
     }
 }
@@ -218,6 +277,13 @@ mod tests {
                 joint: 3,
                 offset_nm: 7.0,
                 sigma_nm: 0.1,
+            },
+            HoldReason::ArmNotFollowing { joint: 1, lead: 0.035 },
+            HoldReason::ClockBack { by_s: 5.0 },
+            HoldReason::ClockForward { by_s: 5.0 },
+            HoldReason::DriverRestart {
+                stamp_jump_s: -3.0,
+                names_reordered: true,
             },
         ]
     }

@@ -9,7 +9,9 @@
 //!   the server, checked with [`crate::validate`]), [`topics`] (default topic names),
 //!   [`msgs`] (the generated message types), [`convert`] (messages <-> core types, input
 //!   checks), [`markers`] (RViz), [`stats`] (allocation-free loop statistics), [`handover`]
-//!   (lock-free hand-over between the real-time loop and the rosrust threads).
+//!   (lock-free hand-over between the real-time loop and the rosrust threads), [`pacer`]
+//!   (a loop's pace that survives clock jumps), [`trajectory`] (how the simulated arm
+//!   takes a streamed trajectory, as a joint_trajectory_controller).
 //!
 //! The rostest programs are a binary of their own (`src/bin/rostest_checks`).
 
@@ -20,7 +22,9 @@ pub mod handover;
 pub mod markers;
 pub mod msgs;
 pub mod node;
+pub mod pacer;
 pub mod params;
 pub mod sim_node;
 pub mod stats;
 pub mod topics;
+pub mod trajectory;

@@ -14,6 +14,7 @@ use super::convert;
 use super::convert::image as image_msgs;
 use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs};
 use super::params;
+use super::trajectory::TrajectoryFollower;
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::sim::SimWorld;
@@ -261,15 +262,36 @@ impl Default for SimNodeParams {
     }
 }
 
-/// The newest valid command, or the reason the last one was rejected.
-type CommandSlot = Arc<Mutex<Option<JointVector>>>;
+/// A command point: positions and when they are due (ROS time, s; `None`: at once).
+#[derive(Debug, Clone, Copy)]
+struct CommandPoint {
+    q: JointVector,
+    due: Option<f64>,
+}
+
+/// The newest valid command point.
+type CommandSlot = Arc<Mutex<Option<CommandPoint>>>;
+
+/// When a trajectory's first point is due: `header.stamp + time_from_start` (a zero stamp
+/// means "now", as for a joint_trajectory_controller).
+fn due_time(m: &trajectory_msgs::JointTrajectory) -> Option<f64> {
+    let tfs = m.points.first()?.time_from_start;
+    let tfs = f64::from(tfs.sec) + f64::from(tfs.nsec) * 1e-9;
+    let stamp = convert::seconds(m.header.stamp);
+    let start = if stamp > 0.0 {
+        stamp
+    } else {
+        convert::seconds(rosrust::now())
+    };
+    Some(start + tfs)
+}
 
 fn subscribe_command(p: &SimNodeParams, slot: &CommandSlot) -> Result<rosrust::Subscriber, NodeError> {
     let (slot, topic, names) = (slot.clone(), p.command_topic.clone(), p.joint_names.clone());
-    let accept = move |r: Result<JointVector, convert::InputError>| match r {
+    let accept = move |r: Result<JointVector, convert::InputError>, due: Option<f64>| match r {
         Ok(q) => {
             if let Ok(mut s) = slot.lock() {
-                *s = Some(q);
+                *s = Some(CommandPoint { q, due });
             }
         }
         Err(e) => {
@@ -279,12 +301,12 @@ fn subscribe_command(p: &SimNodeParams, slot: &CommandSlot) -> Result<rosrust::S
     match p.command_type {
         CommandType::Trajectory => {
             rosrust::subscribe(&p.command_topic, 2, move |m: trajectory_msgs::JointTrajectory| {
-                accept(convert::trajectory_positions(&topic, &m, &names))
+                accept(convert::trajectory_positions(&topic, &m, &names), due_time(&m))
             })
         }
         CommandType::Float64MultiArray => {
             rosrust::subscribe(&p.command_topic, 2, move |m: std_msgs::Float64MultiArray| {
-                accept(convert::multiarray_positions(&topic, &m))
+                accept(convert::multiarray_positions(&topic, &m), None)
             })
         }
     }
@@ -394,6 +416,55 @@ impl Outputs {
     }
 }
 
+/// The commands as the driver's trajectory controller takes them: the newest point becomes
+/// the setpoint's next target ([`TrajectoryFollower`]); every 10 s the late share and the
+/// largest lead of a command over the measured joints are logged.
+struct ArmCommand {
+    follower: TrajectoryFollower,
+    report: Every,
+    /// The largest lead of a command over the measured joints, rad.
+    max_lead: f64,
+}
+
+impl ArmCommand {
+    fn new(world: &SimWorld, t0: f64) -> Self {
+        Self {
+            follower: TrajectoryFollower::new(world.joint_positions()),
+            report: Every::new(0.1, t0 + 10.0),
+            max_lead: 0.0,
+        }
+    }
+
+    /// Take the newest point from `slot`, and set the arm's setpoint at `now`.
+    fn apply(&mut self, slot: &CommandSlot, world: &mut SimWorld, now: f64) {
+        if let Some(c) = slot.lock().ok().and_then(|mut s| s.take()) {
+            // Checked by the arm first: a point it refuses never becomes the setpoint.
+            match world.set_command(&c.q) {
+                Ok(()) => {
+                    self.max_lead = self.max_lead.max((c.q - world.joint_positions()).amax());
+                    self.follower.push(now, c.q, c.due.unwrap_or(now));
+                }
+                Err(e) => {
+                    rosrust::ros_warn!("command rejected by the arm, keeping the last one: {e}");
+                }
+            }
+        }
+        // Between valid points, within the same joint box: valid.
+        let _ = world.set_command(&self.follower.setpoint(now));
+        let f = &self.follower;
+        if self.report.due(now) && f.moving() > 0 {
+            rosrust::ros_info!(
+                "lbr_med_sim: {} trajectory points, {} moving, {} of them late ({:.1} %): the arm had stopped at the previous point; largest command lead {:.2} deg",
+                f.points(),
+                f.moving(),
+                f.late(),
+                100.0 * f.late() as f64 / f.moving() as f64,
+                self.max_lead.to_degrees()
+            );
+        }
+    }
+}
+
 /// Run the node until shutdown. Call after `rosrust::init`.
 pub fn run() -> Result<(), NodeError> {
     let p: SimNodeParams = params::load_private()?;
@@ -432,12 +503,14 @@ pub fn run() -> Result<(), NodeError> {
         p.real_time_factor,
         p.publish_clock
     );
+    let mut arm = ArmCommand::new(&world, t0);
     while rosrust::is_ok() {
-        if let Some(q) = command.lock().ok().and_then(|mut s| s.take()) {
-            if let Err(e) = world.set_command(&q) {
-                rosrust::ros_warn!("command rejected by the arm, keeping the last one: {e}");
-            }
-        }
+        let now = if p.publish_clock {
+            t0 + world.time()
+        } else {
+            convert::seconds(rosrust::now())
+        };
+        arm.apply(&command, &mut world, now);
         if let Err(e) = world.step(dt) {
             return Err(NodeError::Invalid(format!("simulation stopped: {e}")));
         }

@@ -31,7 +31,7 @@ use ::trocar_docking::vision::{render_marker_image, CameraModel, EstimatorParams
 
 /// One camera frame: the marker seen from the arm at `q0` with the nominal mount, for a
 /// trocar 12 cm ahead of the tip on its optical axis.
-fn camera_frame(camera: &CameraModel, q0: &JointVector) -> Result<Vec<u8>, String> {
+pub(crate) fn camera_frame(camera: &CameraModel, q0: &JointVector) -> Result<Vec<u8>, String> {
     let tip_kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
     let flange_kin = LbrKinematics::from_model_or_file(LbrModel::Med7, "", FLANGE_LINK).map_err(|e| e.to_string())?;
     let tip = tip_kin.fk(q0).map_err(|e| e.to_string())?;

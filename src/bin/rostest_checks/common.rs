@@ -58,6 +58,20 @@ pub struct CheckParams {
     pub max_latency_ms: f64,
     /// `latency`: the largest accepted median of image -> command, ms.
     pub max_latency_p50_ms: f64,
+    /// Failure modes: the largest accepted lead of the command over the measured joints, deg.
+    pub max_lead_deg: f64,
+    /// `blocked_arm`: the largest accepted delay of the hold after the lead bound, s.
+    pub max_hold_delay_s: f64,
+    /// Failure modes: the largest accepted step between commands after a new start, deg.
+    pub max_step_deg: f64,
+    /// The controller's rate, Hz.
+    pub control_rate_hz: f64,
+    /// `flood`: how many times the nominal rate every input gets.
+    pub flood_factor: f64,
+    /// `flood`: the accepted relative deviation of the control loop's rate.
+    pub rate_tolerance: f64,
+    /// `flood`: the largest accepted RSS growth of a node, MB.
+    pub max_rss_growth_mb: f64,
 }
 
 impl Default for CheckParams {
@@ -85,6 +99,13 @@ impl Default for CheckParams {
             camera_rate_hz: 30.0,
             max_latency_ms: 10.0,
             max_latency_p50_ms: 10.0,
+            max_lead_deg: 2.0,
+            max_hold_delay_s: 0.2,
+            max_step_deg: 1.0,
+            control_rate_hz: 100.0,
+            flood_factor: 10.0,
+            rate_tolerance: 0.01,
+            max_rss_growth_mb: 2.0,
         }
     }
 }
@@ -102,6 +123,13 @@ impl CheckParams {
         validate::period_of_rate("camera_rate_hz", self.camera_rate_hz)?;
         validate::positive("max_latency_ms", self.max_latency_ms)?;
         validate::positive("max_latency_p50_ms", self.max_latency_p50_ms)?;
+        validate::positive("max_lead_deg", self.max_lead_deg)?;
+        validate::positive("max_hold_delay_s", self.max_hold_delay_s)?;
+        validate::positive("max_step_deg", self.max_step_deg)?;
+        validate::period_of_rate("control_rate_hz", self.control_rate_hz)?;
+        validate::positive_at_most("flood_factor", self.flood_factor, 100.0)?;
+        validate::positive("rate_tolerance", self.rate_tolerance)?;
+        validate::positive("max_rss_growth_mb", self.max_rss_growth_mb)?;
         Ok(())
     }
 }

@@ -1,5 +1,6 @@
 //! The `bad_input` rostest check: the test node plays the driver and the camera (joint
-//! states, LBRState, trocar pose at 100 Hz, all valid), starts the controller, then breaks
+//! states, LBRState, trocar pose at 100 Hz, all valid; an ideal arm that is where it was
+//! last commanded, so that no fault but the injected one holds), starts the controller, then breaks
 //! one input at a time (wrong joint names, NaN, a short torque vector, a wrong frame, a
 //! stamp that goes back, a driver that stops) and asserts that the controller holds with a
 //! reason naming the fault, keeps publishing its status (it did not crash) and does not move.
@@ -14,7 +15,8 @@ use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
-use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trocar_docking};
+use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::node::lock;
 use ::trocar_docking::ros::topics;
 
 /// One way to break the inputs.
@@ -42,23 +44,36 @@ impl Fault {
     }
 }
 
-/// Publish the fake driver and camera until `stop`, applying the current fault.
+/// Publish the fake driver and camera until `stop`, applying the current fault; the arm
+/// follows the commands on `command_topic`.
 fn play_driver(
     q0: JointVector,
     trocar: Isometry3<f64>,
+    command_topic: &str,
     fault: Arc<Mutex<Fault>>,
     stop: Arc<AtomicBool>,
-) -> Result<std::thread::JoinHandle<()>, String> {
+) -> Result<(std::thread::JoinHandle<()>, rosrust::Subscriber), String> {
     let js = rosrust::publish::<sensor_msgs::JointState>(topics::JOINT_STATES, 10).map_err(|e| e.to_string())?;
     let lbr = rosrust::publish::<lbr_msgs::LBRState>(topics::LBR_STATE, 10).map_err(|e| e.to_string())?;
     let pose = rosrust::publish::<geometry_msgs::PoseStamped>(topics::TROCAR_POSE, 10).map_err(|e| e.to_string())?;
     let names: Vec<String> = ::trocar_docking::kinematics::joint_names();
-    Ok(std::thread::spawn(move || {
+    let q = Arc::new(Mutex::new(q0));
+    let sub = {
+        let (q, names, topic) = (q.clone(), names.clone(), command_topic.to_string());
+        rosrust::subscribe(command_topic, 10, move |m: trajectory_msgs::JointTrajectory| {
+            if let Ok(cmd) = convert::trajectory_positions(&topic, &m, &names) {
+                *lock(&q) = cmd;
+            }
+        })
+        .map_err(|e| e.to_string())?
+    };
+    let thread = std::thread::spawn(move || {
         let rate = rosrust::rate(100.0);
         let zeros = JointVector::zeros();
         while rosrust::is_ok() && !stop.load(Ordering::Relaxed) {
             let f = fault.lock().map(|f| *f).unwrap_or(Fault::None);
             let now = rosrust::now();
+            let q0 = *lock(&q);
             if f != Fault::DriverStops {
                 let mut m = convert::joint_state(now, &names, &q0, &zeros);
                 match f {
@@ -81,7 +96,8 @@ fn play_driver(
             let _ = pose.send(convert::pose_stamped(stamp, frame, &trocar));
             rate.sleep();
         }
-    }))
+    });
+    Ok((thread, sub))
 }
 
 /// Run the check; a summary on success.
@@ -97,7 +113,7 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
     let fault = Arc::new(Mutex::new(Fault::None));
     let stop = Arc::new(AtomicBool::new(false));
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
-    let driver = play_driver(q0, trocar, fault.clone(), stop.clone())?;
+    let (driver, _commands) = play_driver(q0, trocar, &p.command_topic, fault.clone(), stop.clone())?;
     let result = (|| {
         wait_for(p.startup_timeout, || status.get()).ok_or("no status from the controller")?;
         let mut seen = Vec::new();

@@ -2,11 +2,13 @@
 //! and writes the JUnit XML to the path rostest passes as `--gtest_output=xml:PATH`; exit
 //! code 0 when it passed. The checks: `roundtrip`, `docking`, `stale_hold`, `replay`
 //! ([`docking_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
-//! ([`camera_checks`]).
+//! ([`camera_checks`]), `blocked_arm`, `clock_back`, `clock_forward`, `driver_restart` and
+//! `flood` ([`failure_modes`]).
 
 mod camera_checks;
 mod common;
 mod docking_checks;
+mod failure_modes;
 mod fault_injection;
 mod junit;
 
@@ -42,6 +44,11 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "bad_input" => fault_injection::bad_input(&p),
             "latency" => camera_checks::latency(&p),
             "bad_images" => camera_checks::bad_images(&p),
+            "blocked_arm" => failure_modes::blocked_arm(&p),
+            "clock_back" => failure_modes::clock_jump(&p, -5.0),
+            "clock_forward" => failure_modes::clock_jump(&p, 5.0),
+            "driver_restart" => failure_modes::driver_restart(&p),
+            "flood" => failure_modes::flood(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

@@ -3,6 +3,14 @@
 //! into a latest-value slot ([`crate::ros::handover::latest`]), which the loop reads
 //! without a lock. A clock that goes back (a bag that loops, a simulator restart) bumps
 //! an epoch that tells each callback to start its stamp order afresh.
+//!
+//! The driver's two streams (joint states, LBRState) may restart under the controller: a
+//! stamp that goes back there starts the stamp order afresh instead of rejecting every
+//! message until the old stamps are passed, and the joint-state stream's restarts (stamps
+//! back, a gap longer than `driver_restart_gap_s`, the names in another order; [`JointStream`])
+//! reach the loop as [`Restart`] events, which hold the controller until a new start.
+//! Joint values are always picked by name. A message with the same stamp as the last one
+//! (a duplicate) is dropped without clearing the input.
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -26,7 +34,59 @@ pub struct InputReaders {
     tau_ext: SlotReader<Slot<JointVector>>,
     trocar: SlotReader<Slot<Isometry3<f64>>>,
     faults: [SlotReader<Option<FaultText>>; 3],
+    restarts: SlotReader<Option<Restart>>,
+    last_restart: u64,
     epoch: Arc<AtomicU64>,
+}
+
+/// A restart of the joint-state stream, as the loop receives it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Restart {
+    /// Counts the restarts seen (a new value is a new restart).
+    pub seq: u64,
+    /// Change of the stamp across the restart, s (negative: back).
+    pub stamp_jump_s: f64,
+    /// Whether the joint names arrived in another order.
+    pub names_reordered: bool,
+}
+
+/// Watches the joint-state stream for a driver restart: a stamp that goes back, a gap
+/// longer than `max_gap` between consecutive messages, or the names in another order.
+#[derive(Debug, Clone, Default)]
+pub struct JointStream {
+    last_stamp: Option<f64>,
+    names: Vec<String>,
+    max_gap: f64,
+    restarts: u64,
+}
+
+impl JointStream {
+    /// A watch that calls a gap longer than `max_gap` (s) a restart.
+    pub fn new(max_gap: f64) -> Self {
+        Self {
+            max_gap,
+            ..Self::default()
+        }
+    }
+
+    /// A valid message with `stamp` and `names` arrived: the restart it reveals, if any.
+    pub fn observe(&mut self, stamp: f64, names: &[String]) -> Option<Restart> {
+        let reordered = !self.names.is_empty() && self.names.as_slice() != names;
+        if self.names.as_slice() != names {
+            self.names = names.to_vec();
+        }
+        let jump = self.last_stamp.map_or(0.0, |t| stamp - t);
+        let gap = self.last_stamp.is_some() && (jump < 0.0 || jump > self.max_gap);
+        self.last_stamp = Some(stamp);
+        (gap || reordered).then(|| {
+            self.restarts += 1;
+            Restart {
+                seq: self.restarts,
+                stamp_jump_s: jump,
+                names_reordered: reordered,
+            }
+        })
+    }
 }
 
 impl InputReaders {
@@ -40,6 +100,13 @@ impl InputReaders {
         };
         let fault = self.faults.iter_mut().find_map(SlotReader::read);
         (input, fault)
+    }
+
+    /// A restart of the joint-state stream since the last call, if any.
+    pub fn restart(&mut self) -> Option<Restart> {
+        let r = self.restarts.read().filter(|r| r.seq != self.last_restart)?;
+        self.last_restart = r.seq;
+        Some(r)
     }
 
     /// The clock went back: the callbacks start their stamp orders afresh.
@@ -56,27 +123,45 @@ struct Feed<T: Send> {
     order: Mutex<(StampOrder, u64)>,
     epoch: Arc<AtomicU64>,
     topic: String,
+    /// A stamp that goes back restarts the stream (the driver's topics) instead of being
+    /// rejected.
+    restartable: bool,
 }
 
 impl<T: Copy + Send> Feed<T> {
-    fn accept(&self, stamp: f64, value: Result<T, InputError>) {
+    /// Check `value`'s stamp order; `Ok(false)`: a duplicate, dropped.
+    fn in_order(&self, stamp: f64) -> Result<bool, InputError> {
         let epoch = self.epoch.load(Ordering::Acquire);
-        let checked = value.and_then(|v| {
-            let mut order = lock(&self.order);
-            if order.1 != epoch {
-                *order = (StampOrder::default(), epoch);
+        let mut order = lock(&self.order);
+        if order.1 != epoch {
+            *order = (StampOrder::default(), epoch);
+        }
+        match order.0.accept(&self.topic, stamp) {
+            Ok(()) => Ok(true),
+            Err(InputError::OutOfOrder { previous, got, .. }) if got == previous => Ok(false),
+            Err(InputError::OutOfOrder { .. }) if self.restartable => {
+                order.0.reset();
+                order.0.accept(&self.topic, stamp).map(|()| true)
             }
-            order.0.accept(&self.topic, stamp).map(|()| v)
-        });
+            Err(e) => Err(e),
+        }
+    }
+
+    /// Take a converted message; `true` when it was accepted as the newest value.
+    fn accept(&self, stamp: f64, value: Result<T, InputError>) -> bool {
+        let checked = value.and_then(|v| self.in_order(stamp).map(|fresh| fresh.then_some(v)));
         match checked {
-            Ok(value) => {
+            Ok(None) => false,
+            Ok(Some(value)) => {
                 self.value.write(Some(Stamped { stamp, value }));
                 self.fault.write(None);
+                true
             }
             Err(e) => {
                 rosrust::ros_warn!("input rejected, holding: {e}");
                 self.value.write(None);
                 self.fault.write(Some(FaultText::from_display(&e)));
+                false
             }
         }
     }
@@ -85,6 +170,7 @@ impl<T: Copy + Send> Feed<T> {
 fn feed<T: Copy + Send>(
     topic: &str,
     epoch: &Arc<AtomicU64>,
+    restartable: bool,
 ) -> (Feed<T>, SlotReader<Slot<T>>, SlotReader<Option<FaultText>>) {
     let (value, value_r) = latest(None);
     let (fault, fault_r) = latest(None);
@@ -94,6 +180,7 @@ fn feed<T: Copy + Send>(
         order: Mutex::new((StampOrder::default(), epoch.load(Ordering::Acquire))),
         epoch: epoch.clone(),
         topic: topic.to_string(),
+        restartable,
     };
     (feed, value_r, fault_r)
 }
@@ -101,23 +188,39 @@ fn feed<T: Copy + Send>(
 /// Subscribe the three inputs; the subscribers live as long as the returned handles.
 pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust::Subscriber>), NodeError> {
     let epoch = Arc::new(AtomicU64::new(0));
-    let (jf, joints, jfault) = feed::<JointVector>(&p.joint_states_topic, &epoch);
-    let (tf, tau_ext, tfault) = feed::<JointVector>(&p.lbr_state_topic, &epoch);
-    let (pf, trocar, pfault) = feed::<Isometry3<f64>>(&p.trocar_pose_topic, &epoch);
+    let (jf, joints, jfault) = feed::<JointVector>(&p.joint_states_topic, &epoch, true);
+    let (tf, tau_ext, tfault) = feed::<JointVector>(&p.lbr_state_topic, &epoch, true);
+    let (pf, trocar, pfault) = feed::<Isometry3<f64>>(&p.trocar_pose_topic, &epoch, false);
+    let (restart_w, restarts) = latest(None);
+    let stream = Mutex::new(JointStream::new(p.driver_restart_gap_s));
     let names = p.joint_names.clone();
     let frame = p.base_frame.clone();
+    // Queues of one: the loop only ever wants the newest message, and a flood is dropped
+    // in the transport instead of queued.
     let subs = vec![
-        rosrust::subscribe(&p.joint_states_topic, 2, move |m: sensor_msgs::JointState| {
+        rosrust::subscribe(&p.joint_states_topic, 1, move |m: sensor_msgs::JointState| {
+            let stamp = convert::seconds(m.header.stamp);
             let q = convert::joint_positions(&jf.topic, &m, &names);
-            jf.accept(convert::seconds(m.header.stamp), q);
+            if jf.accept(stamp, q) {
+                let restart = lock(&stream).observe(stamp, &m.name);
+                if let Some(r) = restart {
+                    rosrust::ros_warn!(
+                        "{}: the joint states restarted (stamps {:+.3} s, names reordered: {}): holding until a new start",
+                        jf.topic,
+                        r.stamp_jump_s,
+                        r.names_reordered
+                    );
+                    restart_w.write(Some(r));
+                }
+            }
         })
         .map_err(ros_err)?,
-        rosrust::subscribe(&p.lbr_state_topic, 2, move |m: lbr_msgs::LBRState| {
+        rosrust::subscribe(&p.lbr_state_topic, 1, move |m: lbr_msgs::LBRState| {
             let t = convert::external_torques(&tf.topic, &m);
             tf.accept(convert::seconds(m.stamp.data), t);
         })
         .map_err(ros_err)?,
-        rosrust::subscribe(&p.trocar_pose_topic, 2, move |m: geometry_msgs::PoseStamped| {
+        rosrust::subscribe(&p.trocar_pose_topic, 1, move |m: geometry_msgs::PoseStamped| {
             let pose = convert::pose_in_frame(&pf.topic, &m, &frame);
             pf.accept(convert::seconds(m.header.stamp), pose);
         })
@@ -128,7 +231,33 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
         tau_ext,
         trocar,
         faults: [jfault, tfault, pfault],
+        restarts,
+        last_restart: 0,
         epoch,
     };
     Ok((readers, subs))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_joint_stream_restart_is_stamps_back_a_gap_or_reordered_names() {
+        let names = crate::kinematics::joint_names();
+        let mut reversed = names.clone();
+        reversed.reverse();
+        let mut s = JointStream::new(0.1);
+        assert_eq!(s.observe(10.0, &names), None, "the first message is no restart");
+        assert_eq!(s.observe(10.002, &names), None);
+        assert_eq!(s.observe(10.05, &names), None, "a gap under the timeout is none");
+        let back = s.observe(0.5, &names).expect("stamps restarted");
+        assert!(back.stamp_jump_s < -9.0 && !back.names_reordered && back.seq == 1);
+        assert_eq!(s.observe(0.502, &names), None, "the new stream goes on");
+        let gap = s.observe(3.0, &names).expect("resumed after an interruption");
+        assert!(gap.stamp_jump_s > 2.0 && gap.seq == 2);
+        let order = s.observe(3.002, &reversed).expect("names in another order");
+        assert!(order.names_reordered && order.seq == 3);
+        assert_eq!(s.observe(3.004, &reversed), None, "the new order is now the stream's");
+    }
 }

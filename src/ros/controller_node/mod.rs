@@ -21,7 +21,7 @@ mod outputs;
 
 use std::time::{Duration, Instant};
 
-use crate::control::{Controller, ControllerParams};
+use crate::control::{Controller, ControllerParams, HoldReason};
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{Kinematics, LbrKinematics, TIP_LINK};
 use crate::ros::convert;
@@ -29,6 +29,7 @@ use crate::ros::handover::{self, OutputSender, RequestClient, RequestServer};
 use crate::ros::markers::MarkerStyle;
 use crate::ros::msgs::std_srvs;
 use crate::ros::node::{ros_err, CommandType, NodeError};
+use crate::ros::pacer::Pacer;
 use crate::ros::params;
 use crate::ros::stats::LoopStats;
 use crate::ros::topics;
@@ -66,6 +67,11 @@ pub struct ControllerNodeParams {
     pub command_type: CommandType,
     /// `time_from_start` of the trajectory point, in control periods.
     pub command_lookahead_periods: f64,
+    /// Joint states that resume after a gap longer than this (s) are a driver restart: the
+    /// controller holds (`DRIVER_RESTART`) until a new start. Shorter gaps hold as stale
+    /// data and resume by themselves. Stamps that go back or names in another order are a
+    /// restart whatever the gap.
+    pub driver_restart_gap_s: f64,
     /// Status out.
     pub status_topic: String,
     /// Force out.
@@ -108,7 +114,8 @@ impl Default for ControllerNodeParams {
             trocar_pose_topic: topics::TROCAR_POSE.into(),
             command_topic: topics::COMMAND.into(),
             command_type: CommandType::Trajectory,
-            command_lookahead_periods: 1.0,
+            command_lookahead_periods: 2.0,
+            driver_restart_gap_s: 0.5,
             status_topic: topics::DOCKING_STATUS.into(),
             f_ext_topic: topics::DOCKING_F_EXT.into(),
             markers_topic: topics::DOCKING_MARKERS.into(),
@@ -131,6 +138,7 @@ impl ControllerNodeParams {
         validate::non_negative("status_rate_hz", self.status_rate_hz)?;
         validate::non_negative("markers_rate_hz", self.markers_rate_hz)?;
         validate::positive_at_most("command_lookahead_periods", self.command_lookahead_periods, 100.0)?;
+        validate::positive_at_most("driver_restart_gap_s", self.driver_restart_gap_s, 60.0)?;
         validate::integer_in_range("realtime_priority", i64::from(self.realtime_priority), 0, 99)?;
         if self.latency_samples == 0 {
             return Err(NodeError::Invalid("latency_samples must be >= 1".into()));
@@ -247,7 +255,7 @@ fn control_loop(
     records: &OutputSender<StepRecord>,
     started_at: Option<f64>,
 ) {
-    let rate = rosrust::rate(p.rate_hz);
+    let mut pace = Pacer::new(p.rate_hz);
     let mut st = LoopState::new(p);
     st.start_time = started_at;
     while rosrust::is_ok() {
@@ -257,13 +265,24 @@ fn control_loop(
         st.stats.step_started(started);
         requests.serve(|r| st.handle(&mut controller, r, now));
         if now < st.last_now {
-            // Time went back (a bag looped, the simulator restarted): stamp orders afresh.
+            // Time went back (a bag looped, the simulator restarted): stamp orders and the
+            // publishing schedule afresh (the controller holds on it: CLOCK_BACK).
             inputs.clock_went_back();
             st.last_latency_stamp = f64::NEG_INFINITY;
+            st.last_status = f64::NEG_INFINITY;
+            st.last_markers = f64::NEG_INFINITY;
         }
         st.last_now = now;
         let (input, fault) = inputs.read(now);
         let out = controller.step(kin, &input);
+        if let Some(r) = inputs.restart() {
+            // After the step, so that a clock jump the step saw stays the named cause; the
+            // next step's status carries the hold.
+            controller.interrupt(HoldReason::DriverRestart {
+                stamp_jump_s: r.stamp_jump_s,
+                names_reordered: r.names_reordered,
+            });
+        }
         st.stats.tick(now);
         if let (Some(_), Some(t)) = (&out.command, &input.trocar) {
             if t.stamp > st.last_latency_stamp {
@@ -295,7 +314,7 @@ fn control_loop(
             out,
         });
         st.stats.step_finished(Instant::now());
-        rate.sleep();
+        pace.sleep();
     }
 }
 
