@@ -31,6 +31,7 @@ fn scenario(kin: &LbrKinematics, misalign_deg: f64, tilt_about: Vector3<f64>) ->
 /// Inputs all measured at `now`, with no contact (zero external torques).
 fn fresh_input(now: f64, q: JointVector, trocar: Isometry3<f64>) -> ControlInput {
     ControlInput {
+        scope: None,
         now,
         joints: Some(Stamped { stamp: now, value: q }),
         tau_ext: Some(Stamped {
@@ -55,6 +56,7 @@ fn run(
     let mut c = Controller::new(params, kin.limits().clone()).unwrap();
     // Nothing moves before start.
     let idle = ControlInput {
+        scope: None,
         now: 0.0,
         joints: Some(Stamped { stamp: 0.0, value: q }),
         tau_ext: Some(Stamped {
@@ -199,6 +201,7 @@ fn insert_in_contact(params: ControllerParams, bias: f64) -> ContactRun {
         f_max = f_max.max(f.norm());
         let tau = jac.fixed_rows::<3>(0).transpose() * f;
         let input = ControlInput {
+            scope: None,
             now,
             joints: Some(Stamped { stamp: now, value: q }),
             tau_ext: Some(Stamped { stamp: now, value: tau }),

@@ -45,6 +45,7 @@ impl Rig {
         self.t = t;
         let s = |value| Some(Stamped { stamp: t, value });
         let input = ControlInput {
+            scope: None,
             now: t,
             joints: s(self.q),
             tau_ext: s(JointVector::zeros()),

@@ -14,6 +14,7 @@ use common::{kin, q_start, trocar};
 
 fn input(now: f64, q: JointVector, tau: JointVector, trocar: Isometry3<f64>) -> ControlInput {
     ControlInput {
+        scope: None,
         now,
         joints: Some(Stamped { stamp: now, value: q }),
         tau_ext: Some(Stamped { stamp: now, value: tau }),

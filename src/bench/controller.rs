@@ -105,6 +105,7 @@ pub fn run_scenario(
         now += params.dt;
         let (_, trocar) = scenario_trocar(kin, scenario, now).map_err(|e| e.to_string())?;
         let input = ControlInput {
+            scope: None,
             now,
             joints: Some(Stamped { stamp: now, value: q }),
             tau_ext: Some(Stamped {

@@ -161,6 +161,7 @@ fn run_cycle(
         let t = world.time();
         let stamped = |value| Some(Stamped { stamp: t, value });
         let input = ControlInput {
+            scope: None,
             now: t,
             joints: stamped(world.joint_positions()),
             tau_ext: stamped(world.external_torques()),

@@ -34,6 +34,7 @@ use super::guard::{CommandGuard, HoldReason};
 use super::guarded::{CommandSource, Guarded, StepContext};
 use super::metrics::ForceMetric;
 pub use super::params::{ControllerParams, ParamError};
+use super::scope::{PivotReport, ScopeCommand};
 use super::seated::{SeatedCheck, TipState};
 use super::sqp::{CostTerms, CostWeights, LimitAvoidance, SqpSolver, SqpStatus, Targets};
 use super::supervisor::{Phase, Supervisor};
@@ -60,6 +61,8 @@ pub struct ControlInput {
     pub tau_ext: Option<Stamped<JointVector>>,
     /// Trocar pose in the base frame (origin = port, z = insertion direction into the body).
     pub trocar: Option<Stamped<Isometry3<f64>>>,
+    /// The surgeon's newest scope command (after DONE), stamped when it was sent.
+    pub scope: Option<Stamped<ScopeCommand>>,
 }
 
 /// What the SQP reported, in a step that ran it.
@@ -103,6 +106,9 @@ pub struct ControlOutput {
     pub goal: Option<Point3<f64>>,
     /// M so far (time average of ||f_ext|| while moving), N.
     pub metric_m: f64,
+    /// While the port is held as a remote centre of motion (after DONE): the fulcrum and
+    /// the shaft's distance from it.
+    pub pivot: Option<PivotReport>,
 }
 
 impl ControlOutput {
@@ -120,6 +126,7 @@ impl ControlOutput {
             tip: None,
             goal: None,
             metric_m: 0.0,
+            pivot: None,
         }
     }
 
@@ -245,6 +252,7 @@ impl OptimalController {
             tip,
             goal,
             metric_m: self.run.metric.mean(),
+            pivot: None,
         }
     }
 

@@ -44,6 +44,11 @@ pub trait CommandSource {
     fn start(&mut self) -> Result<(), String>;
     /// Stop for good (until reset), with the operator's reason.
     fn abort(&mut self, why: &str);
+    /// Withdraw along the shaft to the stand-off point, then IDLE (after DONE); an error
+    /// says why not.
+    fn retract(&mut self) -> Result<(), String> {
+        Err(format!("cannot retract in {}", self.phase()))
+    }
     /// Back to IDLE, forgetting the run.
     fn reset(&mut self);
     /// The last command this source sent, if any (the guard checks the next one against it).
@@ -139,6 +144,11 @@ impl<S: CommandSource> Guarded<S> {
         self.behind_for = 0.0;
         self.behind_from = None;
         Ok(())
+    }
+
+    /// Withdraw along the shaft to the stand-off point, then IDLE; an error says why not.
+    pub fn retract(&mut self) -> Result<(), String> {
+        self.source.retract()
     }
 
     /// Abort: hold for good until reset.
@@ -347,6 +357,7 @@ mod tests {
         };
         let mut g = Guarded::wrap(source, CommandGuard::new(GuardParams::default(), &limits));
         let input = ControlInput {
+            scope: None,
             now: 1.0,
             joints: Some(Stamped {
                 stamp: 1.0,

@@ -13,6 +13,7 @@ pub mod guarded;
 pub mod hold;
 pub mod metrics;
 pub mod params;
+pub mod scope;
 pub mod seated;
 pub mod sqp;
 pub mod supervisor;
@@ -22,4 +23,5 @@ pub use controller::{ControlInput, ControlOutput, Controller, OptimalController,
 pub use guard::HoldReason;
 pub use guarded::{CommandSource, Guarded, StepContext};
 pub use params::{ControllerParams, ParamError};
+pub use scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 pub use supervisor::Phase;

@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use super::admittance::AdmittanceParams;
 use super::guard::GuardParams;
+use super::scope::ScopeParams;
 use super::seated::SeatedParams;
 use super::sqp::{CostWeights, SqpSettings};
 use super::tare::TareParams;
@@ -76,6 +77,8 @@ pub struct ControllerParams {
     pub guard: GuardParams,
     /// SQP settings.
     pub sqp: SqpSettings,
+    /// Steering the scope through the port after docking.
+    pub scope: ScopeParams,
 }
 
 impl Default for ControllerParams {
@@ -117,6 +120,7 @@ impl Default for ControllerParams {
             admittance: AdmittanceParams::default(),
             guard: GuardParams::default(),
             sqp: SqpSettings::default(),
+            scope: ScopeParams::default(),
         }
     }
 }
@@ -174,6 +178,7 @@ impl ControllerParams {
         self.tare.validate()?;
         self.admittance.validate()?;
         self.guard.validate()?;
+        self.scope.validate()?;
         self.sqp.validate()
     }
 }

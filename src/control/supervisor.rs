@@ -25,6 +25,9 @@ pub enum Phase {
     Insert,
     /// The tip is at the goal within tolerance; holding there.
     Done,
+    /// Withdrawing along the shaft to the stand-off point (the surgeon's `~retract`), then
+    /// IDLE.
+    Retract,
     /// Holding still, for the reason given.
     Hold,
     /// Stopped for good; reset to start again.
@@ -40,6 +43,7 @@ impl Phase {
             Phase::Approach => "APPROACH",
             Phase::Insert => "INSERT",
             Phase::Done => "DONE",
+            Phase::Retract => "RETRACT",
             Phase::Hold => "HOLD",
             Phase::Aborted => "ABORTED",
         }
@@ -115,7 +119,7 @@ impl Supervisor {
                 self.latched = false;
                 Ok(())
             }
-            Phase::Tare | Phase::Approach | Phase::Insert => Ok(()),
+            Phase::Tare | Phase::Approach | Phase::Insert | Phase::Retract => Ok(()),
             Phase::Done => Err("docking is done; reset before starting again".into()),
             Phase::Aborted => Err(format!(
                 "aborted ({}); reset before starting again",

@@ -29,6 +29,7 @@ impl Policy for ControllerPolicy {
 
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
         let input = ControlInput {
+            scope: None,
             now: obs.t,
             joints: Some(Stamped {
                 stamp: obs.t,

@@ -93,6 +93,7 @@ impl InputReaders {
     /// The inputs of a control step at `now`, and the first input fault, if any.
     pub fn read(&mut self, now: f64) -> (ControlInput, Option<FaultText>) {
         let input = ControlInput {
+            scope: None,
             now,
             joints: self.joints.read(),
             tau_ext: self.tau_ext.read(),

@@ -1,0 +1,152 @@
+//! After docking: the surgeon steers the scope through the port, held as a remote centre
+//! of motion (RCM). This module holds the types the controller and the nodes share:
+//! the surgeon's [`ScopeCommand`] (from `/docking/scope_command`), the limits that stop a
+//! command ([`ScopeLimit`]), their parameters ([`ScopeParams`]) and what the controller
+//! reports while pivoting ([`PivotReport`]).
+//!
+//! (Interface first: the law itself lands with issue 16.)
+
+use nalgebra::{Point3, Vector3};
+use serde::{Deserialize, Serialize};
+
+/// A surgeon's scope command, in the `endoscope_tip` frame (a `TwistStamped` on
+/// `/docking/scope_command`).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ScopeCommand {
+    /// Pan about the fulcrum, rad/s (`angular.x`).
+    pub pan: f64,
+    /// Tilt about the fulcrum, rad/s (`angular.y`).
+    pub tilt: f64,
+    /// Roll about the shaft, rad/s (`angular.z`).
+    pub roll: f64,
+    /// In (+) and out (-) along the shaft, m/s (`linear.z`).
+    pub zoom: f64,
+}
+
+impl ScopeCommand {
+    /// Every field finite.
+    pub fn is_finite(&self) -> bool {
+        [self.pan, self.tilt, self.roll, self.zoom]
+            .iter()
+            .all(|x| x.is_finite())
+    }
+}
+
+/// A limit that stopped (part of) a scope command.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize)]
+pub enum ScopeLimit {
+    /// A commanded speed was above its limit (cut to it).
+    Speed,
+    /// The insertion depth reached its minimum.
+    MinDepth,
+    /// The insertion depth reached its maximum.
+    MaxDepth,
+    /// The shaft reached the edge of the cone about the docking axis.
+    Cone,
+}
+
+impl ScopeLimit {
+    /// A stable code for the status (`scope_limit`).
+    pub fn code(&self) -> &'static str {
+        match self {
+            Self::Speed => "SPEED",
+            Self::MinDepth => "MIN_DEPTH",
+            Self::MaxDepth => "MAX_DEPTH",
+            Self::Cone => "CONE",
+        }
+    }
+}
+
+impl std::fmt::Display for ScopeLimit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Speed => "scope command above the speed limit: cut to it",
+            Self::MinDepth => "scope at its minimum insertion depth",
+            Self::MaxDepth => "scope at its maximum insertion depth",
+            Self::Cone => "scope at the edge of its cone about the docking axis",
+        })
+    }
+}
+
+/// Parameters of steering after docking (`scope:` in `config/controller.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ScopeParams {
+    /// A command older than this counts as none (dead-man), s.
+    pub command_timeout: f64,
+    /// Largest pan and tilt speed about the fulcrum, rad/s.
+    pub max_angular_speed: f64,
+    /// Largest roll speed about the shaft, rad/s.
+    pub max_roll_speed: f64,
+    /// Largest speed along the shaft, m/s.
+    pub max_zoom_speed: f64,
+    /// Insertion depth of the tip past the fulcrum: minimum, m.
+    pub min_depth: f64,
+    /// ... and maximum, m.
+    pub max_depth: f64,
+    /// Half angle of the cone about the docking axis the shaft stays in, deg.
+    pub cone_half_angle_deg: f64,
+}
+
+impl Default for ScopeParams {
+    fn default() -> Self {
+        Self {
+            command_timeout: 0.2,
+            max_angular_speed: 0.35,
+            max_roll_speed: 0.5,
+            max_zoom_speed: 0.02,
+            min_depth: 0.015,
+            max_depth: 0.08,
+            cone_half_angle_deg: 30.0,
+        }
+    }
+}
+
+impl ScopeParams {
+    /// Check every range; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let pos = |n: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("scope.{n} must be > 0, got {v}"))
+            }
+        };
+        pos("command_timeout", self.command_timeout)?;
+        pos("max_angular_speed", self.max_angular_speed)?;
+        pos("max_roll_speed", self.max_roll_speed)?;
+        pos("max_zoom_speed", self.max_zoom_speed)?;
+        pos("min_depth", self.min_depth)?;
+        pos("max_depth", self.max_depth)?;
+        if self.max_depth <= self.min_depth {
+            return Err(format!(
+                "scope.max_depth ({}) must be above scope.min_depth ({})",
+                self.max_depth, self.min_depth
+            ));
+        }
+        let c = self.cone_half_angle_deg;
+        if !(c.is_finite() && c > 0.0 && c < 90.0) {
+            return Err(format!("scope.cone_half_angle_deg must be in (0, 90), got {c}"));
+        }
+        Ok(())
+    }
+}
+
+/// What the controller reports while it holds the port as a remote centre of motion.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PivotReport {
+    /// The fulcrum point (the estimated port, adapted from the contact), base frame, m.
+    pub fulcrum: Point3<f64>,
+    /// Distance of the shaft's line from the fulcrum, m.
+    pub shaft_distance: f64,
+    /// Force across the shaft, N.
+    pub lateral_force: f64,
+    /// Tip depth past the fulcrum along the shaft, m.
+    pub depth: f64,
+    /// Axis of the allowed cone (the docking axis), base frame, unit.
+    pub cone_axis: Vector3<f64>,
+    /// Half angle of the cone, rad.
+    pub cone_half_angle: f64,
+    /// A limit that stopped the current command, if any.
+    pub limit: Option<ScopeLimit>,
+}
