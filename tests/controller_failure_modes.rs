@@ -7,6 +7,7 @@
 //! the measured joints.
 
 use nalgebra::Isometry3;
+use trocar_docking::control::guard::LEAD_WATCH_FRACTION;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, HoldReason, Phase, Stamped};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 
@@ -98,7 +99,7 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
         let out = r.step();
         let cmd = out.command.expect("a command every step");
         max_lead = max_lead.max(lead(&cmd, &frozen));
-        if lead(&cmd, &frozen) >= 0.98 * bound && saturated_at.is_none() {
+        if lead(&cmd, &frozen) >= LEAD_WATCH_FRACTION * bound && saturated_at.is_none() {
             saturated_at = Some(r.t);
         }
         if out.phase == Phase::Hold {

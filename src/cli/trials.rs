@@ -257,13 +257,22 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
         cfg.trial.goal_depth_m * 1e3
     );
     println!(
-        "{:<6} {:>8} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9}  failures",
-        "arm", "success", "M true all [N]", "M true [N]", "M est [N]", "M lat all [N]", "T [s]", "max f [N]"
+        "{:<6} {:>8} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9} {:>17} {:>8}  failures",
+        "arm",
+        "success",
+        "M true all [N]",
+        "M true [N]",
+        "M est [N]",
+        "M lat all [N]",
+        "T [s]",
+        "max f [N]",
+        "v_rms INSERT [m/s]",
+        "a_max"
     );
     for a in r {
         let x: &ArmSummary = &a.summary;
         println!(
-            "{:<6} {:>3}/{:<4} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9.1}  {:?}",
+            "{:<6} {:>3}/{:<4} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9.1} {:>17} {:>8.2}  {:?}",
             x.label,
             x.successes,
             x.trials,
@@ -273,6 +282,11 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
             ms(&x.m_lateral_true_all),
             ms(&x.time_s),
             x.max_force_true_n,
+            format!(
+                "{:.3} (max {:.3})",
+                x.rms_tip_speed_insert.mean, x.rms_tip_speed_insert.max
+            ),
+            x.max_tip_accel,
             x.failures
         );
     }

@@ -30,9 +30,11 @@ use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::admittance::Admittance;
 use super::geometry::{pose_is_finite, InsertionAxis};
+use super::goal_window::GoalWindow;
 use super::guard::{CommandGuard, HoldReason};
 use super::guarded::{CommandSource, Guarded, StepContext};
 use super::metrics::ForceMetric;
+use super::motion::MotionLimiter;
 pub use super::params::{ControllerParams, ParamError};
 use super::scope::{PivotReport, ScopeCommand};
 use super::seated::{SeatedCheck, TipState};
@@ -170,8 +172,10 @@ struct RunState {
     /// Time spent at the stand-off point without the alignment, s.
     stalled_for: f64,
     seated: SeatedCheck,
-    /// The tip-to-goal error and the alignment angle, averaged during INSERT.
-    target_error: Option<(Vector3<f64>, f64)>,
+    /// The tip-to-goal error and the alignment angle, averaged over windows in INSERT.
+    goal_window: GoalWindow,
+    /// The commanded tip motion, for its limits.
+    motion: MotionLimiter,
     tare: Tare,
     /// `Some(None)`: a retreat is due and begins from the tip's depth.
     retreat: Option<Option<Retreat>>,
@@ -278,6 +282,8 @@ impl OptimalController {
     /// Hold (when moving) or stay idle, for `e.reason`; command `e.hold_at` when not idle.
     fn hold_or_idle(&mut self, e: Early) -> ControlOutput {
         self.run.supervisor.hold(e.reason, false);
+        self.run.motion.rest();
+        self.run.goal_window.reset();
         let cmd = match self.run.supervisor.phase() {
             Phase::Idle => None,
             _ => self.run.last_command.or(e.hold_at),
@@ -447,11 +453,12 @@ impl OptimalController {
         &mut self,
         kin: &dyn Kinematics,
         ctx: &StepContext<'_>,
-        prev: JointVector,
+        arm: &Arm,
         targets_for: (InsertionAxis, Point3<f64>, Point3<f64>),
         weights: &CostWeights,
     ) -> (JointVector, SolveReport) {
         let (axis, point, reference) = targets_for;
+        let prev = arm.prev;
         let g = ctx.guard;
         let (lo, hi) = g.step_box(&prev, ctx.dt);
         let start = prev.zip_zip_map(&lo, &hi, |q, l, h| q.clamp(l, h));
@@ -470,8 +477,12 @@ impl OptimalController {
         };
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
         let cmd = if sol.status.is_usable() {
-            sol.q
+            // The tip's speed, acceleration and jerk bounded (see [`super::motion`]).
+            self.run
+                .motion
+                .limit(&self.params.motion, &arm.jac, &prev, &sol.q, ctx.dt, (&lo, &hi))
         } else {
+            self.run.motion.rest();
             let why = HoldReason::SolverFailed(sol.status.as_text().into());
             self.run.supervisor.hold(why, false);
             prev
@@ -493,8 +504,6 @@ impl OptimalController {
         let tip_p = Point3::from(tip.translation.vector);
         let optical_axis = tip.rotation * Vector3::z();
         let angle = axis.alignment_error(&optical_axis);
-        let tc = p.goal_filter_time_constant;
-        let a = if tc > 0.0 { dt / (tc + dt) } else { 1.0 };
         let r = &mut self.run;
         let phase = r.supervisor.phase();
         match phase {
@@ -515,15 +524,13 @@ impl OptimalController {
                 }
             }
             Phase::Insert => {
-                // DONE is judged on the error and angle averaged over the filter's time
-                // constant, so that one lucky sample of a noisy trocar estimate never ends
-                // the docking.
-                let (err, ang) = (tip_p - goal, angle);
-                let (e, g) = r
-                    .target_error
-                    .map_or((err, ang), |(e, g)| (e + (err - e) * a, g + (ang - g) * a));
-                r.target_error = Some((e, g));
-                if e.norm() < p.goal_tolerance && g < p.goal_angle_tolerance_deg.to_radians() {
+                // DONE is judged on the error and angle averaged over a window, so that one
+                // lucky sample of a noisy trocar estimate never ends the docking.
+                let at_goal = r
+                    .goal_window
+                    .add(p.goal_window, tip_p - goal, angle, dt)
+                    .is_some_and(|(e, g)| e < p.goal_tolerance && g < p.goal_angle_tolerance_deg.to_radians());
+                if at_goal {
                     r.supervisor.goal_reached(None);
                 } else {
                     let state = TipState {
@@ -543,7 +550,7 @@ impl OptimalController {
             r.seated.reset();
         }
         if r.supervisor.phase() != phase {
-            r.target_error = None;
+            r.goal_window.reset();
         }
     }
 
@@ -615,6 +622,7 @@ impl OptimalController {
         if !phase.is_moving() && !retreating {
             // Idle sends nothing; DONE, HOLD and ABORTED keep commanding the last command.
             self.run.last_command = (phase != Phase::Idle).then_some(arm.prev);
+            self.run.motion.rest();
             return Ok(self.output(self.run.last_command, Some(arm.tip), Some(goal)));
         }
 
@@ -623,7 +631,7 @@ impl OptimalController {
         let x = self.run.admittance.step(&self.params.admittance, axis.across(&f), dt);
         let reference = tip_p + x;
         let (weights, point) = self.phase_target(&axis, tip_p, f, dt);
-        let (cmd, report) = self.solve(kin, ctx, arm.prev, (axis, point, reference), &weights);
+        let (cmd, report) = self.solve(kin, ctx, &arm, (axis, point, reference), &weights);
         self.run.last_command = Some(cmd);
         self.transitions(&axis, goal, &arm.tip, f, dt);
         let mut out = self.output(Some(cmd), Some(arm.tip), Some(goal));
@@ -678,6 +686,8 @@ impl CommandSource for OptimalController {
 
     fn reject(&mut self, reason: HoldReason, hold_at: JointVector) {
         self.run.supervisor.hold(reason, true);
+        self.run.motion.rest();
+        self.run.goal_window.reset();
         self.run.last_command = Some(hold_at);
     }
 }

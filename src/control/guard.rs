@@ -13,6 +13,10 @@ use serde::{Deserialize, Serialize};
 pub use super::hold::HoldReason;
 use crate::kinematics::{JointLimits, JointVector};
 
+/// The share of `max_command_lead` from which the command counts as waiting for the arm
+/// (the not-following watch of [`super::guarded`] runs from there).
+pub const LEAD_WATCH_FRACTION: f64 = 0.5;
+
 /// Parameters of the guard.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -124,11 +128,13 @@ impl CommandGuard {
         self.measured.as_ref()
     }
 
-    /// The joint whose command `cmd` sits on (or beyond) the lead bound, with its lead
-    /// (`cmd - measured`), if any.
+    /// The joint whose command `cmd` leads the measured joints by [`LEAD_WATCH_FRACTION`] of
+    /// the lead bound or more, with its lead (`cmd - measured`), if any. Not the bound itself:
+    /// the motion limits ([`super::motion`]) brake the command as it nears the bound, so a
+    /// blocked arm's command creeps towards it without ever sitting on it.
     pub fn lead_saturated(&self, cmd: &JointVector) -> Option<(usize, f64)> {
         let q = self.measured.as_ref()?;
-        let bound = self.params.max_command_lead * 0.99;
+        let bound = self.params.max_command_lead * LEAD_WATCH_FRACTION;
         (0..cmd.len())
             .map(|i| (i, cmd[i] - q[i]))
             .find(|(_, lead)| lead.abs() >= bound)

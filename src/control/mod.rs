@@ -8,10 +8,12 @@
 pub mod admittance;
 pub mod controller;
 pub mod geometry;
+pub mod goal_window;
 pub mod guard;
 pub mod guarded;
 pub mod hold;
 pub mod metrics;
+pub mod motion;
 pub mod params;
 pub mod scope;
 pub mod seated;

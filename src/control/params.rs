@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use super::admittance::AdmittanceParams;
 use super::guard::GuardParams;
+use super::motion::MotionLimits;
 use super::scope::ScopeParams;
 use super::seated::SeatedParams;
 use super::sqp::{CostWeights, SqpSettings};
@@ -49,10 +50,10 @@ pub struct ControllerParams {
     pub goal_tolerance: f64,
     /// ... and the optical axis within this angle, deg.
     pub goal_angle_tolerance_deg: f64,
-    /// DONE is judged on the tip-to-goal error and the angle averaged with this time
-    /// constant (a first-order filter), s, so that one lucky sample of a noisy trocar
-    /// estimate does not end the docking (0 = judged on each sample).
-    pub goal_filter_time_constant: f64,
+    /// DONE is judged on the tip-to-goal error and the angle averaged over windows of this
+    /// length, s, so that one lucky sample of a noisy trocar estimate does not end the
+    /// docking (0 = judged on each sample); see [`super::goal_window`].
+    pub goal_window: f64,
     /// DONE also for a scope seated in the port beside a biased trocar estimate; see
     /// [`super::seated`].
     pub seated: SeatedParams,
@@ -75,6 +76,8 @@ pub struct ControllerParams {
     pub admittance: AdmittanceParams,
     /// Safety guard.
     pub guard: GuardParams,
+    /// Limits of the commanded tip motion (speed, acceleration, jerk).
+    pub motion: MotionLimits,
     /// SQP settings.
     pub sqp: SqpSettings,
     /// Steering the scope through the port after docking.
@@ -108,9 +111,9 @@ impl Default for ControllerParams {
             approach_angle_tolerance_deg: 1.0,
             goal_tolerance: 0.001,
             goal_angle_tolerance_deg: 0.5,
-            goal_filter_time_constant: 0.0,
+            goal_window: 0.3,
             seated: SeatedParams::default(),
-            trocar_filter_time_constant: 0.0,
+            trocar_filter_time_constant: 0.1,
             require_torques: true,
             retreat_distance: 0.0,
             limit_avoidance_weight: 1.0,
@@ -119,6 +122,7 @@ impl Default for ControllerParams {
             tare: TareParams::default(),
             admittance: AdmittanceParams::default(),
             guard: GuardParams::default(),
+            motion: MotionLimits::default(),
             sqp: SqpSettings::default(),
             scope: ScopeParams::default(),
         }
@@ -163,7 +167,7 @@ impl ControllerParams {
         pos("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
         pos("goal_tolerance", self.goal_tolerance)?;
         pos("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
-        nonneg("goal_filter_time_constant", self.goal_filter_time_constant)?;
+        nonneg("goal_window", self.goal_window)?;
         self.seated.validate()?;
         nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
         nonneg("retreat_distance", self.retreat_distance)?;
@@ -178,6 +182,7 @@ impl ControllerParams {
         self.tare.validate()?;
         self.admittance.validate()?;
         self.guard.validate()?;
+        self.motion.validate()?;
         self.scope.validate()?;
         self.sqp.validate()
     }

@@ -88,6 +88,13 @@ pub struct ArmSummary {
     pub max_force_true_n: f64,
     /// Largest estimated force over every trial, N.
     pub max_force_est_n: f64,
+    /// RMS of the true tip speed during INSERT per trial (every trial that inserted), m/s:
+    /// how much the arm shakes while the scope slides in (the insertion itself is 0.03 m/s).
+    pub rms_tip_speed_insert: Stats,
+    /// Largest true tip speed over every trial, m/s.
+    pub max_tip_speed: f64,
+    /// Largest true tip acceleration over every trial, m/s^2.
+    pub max_tip_accel: f64,
     /// Breakaways of the cannula's seal per trial (every trial): how often it stuck and
     /// then slipped.
     pub seal_breakaways: Stats,
@@ -127,6 +134,13 @@ impl ArmSummary {
             time_s: Stats::of(ok.iter().map(|x| x.time_s)),
             max_force_true_n: r.iter().map(|x| x.max_f_true).fold(0.0, f64::max),
             max_force_est_n: r.iter().map(|x| x.max_f_est).fold(0.0, f64::max),
+            rms_tip_speed_insert: Stats::of(
+                r.iter()
+                    .filter(|x| x.rms_tip_speed_insert > 0.0)
+                    .map(|x| x.rms_tip_speed_insert),
+            ),
+            max_tip_speed: r.iter().map(|x| x.max_tip_speed).fold(0.0, f64::max),
+            max_tip_accel: r.iter().map(|x| x.max_tip_accel).fold(0.0, f64::max),
             seal_breakaways: Stats::of(r.iter().map(|x| f64::from(x.seal_breakaways))),
             failures,
         }
@@ -196,6 +210,9 @@ fn one(
         final_phase: "",
         final_hold: "",
         seal_breakaways: 0,
+        rms_tip_speed_insert: 0.0,
+        max_tip_speed: 0.0,
+        max_tip_accel: 0.0,
         samples: vec![],
     };
     let kin = match kin() {
@@ -241,6 +258,9 @@ mod tests {
             final_phase: phase,
             final_hold: if phase == "HOLD" { "FORCE_LIMIT" } else { "" },
             seal_breakaways: 0,
+            rms_tip_speed_insert: 0.01 * m,
+            max_tip_speed: 0.1 * m,
+            max_tip_accel: m,
             samples: vec![],
         }
     }
@@ -262,5 +282,6 @@ mod tests {
         assert_eq!(s.failures.get("timeout in HOLD (FORCE_LIMIT)"), Some(&2));
         assert_eq!(s.failures.get("force_abort in INSERT"), Some(&1));
         assert_eq!(s.failures.len(), 2);
+        assert!((s.rms_tip_speed_insert.mean - 0.04).abs() < 1e-12 && (s.max_tip_speed - 0.7).abs() < 1e-12);
     }
 }

@@ -140,6 +140,10 @@ pub struct Sample {
     pub goal_dist: f64,
     /// Trocar fulcrum displacement from rest, m.
     pub trocar_shift: f64,
+    /// Speed of the true tip (base frame) over the last control period, m/s.
+    pub tip_speed: f64,
+    /// Norm of the true tip's acceleration over the last two control periods, m/s^2.
+    pub tip_accel: f64,
     /// Policy phase.
     pub phase: &'static str,
     /// The policy's hold code ('' when it does not hold).
@@ -173,6 +177,12 @@ pub struct TrialResult {
     pub final_hold: &'static str,
     /// How many times the cannula's seal broke away (stick to slip) in the trial.
     pub seal_breakaways: u32,
+    /// RMS of the true tip speed during INSERT, m/s (0 when the trial never inserted).
+    pub rms_tip_speed_insert: f64,
+    /// Largest true tip speed, m/s.
+    pub max_tip_speed: f64,
+    /// Largest true tip acceleration, m/s^2.
+    pub max_tip_accel: f64,
     /// Time series at the control rate.
     #[serde(skip)]
     pub samples: Vec<Sample>,
@@ -206,6 +216,9 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
         final_phase: samples.last().map_or("", |x| x.phase),
         final_hold: samples.last().map_or("", |x| x.hold),
         seal_breakaways: world.seal().breakaways(),
+        rms_tip_speed_insert: m.rms_tip_speed_insert,
+        max_tip_speed: m.max_tip_speed,
+        max_tip_accel: m.max_tip_accel,
         samples,
     }
 }
@@ -220,6 +233,8 @@ fn drive(
     let period = 1.0 / p.control_rate_hz;
     let physics_per_tick = (period * world.params().physics_rate_hz).round().max(1.0) as usize;
     policy.start(world.kinematics());
+    // The true tip's last position and velocity (finite differences at the control rate).
+    let mut last_tip: Option<(f64, Vector3<f64>, Option<Vector3<f64>>)> = None;
     loop {
         let t = world.time();
         let obs = Observation {
@@ -233,6 +248,18 @@ fn drive(
         let radial = (port.x * port.x + port.y * port.y).sqrt();
         let f = world.contact().force;
         let axis = world.trocar_pose_true().rotation * Vector3::z();
+        let tip = world.tip_pose().translation.vector;
+        let (tip_speed, tip_accel) = match last_tip {
+            Some((t0, p0, v0)) if t > t0 => {
+                let v = (tip - p0) / (t - t0);
+                last_tip = Some((t, tip, Some(v)));
+                (v.norm(), v0.map_or(0.0, |v0| (v - v0).norm() / (t - t0)))
+            }
+            _ => {
+                last_tip = Some((t, tip, None));
+                (0.0, 0.0)
+            }
+        };
         samples.push(Sample {
             t,
             f_est: action.f_ext.map_or(f64::NAN, |f| f.norm()),
@@ -242,6 +269,8 @@ fn drive(
             radial,
             goal_dist: (port.coords - Vector3::new(0.0, 0.0, p.goal_depth_m)).norm(),
             trocar_shift: world.trocar().deviation().0,
+            tip_speed,
+            tip_accel,
             phase: action.phase,
             hold: action.hold_code.unwrap_or(""),
         });
@@ -280,6 +309,9 @@ struct Metrics {
     m_lateral_true: f64,
     max_f_est: f64,
     max_f_true: f64,
+    rms_tip_speed_insert: f64,
+    max_tip_speed: f64,
+    max_tip_accel: f64,
 }
 
 /// The metrics of a time series, M by the trapezoid rule; the estimate falls back to the
@@ -304,6 +336,19 @@ fn metrics(s: &[Sample]) -> Metrics {
         m_lateral_true: mean(&|x| x.f_lateral_true),
         max_f_est: s.iter().map(est).fold(0.0, f64::max),
         max_f_true: s.iter().map(|x| x.f_true).fold(0.0, f64::max),
+        rms_tip_speed_insert: rms(s.iter().filter(|x| x.phase == "INSERT").map(|x| x.tip_speed)),
+        max_tip_speed: s.iter().map(|x| x.tip_speed).fold(0.0, f64::max),
+        max_tip_accel: s.iter().map(|x| x.tip_accel).fold(0.0, f64::max),
+    }
+}
+
+/// Root mean square (0 for no values).
+fn rms(x: impl Iterator<Item = f64>) -> f64 {
+    let (n, sum) = x.fold((0usize, 0.0), |(n, s), v| (n + 1, s + v * v));
+    if n == 0 {
+        0.0
+    } else {
+        (sum / n as f64).sqrt()
     }
 }
 
@@ -321,7 +366,9 @@ mod tests {
             radial: 0.0,
             goal_dist: 0.0,
             trocar_shift: 0.0,
-            phase: "X",
+            tip_speed: f,
+            tip_accel: 0.0,
+            phase: "INSERT",
             hold: "",
         }
     }
@@ -334,6 +381,13 @@ mod tests {
         assert!((m.m_est - 1.0).abs() < 1e-9 && (m.m_true - 2.0).abs() < 1e-9);
         assert!((m.m_lateral_true - 0.5).abs() < 1e-9);
         assert!((m.max_f_est - 2.0).abs() < 1e-12 && (m.max_f_true - 4.0).abs() < 1e-12);
+        // tip speed = t on [0, 2] at 201 samples: RMS sqrt(mean t^2) = sqrt(1.34), max 2.
+        let want = (s.iter().map(|x| x.t * x.t).sum::<f64>() / 201.0).sqrt();
+        assert!(
+            (m.rms_tip_speed_insert - want).abs() < 1e-12
+                && (want - (200.0f64 * 401.0 / 6.0 * 1e-4).sqrt()).abs() < 1e-9
+        );
+        assert!((m.max_tip_speed - 2.0).abs() < 1e-12);
         assert_eq!(metrics(&[]), Metrics::default());
     }
 }

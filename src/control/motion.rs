@@ -1,0 +1,341 @@
+//! Bounded tip motion: speed, acceleration and jerk of the commanded tip, linear and
+//! angular, in every phase, whatever the trocar pose's noise and rate.
+//!
+//! The SQP answers each trocar sample at once: a pose that jumps by millimetres from one
+//! message to the next (the paper's raw noise redraws ±5 mm per axis at every message)
+//! becomes a command that jumps with it, and the arm shakes. The limiter sits after the
+//! SQP and shapes the step it proposes, in task space:
+//!
+//! 1. the step `Δq = q_sqp - q_prev` moves the tip by the twist `δ = J Δq` (linear, angular);
+//! 2. the wanted velocity `δ / dt` is capped at the speed limit, and at the braking speed
+//!    `sqrt(2 a_max d)` for the distance `d` still to go, so that the tip can stop where the
+//!    SQP wants it without overshoot;
+//! 3. the velocity moves towards it by at most the acceleration limit per step, and the
+//!    acceleration changes by at most the jerk limit per step;
+//! 4. the joint step is corrected by the damped least-squares solution of
+//!    `J (Δq' - Δq) = v' dt - δ` (the smallest joint change that gives the limited twist, so
+//!    the SQP's null-space motion, e.g. off the joint limits, is kept), and scaled back
+//!    into the step box where the correction leaves it (the twist keeps its direction and
+//!    only slows).
+//!
+//! Its state is the commanded twist of the last step and its rate; it starts at rest, and
+//! every run and every resume from a hold starts at rest (the arm is still then). One
+//! 6 x 6 Cholesky per step, on the stack: nothing allocates.
+
+use nalgebra::{Matrix6, Vector3, Vector6};
+use serde::{Deserialize, Serialize};
+
+use crate::kinematics::{Jacobian, JointVector};
+
+/// Limits of the commanded tip motion (`motion:` in `config/controller.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MotionLimits {
+    /// Largest tip speed, m/s.
+    pub max_speed: f64,
+    /// Largest tip acceleration, m/s².
+    pub max_accel: f64,
+    /// Largest tip jerk, m/s³.
+    pub max_jerk: f64,
+    /// Largest angular speed of the scope, rad/s.
+    pub max_angular_speed: f64,
+    /// Largest angular acceleration, rad/s².
+    pub max_angular_accel: f64,
+    /// Largest angular jerk, rad/s³.
+    pub max_angular_jerk: f64,
+}
+
+impl Default for MotionLimits {
+    fn default() -> Self {
+        Self {
+            max_speed: 0.1,
+            max_accel: 2.0,
+            max_jerk: 100.0,
+            max_angular_speed: 1.0,
+            max_angular_accel: 20.0,
+            max_angular_jerk: 1000.0,
+        }
+    }
+}
+
+impl MotionLimits {
+    /// Check every range; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        for (n, v) in [
+            ("max_speed", self.max_speed),
+            ("max_accel", self.max_accel),
+            ("max_jerk", self.max_jerk),
+            ("max_angular_speed", self.max_angular_speed),
+            ("max_angular_accel", self.max_angular_accel),
+            ("max_angular_jerk", self.max_angular_jerk),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(format!("motion.{n} must be > 0, got {v}"));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// One block (linear or angular) of the limits.
+#[derive(Debug, Clone, Copy)]
+struct Block {
+    speed: f64,
+    accel: f64,
+    jerk: f64,
+}
+
+/// `v` with its norm cut to `max`.
+fn cap(v: Vector3<f64>, max: f64) -> Vector3<f64> {
+    let n = v.norm();
+    if n > max && n > 0.0 {
+        v * (max / n)
+    } else {
+        v
+    }
+}
+
+/// The limited velocity of one block: from `v` (accelerating at `a`) towards the velocity
+/// that covers `d` this step, within the block's limits, braking ahead for both the
+/// acceleration limit (position) and the jerk limit (velocity), so that neither overshoots.
+fn shape(d: Vector3<f64>, v: Vector3<f64>, a: Vector3<f64>, b: Block, dt: f64) -> Vector3<f64> {
+    let dist = d.norm();
+    // Stopping distance from speed s: s^2 / (2 a) + s t_j / 2, with t_j = a / j the time the
+    // acceleration takes to build up; the speed that stops within `dist`:
+    let at = b.accel * b.accel / b.jerk;
+    let brake = 0.5 * (-at + (at * at + 8.0 * b.accel * dist).sqrt());
+    let want_speed = (dist / dt).min(b.speed).min(brake);
+    let want = if dist > 0.0 { d * (want_speed / dist) } else { d };
+    let dv = want - v;
+    let n = dv.norm();
+    let a_mag = b.accel.min((2.0 * b.jerk * n).sqrt()).min(n / dt);
+    let a_want = if n > 0.0 { dv * (a_mag / n) } else { dv };
+    let a_new = a + cap(a_want - a, b.jerk * dt);
+    cap(v + a_new * dt, b.speed)
+}
+
+/// `prev + s (to - prev)` with the largest `s` in [0, 1] that keeps it in `[lo, hi]` (so
+/// that the limited twist keeps its direction and only slows), then clamped (where `prev`
+/// itself is outside the box, e.g. behind a lagging arm's lead bound).
+fn into_box(prev: &JointVector, to: &JointVector, lo: &JointVector, hi: &JointVector) -> JointVector {
+    let step = to - prev;
+    let mut s = 1.0f64;
+    for i in 0..step.len() {
+        let room = if step[i] > 0.0 {
+            hi[i] - prev[i]
+        } else {
+            lo[i] - prev[i]
+        };
+        if step[i] != 0.0 {
+            s = s.min((room / step[i]).max(0.0));
+        }
+    }
+    (prev + step * s).zip_zip_map(lo, hi, |q, l, h| q.clamp(l, h))
+}
+
+/// The limiter's state: the last commanded tip twist and its rate.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct MotionLimiter {
+    /// Commanded twist (linear; angular), m/s and rad/s.
+    velocity: Vector6<f64>,
+    /// Its rate, m/s² and rad/s².
+    accel: Vector6<f64>,
+}
+
+/// Damping of the least-squares correction (m or rad per unit of twist).
+const DAMPING: f64 = 1e-3;
+
+impl MotionLimiter {
+    /// The commanded tip speed of the last step, m/s.
+    pub fn speed(&self) -> f64 {
+        self.velocity.fixed_rows::<3>(0).norm()
+    }
+
+    /// Back to rest (a new run, a resume: the arm is still).
+    pub fn rest(&mut self) {
+        *self = Self::default();
+    }
+
+    /// Shape the SQP's command `cmd` from `prev` for the limits, with `jac` the Jacobian
+    /// (base frame, linear part at the tip) near `prev`, inside the step box `[lo, hi]`.
+    /// A `dt` of 0 (a clock that did not advance) commands `prev`.
+    pub fn limit(
+        &mut self,
+        lim: &MotionLimits,
+        jac: &Jacobian,
+        prev: &JointVector,
+        cmd: &JointVector,
+        dt: f64,
+        (lo, hi): (&JointVector, &JointVector),
+    ) -> JointVector {
+        if dt.is_nan() || dt <= 0.0 {
+            self.rest();
+            return *prev;
+        }
+        let dq = cmd - prev;
+        let twist = jac * dq;
+        let lin = Block {
+            speed: lim.max_speed,
+            accel: lim.max_accel,
+            jerk: lim.max_jerk,
+        };
+        let ang = Block {
+            speed: lim.max_angular_speed,
+            accel: lim.max_angular_accel,
+            jerk: lim.max_angular_jerk,
+        };
+        let part = |x: &Vector6<f64>, i: usize| Vector3::new(x[i], x[i + 1], x[i + 2]);
+        let v_lin = shape(part(&twist, 0), part(&self.velocity, 0), part(&self.accel, 0), lin, dt);
+        let v_ang = shape(part(&twist, 3), part(&self.velocity, 3), part(&self.accel, 3), ang, dt);
+        let want = Vector6::new(v_lin.x, v_lin.y, v_lin.z, v_ang.x, v_ang.y, v_ang.z) * dt;
+        let err = want - twist;
+        let out = if err.norm() > 1e-12 {
+            let jjt = jac * jac.transpose() + Matrix6::identity() * (DAMPING * DAMPING);
+            match jjt.cholesky() {
+                Some(c) => prev + dq + jac.transpose() * c.solve(&err),
+                None => *prev,
+            }
+        } else {
+            *cmd
+        };
+        let out = into_box(prev, &out, lo, hi);
+        let out = if out.iter().all(|x| x.is_finite()) { out } else { *prev };
+        // The state follows what is commanded (after the box), so the next step's limits
+        // are measured from it.
+        let v = jac * (out - prev) / dt;
+        self.accel = (v - self.velocity) / dt;
+        self.velocity = v;
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 6 x 7 Jacobian whose first six joints move the tip one unit per rad, each along
+    /// one twist axis; the seventh is redundant (with the first).
+    fn jac() -> Jacobian {
+        let mut j = Jacobian::zeros();
+        for i in 0..6 {
+            j[(i, i)] = 1.0;
+        }
+        j[(0, 6)] = 1.0;
+        j
+    }
+
+    fn wide() -> (JointVector, JointVector) {
+        (JointVector::repeat(-10.0), JointVector::repeat(10.0))
+    }
+
+    #[test]
+    fn a_steady_slow_motion_is_followed_exactly_once_up_to_speed() {
+        let lim = MotionLimits::default();
+        let mut m = MotionLimiter::default();
+        let (lo, hi) = wide();
+        let j = jac();
+        let dt = 0.01;
+        // The SQP asks for a target that moves at 0.03 m/s in x (the insertion speed).
+        let mut q = JointVector::zeros();
+        let mut last = (0.0, 0.0);
+        for k in 1..=200 {
+            let target = 0.03 * dt * f64::from(k);
+            let mut cmd = q;
+            cmd[0] += target - (q[0] + q[6]);
+            let out = m.limit(&lim, &j, &q, &cmd, dt, (&lo, &hi));
+            last = (target, out[0] + out[6]);
+            q = out;
+        }
+        // Steady state: the tip moves at the target's speed, a fixed lag behind it (the
+        // distance it needs to brake from 0.03 m/s: under a millimetre).
+        assert!((m.speed() - 0.03).abs() < 1e-6, "speed {}", m.speed());
+        let lag = last.0 - last.1;
+        assert!(lag > 0.0 && lag < 1e-3, "lag {lag}");
+    }
+
+    #[test]
+    fn noise_of_5_mm_per_step_is_cut_to_the_limits_in_speed_acceleration_and_jerk() {
+        let lim = MotionLimits::default();
+        let mut m = MotionLimiter::default();
+        let (lo, hi) = wide();
+        let j = jac();
+        let dt = 0.01;
+        let mut q = JointVector::zeros();
+        let (mut v0, mut a0) = (Vector3::zeros(), Vector3::zeros());
+        let mut sum_v2 = 0.0;
+        for k in 0..500 {
+            // The SQP asks for a jump to a fresh noisy sample each step: +-5 mm in x and y.
+            let s = if (k * 7919) % 13 < 6 { 1.0 } else { -1.0 };
+            let mut cmd = q;
+            cmd[0] = 0.005 * s;
+            cmd[1] = -0.005 * s;
+            let out = m.limit(&lim, &j, &q, &cmd, dt, (&lo, &hi));
+            let d = j * (out - q);
+            let v = Vector3::new(d[0], d[1], d[2]) / dt;
+            let a = (v - v0) / dt;
+            let jerk = (a - a0) / dt;
+            assert!(v.norm() <= lim.max_speed + 1e-9, "speed {}", v.norm());
+            assert!(a.norm() <= lim.max_accel * 1.01, "accel {}", a.norm());
+            assert!(jerk.norm() <= lim.max_jerk * 1.01, "jerk {}", jerk.norm());
+            sum_v2 += v.norm_squared();
+            (v0, a0, q) = (v, a, out);
+        }
+        // Unlimited, the tip would move 7 mm per step: 0.7 m/s.
+        let rms = (sum_v2 / 500.0).sqrt();
+        assert!(rms < 0.05, "RMS speed {rms}");
+    }
+
+    #[test]
+    fn a_far_target_is_reached_at_the_speed_limit_and_without_overshoot() {
+        let lim = MotionLimits::default();
+        let mut m = MotionLimiter::default();
+        let (lo, hi) = wide();
+        let j = jac();
+        let dt = 0.01;
+        let mut q = JointVector::zeros();
+        let mut top = 0.0f64;
+        let mut max_x = 0.0f64;
+        for _ in 0..300 {
+            // The SQP wants x = 20 mm, within a step box of 5 mm per step.
+            let mut cmd = q;
+            cmd[0] += (0.02 - (q[0] + q[6])).clamp(-0.005, 0.005);
+            let out = m.limit(&lim, &j, &q, &cmd, dt, (&lo, &hi));
+            top = top.max((j * (out - q))[0] / dt);
+            q = out;
+            max_x = max_x.max(q[0] + q[6]);
+        }
+        let x = q[0] + q[6];
+        assert!((x - 0.02).abs() < 1e-5, "ends at {x}");
+        assert!(max_x < 0.02 + 2e-4, "overshoot to {max_x}");
+        assert!(
+            top > 0.5 * lim.max_speed && top <= lim.max_speed * 1.001,
+            "top speed {top}"
+        );
+    }
+
+    #[test]
+    fn the_step_box_and_a_zero_dt_are_respected() {
+        let lim = MotionLimits::default();
+        let mut m = MotionLimiter::default();
+        let j = jac();
+        let prev = JointVector::zeros();
+        let mut cmd = prev;
+        cmd[3] = 0.5;
+        let (lo, hi) = (JointVector::repeat(-1e-4), JointVector::repeat(1e-4));
+        let out = m.limit(&lim, &j, &prev, &cmd, 0.01, (&lo, &hi));
+        assert!(out.iter().all(|x| x.abs() <= 1e-4 + 1e-15));
+        assert_eq!(m.limit(&lim, &j, &prev, &cmd, 0.0, (&lo, &hi)), prev);
+        assert_eq!(m.speed(), 0.0);
+    }
+
+    #[test]
+    fn limits_are_validated() {
+        let mut l = MotionLimits::default();
+        assert!(l.validate().is_ok());
+        l.max_jerk = f64::NAN;
+        assert!(l.validate().unwrap_err().contains("motion.max_jerk"));
+        l.max_jerk = 1.0;
+        l.max_speed = 0.0;
+        assert!(l.validate().unwrap_err().contains("motion.max_speed"));
+    }
+}
