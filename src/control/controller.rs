@@ -478,9 +478,16 @@ impl OptimalController {
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
         let cmd = if sol.status.is_usable() {
             // The tip's speed, acceleration and jerk bounded (see [`super::motion`]).
+            // Braking for what is left: the tip's distance to the phase's target point and
+            // the alignment error.
+            let tip = Point3::from(arm.tip.translation.vector);
+            let left = (
+                (point - tip).norm(),
+                axis.alignment_error(&(arm.tip.rotation * Vector3::z())),
+            );
             self.run
                 .motion
-                .limit(&self.params.motion, &arm.jac, &prev, &sol.q, ctx.dt, (&lo, &hi))
+                .limit(&self.params.motion, &arm.jac, (&prev, &sol.q), left, ctx.dt, (&lo, &hi))
         } else {
             self.run.motion.rest();
             let why = HoldReason::SolverFailed(sol.status.as_text().into());

@@ -15,7 +15,7 @@ use crate::kinematics::{JointLimits, JointVector};
 
 /// The share of `max_command_lead` from which the command counts as waiting for the arm
 /// (the not-following watch of [`super::guarded`] runs from there).
-pub const LEAD_WATCH_FRACTION: f64 = 0.5;
+pub const LEAD_WATCH_FRACTION: f64 = 0.25;
 
 /// Parameters of the guard.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

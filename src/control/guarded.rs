@@ -10,8 +10,8 @@
 //! period), so that the source's step box and the guard's check use the same `dt`, and the
 //! failure modes that only the wrapper sees, each a latched hold with its reason (a new
 //! start is needed, and it begins from the measured joints):
-//! - **the arm does not follow**: the command sat on its lead bound for `follow_timeout`
-//!   while the arm moved less than [`MIN_PROGRESS`] of the bound on that joint
+//! - **the arm does not follow**: the command led the arm by a quarter of its lead bound or
+//!   more for `follow_timeout` while the arm moved less than [`MIN_PROGRESS`] of the bound
 //!   (`ARM_NOT_FOLLOWING`); an arm that lags but moves (a fast joint behind its trajectory
 //!   controller) only slows the command down. The hold is at the measured joints, so a
 //!   blocked arm that frees itself does not jump to a command ahead of it;
@@ -79,10 +79,9 @@ pub struct Guarded<S> {
     last_now: Option<f64>,
     /// The newest finite measured joints (a new start begins from them).
     last_measured: Option<JointVector>,
-    /// How long the command has sat on its lead bound, s, and the joint and its measured
-    /// position when it began.
+    /// How long the command has led the arm, s, and the measured joints when it began.
     behind_for: f64,
-    behind_from: Option<(usize, f64)>,
+    behind_from: Option<JointVector>,
     /// The wrapper's own latched hold, until a start, an abort or a reset.
     latched: Option<Latched>,
     /// The reason of the last output, for a start that re-anchors a hold.
@@ -221,23 +220,26 @@ impl<S: CommandSource> Guarded<S> {
         }
     }
 
-    /// The arm does not follow when the command has sat on its lead bound for the timeout
-    /// and the arm has not moved (by [`MIN_PROGRESS`] of the bound) on that joint meanwhile.
+    /// The arm does not follow when the command has led it (by [`LEAD_WATCH_FRACTION`](super::guard::LEAD_WATCH_FRACTION) of
+    /// the bound or more) for the timeout while the arm has not moved (by [`MIN_PROGRESS`]
+    /// of the bound on any joint) since the lead began. Not "sat on the bound without a
+    /// break": against a blocked arm the limited command wanders inside its lead box, in and
+    /// out of the bound.
     fn watch_lead(&mut self, command: Option<&JointVector>, dt: f64) -> Option<HoldReason> {
         let saturated = command.and_then(|c| self.guard.lead_saturated(c));
         let q = self.guard.measured().copied();
         match (saturated, q) {
             (Some((joint, lead)), Some(q)) if self.source.phase() != Phase::Idle => {
-                let (j0, q0) = *self.behind_from.get_or_insert((joint, q[joint]));
+                let q0 = *self.behind_from.get_or_insert(q);
                 self.behind_for += dt;
                 let p = self.guard.params();
                 if self.behind_for <= p.follow_timeout {
                     return None;
                 }
-                if (q[j0] - q0).abs() > MIN_PROGRESS * p.max_command_lead {
+                if (q - q0).amax() > MIN_PROGRESS * p.max_command_lead {
                     // Lagging, but moving: a new window from here.
                     self.behind_for = 0.0;
-                    self.behind_from = Some((joint, q[joint]));
+                    self.behind_from = Some(q);
                     return None;
                 }
                 Some(HoldReason::ArmNotFollowing { joint, lead })
