@@ -26,6 +26,9 @@ pub struct CheckParams {
     pub max_force: f64,
     /// Wall time to wait for the graph (services, first messages), s.
     pub startup_timeout: f64,
+    /// `docking`: the largest accepted RMS speed of the tip (from the measured joints)
+    /// during INSERT, m/s (0 = not checked).
+    pub max_tip_rms_speed: f64,
     /// Whether the check calls `~start` itself.
     pub call_start: bool,
     /// For `stale_hold`: the hold's code (`hold_code` of the status) must be this.
@@ -84,6 +87,7 @@ impl Default for CheckParams {
             max_metric_m: 10.0,
             max_force: 60.0,
             startup_timeout: 30.0,
+            max_tip_rms_speed: 0.0,
             call_start: true,
             hold_code: "STALE_TROCAR_POSE".into(),
             done_code: String::new(),
@@ -118,6 +122,7 @@ impl CheckParams {
         validate::duration("startup_timeout", self.startup_timeout)?;
         validate::non_negative("hold_observe", self.hold_observe)?;
         validate::positive("max_metric_m", self.max_metric_m)?;
+        validate::non_negative("max_tip_rms_speed", self.max_tip_rms_speed)?;
         validate::positive("max_force", self.max_force)?;
         validate::positive("max_position_error", self.max_position_error)?;
         validate::period_of_rate("camera_rate_hz", self.camera_rate_hz)?;

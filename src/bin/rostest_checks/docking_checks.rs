@@ -4,9 +4,11 @@
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use ::trocar_docking::kinematics::JointVector;
+use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
+use ::trocar_docking::kinematics::{joint_names, JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
-use ::trocar_docking::ros::msgs::{lbr_msgs, trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::msgs::{lbr_msgs, sensor_msgs, trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::topics;
 
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
 
@@ -54,9 +56,71 @@ pub fn roundtrip(p: &CheckParams) -> Result<(), String> {
     Ok(())
 }
 
+/// The measured joints during INSERT (stamp, q), from `/lbr/joint_states` while the
+/// status says INSERT: the tip's motion, for its RMS speed.
+struct InsertJoints {
+    samples: Arc<Mutex<Vec<(f64, JointVector)>>>,
+    _subs: (rosrust::Subscriber, rosrust::Subscriber),
+}
+
+impl InsertJoints {
+    fn subscribe(status_topic: &str) -> Result<Self, String> {
+        use std::sync::atomic::Ordering;
+        let inserting = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let samples = Arc::new(Mutex::new(Vec::new()));
+        let flag = inserting.clone();
+        let status = rosrust::subscribe(status_topic, 100, move |s: trocar_docking::DockingStatus| {
+            flag.store(s.phase == "INSERT", Ordering::Relaxed);
+        })
+        .map_err(|e| e.to_string())?;
+        let (flag, out, names) = (inserting.clone(), samples.clone(), joint_names());
+        let joints = rosrust::subscribe(topics::JOINT_STATES, 100, move |m: sensor_msgs::JointState| {
+            if !flag.load(Ordering::Relaxed) {
+                return;
+            }
+            if let (Ok(q), Ok(mut v)) = (convert::joint_positions("", &m, &names), out.lock()) {
+                v.push((convert::seconds(m.header.stamp), q));
+            }
+        })
+        .map_err(|e| e.to_string())?;
+        Ok(Self {
+            samples,
+            _subs: (status, joints),
+        })
+    }
+
+    /// RMS of the tip speed over 10 ms intervals of the samples (a gap over 50 ms, e.g. a
+    /// hold, starts afresh), m/s, and the number of intervals.
+    fn rms_tip_speed(&self) -> Result<(f64, usize), String> {
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
+        let v = self.samples.lock().map_err(|e| e.to_string())?;
+        let (mut sum, mut n) = (0.0, 0usize);
+        let mut last: Option<(f64, nalgebra::Vector3<f64>)> = None;
+        for (t, q) in v.iter() {
+            let p = kin.fk(q).map_err(|e| e.to_string())?.translation.vector;
+            match last {
+                Some((t0, p0)) if t - t0 >= 0.01 && t - t0 <= 0.05 => {
+                    let s = (p - p0).norm() / (t - t0);
+                    sum += s * s;
+                    n += 1;
+                    last = Some((*t, p));
+                }
+                Some((t0, _)) if t - t0 < 0.01 && *t >= t0 => {}
+                _ => last = Some((*t, p)),
+            }
+        }
+        Ok((if n > 0 { (sum / n as f64).sqrt() } else { f64::NAN }, n))
+    }
+}
+
 /// Start the controller (unless the launch does) and wait for DONE within the time limit;
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
+    let insert = if p.max_tip_rms_speed > 0.0 {
+        Some(InsertJoints::subscribe(&p.status_topic)?)
+    } else {
+        None
+    };
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
     let max_force = Arc::new(Mutex::new(0.0_f64));
     let _sub_force = {
@@ -115,11 +179,23 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         ));
     }
     // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::seated`).
-    let note = if done.hold_reason.is_empty() {
+    let mut note = if done.hold_reason.is_empty() {
         String::new()
     } else {
         format!("; {}", done.hold_reason)
     };
+    if let Some(insert) = insert {
+        let (rms, n) = insert.rms_tip_speed()?;
+        if !(rms <= p.max_tip_rms_speed) || n < 10 {
+            return Err(format!(
+                "tip RMS speed in INSERT {rms:.3} m/s over {n} intervals, bound {:.3} m/s",
+                p.max_tip_rms_speed
+            ));
+        }
+        note.push_str(&format!(
+            "; tip RMS speed in INSERT {rms:.3} m/s ({n} intervals of 10 ms)"
+        ));
+    }
     Ok(format!(
         "success: DONE in {:.2} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), max force {:.2} N, \
          tip {:.1} mm from the goal, latency trocar->command p50 {:.2} / p99 {:.2} ms, loop {:.1} Hz, {} steps{}",
