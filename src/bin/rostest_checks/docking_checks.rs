@@ -89,6 +89,19 @@ impl InsertJoints {
         })
     }
 
+    /// The tip's RMS speed within `bound` over at least 10 intervals: its note, or why not.
+    fn judge(&self, bound: f64) -> Result<String, String> {
+        let (rms, n) = self.rms_tip_speed()?;
+        if rms.is_nan() || rms > bound || n < 10 {
+            return Err(format!(
+                "tip RMS speed in INSERT {rms:.3} m/s over {n} intervals, bound {bound:.3} m/s"
+            ));
+        }
+        Ok(format!(
+            "; tip RMS speed in INSERT {rms:.3} m/s ({n} intervals of 10 ms)"
+        ))
+    }
+
     /// RMS of the tip speed over 10 ms intervals of the samples (a gap over 50 ms, e.g. a
     /// hold, starts afresh), m/s, and the number of intervals.
     fn rms_tip_speed(&self) -> Result<(f64, usize), String> {
@@ -113,6 +126,21 @@ impl InsertJoints {
     }
 }
 
+/// The peak force estimate of the status on `topic` outside IDLE, as it comes.
+fn subscribe_max_force(topic: &str) -> Result<(Arc<Mutex<f64>>, rosrust::Subscriber), String> {
+    let max_force = Arc::new(Mutex::new(0.0_f64));
+    let m = max_force.clone();
+    let sub = rosrust::subscribe(topic, 100, move |s: trocar_docking::DockingStatus| {
+        if let Ok(mut m) = m.lock() {
+            if s.phase != "IDLE" && s.f_ext_norm.is_finite() {
+                *m = m.max(s.f_ext_norm);
+            }
+        }
+    })
+    .map_err(|e| e.to_string())?;
+    Ok((max_force, sub))
+}
+
 /// Start the controller (unless the launch does) and wait for DONE within the time limit;
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
@@ -122,18 +150,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         None
     };
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
-    let max_force = Arc::new(Mutex::new(0.0_f64));
-    let _sub_force = {
-        let m = max_force.clone();
-        rosrust::subscribe(&p.status_topic, 100, move |s: trocar_docking::DockingStatus| {
-            if let Ok(mut m) = m.lock() {
-                if s.phase != "IDLE" && s.f_ext_norm.is_finite() {
-                    *m = m.max(s.f_ext_norm);
-                }
-            }
-        })
-        .map_err(|e| e.to_string())?
-    };
+    let (max_force, _sub_force) = subscribe_max_force(&p.status_topic)?;
     wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
     if p.call_start {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
@@ -185,16 +202,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         format!("; {}", done.hold_reason)
     };
     if let Some(insert) = insert {
-        let (rms, n) = insert.rms_tip_speed()?;
-        if !(rms <= p.max_tip_rms_speed) || n < 10 {
-            return Err(format!(
-                "tip RMS speed in INSERT {rms:.3} m/s over {n} intervals, bound {:.3} m/s",
-                p.max_tip_rms_speed
-            ));
-        }
-        note.push_str(&format!(
-            "; tip RMS speed in INSERT {rms:.3} m/s ({n} intervals of 10 ms)"
-        ));
+        note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }
     Ok(format!(
         "success: DONE in {:.2} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), max force {:.2} N, \
