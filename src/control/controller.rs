@@ -36,9 +36,10 @@ use super::guarded::{CommandSource, Guarded, StepContext};
 use super::metrics::ForceMetric;
 use super::motion::MotionLimiter;
 pub use super::params::{ControllerParams, ParamError};
+use super::pivot::{live_command, Pivot};
 use super::scope::{PivotReport, ScopeCommand};
 use super::seated::{SeatedCheck, TipState};
-use super::sqp::{CostTerms, CostWeights, LimitAvoidance, SqpSolver, SqpStatus, Targets};
+use super::sqp::{CostTerms, CostWeights, LimitAvoidance, PivotCost, SqpSolver, SqpStatus, Targets};
 use super::supervisor::{Phase, Supervisor};
 use super::tare::{Tare, TareStep};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
@@ -179,6 +180,8 @@ struct RunState {
     tare: Tare,
     /// `Some(None)`: a retreat is due and begins from the tip's depth.
     retreat: Option<Option<Retreat>>,
+    /// After DONE: the port held as the remote centre of motion.
+    pivot: Option<Pivot>,
 }
 
 /// An early end of a step: hold (or stay idle) for `reason`, commanding `hold_at`.
@@ -456,8 +459,10 @@ impl OptimalController {
         arm: &Arm,
         targets_for: (InsertionAxis, Point3<f64>, Point3<f64>),
         weights: &CostWeights,
+        pivot: Option<PivotCost>,
     ) -> (JointVector, SolveReport) {
         let (axis, point, reference) = targets_for;
+        let pivot_on = pivot.is_some();
         let prev = arm.prev;
         let g = ctx.guard;
         let (lo, hi) = g.step_box(&prev, ctx.dt);
@@ -474,9 +479,16 @@ impl OptimalController {
             reference,
             q_prev: prev,
             limits: Some(limits),
+            pivot,
         };
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
-        let cmd = if sol.status.is_usable() {
+        let cmd = if sol.status.is_usable() && pivot_on {
+            // Pivoting (DONE, RETRACT) commands its own bounded speeds (the scope's limits)
+            // and uses no trocar pose, whose noise the motion limits are for; limiting its
+            // linear and angular parts apart would move the shaft off the fulcrum.
+            self.run.motion.rest();
+            sol.q
+        } else if sol.status.is_usable() {
             // The tip's speed, acceleration and jerk bounded (see [`super::motion`]).
             // Braking for what is left: the tip's distance to the phase's target point and
             // the alignment error.
@@ -596,6 +608,56 @@ impl OptimalController {
         self.output(still, Some(arm.tip), None)
     }
 
+    /// After DONE: hold the port as the remote centre of motion while the surgeon steers,
+    /// or withdraw (RETRACT); see [`super::pivot`]. `None` in the other phases (and before
+    /// any trocar estimate, when DONE just holds).
+    fn pivot_step(
+        &mut self,
+        kin: &dyn Kinematics,
+        input: &ControlInput,
+        ctx: &StepContext<'_>,
+        arm: &Arm,
+    ) -> Option<ControlOutput> {
+        if !matches!(self.run.supervisor.phase(), Phase::Done | Phase::Retract) {
+            return None;
+        }
+        // Every input the law needs is good: a passed hold's reason goes.
+        self.run.supervisor.clear_hold();
+        let sp = &self.params.scope;
+        if self.run.pivot.is_none() {
+            let trocar = self.run.trocar_filtered.map(|(t, _)| InsertionAxis::from_pose(&t))?;
+            self.run.pivot = Some(Pivot::new(sp, &kin.fk(&arm.prev).ok()?, &trocar));
+        }
+        let command = match ctx.guard.check_force(self.run.admittance.force().norm()) {
+            Ok(()) => live_command(sp, input.now, input.scope),
+            Err(_) => Err("force estimate over the force stop: scope commands ignored, holding still"),
+        };
+        let pivot = self.run.pivot.as_mut()?;
+        if self.run.supervisor.phase() == Phase::Retract && !pivot.retracting() {
+            pivot.retract_to(-self.params.standoff);
+        }
+        let a = &self.params.admittance;
+        let tau = input
+            .tau_ext
+            .map_or(JointVector::repeat(f64::NAN), |t| self.run.tare.correct(&t.value));
+        let f = pivot.sense(&arm.jac, &tau, a.pinv_damping, a.filter_cutoff_hz, ctx.dt);
+        // Without force feedback the law uses no force: the fulcrum stays where it began.
+        let t = pivot.step(sp, command, &f, self.params.force_feedback, ctx.dt);
+        let (cmd, report) = self.solve(kin, ctx, arm, (t.axis, t.point, t.point), &t.weights, Some(t.cost));
+        self.run.last_command = Some(cmd);
+        let pivot = self.run.pivot.as_ref()?;
+        let back =
+            nalgebra::distance(&Point3::from(arm.tip.translation.vector), &t.point) < self.params.approach_tolerance;
+        let status = pivot.report(&self.params.scope, &arm.tip, &f);
+        if pivot.retracted() && back {
+            self.run.supervisor.retract_done();
+        }
+        let mut out = self.output(Some(cmd), Some(arm.tip), None);
+        out.solve = Some(report);
+        out.pivot = Some(status);
+        Some(out)
+    }
+
     #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
     fn step_checked(
         &mut self,
@@ -612,6 +674,9 @@ impl OptimalController {
             return Ok(self.tare_step(input, &arm, ctx.guard, dt));
         }
         self.update_force(input, &arm, ctx.guard, dt)?;
+        if let Some(out) = self.pivot_step(kin, input, ctx, &arm) {
+            return Ok(out);
+        }
         let trocar = self.trocar_pose(input, &arm, ctx.guard)?;
         let axis = InsertionAxis::from_pose(&trocar);
         let goal = axis.point_at(self.params.insertion_depth);
@@ -638,7 +703,7 @@ impl OptimalController {
         let x = self.run.admittance.step(&self.params.admittance, axis.across(&f), dt);
         let reference = tip_p + x;
         let (weights, point) = self.phase_target(&axis, tip_p, f, dt);
-        let (cmd, report) = self.solve(kin, ctx, &arm, (axis, point, reference), &weights);
+        let (cmd, report) = self.solve(kin, ctx, &arm, (axis, point, reference), &weights, None);
         self.run.last_command = Some(cmd);
         self.transitions(&axis, goal, &arm.tip, f, dt);
         let mut out = self.output(Some(cmd), Some(arm.tip), Some(goal));
@@ -676,6 +741,11 @@ impl CommandSource for OptimalController {
     fn abort(&mut self, why: &str) {
         self.run.supervisor.abort(why);
         self.run.retreat = None;
+    }
+
+    fn retract(&mut self) -> Result<(), String> {
+        // The law begins the withdrawal at its next step ([`Self::pivot_step`]).
+        self.run.supervisor.retract()
     }
 
     fn reset(&mut self) {

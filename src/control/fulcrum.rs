@@ -1,0 +1,370 @@
+//! The fulcrum's adaptation after docking: where the wall pushes, the port is.
+//!
+//! The remote centre of motion starts on the shaft line at the estimated port plus a prior
+//! depth along the shaft (the abdominal wall holds the trocar some centimetres below its
+//! face). Two laws move it from the force across the shaft, f_⊥ (the controller's filtered
+//! tip-force estimate with its component along the shaft removed, then a dead-band):
+//!
+//! - **across the shaft**, a first-order admittance of the fulcrum point,
+//!   D ẋ + K x = f_⊥, |x| <= x_max: a wall that pushes the shaft sideways (the port moved
+//!   with breathing, or the scope pivots about a point beside the port) moves the fulcrum,
+//!   and with it the scope, the way it pushes. K pulls x back to zero, so a force
+//!   estimate's bias moves the fulcrum by at most bias / K. While no command comes the
+//!   scope holds still: the law is then D ẋ = f_⊥ with a larger dead-band, so that only a
+//!   wall pushing harder than the estimate's drift (or the wall settling after a motion)
+//!   moves it;
+//! - **along the shaft**, the fulcrum's depth s (past the port) by a gradient law on the
+//!   lever: pivoting by an angle θ about a point δ short of the true fulcrum moves the
+//!   shaft there by δ θ x a and the wall pushes back, f_⊥ = -k δ (θ x a). So with the
+//!   commanded angular velocity ω of the pan and tilt (known exactly) and
+//!   u = (ω x a) / |ω|: ṡ = -γ f_⊥ · u, which is zero when the scope pivots about the
+//!   point where the wall holds it, and does nothing while the scope does not pivot (a
+//!   force then says nothing about the depth). s stays between 0 (the port) and the tip's
+//!   depth (the wall can only push where there is shaft).
+//!
+//! **The force** is the shaft's whole wrench at the tip from the external joint torques,
+//! [f; m] = (J J^T + λ² I)^{-1} J tau over all six rows of the Jacobian ([`shaft_wrench`]),
+//! low-passed: a moment on the shaft (the trocar's tilt spring, transmitted as a couple
+//! across its bore) is then not read as a force, as it is by the docking's estimate from
+//! the linear rows alone, which would bias both laws in proportion to the tilt.
+//!
+//! Nothing here allocates.
+
+use nalgebra::{Matrix6, Unit, Vector3, Vector6};
+
+use crate::kinematics::{Jacobian, JointVector};
+use serde::{Deserialize, Serialize};
+
+use crate::signal::deadband;
+
+/// Parameters of the fulcrum's adaptation (`scope.fulcrum` in `config/controller.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FulcrumParams {
+    /// Prior depth of the fulcrum past the port (the trocar's face) along the shaft, m.
+    pub prior_depth: f64,
+    /// Stiffness K of the fulcrum's admittance across the shaft, N/m.
+    pub stiffness: f64,
+    /// Damping D of the same, N s/m.
+    pub damping: f64,
+    /// Forces across the shaft below this are ignored while the surgeon steers, N.
+    pub force_deadband: f64,
+    /// ... and below this while no command comes, N: the scope then holds still against
+    /// the small forces (the estimate's drift, the wall settling after a motion) and
+    /// yields only to a wall that pushes harder.
+    pub still_force_deadband: f64,
+    /// Largest displacement of the fulcrum across the shaft, m.
+    pub max_displacement: f64,
+    /// Gain γ of the depth's adaptation, m/(N s) (0 = the depth stays at the prior).
+    pub depth_gain: f64,
+    /// The depth adapts only while the scope pivots faster than this, rad/s.
+    pub min_pivot_speed: f64,
+}
+
+impl Default for FulcrumParams {
+    fn default() -> Self {
+        Self {
+            prior_depth: 0.02,
+            stiffness: 100.0,
+            damping: 50.0,
+            force_deadband: 0.3,
+            still_force_deadband: 2.0,
+            max_displacement: 0.01,
+            depth_gain: 0.1,
+            min_pivot_speed: 0.02,
+        }
+    }
+}
+
+impl FulcrumParams {
+    /// Check every range; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let check = |n: &str, v: f64, lo: f64, hi: f64| {
+            if v.is_finite() && (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!("scope.fulcrum.{n} must be in [{lo}, {hi}], got {v}"))
+            }
+        };
+        check("prior_depth", self.prior_depth, 0.0, 0.2)?;
+        check("stiffness", self.stiffness, 0.0, 1e5)?;
+        check("damping", self.damping, 1e-3, 1e5)?;
+        check("force_deadband", self.force_deadband, 0.0, 50.0)?;
+        check("still_force_deadband", self.still_force_deadband, 0.0, 50.0)?;
+        check("max_displacement", self.max_displacement, 0.0, 0.05)?;
+        check("depth_gain", self.depth_gain, 0.0, 1.0)?;
+        check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)
+    }
+}
+
+/// The wrench on the shaft at the tip (force, moment about the tip; base frame) from the
+/// external joint torques `tau`: (J J^T + λ² I)^{-1} J tau with all six rows of `jac`.
+/// `None` when the inputs are not finite or the system is singular.
+pub fn shaft_wrench(jac: &Jacobian, tau: &JointVector, damping: f64) -> Option<(Vector3<f64>, Vector3<f64>)> {
+    if !(tau.iter().chain(jac.iter()).all(|x| x.is_finite()) && damping.is_finite()) {
+        return None;
+    }
+    let a: Matrix6<f64> = jac * jac.transpose() + Matrix6::identity() * (damping * damping);
+    let w: Vector6<f64> = a.cholesky()?.solve(&(jac * tau));
+    w.iter()
+        .all(|x| x.is_finite())
+        .then(|| (w.fixed_rows::<3>(0).into_owned(), w.fixed_rows::<3>(3).into_owned()))
+}
+
+/// A first-order low-pass of the shaft's force, `cutoff_hz` (0: none).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct ForceFilter {
+    force: Option<Vector3<f64>>,
+}
+
+impl ForceFilter {
+    /// Feed the force of one step of `dt`; returns the filtered force.
+    pub fn update(&mut self, f: &Vector3<f64>, cutoff_hz: f64, dt: f64) -> Vector3<f64> {
+        let alpha = if cutoff_hz > 0.0 && dt > 0.0 {
+            let rc = 1.0 / (2.0 * std::f64::consts::PI * cutoff_hz);
+            dt / (rc + dt)
+        } else {
+            1.0
+        };
+        let out = self.force.map_or(*f, |x| x + (f - x) * alpha);
+        self.force = Some(out);
+        out
+    }
+
+    /// The filtered force (zero before the first).
+    pub fn force(&self) -> Vector3<f64> {
+        self.force.unwrap_or_else(Vector3::zeros)
+    }
+}
+
+/// The adapted fulcrum, relative to where it started: its depth along the shaft past the
+/// port and its displacement across the shaft.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fulcrum {
+    /// Depth past the port along the shaft, m.
+    pub depth: f64,
+    /// Displacement across the shaft from the initial fulcrum, base frame, m.
+    pub lateral: Vector3<f64>,
+}
+
+/// How the scope moves in a step, for [`Fulcrum::step`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Motion {
+    /// The commanded angular velocity of the pan and tilt, base frame, rad/s.
+    pub omega: Vector3<f64>,
+    /// The tip's depth past the port (the fulcrum depth's upper bound), m.
+    pub tip_depth: f64,
+    /// Whether a command moves the scope (the dead-band is then `force_deadband`, else
+    /// `still_force_deadband`).
+    pub steering: bool,
+}
+
+impl Fulcrum {
+    /// At the prior depth, not displaced.
+    pub fn new(p: &FulcrumParams) -> Self {
+        Self {
+            depth: p.prior_depth,
+            lateral: Vector3::zeros(),
+        }
+    }
+
+    /// One step of `dt`: `force` is the force on the shaft (base frame, N), `shaft` its
+    /// direction (into the body), `m` how the scope moves. Returns the change of depth, m.
+    pub fn step(
+        &mut self,
+        p: &FulcrumParams,
+        force: &Vector3<f64>,
+        shaft: &Unit<Vector3<f64>>,
+        m: &Motion,
+        dt: f64,
+    ) -> f64 {
+        let (omega, tip_depth, steering) = (&m.omega, m.tip_depth, m.steering);
+        let across = force - shaft.into_inner() * force.dot(shaft);
+        let n = across.norm();
+        if !(n.is_finite() && dt > 0.0 && dt.is_finite()) {
+            return 0.0;
+        }
+        let f = if n > 0.0 {
+            let band = if steering {
+                p.force_deadband
+            } else {
+                p.still_force_deadband
+            };
+            across * (deadband(n, band) / n)
+        } else {
+            across
+        };
+        // Across: first-order admittance, exact for a constant force over the step; while
+        // no command comes, damping only (the spring would pull the scope back to where the
+        // fulcrum began: a motion nobody asked for).
+        let lateral = self.lateral - shaft.into_inner() * self.lateral.dot(shaft);
+        let x = if p.stiffness > 0.0 && steering {
+            let rest = f / p.stiffness;
+            rest + (lateral - rest) * (-p.stiffness / p.damping * dt).exp()
+        } else {
+            lateral + f * (dt / p.damping)
+        };
+        let xn = x.norm();
+        self.lateral = if xn > p.max_displacement {
+            x * (p.max_displacement / xn)
+        } else {
+            x
+        };
+        // Along: the lever's gradient, only while pivoting.
+        let w = omega.norm();
+        let before = self.depth;
+        if w > p.min_pivot_speed && w.is_finite() {
+            let u = omega.cross(shaft) / w;
+            self.depth = (self.depth - p.depth_gain * f.dot(&u) * dt).clamp(0.0, tip_depth.max(0.0));
+        }
+        self.depth - before
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn steer(omega: Vector3<f64>, tip_depth: f64) -> Motion {
+        Motion {
+            omega,
+            tip_depth,
+            steering: true,
+        }
+    }
+
+    fn silent() -> Motion {
+        Motion {
+            omega: Vector3::zeros(),
+            tip_depth: 0.03,
+            steering: false,
+        }
+    }
+
+    /// The true fulcrum `delta` deeper than the estimate: pivoting about the estimate by θ
+    /// moves the shaft there by delta θ x a and the wall (stiffness k) pushes it back.
+    #[test]
+    fn the_depth_converges_on_the_wall_from_either_side_and_only_while_pivoting() {
+        let p = FulcrumParams {
+            stiffness: 1e4, // keep the lateral part out of the way
+            ..Default::default()
+        };
+        let a = Unit::new_normalize(Vector3::new(0.1, 0.0, -1.0));
+        let omega = Vector3::new(0.17, 0.0, 0.0);
+        for truth in [0.005, 0.03] {
+            let mut fc = Fulcrum::new(&p);
+            let (k, dt) = (1500.0, 0.01);
+            let mut theta = 0.0;
+            for _ in 0..300 {
+                theta += 0.17 * dt;
+                let delta = truth - fc.depth;
+                let force = -(omega.normalize() * theta).cross(&a) * (k * delta);
+                fc.step(&p, &force, &a, &steer(omega, 0.04), dt);
+            }
+            assert!((fc.depth - truth).abs() < 0.002, "truth {truth}: depth {}", fc.depth);
+            // Still, the same force changes nothing along the shaft.
+            let before = fc.depth;
+            let d = fc.step(&p, &Vector3::new(3.0, 0.0, 0.0), &a, &steer(Vector3::zeros(), 0.04), dt);
+            assert_eq!((d, fc.depth), (0.0, before));
+        }
+    }
+
+    #[test]
+    fn the_lateral_part_yields_to_the_force_within_its_bounds_and_ignores_the_axial_force() {
+        let p = FulcrumParams::default();
+        let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
+        let m = steer(Vector3::zeros(), 0.03);
+        let mut fc = Fulcrum::new(&p);
+        for _ in 0..1000 {
+            fc.step(&p, &Vector3::new(1.2, 0.0, 5.0), &a, &m, 0.01);
+        }
+        // (1.2 - 0.3) N / 100 N/m = 9 mm, along x only; the axial 5 N moves nothing.
+        assert!(
+            (fc.lateral - Vector3::new(0.009, 0.0, 0.0)).norm() < 1e-5,
+            "{}",
+            fc.lateral
+        );
+        for _ in 0..1000 {
+            fc.step(&p, &Vector3::new(0.0, 9.0, 0.0), &a, &m, 0.01);
+        }
+        assert!((fc.lateral.norm() - p.max_displacement).abs() < 1e-9);
+        // Below the dead-band while steering: back to zero.
+        for _ in 0..2000 {
+            fc.step(&p, &Vector3::new(0.2, 0.0, 0.0), &a, &m, 0.01);
+        }
+        assert!(fc.lateral.norm() < 1e-6);
+        // Non-finite input: nothing changes.
+        let before = fc;
+        fc.step(
+            &p,
+            &Vector3::new(f64::NAN, 0.0, 0.0),
+            &a,
+            &steer(Vector3::x(), 0.03),
+            0.01,
+        );
+        assert_eq!(fc, before);
+    }
+
+    /// Silent (no command): forces under the still dead-band move nothing, larger ones move
+    /// the fulcrum at (f - band) / D, with no spring back.
+    #[test]
+    fn silent_it_holds_against_small_forces_and_yields_to_large_ones() {
+        let p = FulcrumParams::default();
+        let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
+        let mut fc = Fulcrum::new(&p);
+        for _ in 0..500 {
+            fc.step(
+                &p,
+                &Vector3::new(0.0, 0.9, 0.0),
+                &a,
+                &steer(Vector3::zeros(), 0.03),
+                0.01,
+            );
+        }
+        let before = fc.lateral;
+        assert!(before.y > 0.005);
+        for _ in 0..100 {
+            fc.step(&p, &Vector3::new(0.0, 1.9, 0.0), &a, &silent(), 0.01);
+        }
+        fc.step(&p, &Vector3::zeros(), &a, &silent(), 0.01);
+        assert!(
+            (fc.lateral - before).norm() < 1e-12,
+            "no motion and no spring back while silent"
+        );
+        fc.step(&p, &Vector3::new(0.0, -3.0, 0.0), &a, &silent(), 0.01);
+        let expect = -(3.0 - p.still_force_deadband) / p.damping * 0.01;
+        assert!((fc.lateral.y - before.y - expect).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_moment_is_not_read_as_a_force() {
+        use crate::kinematics::lbr::{LbrModel, ToolParams};
+        use crate::kinematics::{Kinematics, LbrKinematics};
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let q = JointVector::from_column_slice(&[0.1, 0.6, -0.1, -1.2, 0.2, 0.9, 0.3]);
+        let (_, jac) = kin.fk_jacobian(&q).unwrap();
+        let (f, m) = (Vector3::new(0.5, -0.3, 0.2), Vector3::new(0.0, 0.6, -0.1));
+        let w = Vector6::new(f.x, f.y, f.z, m.x, m.y, m.z);
+        let tau = jac.transpose() * w;
+        let (fe, me) = shaft_wrench(&jac, &tau, 1e-4).unwrap();
+        assert!((fe - f).norm() < 1e-6 && (me - m).norm() < 1e-6, "{fe} {me}");
+        // The linear rows alone read the moment as a force of the same order.
+        let lin = crate::control::admittance::tip_force(&jac, &tau, 0.0, 1e-4).unwrap();
+        assert!((lin - f).norm() > 0.1, "{lin}");
+        assert!(shaft_wrench(&jac, &tau.map(|_| f64::NAN), 0.02).is_none());
+        let mut filt = ForceFilter::default();
+        assert_eq!(filt.update(&f, 20.0, 0.01), f, "the first sample passes");
+        let g = filt.update(&Vector3::zeros(), 20.0, 0.01);
+        assert!(g.norm() < f.norm() && g.norm() > 0.0);
+    }
+
+    #[test]
+    fn bad_parameters_are_named() {
+        let bad = FulcrumParams {
+            damping: 0.0,
+            ..Default::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("scope.fulcrum.damping"));
+        assert!(FulcrumParams::default().validate().is_ok());
+    }
+}

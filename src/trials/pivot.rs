@@ -1,0 +1,489 @@
+//! After docking, on the simulated plant: dock with the controller, then steer the scope
+//! through the port with a script of surgeon's commands, and measure how well the port is
+//! held as the remote centre of motion ([`crate::control::pivot`]).
+//!
+//! **The true port** is where the abdominal wall holds the trocar: the anchor of the
+//! trocar's mount at its fulcrum ([`crate::sim::trocar::Trocar::anchor`]), which moves with
+//! the breathing. A scope that pivots about it leaves the wall where it is; one that
+//! pivots about another point drags the trocar, and the wall, across. (The trocar's own
+//! face port is no measure: the shaft lies in its bore, so it always passes within the
+//! bore's clearance of it, even when it drags the trocar centimetres.)
+//!
+//! Per control step while commanded: the distance of the true shaft line (the link-side tip
+//! pose's optical axis) from the true port, the controller's estimate of the force across
+//! the shaft and the simulator's true one, any hold. After the script's last command, a
+//! settling time and then the tip's largest distance from where it was (stillness).
+
+use std::sync::Arc;
+
+use nalgebra::{Point3, Vector3};
+use rand::{RngExt, SeedableRng};
+use serde::Serialize;
+
+use super::run::TrialParams;
+use crate::control::{ControlInput, Controller, ControllerParams, Phase, ScopeCommand, Stamped};
+use crate::kinematics::Kinematics;
+use crate::sim::{SimError, SimParams, SimWorld};
+
+/// One piece of a script: a command held for a duration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Segment {
+    /// How long, s.
+    pub duration: f64,
+    /// The command sent at every control step meanwhile.
+    pub command: ScopeCommand,
+}
+
+fn seg(duration: f64, pan: f64, tilt: f64, zoom: f64) -> Segment {
+    Segment {
+        duration,
+        command: ScopeCommand {
+            pan,
+            tilt,
+            roll: 0.0,
+            zoom,
+        },
+    }
+}
+
+/// Issue 16's "Done when": 2 s of pan at 0.17 rad/s, 2 s of tilt, the same back, 1 s in
+/// and 1 s out at 10 mm/s (then the run's silence).
+pub fn done_when_script() -> Vec<Segment> {
+    let w = 0.17;
+    vec![
+        seg(2.0, w, 0.0, 0.0),
+        seg(2.0, 0.0, w, 0.0),
+        seg(2.0, -w, 0.0, 0.0),
+        seg(2.0, 0.0, -w, 0.0),
+        seg(1.0, 0.0, 0.0, 0.01),
+        seg(1.0, 0.0, 0.0, -0.01),
+    ]
+}
+
+/// A random script: `n` segments of 0.5-2 s, each a pan/tilt at `speed` rad/s in a random
+/// direction, or (one in four) a zoom at 10 mm/s in or out; then, segment by segment, the
+/// same back in reverse order, so the scope returns near its start and stays in its cone.
+pub fn random_script(seed: u64, n: usize, speed: f64) -> Vec<Segment> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let out: Vec<Segment> = (0..n)
+        .map(|_| {
+            let duration = rng.random_range(0.5..2.0);
+            if rng.random_bool(0.25) {
+                let zoom = if rng.random_bool(0.5) { 0.01 } else { -0.01 };
+                seg(duration, 0.0, 0.0, zoom)
+            } else {
+                let a: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+                seg(duration, speed * a.cos(), speed * a.sin(), 0.0)
+            }
+        })
+        .collect();
+    let back = out.iter().rev().map(|s| Segment {
+        duration: s.duration,
+        command: ScopeCommand {
+            pan: -s.command.pan,
+            tilt: -s.command.tilt,
+            roll: -s.command.roll,
+            zoom: -s.command.zoom,
+        },
+    });
+    out.iter().copied().chain(back).collect()
+}
+
+/// How a pivoting run went. Distances in m, forces in N, angles in deg.
+#[derive(Debug, Clone, Serialize)]
+pub struct PivotResult {
+    /// The world's seed.
+    pub seed: u64,
+    /// Whether the docking reached DONE (nothing else is measured otherwise).
+    pub docked: bool,
+    /// Why not, or why the run stopped early.
+    pub reason: String,
+    /// Docking time, s.
+    pub dock_time_s: f64,
+    /// The shaft line's distance from the true port while commanded: p95 and max.
+    pub distance_p95_m: f64,
+    /// ...
+    pub distance_max_m: f64,
+    /// The same at the start of the script (after docking).
+    pub distance_start_m: f64,
+    /// The controller's fulcrum from the true port, across the shaft, at the start of the
+    /// script (the fulcrum starts on the shaft through the real port, not on a biased
+    /// estimate) and at the end of the run.
+    pub fulcrum_error_start_m: f64,
+    /// ...
+    pub fulcrum_error_end_m: f64,
+    /// The trocar estimate's axis from the true port at DONE (the estimate's bias).
+    pub estimate_error_m: f64,
+    /// The shaft line's distance from the trocar's own port (the entry point on its face,
+    /// which tilts and slides with the trocar) while commanded: p95.
+    pub face_port_distance_p95_m: f64,
+    /// How far the wall was dragged: the trocar's fulcrum from the true port, across the
+    /// shaft, while commanded: p95 (times the wall's stiffness, the force on the wall).
+    pub wall_displacement_p95_m: f64,
+    /// The largest angle of the shaft from its direction at DONE.
+    pub swept_deg: f64,
+    /// The controller's estimate of the force across the shaft while commanded: mean, max.
+    pub lateral_force_est_mean_n: f64,
+    /// ...
+    pub lateral_force_est_max_n: f64,
+    /// The true contact force across the shaft while commanded: mean, max.
+    pub lateral_force_true_mean_n: f64,
+    /// ...
+    pub lateral_force_true_max_n: f64,
+    /// Control steps with a hold (or any phase but DONE) while commanded.
+    pub held_steps: usize,
+    /// Control steps in which a limit stopped the command.
+    pub limited_steps: usize,
+    /// After the commands and a settling time: the tip's largest distance from where it
+    /// was at the settling time's end, and the shaft's p95 distance from the true port.
+    pub still_motion_m: f64,
+    /// ...
+    pub still_distance_p95_m: f64,
+    /// The tip's largest motion relative to the true port, across the shaft, meanwhile (a
+    /// scope that follows the breathing port moves with it, and is still relative to it).
+    pub still_motion_port_m: f64,
+    /// The SQP's wall time in the commanded steps (`SolveReport::solve_time_us`): median,
+    /// p99 and max, µs (this machine, its load included).
+    pub solve_us_p50: f64,
+    /// ...
+    pub solve_us_p99: f64,
+    /// ...
+    pub solve_us_max: f64,
+    /// How far the true port moved (breathing) over the script and the stillness, m.
+    pub port_motion_m: f64,
+    /// The fulcrum's adapted depth past the port at the end, m (the true one is the
+    /// trocar's `pivot_depth_m` below its face).
+    pub fulcrum_depth_m: f64,
+    /// The phase at the end.
+    pub final_phase: &'static str,
+}
+
+/// Durations of a pivoting run around its script.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PivotTiming {
+    /// Give up docking after this long, s.
+    pub dock_timeout_s: f64,
+    /// Wait this long after DONE before the script, s.
+    pub settle_before_s: f64,
+    /// After the script: settle this long, then measure stillness this long, s.
+    pub settle_after_s: f64,
+    /// ...
+    pub still_s: f64,
+}
+
+impl Default for PivotTiming {
+    fn default() -> Self {
+        Self {
+            dock_timeout_s: 20.0,
+            settle_before_s: 0.5,
+            settle_after_s: 0.5,
+            still_s: 2.0,
+        }
+    }
+}
+
+/// The same controller with the fulcrum fixed where it starts (no adaptation): the
+/// benchmark's reference arm.
+pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
+    let mut c = c.clone();
+    c.scope.fulcrum.depth_gain = 0.0;
+    c.scope.fulcrum.max_displacement = 0.0;
+    c
+}
+
+/// Distance of the line through `e` along unit `a` from `p`.
+fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
+    let u = p - e;
+    (u - a * a.dot(&u)).norm()
+}
+
+/// Samples while commanded and while still.
+#[derive(Default)]
+struct Series {
+    distance: Vec<f64>,
+    solve_us: Vec<f64>,
+    face: Vec<f64>,
+    wall: Vec<f64>,
+    f_est: Vec<f64>,
+    f_true: Vec<f64>,
+    still_distance: Vec<f64>,
+    swept: f64,
+    held: usize,
+    limited: usize,
+    still_from: Option<Point3<f64>>,
+    still_motion: f64,
+    still_rel_from: Option<Vector3<f64>>,
+    still_rel: f64,
+}
+
+impl Series {
+    /// The figures of the series into `r`.
+    fn finish(&self, r: &mut PivotResult) {
+        let q = |v: &[f64], p: f64| {
+            let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+            v.sort_by(f64::total_cmp);
+            if v.is_empty() {
+                f64::NAN
+            } else {
+                super::plot::quantile(&v, p)
+            }
+        };
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
+        r.distance_p95_m = q(&self.distance, 0.95);
+        r.distance_max_m = max(&self.distance);
+        r.solve_us_p50 = q(&self.solve_us, 0.5);
+        r.solve_us_p99 = q(&self.solve_us, 0.99);
+        r.solve_us_max = max(&self.solve_us);
+        r.face_port_distance_p95_m = q(&self.face, 0.95);
+        r.wall_displacement_p95_m = q(&self.wall, 0.95);
+        r.swept_deg = self.swept.to_degrees();
+        r.lateral_force_est_mean_n = mean(&self.f_est);
+        r.lateral_force_est_max_n = max(&self.f_est);
+        r.lateral_force_true_mean_n = mean(&self.f_true);
+        r.lateral_force_true_max_n = max(&self.f_true);
+        r.held_steps = self.held;
+        r.limited_steps = self.limited;
+        r.still_motion_m = self.still_motion;
+        r.still_motion_port_m = self.still_rel;
+        r.still_distance_p95_m = q(&self.still_distance, 0.95);
+    }
+}
+
+/// The controller closing the loop around a simulated world, one control step at a time,
+/// with the surgeon's commands.
+pub struct PivotSession {
+    world: SimWorld,
+    ctrl: Controller,
+    kin: Arc<dyn Kinematics>,
+    period: f64,
+    physics_per_tick: usize,
+}
+
+impl PivotSession {
+    /// A fresh world of `seed` and a started controller (`controller` with its `dt` from
+    /// the trial's control rate); steps until DONE or `timeout_s`. `Ok(Err(why))`: not DONE.
+    pub fn dock(
+        sim: &SimParams,
+        trial: &TrialParams,
+        controller: &ControllerParams,
+        kin: Arc<dyn Kinematics>,
+        seed: u64,
+        timeout_s: f64,
+    ) -> Result<Result<Self, String>, String> {
+        let params = ControllerParams {
+            dt: 1.0 / trial.control_rate_hz,
+            ..controller.clone()
+        };
+        let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
+        let ctrl = Controller::new(params, kin.limits().clone()).map_err(|e| e.to_string())?;
+        let period = 1.0 / trial.control_rate_hz;
+        let mut lp = Self {
+            physics_per_tick: (period * sim.physics_rate_hz).round().max(1.0) as usize,
+            world,
+            ctrl,
+            kin,
+            period,
+        };
+        lp.ctrl.start()?;
+        let mut last = Phase::Idle;
+        while lp.world.time() < timeout_s && last != Phase::Done {
+            last = lp.tick(None).map_err(|e| e.to_string())?.phase;
+        }
+        Ok(if last == Phase::Done {
+            Ok(lp)
+        } else {
+            Err(format!("not DONE after {timeout_s} s (phase {last})"))
+        })
+    }
+
+    /// The simulated world.
+    pub fn world(&self) -> &SimWorld {
+        &self.world
+    }
+
+    /// The controller (for `retract`, `abort`, ...).
+    pub fn controller(&mut self) -> &mut Controller {
+        &mut self.ctrl
+    }
+
+    /// One control step with `scope` sent now (if any); then the physics until the next.
+    pub fn tick(&mut self, scope: Option<ScopeCommand>) -> Result<crate::control::ControlOutput, SimError> {
+        let t = self.world.time();
+        self.tick_stamped(scope.map(|value| Stamped { stamp: t, value }))
+    }
+
+    /// As [`PivotSession::tick`], with the command's own stamp.
+    pub fn tick_stamped(
+        &mut self,
+        scope: Option<Stamped<ScopeCommand>>,
+    ) -> Result<crate::control::ControlOutput, SimError> {
+        let t = self.world.time();
+        let input = ControlInput {
+            now: t,
+            joints: Some(Stamped {
+                stamp: t,
+                value: self.world.joint_positions(),
+            }),
+            tau_ext: Some(Stamped {
+                stamp: t,
+                value: self.world.external_torques(),
+            }),
+            trocar: self.world.measure_trocar(t).map(|m| Stamped {
+                stamp: m.stamp,
+                value: m.pose,
+            }),
+            scope,
+        };
+        let out = self.ctrl.step(self.kin.as_ref(), &input);
+        if let Some(q) = out.command {
+            self.world.set_command(&q)?;
+        }
+        for _ in 0..self.physics_per_tick {
+            self.world.step_physics()?;
+        }
+        Ok(out)
+    }
+
+    /// The true tip position and shaft direction (link side).
+    pub fn shaft(&self) -> (Point3<f64>, Vector3<f64>) {
+        let tip = self.world.tip_pose();
+        (Point3::from(tip.translation.vector), tip.rotation * Vector3::z())
+    }
+
+    /// The distance of `p` from the true port across the true shaft, m.
+    pub fn across_from_port(&self, p: &Point3<f64>) -> f64 {
+        let (_, a) = self.shaft();
+        let v = p - self.world.trocar().anchor();
+        (v - a * a.dot(&v)).norm()
+    }
+
+    /// The true shaft line's distance from the true port (the module doc), m.
+    pub fn distance(&self) -> f64 {
+        let (e, a) = self.shaft();
+        line_distance(&e, &a, &self.world.trocar().anchor())
+    }
+}
+
+/// Dock in a fresh world of `seed`, then play `script` and measure (see the module doc).
+/// `controller` runs as the trials run it (its `dt` from the trial's control rate).
+pub fn run_pivot(
+    sim: &SimParams,
+    trial: &TrialParams,
+    controller: &ControllerParams,
+    kin: Arc<dyn Kinematics>,
+    seed: u64,
+    script: &[Segment],
+    timing: &PivotTiming,
+) -> Result<PivotResult, String> {
+    let mut result = empty(seed);
+    let mut lp = match PivotSession::dock(sim, trial, controller, kin, seed, timing.dock_timeout_s)? {
+        Ok(lp) => lp,
+        Err(why) => {
+            result.reason = why;
+            return Ok(result);
+        }
+    };
+    result.docked = true;
+    result.dock_time_s = lp.world.time();
+    play(&mut lp, script, timing, &mut result).map_err(|e| e.to_string())?;
+    Ok(result)
+}
+
+fn empty(seed: u64) -> PivotResult {
+    PivotResult {
+        seed,
+        docked: false,
+        reason: String::new(),
+        dock_time_s: f64::NAN,
+        distance_p95_m: f64::NAN,
+        distance_max_m: f64::NAN,
+        distance_start_m: f64::NAN,
+        fulcrum_error_start_m: f64::NAN,
+        fulcrum_error_end_m: f64::NAN,
+        estimate_error_m: f64::NAN,
+        face_port_distance_p95_m: f64::NAN,
+        wall_displacement_p95_m: f64::NAN,
+        swept_deg: 0.0,
+        lateral_force_est_mean_n: f64::NAN,
+        lateral_force_est_max_n: f64::NAN,
+        lateral_force_true_mean_n: f64::NAN,
+        lateral_force_true_max_n: f64::NAN,
+        held_steps: 0,
+        limited_steps: 0,
+        still_motion_m: f64::NAN,
+        still_motion_port_m: f64::NAN,
+        still_distance_p95_m: f64::NAN,
+        solve_us_p50: f64::NAN,
+        solve_us_p99: f64::NAN,
+        solve_us_max: f64::NAN,
+        port_motion_m: 0.0,
+        fulcrum_depth_m: f64::NAN,
+        final_phase: "",
+    }
+}
+
+/// Settle, play the script, settle, watch the stillness; fill in `r`.
+fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut PivotResult) -> Result<(), SimError> {
+    let period = lp.period;
+    let steps = |s: f64| (s / period).round() as usize;
+    let mut first = None;
+    for _ in 0..steps(timing.settle_before_s) {
+        let o = lp.tick(None)?;
+        first = first.or(o.pivot);
+    }
+    if let Some(m) = lp.world.measure_trocar(lp.world.time()) {
+        let axis = crate::control::geometry::InsertionAxis::from_pose(&m.pose);
+        r.estimate_error_m = axis.distance_to_axis(&lp.world.trocar().anchor());
+    }
+    r.fulcrum_error_start_m = first.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum));
+    r.distance_start_m = lp.distance();
+    let anchor0 = lp.world.trocar().anchor();
+    let a0 = lp.shaft().1;
+    let mut s = Series::default();
+    let mut out = None;
+    for segment in script {
+        for _ in 0..steps(segment.duration) {
+            let o = lp.tick(Some(segment.command))?;
+            let (_, a) = lp.shaft();
+            let f = lp.world.contact().force;
+            s.distance.push(lp.distance());
+            r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
+            let (e, _) = lp.shaft();
+            let port = Point3::from(lp.world.trocar_pose_true().translation.vector);
+            s.face.push(line_distance(&e, &a, &port));
+            let v = lp.world.trocar().pivot() - lp.world.trocar().anchor();
+            s.wall.push((v - a * a.dot(&v)).norm());
+            s.f_true.push((f - a * a.dot(&f)).norm());
+            s.f_est.push(o.pivot.map_or(f64::NAN, |p| p.lateral_force));
+            s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
+            s.swept = s.swept.max(a.angle(&a0));
+            s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
+            s.limited += usize::from(o.pivot.is_some_and(|p| p.limit.is_some()));
+            out = Some(o);
+        }
+    }
+    for _ in 0..steps(timing.settle_after_s) {
+        out = Some(lp.tick(None)?);
+    }
+    for _ in 0..steps(timing.still_s) {
+        out = Some(lp.tick(None)?);
+        let (e, _) = lp.shaft();
+        let from = *s.still_from.get_or_insert(e);
+        s.still_motion = s.still_motion.max((e - from).norm());
+        let (_, a) = lp.shaft();
+        let rel = e - lp.world.trocar().anchor();
+        let rel_from = *s.still_rel_from.get_or_insert(rel);
+        let d = rel - rel_from;
+        s.still_rel = s.still_rel.max((d - a * a.dot(&d)).norm());
+        s.still_distance.push(lp.distance());
+        r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
+    }
+    s.finish(r);
+    if let Some(o) = out {
+        r.final_phase = o.phase.as_str();
+        r.fulcrum_depth_m = o.pivot.map_or(f64::NAN, |p| p.fulcrum_depth);
+        r.fulcrum_error_end_m = o.pivot.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum));
+    }
+    Ok(())
+}
