@@ -282,7 +282,13 @@ impl<S: CommandSource> Guarded<S> {
         if let Some(why) = jump {
             self.raise(why, out.command.or(prev));
         } else if self.latched.is_none() {
-            if let Some(why) = self.watch_lead(out.command.as_ref(), dt) {
+            // Judged on fresh joints only: with none (a silent driver) the arm's progress is
+            // unknown, and the stale-data hold speaks for it.
+            let fresh = input
+                .joints
+                .is_some_and(|j| CommandGuard::fresh(input.now - j.stamp, self.guard.params().joint_timeout));
+            let command = out.command.as_ref().filter(|_| fresh && measured.is_some());
+            if let Some(why) = self.watch_lead(command, dt) {
                 // Hold where the arm is: when it frees itself, nothing jumps.
                 self.raise(why, measured.or(out.command));
             }
