@@ -119,6 +119,7 @@ impl Outputs {
             tip: out.tip,
             f_ext: out.f_ext,
             reference: out.reference,
+            pivot: out.pivot,
         };
         let _ = self
             .markers
@@ -159,6 +160,7 @@ fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::
     let (hold_reason, hold_code) = hold_text_and_code(out, r.fault.as_ref());
     let costs = out.solve.as_ref().map_or([f64::NAN; 5], |s| s.costs);
     let tip_point = out.tip.map(|t| Point3::from(t.translation.vector));
+    let pivot = out.pivot.as_ref();
     trocar_docking::DockingStatus {
         header: convert::header(r.stamp, frame),
         phase: out.phase.to_string(),
@@ -198,6 +200,12 @@ fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::
         latency_max_ms: s.latency.max,
         trocar_age_ms: r.ages_ms.0,
         joints_age_ms: r.ages_ms.1,
+        fulcrum: convert::point_msg(&pivot.map_or(Point3::new(f64::NAN, f64::NAN, f64::NAN), |p| p.fulcrum)),
+        shaft_to_fulcrum: pivot.map_or(f64::NAN, |p| p.shaft_distance),
+        lateral_force: pivot.map_or(f64::NAN, |p| p.lateral_force),
+        scope_limit: pivot
+            .and_then(|p| p.limit)
+            .map_or_else(String::new, |l| l.code().to_string()),
     }
 }
 
@@ -244,5 +252,51 @@ mod tests {
         );
         assert_eq!(hold_text_and_code(&o, None).1, "NO_TROCAR_POSE");
         assert_eq!(hold_text_and_code(&out(None), None), (String::new(), ""));
+    }
+
+    fn record(out: ControlOutput) -> StepRecord {
+        StepRecord {
+            stamp: convert::ros_time(10.0),
+            out,
+            trocar: None,
+            fault: None,
+            elapsed: 1.0,
+            ages_ms: (0.0, 0.0),
+            status: None,
+            markers: false,
+        }
+    }
+
+    #[test]
+    fn the_status_carries_the_pivot_while_the_port_is_held() {
+        use crate::control::{PivotReport, ScopeLimit};
+        let pivot = PivotReport {
+            fulcrum: Point3::new(0.6, -0.05, 0.25),
+            shaft_distance: 3e-4,
+            lateral_force: 0.4,
+            depth: 0.03,
+            cone_axis: nalgebra::Vector3::z(),
+            cone_half_angle: 0.5,
+            limit: Some(ScopeLimit::MaxDepth),
+        };
+        let held = ControlOutput {
+            pivot: Some(pivot),
+            ..ControlOutput::empty(Phase::Done)
+        };
+        let s = status_msg("lbr_link_0", &record(held), &LoopSnapshot::default());
+        assert_eq!(s.phase, "DONE");
+        assert_eq!((s.fulcrum.x, s.fulcrum.y, s.fulcrum.z), (0.6, -0.05, 0.25));
+        assert_eq!(s.shaft_to_fulcrum, 3e-4);
+        assert_eq!(s.lateral_force, 0.4);
+        assert_eq!(s.scope_limit, "MAX_DEPTH");
+        let free = ControlOutput {
+            pivot: Some(PivotReport { limit: None, ..pivot }),
+            ..ControlOutput::empty(Phase::Retract)
+        };
+        let s = status_msg("lbr_link_0", &record(free), &LoopSnapshot::default());
+        assert_eq!((s.phase.as_str(), s.scope_limit.as_str()), ("RETRACT", ""));
+        let s = status_msg("lbr_link_0", &record(out(None)), &LoopSnapshot::default());
+        assert!(s.fulcrum.x.is_nan() && s.shaft_to_fulcrum.is_nan() && s.lateral_force.is_nan());
+        assert_eq!(s.scope_limit, "");
     }
 }
