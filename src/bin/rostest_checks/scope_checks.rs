@@ -1,0 +1,341 @@
+//! The rostest check of steering after docking (issue 16), against `sim.launch`:
+//! `scope_pivot` docks, then drives `/docking/scope_command` as a surgeon would (pan, tilt,
+//! the same back, in and out, then silence) and judges the pivot from outside the
+//! controller: the shaft from the measured joints through the URDF's KDL chain, the port
+//! from the simulator's truth (`/trocar/pose_true`, interpolated to each joint stamp).
+//!
+//! Asserted: the shaft's line within `max_shaft_distance` (p95) of the true port while
+//! commanded, sweeping at least `min_sweep_deg`; the status force estimate (`f_ext_norm`)
+//! averaging at most `max_mean_force` while commanded; the phase DONE throughout (no HOLD);
+//! the dead-man: after the last command (a zoom out, never followed by a stop) the tip
+//! travels at most the zoom speed times `command_timeout + dead_man_margin_s`, and from
+//! then on stays within `max_still_motion` over `still_window_s`; and `~retract` leads
+//! through RETRACT to IDLE within `retract_timeout`.
+
+use std::sync::{Arc, Mutex};
+
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use ::trocar_docking::control::ScopeCommand;
+use ::trocar_docking::kinematics::lbr::LbrModel;
+use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics, TIP_LINK};
+use ::trocar_docking::ros::convert;
+use ::trocar_docking::ros::msgs::{geometry_msgs, sensor_msgs, trocar_docking};
+use ::trocar_docking::ros::node::lock;
+
+/// A time series recorded from a topic: (stamp s, value).
+type Series<T> = Arc<Mutex<Vec<(f64, T)>>>;
+
+/// What the check records while it runs.
+#[derive(Default)]
+struct Records {
+    joints: Series<JointVector>,
+    truth: Series<Point3<f64>>,
+    /// (phase, hold code, f_ext_norm, lateral_force), stamped.
+    status: Series<(String, String, f64, f64)>,
+}
+
+/// Record `topic` into `into` with `f` (messages `f` maps to `None` are skipped).
+fn record<T: rosrust::Message, V: Send + 'static>(
+    topic: &str,
+    into: &Series<V>,
+    f: impl Fn(&T) -> Option<(f64, V)> + Send + 'static,
+) -> Result<rosrust::Subscriber, String> {
+    let into = into.clone();
+    rosrust::subscribe(topic, 1000, move |m: T| {
+        if let Some(v) = f(&m) {
+            lock(&into).push(v);
+        }
+    })
+    .map_err(|e| format!("subscribe {topic}: {e}"))
+}
+
+impl Records {
+    fn subscribe(p: &CheckParams) -> Result<(Self, Vec<rosrust::Subscriber>), String> {
+        let r = Self::default();
+        let names = ::trocar_docking::kinematics::joint_names();
+        let subs = vec![
+            record(&p.joint_states_topic, &r.joints, move |m: &sensor_msgs::JointState| {
+                let q = convert::joint_positions("joints", m, &names).ok()?;
+                Some((convert::seconds(m.header.stamp), q))
+            })?,
+            record(&p.true_pose_topic, &r.truth, |m: &geometry_msgs::PoseStamped| {
+                let t = convert::pose("truth", &m.pose).ok()?;
+                Some((convert::seconds(m.header.stamp), Point3::from(t.translation.vector)))
+            })?,
+            record(&p.status_topic, &r.status, |s: &trocar_docking::DockingStatus| {
+                let v = (s.phase.clone(), s.hold_code.clone(), s.f_ext_norm, s.lateral_force);
+                Some((convert::seconds(s.header.stamp), v))
+            })?,
+        ];
+        Ok((r, subs))
+    }
+}
+
+/// The surgeon's sequence: (command, duration s), then silence.
+fn sequence(p: &CheckParams) -> Vec<(ScopeCommand, f64)> {
+    let (w, v) = (p.pan_speed, p.zoom_speed);
+    let c = |pan, tilt, zoom| ScopeCommand {
+        pan,
+        tilt,
+        roll: 0.0,
+        zoom,
+    };
+    vec![
+        (c(w, 0.0, 0.0), p.pan_time),
+        (c(0.0, w, 0.0), p.pan_time),
+        (c(-w, 0.0, 0.0), p.pan_time),
+        (c(0.0, -w, 0.0), p.pan_time),
+        (c(0.0, 0.0, v), p.zoom_time),
+        (c(0.0, 0.0, -v), p.zoom_time),
+    ]
+}
+
+/// Publish the sequence at `scope_rate_hz`, stamped with the ROS clock; returns its start
+/// and end (ROS time, s). The schedule runs on the ROS clock (the simulator's).
+fn drive(p: &CheckParams) -> Result<(f64, f64), String> {
+    let publ = rosrust::publish::<geometry_msgs::TwistStamped>(&p.scope_command_topic, 10)
+        .map_err(|e| format!("publish {}: {e}", p.scope_command_topic))?;
+    let steps = sequence(p);
+    let total: f64 = steps.iter().map(|s| s.1).sum();
+    let t0 = convert::seconds(rosrust::now());
+    let period = std::time::Duration::from_secs_f64(1.0 / p.scope_rate_hz);
+    loop {
+        let now = rosrust::now();
+        let t = convert::seconds(now) - t0;
+        if t >= total || !rosrust::is_ok() {
+            return Ok((t0, t0 + total));
+        }
+        let mut left = t;
+        let cmd = steps
+            .iter()
+            .find(|(_, d)| {
+                left -= d;
+                left < 0.0
+            })
+            .map_or(ScopeCommand::default(), |s| s.0);
+        let _ = publ.send(convert::scope_twist(now, &p.tip_frame, &cmd));
+        std::thread::sleep(period);
+    }
+}
+
+/// Sleep `seconds` of ROS time (bounded by 10 times as long on the wall clock).
+fn sleep_ros(seconds: f64) {
+    let until = convert::seconds(rosrust::now()) + seconds;
+    wait_for(seconds * 10.0 + 1.0, || (convert::seconds(rosrust::now()) >= until).then_some(()));
+}
+
+/// The port at `t`, linearly interpolated between the true poses around it.
+fn port_at(truth: &[(f64, Point3<f64>)], t: f64) -> Option<Point3<f64>> {
+    let k = truth.partition_point(|(s, _)| *s <= t);
+    let (a, b) = (truth.get(k.checked_sub(1)?)?, truth.get(k)?);
+    let w = if b.0 > a.0 { (t - a.0) / (b.0 - a.0) } else { 0.0 };
+    Some(a.1 + (b.1 - a.1) * w)
+}
+
+/// Distance of the shaft (the line through the tip along its z axis) from `port`, m.
+fn shaft_distance(tip: &Isometry3<f64>, port: &Point3<f64>) -> f64 {
+    let z = tip.rotation * Vector3::z();
+    (port - Point3::from(tip.translation.vector)).cross(&z).norm()
+}
+
+/// The `q`-quantile of `v` (sorted here; NaN last), NaN if empty.
+fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    v.sort_by(f64::total_cmp);
+    let i = ((v.len() - 1) as f64 * q).round() as usize;
+    v[i]
+}
+
+/// The pivot as measured over the commanded window: shaft distances from the true port, and
+/// the largest angle of the shaft from its first direction (rad).
+fn pivot_figures(tips: &[(f64, Isometry3<f64>)], truth: &[(f64, Point3<f64>)]) -> (Vec<f64>, f64) {
+    let z0 = tips.first().map_or(Vector3::z(), |(_, t)| t.rotation * Vector3::z());
+    let distances = tips
+        .iter()
+        .filter_map(|(s, tip)| port_at(truth, *s).map(|port| shaft_distance(tip, &port)))
+        .collect();
+    let sweep = tips
+        .iter()
+        .map(|(_, t)| (t.rotation * Vector3::z()).angle(&z0))
+        .fold(0.0, f64::max);
+    (distances, sweep)
+}
+
+/// The largest distance of a tip in `tips` from the first one, m.
+fn spread(tips: &[(f64, Isometry3<f64>)]) -> f64 {
+    let Some((_, first)) = tips.first() else {
+        return f64::NAN;
+    };
+    tips.iter()
+        .map(|(_, t)| (t.translation.vector - first.translation.vector).norm())
+        .fold(0.0, f64::max)
+}
+
+/// Tips (FK of the measured joints) between `from` and `to` (ROS time, s).
+fn tips_between(
+    kin: &LbrKinematics,
+    joints: &[(f64, JointVector)],
+    from: f64,
+    to: f64,
+) -> Result<Vec<(f64, Isometry3<f64>)>, String> {
+    joints
+        .iter()
+        .filter(|(s, _)| *s >= from && *s <= to)
+        .map(|(s, q)| kin.fk(q).map(|t| (*s, t)).map_err(|e| e.to_string()))
+        .collect()
+}
+
+/// Dock: start (unless the launch does) and wait for DONE.
+fn dock(p: &CheckParams) -> Result<(), String> {
+    let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
+    wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
+    if p.call_start {
+        trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
+    }
+    let s = wait_for(p.time_limit, || {
+        status.get().filter(|s| s.phase == "DONE" || s.phase == "ABORTED")
+    })
+    .ok_or_else(|| format!("not DONE after {} s: {:?}", p.time_limit, status.get().map(|s| s.phase)))?;
+    if s.phase != "DONE" {
+        return Err(format!("docking ABORTED: {}", s.hold_reason));
+    }
+    Ok(())
+}
+
+/// `~retract`: RETRACT, then IDLE within `retract_timeout`.
+fn retract(p: &CheckParams, status: &Series<(String, String, f64, f64)>) -> Result<f64, String> {
+    let from = lock(status).len();
+    let t0 = convert::seconds(rosrust::now());
+    trigger(&format!("{}/retract", p.controller), p.startup_timeout)?;
+    let phases = || -> Vec<String> { lock(status)[from..].iter().map(|s| s.1 .0.clone()).collect() };
+    wait_for(p.retract_timeout, || {
+        let ph = phases();
+        let retracting = ph.iter().position(|s| s == "RETRACT")?;
+        ph[retracting..].iter().any(|s| s == "IDLE").then_some(())
+    })
+    .ok_or_else(|| {
+        let mut ph = phases();
+        ph.dedup();
+        format!("~retract: phases {ph:?}, not RETRACT then IDLE within {} s", p.retract_timeout)
+    })?;
+    Ok(convert::seconds(rosrust::now()) - t0)
+}
+
+/// Status over [from, to]: the phases other than DONE (with their codes), and the mean
+/// force estimate and lateral force.
+fn status_figures(status: &[(f64, (String, String, f64, f64))], from: f64, to: f64) -> (Vec<String>, f64, f64) {
+    let window: Vec<_> = status.iter().filter(|(s, _)| *s >= from && *s <= to).collect();
+    let mut other: Vec<String> = window
+        .iter()
+        .filter(|(_, s)| s.0 != "DONE")
+        .map(|(_, s)| format!("{} {}", s.0, s.1))
+        .collect();
+    other.dedup();
+    let n = window.len().max(1) as f64;
+    let force = window.iter().map(|(_, s)| s.2).sum::<f64>() / n;
+    let lateral = window.iter().map(|(_, s)| s.3).sum::<f64>() / n;
+    (other, force, lateral)
+}
+
+/// `scope_pivot`: see the module documentation.
+pub fn scope_pivot(p: &CheckParams) -> Result<String, String> {
+    let kin = LbrKinematics::from_model_or_file(LbrModel::Med7, &p.urdf_file, TIP_LINK).map_err(|e| e.to_string())?;
+    let (rec, _subs) = Records::subscribe(p)?;
+    dock(p)?;
+    sleep_ros(p.settle_s);
+    let (t0, t1) = drive(p)?;
+    let still_from = t1 + p.command_timeout + p.dead_man_margin_s;
+    sleep_ros(still_from - t1 + p.still_window_s + 0.2);
+    let joints = lock(&rec.joints).clone();
+    let truth = lock(&rec.truth).clone();
+    let tips = tips_between(&kin, &joints, t0, t1)?;
+    let (distances, sweep) = pivot_figures(&tips, &truth);
+    let (n, p95) = (distances.len(), quantile(distances, 0.95));
+    let (others, force, lateral) = status_figures(&lock(&rec.status), t0, t1);
+    let travel = spread(&tips_between(&kin, &joints, t1, still_from)?);
+    let still = spread(&tips_between(&kin, &joints, still_from, still_from + p.still_window_s)?);
+    let figures = format!(
+        "shaft to the true port p95 {:.3} mm over {n} joint states, sweep {:.1} deg, mean force estimate {:.2} N \
+         (lateral {:.2} N), travel after the last command {:.2} mm, then still within {:.3} mm over {} s",
+        p95 * 1e3,
+        sweep.to_degrees(),
+        force,
+        lateral,
+        travel * 1e3,
+        still * 1e3,
+        p.still_window_s
+    );
+    let max_travel = p.zoom_speed * (p.command_timeout + p.dead_man_margin_s);
+    let failures: Vec<String> = [
+        (n < 100).then(|| format!("only {n} joint states while commanded")),
+        (p95.is_nan() || p95 > p.max_shaft_distance).then(|| format!("shaft p95 above {} mm", p.max_shaft_distance * 1e3)),
+        (sweep.to_degrees() < p.min_sweep_deg).then(|| format!("swept less than {} deg", p.min_sweep_deg)),
+        (force.is_nan() || force > p.max_mean_force).then(|| format!("mean force above {} N", p.max_mean_force)),
+        (!others.is_empty()).then(|| format!("left DONE while commanded: {others:?}")),
+        (travel.is_nan() || travel > max_travel).then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
+        (still.is_nan() || still > p.max_still_motion).then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
+    ]
+    .into_iter()
+    .flatten()
+    .collect();
+    if !failures.is_empty() {
+        return Err(format!("{}: {figures}", failures.join("; ")));
+    }
+    let took = retract(p, &rec.status)?;
+    Ok(format!("{figures}; ~retract: RETRACT then IDLE in {took:.1} s"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_port_is_interpolated_between_true_poses() {
+        let truth = vec![(1.0, Point3::new(0.0, 0.0, 0.0)), (1.1, Point3::new(0.0, 0.001, 0.0))];
+        let p = port_at(&truth, 1.05).unwrap();
+        assert!((p.y - 0.0005).abs() < 1e-12);
+        assert!(port_at(&truth, 0.9).is_none() && port_at(&truth, 1.2).is_none(), "no extrapolation");
+    }
+
+    #[test]
+    fn the_shaft_distance_is_the_lines_not_the_tips() {
+        // A tip 5 cm along z past a port 2 mm off its line.
+        let tip = Isometry3::translation(0.0, 0.0, 0.05);
+        assert!((shaft_distance(&tip, &Point3::new(0.002, 0.0, 0.0)) - 0.002).abs() < 1e-12);
+        assert!(shaft_distance(&tip, &Point3::new(0.0, 0.0, -0.3)) < 1e-12);
+    }
+
+    #[test]
+    fn pivot_figures_measure_sweep_and_spread() {
+        let port = Point3::origin();
+        let truth = vec![(0.0, port), (10.0, port)];
+        // The shaft turns 20 deg about the port; the tip 3 cm past it.
+        let tips: Vec<_> = (0..=20)
+            .map(|k| {
+                let r = nalgebra::UnitQuaternion::from_axis_angle(&Vector3::x_axis(), f64::from(k).to_radians());
+                let at = r * Vector3::new(0.0, 0.0, 0.03);
+                (f64::from(k) * 0.1, Isometry3::from_parts(at.into(), r))
+            })
+            .collect();
+        let (d, sweep) = pivot_figures(&tips, &truth);
+        assert_eq!(d.len(), 21);
+        assert!(quantile(d, 0.95) < 1e-12);
+        assert!((sweep.to_degrees() - 20.0).abs() < 1e-9);
+        assert!((spread(&tips) - 2.0 * 0.03 * 10f64.to_radians().sin()).abs() < 1e-9);
+        assert!(quantile(vec![3.0, 1.0, 2.0], 0.5) == 2.0 && quantile(vec![], 0.9).is_nan());
+    }
+
+    #[test]
+    fn the_sequence_is_the_issues() {
+        let s = sequence(&CheckParams::default());
+        assert_eq!(s.len(), 6);
+        assert!((s.iter().map(|x| x.1).sum::<f64>() - 10.0).abs() < 1e-12);
+        assert_eq!(s[0].0.pan, 0.17);
+        assert_eq!(s[3].0.tilt, -0.17);
+        assert_eq!(s[5].0.zoom, -0.01, "the last command moves: silence, no stop, follows");
+    }
+}
