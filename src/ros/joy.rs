@@ -205,7 +205,10 @@ mod tests {
     #[test]
     fn axes_map_with_their_scales_and_the_dead_zone() {
         let p = JoyParams::default();
-        let c = p.command(&joy(&[1.0, -1.0, 0.0, 0.5, -0.05, 0.0], true)).unwrap().unwrap();
+        let c = p
+            .command(&joy(&[1.0, -1.0, 0.0, 0.5, -0.05, 0.0], true))
+            .unwrap()
+            .unwrap();
         assert!((c.pan - 0.17).abs() < 1e-12, "full deflection: the scale");
         assert!((c.tilt + 0.17).abs() < 1e-12);
         // 0.5 with a 0.1 dead zone: (0.5 - 0.1) / 0.9 of full scale.
@@ -245,7 +248,11 @@ mod tests {
         j.buttons.truncate(3);
         assert!(matches!(
             p.command(&j).unwrap_err(),
-            JoyError::Missing { what: "buttons", index: 4, .. }
+            JoyError::Missing {
+                what: "buttons",
+                index: 4,
+                ..
+            }
         ));
     }
 
@@ -283,9 +290,27 @@ mod tests {
         p.validate().unwrap();
         assert_eq!(p, JoyParams::default(), "the YAML spells the defaults");
         let bad = [
-            ("rate_hz", JoyParams { rate_hz: 4.0, ..p.clone() }),
-            ("dead_zone", JoyParams { dead_zone: 1.0, ..p.clone() }),
-            ("deadman_button", JoyParams { deadman_button: -1, ..p.clone() }),
+            (
+                "rate_hz",
+                JoyParams {
+                    rate_hz: 4.0,
+                    ..p.clone()
+                },
+            ),
+            (
+                "dead_zone",
+                JoyParams {
+                    dead_zone: 1.0,
+                    ..p.clone()
+                },
+            ),
+            (
+                "deadman_button",
+                JoyParams {
+                    deadman_button: -1,
+                    ..p.clone()
+                },
+            ),
             (
                 "zoom/scale",
                 JoyParams {

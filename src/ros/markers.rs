@@ -86,6 +86,8 @@ const CONE_RIM: usize = 24;
 const CONE_GENERATORS: usize = 8;
 
 const NS: &str = "docking";
+/// The namespace of the fulcrum and the cone (RViz shows or hides them together).
+const PIVOT_NS: &str = "pivot";
 
 fn color(r: f32, g: f32, b: f32) -> std_msgs::ColorRGBA {
     std_msgs::ColorRGBA { r, g, b, a: 1.0 }
@@ -187,17 +189,24 @@ pub fn docking_markers(
         )),
         None => markers.push(delete(stamp, frame, Id::Reference)),
     }
-    match &scene.pivot {
-        Some(p) => {
-            let at = p.fulcrum;
-            markers.push(sphere(stamp, frame, Id::Fulcrum, at, style.sphere * 1.2, color(1.0, 0.2, 0.6)));
-            markers.push(cone(stamp, frame, p, style.cone_length));
-        }
-        None => {
-            markers.push(delete(stamp, frame, Id::Fulcrum));
-            markers.push(delete(stamp, frame, Id::Cone));
-        }
+    let mut pivot = match &scene.pivot {
+        Some(p) => [
+            sphere(
+                stamp,
+                frame,
+                Id::Fulcrum,
+                p.fulcrum,
+                style.sphere * 1.2,
+                color(1.0, 0.2, 0.6),
+            ),
+            cone(stamp, frame, p, style.cone_length),
+        ],
+        None => [delete(stamp, frame, Id::Fulcrum), delete(stamp, frame, Id::Cone)],
+    };
+    for m in &mut pivot {
+        m.ns = PIVOT_NS.into();
     }
+    markers.extend(pivot);
     visualization_msgs::MarkerArray { markers }
 }
 
@@ -214,7 +223,10 @@ fn cone(stamp: rosrust::Time, frame: &str, p: &PivotReport, length: f64) -> visu
         a: 0.5,
     };
     let axis = p.cone_axis.try_normalize(1e-9).unwrap_or_else(Vector3::z);
-    let u = axis.cross(&Vector3::x()).try_normalize(1e-3).unwrap_or_else(|| axis.cross(&Vector3::y()).normalize());
+    let u = axis
+        .cross(&Vector3::x())
+        .try_normalize(1e-3)
+        .unwrap_or_else(|| axis.cross(&Vector3::y()).normalize());
     let v = axis.cross(&u);
     let (sin, cos) = p.cone_half_angle.sin_cos();
     let rim = |side: f64, k: usize| {
@@ -411,8 +423,12 @@ mod tests {
         let add = visualization_msgs::Marker::ADD as i32;
         let f = a.markers.iter().find(|m| m.id == Id::Fulcrum as i32).unwrap();
         assert_eq!(f.action, add);
-        assert_eq!((f.pose.position.x, f.pose.position.y, f.pose.position.z), (0.5, -0.1, 0.3));
+        assert_eq!(
+            (f.pose.position.x, f.pose.position.y, f.pose.position.z),
+            (0.5, -0.1, 0.3)
+        );
         let c = a.markers.iter().find(|m| m.id == Id::Cone as i32).unwrap();
+        assert!(f.ns == PIVOT_NS && c.ns == PIVOT_NS, "one namespace to toggle in RViz");
         assert_eq!(c.type_, visualization_msgs::Marker::LINE_LIST as i32);
         assert_eq!(c.points.len() % 2, 0, "a line list takes pairs");
         assert_eq!(c.points.len(), 4 * (CONE_RIM + CONE_GENERATORS));

@@ -101,11 +101,16 @@ mod tests {
             // The parser reads sums right: the driver's LBRState is in every bag.
             let lbr = super::lbr_msgs::LBRState::md5sum();
             assert!(
-                conns.iter().any(|(t, s)| t.starts_with("lbr_msgs/LBRState") && *s == lbr),
+                conns
+                    .iter()
+                    .any(|(t, s)| t.starts_with("lbr_msgs/LBRState") && *s == lbr),
                 "{}: {conns:?}",
                 path.display()
             );
-            for (_, sum) in conns.iter().filter(|(t, _)| t.starts_with("trocar_docking/DockingStatus")) {
+            for (_, sum) in conns
+                .iter()
+                .filter(|(t, _)| t.starts_with("trocar_docking/DockingStatus"))
+            {
                 assert_eq!(sum, &md5, "{}: a DockingStatus of another definition", path.display());
             }
         }

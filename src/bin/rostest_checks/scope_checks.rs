@@ -27,13 +27,21 @@ use ::trocar_docking::ros::node::lock;
 /// A time series recorded from a topic: (stamp s, value).
 type Series<T> = Arc<Mutex<Vec<(f64, T)>>>;
 
+/// A status as the check keeps it.
+#[derive(Debug, Clone)]
+struct StatusSample {
+    phase: String,
+    hold_code: String,
+    f_ext_norm: f64,
+    lateral_force: f64,
+}
+
 /// What the check records while it runs.
 #[derive(Default)]
 struct Records {
     joints: Series<JointVector>,
     truth: Series<Point3<f64>>,
-    /// (phase, hold code, f_ext_norm, lateral_force), stamped.
-    status: Series<(String, String, f64, f64)>,
+    status: Series<StatusSample>,
 }
 
 /// Record `topic` into `into` with `f` (messages `f` maps to `None` are skipped).
@@ -65,7 +73,12 @@ impl Records {
                 Some((convert::seconds(m.header.stamp), Point3::from(t.translation.vector)))
             })?,
             record(&p.status_topic, &r.status, |s: &trocar_docking::DockingStatus| {
-                let v = (s.phase.clone(), s.hold_code.clone(), s.f_ext_norm, s.lateral_force);
+                let v = StatusSample {
+                    phase: s.phase.clone(),
+                    hold_code: s.hold_code.clone(),
+                    f_ext_norm: s.f_ext_norm,
+                    lateral_force: s.lateral_force,
+                };
                 Some((convert::seconds(s.header.stamp), v))
             })?,
         ];
@@ -123,7 +136,9 @@ fn drive(p: &CheckParams) -> Result<(f64, f64), String> {
 /// Sleep `seconds` of ROS time (bounded by 10 times as long on the wall clock).
 fn sleep_ros(seconds: f64) {
     let until = convert::seconds(rosrust::now()) + seconds;
-    wait_for(seconds * 10.0 + 1.0, || (convert::seconds(rosrust::now()) >= until).then_some(()));
+    wait_for(seconds * 10.0 + 1.0, || {
+        (convert::seconds(rosrust::now()) >= until).then_some(())
+    });
 }
 
 /// The port at `t`, linearly interpolated between the true poses around it.
@@ -207,11 +222,11 @@ fn dock(p: &CheckParams) -> Result<(), String> {
 }
 
 /// `~retract`: RETRACT, then IDLE within `retract_timeout`.
-fn retract(p: &CheckParams, status: &Series<(String, String, f64, f64)>) -> Result<f64, String> {
+fn retract(p: &CheckParams, status: &Series<StatusSample>) -> Result<f64, String> {
     let from = lock(status).len();
     let t0 = convert::seconds(rosrust::now());
     trigger(&format!("{}/retract", p.controller), p.startup_timeout)?;
-    let phases = || -> Vec<String> { lock(status)[from..].iter().map(|s| s.1 .0.clone()).collect() };
+    let phases = || -> Vec<String> { lock(status)[from..].iter().map(|s| s.1.phase.clone()).collect() };
     wait_for(p.retract_timeout, || {
         let ph = phases();
         let retracting = ph.iter().position(|s| s == "RETRACT")?;
@@ -220,25 +235,37 @@ fn retract(p: &CheckParams, status: &Series<(String, String, f64, f64)>) -> Resu
     .ok_or_else(|| {
         let mut ph = phases();
         ph.dedup();
-        format!("~retract: phases {ph:?}, not RETRACT then IDLE within {} s", p.retract_timeout)
+        format!(
+            "~retract: phases {ph:?}, not RETRACT then IDLE within {} s",
+            p.retract_timeout
+        )
     })?;
     Ok(convert::seconds(rosrust::now()) - t0)
 }
 
-/// Status over [from, to]: the phases other than DONE (with their codes), and the mean
-/// force estimate and lateral force.
-fn status_figures(status: &[(f64, (String, String, f64, f64))], from: f64, to: f64) -> (Vec<String>, f64, f64) {
+/// The mean of the finite values, NaN if there is none.
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (sum, n) = v.filter(|x| x.is_finite()).fold((0.0, 0), |(s, n), x| (s + x, n + 1));
+    if n == 0 {
+        f64::NAN
+    } else {
+        sum / f64::from(n)
+    }
+}
+
+/// Status over [from, to]: how many, the phases other than DONE (with their codes), and
+/// the mean force estimate and lateral force (NaN: none).
+fn status_figures(status: &[(f64, StatusSample)], from: f64, to: f64) -> (usize, Vec<String>, f64, f64) {
     let window: Vec<_> = status.iter().filter(|(s, _)| *s >= from && *s <= to).collect();
     let mut other: Vec<String> = window
         .iter()
-        .filter(|(_, s)| s.0 != "DONE")
-        .map(|(_, s)| format!("{} {}", s.0, s.1))
+        .filter(|(_, s)| s.phase != "DONE")
+        .map(|(_, s)| format!("{} {}", s.phase, s.hold_code))
         .collect();
     other.dedup();
-    let n = window.len().max(1) as f64;
-    let force = window.iter().map(|(_, s)| s.2).sum::<f64>() / n;
-    let lateral = window.iter().map(|(_, s)| s.3).sum::<f64>() / n;
-    (other, force, lateral)
+    let force = mean(window.iter().map(|(_, s)| s.f_ext_norm));
+    let lateral = mean(window.iter().map(|(_, s)| s.lateral_force));
+    (window.len(), other, force, lateral)
 }
 
 /// `scope_pivot`: see the module documentation.
@@ -255,7 +282,7 @@ pub fn scope_pivot(p: &CheckParams) -> Result<String, String> {
     let tips = tips_between(&kin, &joints, t0, t1)?;
     let (distances, sweep) = pivot_figures(&tips, &truth);
     let (n, p95) = (distances.len(), quantile(distances, 0.95));
-    let (others, force, lateral) = status_figures(&lock(&rec.status), t0, t1);
+    let (n_status, others, force, lateral) = status_figures(&lock(&rec.status), t0, t1);
     let travel = spread(&tips_between(&kin, &joints, t1, still_from)?);
     let still = spread(&tips_between(&kin, &joints, still_from, still_from + p.still_window_s)?);
     let figures = format!(
@@ -271,13 +298,16 @@ pub fn scope_pivot(p: &CheckParams) -> Result<String, String> {
     );
     let max_travel = p.zoom_speed * (p.command_timeout + p.dead_man_margin_s);
     let failures: Vec<String> = [
-        (n < 100).then(|| format!("only {n} joint states while commanded")),
-        (p95.is_nan() || p95 > p.max_shaft_distance).then(|| format!("shaft p95 above {} mm", p.max_shaft_distance * 1e3)),
+        (n < 100 || n_status < 100).then(|| format!("only {n} joint states and {n_status} status while commanded")),
+        (p95.is_nan() || p95 > p.max_shaft_distance)
+            .then(|| format!("shaft p95 above {} mm", p.max_shaft_distance * 1e3)),
         (sweep.to_degrees() < p.min_sweep_deg).then(|| format!("swept less than {} deg", p.min_sweep_deg)),
         (force.is_nan() || force > p.max_mean_force).then(|| format!("mean force above {} N", p.max_mean_force)),
         (!others.is_empty()).then(|| format!("left DONE while commanded: {others:?}")),
-        (travel.is_nan() || travel > max_travel).then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
-        (still.is_nan() || still > p.max_still_motion).then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
+        (travel.is_nan() || travel > max_travel)
+            .then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
+        (still.is_nan() || still > p.max_still_motion)
+            .then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
     ]
     .into_iter()
     .flatten()
@@ -298,7 +328,10 @@ mod tests {
         let truth = vec![(1.0, Point3::new(0.0, 0.0, 0.0)), (1.1, Point3::new(0.0, 0.001, 0.0))];
         let p = port_at(&truth, 1.05).unwrap();
         assert!((p.y - 0.0005).abs() < 1e-12);
-        assert!(port_at(&truth, 0.9).is_none() && port_at(&truth, 1.2).is_none(), "no extrapolation");
+        assert!(
+            port_at(&truth, 0.9).is_none() && port_at(&truth, 1.2).is_none(),
+            "no extrapolation"
+        );
     }
 
     #[test]
@@ -327,6 +360,7 @@ mod tests {
         assert!((sweep.to_degrees() - 20.0).abs() < 1e-9);
         assert!((spread(&tips) - 2.0 * 0.03 * 10f64.to_radians().sin()).abs() < 1e-9);
         assert!(quantile(vec![3.0, 1.0, 2.0], 0.5) == 2.0 && quantile(vec![], 0.9).is_nan());
+        assert!(mean([1.0, f64::NAN, 3.0].into_iter()) == 2.0 && mean(std::iter::empty()).is_nan());
     }
 
     #[test]

@@ -24,7 +24,11 @@ pub fn scope_command(
         });
     }
     let (a, l) = (&msg.twist.angular, &msg.twist.linear);
-    check_finite(topic, "twist (angular x y z, linear x y z)", &[a.x, a.y, a.z, l.x, l.y, l.z])?;
+    check_finite(
+        topic,
+        "twist (angular x y z, linear x y z)",
+        &[a.x, a.y, a.z, l.x, l.y, l.z],
+    )?;
     Ok(ScopeCommand {
         pan: a.x,
         tilt: a.y,
@@ -120,7 +124,10 @@ mod tests {
                 let mut m = base.clone();
                 f(&mut m, bad);
                 let e = scope_command("t", &m, TIP).unwrap_err();
-                assert!(matches!(e, InputError::NonFinite { index, .. } if index == i), "{i}: {e}");
+                assert!(
+                    matches!(e, InputError::NonFinite { index, .. } if index == i),
+                    "{i}: {e}"
+                );
             }
         }
     }
