@@ -34,9 +34,10 @@ use super::guard::{CommandGuard, HoldReason};
 use super::guarded::{CommandSource, Guarded, StepContext};
 use super::metrics::ForceMetric;
 pub use super::params::{ControllerParams, ParamError};
+use super::pivot::{live_command, Pivot};
 use super::scope::{PivotReport, ScopeCommand};
 use super::seated::{SeatedCheck, TipState};
-use super::sqp::{CostTerms, CostWeights, LimitAvoidance, SqpSolver, SqpStatus, Targets};
+use super::sqp::{CostTerms, CostWeights, LimitAvoidance, PivotCost, SqpSolver, SqpStatus, Targets};
 use super::supervisor::{Phase, Supervisor};
 use super::tare::{Tare, TareStep};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
@@ -175,6 +176,8 @@ struct RunState {
     tare: Tare,
     /// `Some(None)`: a retreat is due and begins from the tip's depth.
     retreat: Option<Option<Retreat>>,
+    /// After DONE: the port held as the remote centre of motion.
+    pivot: Option<Pivot>,
 }
 
 /// An early end of a step: hold (or stay idle) for `reason`, commanding `hold_at`.
@@ -450,6 +453,7 @@ impl OptimalController {
         prev: JointVector,
         targets_for: (InsertionAxis, Point3<f64>, Point3<f64>),
         weights: &CostWeights,
+        pivot: Option<PivotCost>,
     ) -> (JointVector, SolveReport) {
         let (axis, point, reference) = targets_for;
         let g = ctx.guard;
@@ -467,6 +471,7 @@ impl OptimalController {
             reference,
             q_prev: prev,
             limits: Some(limits),
+            pivot,
         };
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
         let cmd = if sol.status.is_usable() {
@@ -582,6 +587,46 @@ impl OptimalController {
         self.output(still, Some(arm.tip), None)
     }
 
+    /// After DONE: hold the port as the remote centre of motion while the surgeon steers,
+    /// or withdraw (RETRACT); see [`super::pivot`]. `None` in the other phases (and before
+    /// any trocar estimate, when DONE just holds).
+    fn pivot_step(
+        &mut self,
+        kin: &dyn Kinematics,
+        input: &ControlInput,
+        ctx: &StepContext<'_>,
+        arm: &Arm,
+    ) -> Option<ControlOutput> {
+        if !matches!(self.run.supervisor.phase(), Phase::Done | Phase::Retract) {
+            return None;
+        }
+        let sp = &self.params.scope;
+        if self.run.pivot.is_none() {
+            let trocar = self.run.trocar_filtered.map(|(t, _)| InsertionAxis::from_pose(&t))?;
+            self.run.pivot = Some(Pivot::new(sp, &kin.fk(&arm.prev).ok()?, &trocar));
+        }
+        let f = self.run.admittance.force();
+        let command = match ctx.guard.check_force(f.norm()) {
+            Ok(()) => live_command(sp, input.now, input.scope),
+            Err(_) => Err("force estimate over the force stop: scope commands ignored, holding still"),
+        };
+        let pivot = self.run.pivot.as_mut()?;
+        let t = pivot.step(sp, command, &f, ctx.dt);
+        let (cmd, report) = self.solve(kin, ctx, arm.prev, (t.axis, t.point, t.point), &t.weights, Some(t.cost));
+        self.run.last_command = Some(cmd);
+        let pivot = self.run.pivot.as_ref()?;
+        let back =
+            nalgebra::distance(&Point3::from(arm.tip.translation.vector), &t.point) < self.params.approach_tolerance;
+        let status = pivot.report(&self.params.scope, &arm.tip, &f);
+        if pivot.retracted() && back {
+            self.run.supervisor.retract_done();
+        }
+        let mut out = self.output(Some(cmd), Some(arm.tip), None);
+        out.solve = Some(report);
+        out.pivot = Some(status);
+        Some(out)
+    }
+
     #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
     fn step_checked(
         &mut self,
@@ -598,6 +643,9 @@ impl OptimalController {
             return Ok(self.tare_step(input, &arm, ctx.guard, dt));
         }
         self.update_force(input, &arm, ctx.guard, dt)?;
+        if let Some(out) = self.pivot_step(kin, input, ctx, &arm) {
+            return Ok(out);
+        }
         let trocar = self.trocar_pose(input, &arm, ctx.guard)?;
         let axis = InsertionAxis::from_pose(&trocar);
         let goal = axis.point_at(self.params.insertion_depth);
@@ -623,7 +671,7 @@ impl OptimalController {
         let x = self.run.admittance.step(&self.params.admittance, axis.across(&f), dt);
         let reference = tip_p + x;
         let (weights, point) = self.phase_target(&axis, tip_p, f, dt);
-        let (cmd, report) = self.solve(kin, ctx, arm.prev, (axis, point, reference), &weights);
+        let (cmd, report) = self.solve(kin, ctx, arm.prev, (axis, point, reference), &weights, None);
         self.run.last_command = Some(cmd);
         self.transitions(&axis, goal, &arm.tip, f, dt);
         let mut out = self.output(Some(cmd), Some(arm.tip), Some(goal));
@@ -661,6 +709,16 @@ impl CommandSource for OptimalController {
     fn abort(&mut self, why: &str) {
         self.run.supervisor.abort(why);
         self.run.retreat = None;
+    }
+
+    fn retract(&mut self) -> Result<(), String> {
+        let pivot = match (self.run.supervisor.phase(), self.run.pivot.as_mut()) {
+            (Phase::Done | Phase::Retract, Some(p)) => p,
+            (Phase::Done, None) => return Err("not holding the port yet: no trocar estimate".into()),
+            (p, _) => return Err(format!("cannot retract in {p}: only after docking (DONE)")),
+        };
+        pivot.retract_to(-self.params.standoff);
+        self.run.supervisor.retract()
     }
 
     fn reset(&mut self) {

@@ -2,17 +2,20 @@
 //! law ([`sqp`]: costs, Gauss–Newton SQP on Clarabel, active-set warm start), the force
 //! estimate and admittance law ([`admittance`]), the command guard ([`guard`]), the phase
 //! state machine ([`supervisor`]), seated completion ([`seated`]), the metric M
-//! ([`metrics`]) and the insertion-axis geometry ([`geometry`]); [`controller`] runs them
-//! in one step per control period.
+//! ([`metrics`]), the insertion-axis geometry ([`geometry`]), and after docking the port
+//! held as a remote centre of motion ([`pivot`], [`fulcrum`], [`scope`]); [`controller`]
+//! runs them in one step per control period.
 
 pub mod admittance;
 pub mod controller;
+pub mod fulcrum;
 pub mod geometry;
 pub mod guard;
 pub mod guarded;
 pub mod hold;
 pub mod metrics;
 pub mod params;
+pub mod pivot;
 pub mod scope;
 pub mod seated;
 pub mod sqp;

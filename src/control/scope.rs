@@ -3,11 +3,13 @@
 //! the surgeon's [`ScopeCommand`] (from `/docking/scope_command`), the limits that stop a
 //! command ([`ScopeLimit`]), their parameters ([`ScopeParams`]) and what the controller
 //! reports while pivoting ([`PivotReport`]).
-//!
-//! (Interface first: the law itself lands with issue 16.)
+//! The law is [`super::pivot`], the fulcrum's adaptation [`super::fulcrum`].
 
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
+
+use super::fulcrum::FulcrumParams;
+use super::sqp::CostWeights;
 
 /// A surgeon's scope command, in the `endoscope_tip` frame (a `TwistStamped` on
 /// `/docking/scope_command`).
@@ -80,12 +82,25 @@ pub struct ScopeParams {
     pub max_roll_speed: f64,
     /// Largest speed along the shaft, m/s.
     pub max_zoom_speed: f64,
-    /// Insertion depth of the tip past the fulcrum: minimum, m.
+    /// Insertion depth of the tip past the port (the trocar's entry face, where the
+    /// docking measured its insertion) along the shaft: minimum, m.
     pub min_depth: f64,
     /// ... and maximum, m.
     pub max_depth: f64,
     /// Half angle of the cone about the docking axis the shaft stays in, deg.
     pub cone_half_angle_deg: f64,
+    /// Weights of c1..c5 while the port is held: c1 tip to the target shaft line, c2 tip
+    /// to its target point, c3 optical axis to the target direction, c4 joint step, c5
+    /// (the docking's admittance reference) unused: the fulcrum adapts instead.
+    pub weights: CostWeights,
+    /// Weight of the fulcrum's squared distance from the shaft line (the RCM term), 1/m².
+    pub rcm_weight: f64,
+    /// Weight of the roll term |x - x_target|² (the tip's x axis).
+    pub roll_weight: f64,
+    /// Speed of the withdrawal along the shaft (`~retract`), m/s.
+    pub retract_speed: f64,
+    /// The fulcrum's adaptation from the force across the shaft.
+    pub fulcrum: FulcrumParams,
 }
 
 impl Default for ScopeParams {
@@ -98,6 +113,17 @@ impl Default for ScopeParams {
             min_depth: 0.015,
             max_depth: 0.08,
             cone_half_angle_deg: 30.0,
+            weights: CostWeights {
+                axis: 1000.0,
+                goal: 1000.0,
+                align: 20.0,
+                step: 0.05,
+                reference: 0.0,
+            },
+            rcm_weight: 3000.0,
+            roll_weight: 5.0,
+            retract_speed: 0.02,
+            fulcrum: FulcrumParams::default(),
         }
     }
 }
@@ -116,6 +142,14 @@ impl ScopeParams {
         pos("max_angular_speed", self.max_angular_speed)?;
         pos("max_roll_speed", self.max_roll_speed)?;
         pos("max_zoom_speed", self.max_zoom_speed)?;
+        pos("retract_speed", self.retract_speed)?;
+        self.weights.validate("scope.weights")?;
+        for (n, w) in [("rcm_weight", self.rcm_weight), ("roll_weight", self.roll_weight)] {
+            if !(w.is_finite() && w >= 0.0) {
+                return Err(format!("scope.{n} must be finite and >= 0, got {w}"));
+            }
+        }
+        self.fulcrum.validate()?;
         pos("min_depth", self.min_depth)?;
         pos("max_depth", self.max_depth)?;
         if self.max_depth <= self.min_depth {
@@ -137,11 +171,11 @@ impl ScopeParams {
 pub struct PivotReport {
     /// The fulcrum point (the estimated port, adapted from the contact), base frame, m.
     pub fulcrum: Point3<f64>,
-    /// Distance of the shaft's line from the fulcrum, m.
+    /// Distance of the shaft's line (the measured tip's optical axis) from the fulcrum, m.
     pub shaft_distance: f64,
-    /// Force across the shaft, N.
+    /// Force across the shaft (the controller's estimate), N.
     pub lateral_force: f64,
-    /// Tip depth past the fulcrum along the shaft, m.
+    /// Tip depth past the port along the shaft (the limits' depth), m.
     pub depth: f64,
     /// Axis of the allowed cone (the docking axis), base frame, unit.
     pub cone_axis: Vector3<f64>,
@@ -149,4 +183,9 @@ pub struct PivotReport {
     pub cone_half_angle: f64,
     /// A limit that stopped the current command, if any.
     pub limit: Option<ScopeLimit>,
+    /// Why the newest scope command was ignored (not finite, stamped in the future), if
+    /// it was: the scope then holds still.
+    pub ignored: Option<&'static str>,
+    /// The fulcrum's adapted depth past the port along the shaft, m.
+    pub fulcrum_depth: f64,
 }

@@ -198,6 +198,25 @@ impl Supervisor {
         }
     }
 
+    /// The surgeon's retract: DONE -> RETRACT; refused in any other phase.
+    pub fn retract(&mut self) -> Result<(), String> {
+        match self.phase {
+            Phase::Done => {
+                self.phase = Phase::Retract;
+                Ok(())
+            }
+            Phase::Retract => Ok(()),
+            p => Err(format!("cannot retract in {p}: only after docking (DONE)")),
+        }
+    }
+
+    /// The scope is back at the stand-off point: RETRACT -> IDLE (the run has ended).
+    pub fn retract_done(&mut self) {
+        if self.phase == Phase::Retract {
+            *self = Self::new();
+        }
+    }
+
     /// The goal is reached: INSERT -> DONE. `note` says how, when not plainly at the goal;
     /// the reason of any earlier hold is cleared.
     pub fn goal_reached(&mut self, note: Option<Arc<str>>) {
@@ -237,6 +256,13 @@ mod tests {
         assert_eq!(s.note().map(|n| &**n), Some("seated"));
         assert_eq!(s.reason(), None, "DONE clears the old hold's reason");
         assert!(s.start().is_err());
+        s.retract().unwrap();
+        assert_eq!(s.phase(), Phase::Retract);
+        s.hold(HoldReason::NoJointState, false);
+        assert_eq!(s.phase(), Phase::Retract, "a hold keeps the phase, as in DONE");
+        s.retract_done();
+        assert_eq!(s.phase(), Phase::Idle);
+        assert!(s.retract().unwrap_err().contains("IDLE"));
         s.reset();
         assert_eq!(s.phase(), Phase::Idle);
     }

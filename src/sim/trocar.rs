@@ -288,6 +288,12 @@ impl Trocar {
         self.c
     }
 
+    /// Where the wall holds the fulcrum at rest: the mount's anchor, moving with the
+    /// breathing (base frame). The trocar's fulcrum sits here when nothing pushes it.
+    pub fn anchor(&self) -> Point3<f64> {
+        self.rest * Point3::new(0.0, 0.0, self.params.pivot_depth_m) + self.rest.rotation * self.anchor
+    }
+
     /// Velocity of the body point `p` (base frame).
     pub fn point_velocity(&self, p: &Point3<f64>) -> Vector3<f64> {
         self.v + self.w.cross(&(p - self.c))

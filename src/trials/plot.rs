@@ -190,7 +190,7 @@ pub fn box_plot(path: &Path, title: &str, y_desc: &str, groups: &[(String, Vec<f
 }
 
 /// Linear-interpolated quantile of sorted, non-empty `v`.
-fn quantile(v: &[f64], p: f64) -> f64 {
+pub(crate) fn quantile(v: &[f64], p: f64) -> f64 {
     let pos = p.clamp(0.0, 1.0) * (v.len() - 1) as f64;
     let (i, f) = (pos.floor() as usize, pos.fract());
     let j = (i + 1).min(v.len() - 1);

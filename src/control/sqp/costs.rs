@@ -19,7 +19,12 @@
 //! Each c_i is the squared norm of its residual. For c5 the paper writes the unsquared norm
 //! ||e - r||; its gradient is undefined at e = r and its Hessian unbounded near it, which
 //! breaks a Gauss–Newton model exactly where the tip follows r closely. The squared form is
-//! smooth, and the weight w5 sets the same trade-off. Linearising e and a about q_lin
+//! smooth, and the weight w5 sets the same trade-off.
+//!
+//! After docking ([`crate::control::pivot`]) two more terms hold the port as a remote centre
+//! of motion ([`PivotCost`]): the fulcrum f's distance from the shaft line,
+//! P_a (f - e) with P_a = I - a a^T (the RCM residual), and the roll residual x - x_t of the
+//! tip's x axis. Linearising e and a about q_lin
 //! (`e ≈ e0 + J_v dq`, `a ≈ a0 - [a0]x J_w dq`) turns the weighted sum into
 //! ½ dq^T H dq + g^T dq + const.
 
@@ -115,6 +120,59 @@ pub struct Targets {
     pub q_prev: JointVector,
     /// Joint-limit avoidance, if any.
     pub limits: Option<LimitAvoidance>,
+    /// The remote centre of motion after docking, if held.
+    pub pivot: Option<PivotCost>,
+}
+
+/// The terms that hold a fulcrum on the shaft line and the roll about the shaft (after
+/// docking; see [`crate::control::pivot`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PivotCost {
+    /// The fulcrum point the shaft line must pass through, base frame, m.
+    pub fulcrum: Point3<f64>,
+    /// Target direction of the tip's x axis (roll about the shaft), unit.
+    pub x_axis: Vector3<f64>,
+    /// Weight of the fulcrum's squared distance from the shaft line, 1/m².
+    pub rcm_weight: f64,
+    /// Weight of the squared roll residual |x - x_t|².
+    pub roll_weight: f64,
+}
+
+impl PivotCost {
+    /// The fulcrum's offset from the shaft line of `pose` (its z axis through its origin),
+    /// P_a (f - e): zero when the shaft passes through the fulcrum.
+    pub fn rcm_residual(&self, pose: &Isometry3<f64>) -> Vector3<f64> {
+        let a = pose.rotation * Vector3::z();
+        let u = self.fulcrum - Point3::from(pose.translation.vector);
+        u - a * a.dot(&u)
+    }
+
+    /// The weighted value of both terms at `pose`.
+    pub fn value(&self, pose: &Isometry3<f64>) -> f64 {
+        let x = pose.rotation * Vector3::x();
+        self.rcm_weight * self.rcm_residual(pose).norm_squared() + self.roll_weight * (x - self.x_axis).norm_squared()
+    }
+
+    /// Residuals and their Jacobians (3 x 7 each) at `pose` with the geometric Jacobian's
+    /// linear rows `jv` and angular rows `jw`: d r_rcm = (-P_a J_v + (a^T u) [a]x J_w +
+    /// a (u^T [a]x) J_w) dq with u = f - e (from da = w x a), and d x = -[x]x J_w dq.
+    fn linearised(
+        &self,
+        pose: &Isometry3<f64>,
+        jv: &SMatrix<f64, 3, 7>,
+        jw: &SMatrix<f64, 3, 7>,
+    ) -> [(Vector3<f64>, SMatrix<f64, 3, 7>); 2] {
+        let a = pose.rotation * Vector3::z();
+        let x = pose.rotation * Vector3::x();
+        let u = self.fulcrum - Point3::from(pose.translation.vector);
+        let ax = a.cross_matrix();
+        let proj = Matrix3::identity() - a * a.transpose();
+        let j_rcm = -proj * jv + ax * jw * a.dot(&u) + a * (u.transpose() * ax * jw);
+        [
+            (self.rcm_residual(pose), j_rcm),
+            (x - self.x_axis, -x.cross_matrix() * jw),
+        ]
+    }
 }
 
 /// Unweighted values of c1..c5.
@@ -162,6 +220,11 @@ pub fn quadratic_model(
     add(w.goal, e - t.point, jv);
     add(w.align, a - g_a, -a.cross_matrix() * jw);
     add(w.reference, proj * (e - t.reference), proj * jv);
+    if let Some(pc) = &t.pivot {
+        let [(r_rcm, j_rcm), (r_roll, j_roll)] = pc.linearised(pose, &jv, &jw);
+        add(pc.rcm_weight, r_rcm, j_rcm);
+        add(pc.roll_weight, r_roll, j_roll);
+    }
     if let Some(l) = &t.limits {
         if l.weight > 0.0 {
             let (r, d) = l.residual(q_lin);
@@ -201,6 +264,12 @@ mod tests {
                 zone: 0.5,
                 weight: 2.0,
             }),
+            pivot: Some(PivotCost {
+                fulcrum: Point3::new(0.61, 0.04, 0.3),
+                x_axis: Vector3::new(0.0, 0.6, 0.8),
+                rcm_weight: 4.0,
+                roll_weight: 0.9,
+            }),
         };
         let w = CostWeights {
             axis: 3.0,
@@ -217,6 +286,7 @@ mod tests {
                 .map(|(c, w)| c * w)
                 .sum::<f64>()
                 + t.limits.map_or(0.0, |l| l.weight * l.value(q))
+                + t.pivot.map_or(0.0, |pc| pc.value(&p))
         };
         let (_, g) = quadratic_model(&pose, &jac, &q, &t, &w, 0.0);
         // The model's gradient is the true gradient of the weighted cost.

@@ -7,5 +7,5 @@ pub mod active_set;
 pub mod costs;
 pub mod solver;
 
-pub use costs::{CostTerms, CostWeights, LimitAvoidance, Targets};
+pub use costs::{CostTerms, CostWeights, LimitAvoidance, PivotCost, Targets};
 pub use solver::{SqpSettings, SqpSolution, SqpSolver, SqpStatus};

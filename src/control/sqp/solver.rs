@@ -510,6 +510,7 @@ mod tests {
             reference: Point3::origin(),
             q_prev: q,
             limits: None,
+            pivot: None,
         };
         (kin, q, t)
     }

@@ -1,0 +1,220 @@
+//! The fulcrum's adaptation after docking: where the wall pushes, the port is.
+//!
+//! The remote centre of motion starts on the shaft line at the estimated port plus a prior
+//! depth along the shaft (the abdominal wall holds the trocar some centimetres below its
+//! face). Two laws move it from the force across the shaft, f_⊥ (the controller's filtered
+//! tip-force estimate with its component along the shaft removed, then a dead-band):
+//!
+//! - **across the shaft**, a first-order admittance of the fulcrum point,
+//!   D ẋ + K x = f_⊥, |x| <= x_max: a wall that pushes the shaft sideways (the port moved
+//!   with breathing, or the scope pivots about a point beside the port) moves the fulcrum,
+//!   and with it the scope, the way it pushes. K pulls x back to zero, so a force
+//!   estimate's bias moves the fulcrum by at most bias / K;
+//! - **along the shaft**, the fulcrum's depth s (past the port) by a gradient law on the
+//!   lever: pivoting by an angle θ about a point δ short of the true fulcrum moves the
+//!   shaft there by δ θ x a and the wall pushes back, f_⊥ = -k δ (θ x a). So with the
+//!   commanded angular velocity ω of the pan and tilt (known exactly) and
+//!   u = (ω x a) / |ω|: ṡ = -γ f_⊥ · u, which is zero when the scope pivots about the
+//!   point where the wall holds it, and does nothing while the scope does not pivot (a
+//!   force then says nothing about the depth). s stays between 0 (the port) and the tip's
+//!   depth (the wall can only push where there is shaft).
+//!
+//! Nothing here allocates.
+
+use nalgebra::{Unit, Vector3};
+use serde::{Deserialize, Serialize};
+
+use crate::signal::deadband;
+
+/// Parameters of the fulcrum's adaptation (`scope.fulcrum` in `config/controller.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct FulcrumParams {
+    /// Prior depth of the fulcrum past the port (the trocar's face) along the shaft, m.
+    pub prior_depth: f64,
+    /// Stiffness K of the fulcrum's admittance across the shaft, N/m.
+    pub stiffness: f64,
+    /// Damping D of the same, N s/m.
+    pub damping: f64,
+    /// Forces across the shaft below this are ignored, N.
+    pub force_deadband: f64,
+    /// Largest displacement of the fulcrum across the shaft, m.
+    pub max_displacement: f64,
+    /// Gain γ of the depth's adaptation, m/(N s) (0 = the depth stays at the prior).
+    pub depth_gain: f64,
+    /// The depth adapts only while the scope pivots faster than this, rad/s.
+    pub min_pivot_speed: f64,
+}
+
+impl Default for FulcrumParams {
+    fn default() -> Self {
+        Self {
+            prior_depth: 0.015,
+            stiffness: 200.0,
+            damping: 100.0,
+            force_deadband: 0.2,
+            max_displacement: 0.01,
+            depth_gain: 0.02,
+            min_pivot_speed: 0.02,
+        }
+    }
+}
+
+impl FulcrumParams {
+    /// Check every range; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let check = |n: &str, v: f64, lo: f64, hi: f64| {
+            if v.is_finite() && (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!("scope.fulcrum.{n} must be in [{lo}, {hi}], got {v}"))
+            }
+        };
+        check("prior_depth", self.prior_depth, 0.0, 0.2)?;
+        check("stiffness", self.stiffness, 0.0, 1e5)?;
+        check("damping", self.damping, 1e-3, 1e5)?;
+        check("force_deadband", self.force_deadband, 0.0, 50.0)?;
+        check("max_displacement", self.max_displacement, 0.0, 0.05)?;
+        check("depth_gain", self.depth_gain, 0.0, 1.0)?;
+        check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)
+    }
+}
+
+/// The adapted fulcrum, relative to where it started: its depth along the shaft past the
+/// port and its displacement across the shaft.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fulcrum {
+    /// Depth past the port along the shaft, m.
+    pub depth: f64,
+    /// Displacement across the shaft from the initial fulcrum, base frame, m.
+    pub lateral: Vector3<f64>,
+}
+
+impl Fulcrum {
+    /// At the prior depth, not displaced.
+    pub fn new(p: &FulcrumParams) -> Self {
+        Self {
+            depth: p.prior_depth,
+            lateral: Vector3::zeros(),
+        }
+    }
+
+    /// One step of `dt`: `force` is the force on the shaft (base frame, N), `shaft` its
+    /// direction (into the body), `omega` the commanded angular velocity of the pan and
+    /// tilt (base frame, rad/s), `tip_depth` the tip's depth past the port (the depth's
+    /// upper bound). Returns the change of depth this step, m.
+    pub fn step(
+        &mut self,
+        p: &FulcrumParams,
+        force: &Vector3<f64>,
+        shaft: &Unit<Vector3<f64>>,
+        omega: &Vector3<f64>,
+        tip_depth: f64,
+        dt: f64,
+    ) -> f64 {
+        let across = force - shaft.into_inner() * force.dot(shaft);
+        let n = across.norm();
+        if !(n.is_finite() && dt > 0.0 && dt.is_finite()) {
+            return 0.0;
+        }
+        let f = if n > 0.0 {
+            across * (deadband(n, p.force_deadband) / n)
+        } else {
+            across
+        };
+        // Across: first-order admittance, exact for a constant force over the step.
+        let lateral = self.lateral - shaft.into_inner() * self.lateral.dot(shaft);
+        let x = if p.stiffness > 0.0 {
+            let rest = f / p.stiffness;
+            rest + (lateral - rest) * (-p.stiffness / p.damping * dt).exp()
+        } else {
+            lateral + f * (dt / p.damping)
+        };
+        let xn = x.norm();
+        self.lateral = if xn > p.max_displacement {
+            x * (p.max_displacement / xn)
+        } else {
+            x
+        };
+        // Along: the lever's gradient, only while pivoting.
+        let w = omega.norm();
+        let before = self.depth;
+        if w > p.min_pivot_speed && w.is_finite() {
+            let u = omega.cross(shaft) / w;
+            self.depth = (self.depth - p.depth_gain * f.dot(&u) * dt).clamp(0.0, tip_depth.max(0.0));
+        }
+        self.depth - before
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The true fulcrum `delta` deeper than the estimate: pivoting about the estimate by θ
+    /// moves the shaft there by delta θ x a and the wall (stiffness k) pushes it back.
+    #[test]
+    fn the_depth_converges_on_the_wall_from_either_side_and_only_while_pivoting() {
+        let p = FulcrumParams {
+            stiffness: 1e4, // keep the lateral part out of the way
+            ..Default::default()
+        };
+        let a = Unit::new_normalize(Vector3::new(0.1, 0.0, -1.0));
+        let omega = Vector3::new(0.17, 0.0, 0.0);
+        for truth in [0.005, 0.03] {
+            let mut fc = Fulcrum::new(&p);
+            let (k, dt) = (1500.0, 0.01);
+            let mut theta = 0.0;
+            for _ in 0..300 {
+                theta += 0.17 * dt;
+                let delta = truth - fc.depth;
+                let force = -(omega.normalize() * theta).cross(&a) * (k * delta);
+                fc.step(&p, &force, &a, &omega, 0.04, dt);
+            }
+            assert!((fc.depth - truth).abs() < 0.002, "truth {truth}: depth {}", fc.depth);
+            // Still, the same force changes nothing along the shaft.
+            let before = fc.depth;
+            let d = fc.step(&p, &Vector3::new(3.0, 0.0, 0.0), &a, &Vector3::zeros(), 0.04, dt);
+            assert_eq!((d, fc.depth), (0.0, before));
+        }
+    }
+
+    #[test]
+    fn the_lateral_part_yields_to_the_force_within_its_bounds_and_ignores_the_axial_force() {
+        let p = FulcrumParams::default();
+        let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
+        let mut fc = Fulcrum::new(&p);
+        for _ in 0..1000 {
+            fc.step(&p, &Vector3::new(1.2, 0.0, 5.0), &a, &Vector3::zeros(), 0.03, 0.01);
+        }
+        // (1.2 - 0.2) N / 200 N/m = 5 mm, along x only; the axial 5 N moves nothing.
+        assert!(
+            (fc.lateral - Vector3::new(0.005, 0.0, 0.0)).norm() < 1e-5,
+            "{}",
+            fc.lateral
+        );
+        for _ in 0..1000 {
+            fc.step(&p, &Vector3::new(0.0, 9.0, 0.0), &a, &Vector3::zeros(), 0.03, 0.01);
+        }
+        assert!((fc.lateral.norm() - p.max_displacement).abs() < 1e-9);
+        // Below the dead-band: back to zero.
+        for _ in 0..2000 {
+            fc.step(&p, &Vector3::new(0.1, 0.0, 0.0), &a, &Vector3::zeros(), 0.03, 0.01);
+        }
+        assert!(fc.lateral.norm() < 1e-6);
+        // Non-finite input: nothing changes.
+        let before = fc;
+        fc.step(&p, &Vector3::new(f64::NAN, 0.0, 0.0), &a, &Vector3::x(), 0.03, 0.01);
+        assert_eq!(fc, before);
+    }
+
+    #[test]
+    fn bad_parameters_are_named() {
+        let bad = FulcrumParams {
+            damping: 0.0,
+            ..Default::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("scope.fulcrum.damping"));
+        assert!(FulcrumParams::default().validate().is_ok());
+    }
+}

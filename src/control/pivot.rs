@@ -1,0 +1,390 @@
+//! After docking: the port held as a remote centre of motion (RCM) while the surgeon
+//! steers the scope through it.
+//!
+//! **State** (set when DONE begins, from the last command's tip pose, so that the first
+//! step's targets are where the arm already is and nothing moves): the target tip
+//! orientation R (its z axis the shaft direction d, its x axis the roll), the port P (where
+//! the shaft enters the trocar's face: the trocar estimate's port projected on the shaft
+//! line, since the port holds the docked shaft), the target tip depth s_t past P, and the
+//! fulcrum F = P + d s_f + x ([`super::fulcrum`]: depth s_f along the shaft from a prior,
+//! displacement x across it, both adapted from the force across the shaft).
+//!
+//! **Per step** the surgeon's command (dead-man: older than `command_timeout` is none; not
+//! finite, or stamped in the future, is ignored with the reason) is cut to the speed
+//! limits; the angular velocity R (pan, tilt, roll) turns R about F (the port P turns with
+//! it: P = F - d s_f), unless the new d would leave the cone about the docking axis
+//! (then only the roll turns: `CONE`); the zoom moves s_t, stopped at `min_depth` /
+//! `max_depth` (never pushed back into the range when it started outside it). The SQP
+//! then gets: c1 tip to the line (P, d), c2 tip to P + d s_t, c3 optical axis to d, c4,
+//! and the RCM term (F's distance from the shaft line) with the roll term
+//! ([`super::sqp::PivotCost`]). With no command the targets do not move, so the scope
+//! holds still; only the fulcrum's lateral adaptation moves it, with the wall.
+//!
+//! **Retract** (`~retract`): the commands are ignored and s_t falls at `retract_speed` to
+//! the stand-off point before the port (`-standoff`); then the run ends (IDLE).
+//!
+//! Nothing here allocates.
+
+use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
+
+use super::controller::Stamped;
+use super::fulcrum::Fulcrum;
+use super::geometry::InsertionAxis;
+use super::scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
+use super::sqp::{CostWeights, PivotCost};
+
+/// The surgeon's command for this step: `Ok(None)` when there is none or it is older than
+/// the timeout (dead-man), `Err(reason)` when it must be ignored.
+pub fn live_command(
+    p: &ScopeParams,
+    now: f64,
+    cmd: Option<Stamped<ScopeCommand>>,
+) -> Result<Option<ScopeCommand>, &'static str> {
+    let Some(c) = cmd else { return Ok(None) };
+    if !c.value.is_finite() || !c.stamp.is_finite() {
+        return Err("scope command not finite: ignored, holding still");
+    }
+    let age = now - c.stamp;
+    if age < -p.command_timeout {
+        return Err("scope command stamped in the future: ignored, holding still");
+    }
+    Ok((age <= p.command_timeout).then_some(c.value))
+}
+
+/// What the SQP gets this step.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PivotTargets {
+    /// The target shaft line: through the port, along the target direction.
+    pub axis: InsertionAxis,
+    /// The tip's target point on it.
+    pub point: Point3<f64>,
+    /// The RCM and roll terms.
+    pub cost: PivotCost,
+    /// The weights of c1..c5.
+    pub weights: CostWeights,
+}
+
+/// The RCM law's state, from DONE until the run ends.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Pivot {
+    rot: UnitQuaternion<f64>,
+    /// The fulcrum without its lateral displacement.
+    fulcrum_base: Point3<f64>,
+    fulcrum: Fulcrum,
+    tip_depth: f64,
+    cone_axis: Unit<Vector3<f64>>,
+    limit: Option<ScopeLimit>,
+    ignored: Option<&'static str>,
+    /// While retracting: the depth to withdraw to.
+    retract_to: Option<f64>,
+}
+
+impl Pivot {
+    /// Begin holding the port: `tip` is the commanded tip pose (its z the shaft), `trocar`
+    /// the estimated docking axis (its direction the cone's axis).
+    pub fn new(p: &ScopeParams, tip: &Isometry3<f64>, trocar: &InsertionAxis) -> Self {
+        let d = tip.rotation * Vector3::z();
+        let e = Point3::from(tip.translation.vector);
+        let tip_depth = -d.dot(&(trocar.port - e));
+        let port = e - d * tip_depth;
+        let mut fulcrum = Fulcrum::new(&p.fulcrum);
+        fulcrum.depth = fulcrum.depth.min(tip_depth.max(0.0));
+        Self {
+            rot: tip.rotation,
+            fulcrum_base: port + d * fulcrum.depth,
+            fulcrum,
+            tip_depth,
+            cone_axis: trocar.direction,
+            limit: None,
+            ignored: None,
+            retract_to: None,
+        }
+    }
+
+    /// The target shaft direction.
+    pub fn direction(&self) -> Unit<Vector3<f64>> {
+        Unit::new_unchecked(self.rot * Vector3::z())
+    }
+
+    /// The fulcrum point.
+    pub fn fulcrum(&self) -> Point3<f64> {
+        self.fulcrum_base + self.fulcrum.lateral
+    }
+
+    /// The port: where the shaft line enters the trocar's face.
+    pub fn port(&self) -> Point3<f64> {
+        self.fulcrum() - self.direction().into_inner() * self.fulcrum.depth
+    }
+
+    /// The target tip depth past the port, m.
+    pub fn target_depth(&self) -> f64 {
+        self.tip_depth
+    }
+
+    /// Withdraw to `depth` past the port (negative: before it); commands are ignored from
+    /// now on.
+    pub fn retract_to(&mut self, depth: f64) {
+        self.retract_to = Some(depth.min(self.tip_depth));
+    }
+
+    /// Whether a retract has reached its end depth.
+    pub fn retracted(&self) -> bool {
+        self.retract_to.is_some_and(|d| self.tip_depth <= d)
+    }
+
+    /// The speed limits: the command cut to them.
+    fn capped(&mut self, p: &ScopeParams, c: ScopeCommand) -> ScopeCommand {
+        let mut out = c;
+        let w = c.pan.hypot(c.tilt);
+        if w > p.max_angular_speed {
+            out.pan *= p.max_angular_speed / w;
+            out.tilt *= p.max_angular_speed / w;
+            self.limit = Some(ScopeLimit::Speed);
+        }
+        if c.roll.abs() > p.max_roll_speed {
+            out.roll = c.roll.clamp(-p.max_roll_speed, p.max_roll_speed);
+            self.limit = Some(ScopeLimit::Speed);
+        }
+        if c.zoom.abs() > p.max_zoom_speed {
+            out.zoom = c.zoom.clamp(-p.max_zoom_speed, p.max_zoom_speed);
+            self.limit = Some(ScopeLimit::Speed);
+        }
+        out
+    }
+
+    /// Turn the target about the fulcrum by the command's angular velocity (tip frame),
+    /// within the cone; returns the pan and tilt's angular velocity taken, base frame.
+    fn turn(&mut self, p: &ScopeParams, c: &ScopeCommand, dt: f64) -> Vector3<f64> {
+        let pan_tilt = self.rot * Vector3::new(c.pan, c.tilt, 0.0);
+        let roll = self.rot * Vector3::new(0.0, 0.0, c.roll);
+        let turned = UnitQuaternion::from_scaled_axis((pan_tilt + roll) * dt) * self.rot;
+        let angle = |r: &UnitQuaternion<f64>| (r * Vector3::z()).angle(&self.cone_axis);
+        let cone = p.cone_half_angle_deg.to_radians();
+        let taken = if angle(&turned) > cone && angle(&turned) > angle(&self.rot) {
+            self.limit = Some(ScopeLimit::Cone);
+            self.rot = UnitQuaternion::from_scaled_axis(roll * dt) * self.rot;
+            Vector3::zeros()
+        } else {
+            self.rot = turned;
+            pan_tilt
+        };
+        // The fulcrum stays; the port (F - d s_f) turns about it.
+        taken
+    }
+
+    /// Move the target depth by the zoom, stopped at the depth limits.
+    fn zoom(&mut self, p: &ScopeParams, zoom: f64, dt: f64) {
+        let s = self.tip_depth + zoom * dt;
+        self.tip_depth = if zoom > 0.0 && s > p.max_depth {
+            self.limit = Some(ScopeLimit::MaxDepth);
+            self.tip_depth.max(p.max_depth)
+        } else if zoom < 0.0 && s < p.min_depth {
+            self.limit = Some(ScopeLimit::MinDepth);
+            self.tip_depth.min(p.min_depth)
+        } else {
+            s
+        };
+    }
+
+    /// One step: `command` from [`live_command`], `force` the tip-force estimate (base
+    /// frame, N). Returns the SQP's targets.
+    pub fn step(
+        &mut self,
+        p: &ScopeParams,
+        command: Result<Option<ScopeCommand>, &'static str>,
+        force: &Vector3<f64>,
+        dt: f64,
+    ) -> PivotTargets {
+        self.limit = None;
+        self.ignored = command.err();
+        let mut omega = Vector3::zeros();
+        if let Some(end) = self.retract_to {
+            self.tip_depth = (self.tip_depth - p.retract_speed * dt).max(end);
+        } else if let Ok(Some(c)) = command {
+            let c = self.capped(p, c);
+            omega = self.turn(p, &c, dt);
+            self.zoom(p, c.zoom, dt);
+        }
+        let d = self.direction();
+        let moved = self.fulcrum.step(&p.fulcrum, force, &d, &omega, self.tip_depth, dt);
+        self.fulcrum_base += d.into_inner() * moved;
+        let port = self.port();
+        PivotTargets {
+            axis: InsertionAxis { port, direction: d },
+            point: port + d.into_inner() * self.tip_depth,
+            cost: PivotCost {
+                fulcrum: self.fulcrum(),
+                x_axis: self.rot * Vector3::x(),
+                rcm_weight: p.rcm_weight,
+                roll_weight: p.roll_weight,
+            },
+            weights: p.weights,
+        }
+    }
+
+    /// The report for the status, at the measured `tip` with the force estimate `force`.
+    pub fn report(&self, p: &ScopeParams, tip: &Isometry3<f64>, force: &Vector3<f64>) -> PivotReport {
+        let a = tip.rotation * Vector3::z();
+        let e = Point3::from(tip.translation.vector);
+        let cost = PivotCost {
+            fulcrum: self.fulcrum(),
+            x_axis: Vector3::x(),
+            rcm_weight: 0.0,
+            roll_weight: 0.0,
+        };
+        PivotReport {
+            fulcrum: self.fulcrum(),
+            shaft_distance: cost.rcm_residual(tip).norm(),
+            lateral_force: (force - a * a.dot(force)).norm(),
+            depth: a.dot(&(e - self.port())),
+            cone_axis: self.cone_axis.into_inner(),
+            cone_half_angle: p.cone_half_angle_deg.to_radians(),
+            limit: self.limit,
+            ignored: self.ignored,
+            fulcrum_depth: self.fulcrum.depth,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Translation3;
+
+    fn setup() -> (ScopeParams, Pivot) {
+        let p = ScopeParams::default();
+        // The shaft pointing down, tip 30 mm past a port at the origin; the estimate's
+        // port 2 mm beside the shaft.
+        let down = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+        let tip = Isometry3::from_parts(Translation3::new(0.0, 0.0, -0.03), down);
+        let axis = InsertionAxis {
+            port: Point3::new(0.002, 0.0, 0.0),
+            direction: -Vector3::z_axis(),
+        };
+        (p.clone(), Pivot::new(&p, &tip, &axis))
+    }
+
+    fn cmd(pan: f64, tilt: f64, roll: f64, zoom: f64) -> Result<Option<ScopeCommand>, &'static str> {
+        Ok(Some(ScopeCommand { pan, tilt, roll, zoom }))
+    }
+
+    #[test]
+    fn it_starts_where_the_arm_is_and_holds_still_without_a_command() {
+        let (p, mut pv) = setup();
+        assert!(
+            (pv.port() - Point3::origin()).norm() < 1e-12,
+            "the port projected on the shaft"
+        );
+        assert!((pv.fulcrum() - Point3::new(0.0, 0.0, -p.fulcrum.prior_depth)).norm() < 1e-12);
+        for _ in 0..500 {
+            let t = pv.step(&p, Ok(None), &Vector3::zeros(), 0.01);
+            assert!((t.point - Point3::new(0.0, 0.0, -0.03)).norm() < 1e-12);
+            assert!((t.axis.direction.into_inner() + Vector3::z()).norm() < 1e-12);
+        }
+    }
+
+    #[test]
+    fn pan_turns_the_shaft_about_the_fulcrum_and_zoom_moves_along_it() {
+        let (p, mut pv) = setup();
+        let f0 = pv.fulcrum();
+        for _ in 0..100 {
+            let t = pv.step(&p, cmd(0.17, 0.0, 0.0, 0.0), &Vector3::zeros(), 0.01);
+            // The target line passes through the fulcrum.
+            assert!(t.axis.distance_to_axis(&f0) < 1e-12);
+            assert!((t.cost.fulcrum - f0).norm() < 1e-12);
+        }
+        let d = pv.direction();
+        assert!((d.angle(&-Vector3::z()) - 0.17).abs() < 1e-9, "0.17 rad in 1 s");
+        // The tip moved on a circle about the fulcrum.
+        let tip = pv.port() + d.into_inner() * pv.target_depth();
+        assert!(((tip - f0).norm() - (0.03 - p.fulcrum.prior_depth)).abs() < 1e-12);
+        for _ in 0..100 {
+            pv.step(&p, cmd(0.0, 0.0, 0.3, 0.01), &Vector3::zeros(), 0.01);
+        }
+        assert!((pv.target_depth() - 0.04).abs() < 1e-12);
+        assert!(pv.direction().angle(&d) < 1e-12, "roll and zoom keep the direction");
+    }
+
+    #[test]
+    fn each_limit_stops_the_command_at_it_and_says_so() {
+        let (p, mut pv) = setup();
+        let t = pv.step(&p, cmd(3.0, 0.0, 0.0, 0.0), &Vector3::zeros(), 0.01);
+        assert_eq!(pv.limit, Some(ScopeLimit::Speed));
+        assert!((t.axis.direction.angle(&-Vector3::z()) - p.max_angular_speed * 0.01).abs() < 1e-12);
+        // Zoom out to the minimum depth and no further.
+        for _ in 0..200 {
+            pv.step(&p, cmd(0.0, 0.0, 0.0, -0.02), &Vector3::zeros(), 0.01);
+        }
+        assert_eq!(pv.limit, Some(ScopeLimit::MinDepth));
+        assert_eq!(pv.target_depth(), p.min_depth);
+        for _ in 0..600 {
+            pv.step(&p, cmd(0.0, 0.0, 0.0, 0.02), &Vector3::zeros(), 0.01);
+        }
+        assert_eq!(pv.limit, Some(ScopeLimit::MaxDepth));
+        assert_eq!(pv.target_depth(), p.max_depth);
+        // Tilt into the cone's edge: stops within one step of it, roll still turns.
+        for _ in 0..400 {
+            pv.step(&p, cmd(0.0, 0.3, 0.1, 0.0), &Vector3::zeros(), 0.01);
+        }
+        let r = pv.report(&p, &Isometry3::identity(), &Vector3::zeros());
+        assert_eq!(r.limit, Some(ScopeLimit::Cone));
+        let angle = pv.direction().angle(&-Vector3::z());
+        let cone = p.cone_half_angle_deg.to_radians();
+        assert!(angle <= cone && angle > cone - 0.003 - 1e-9, "{angle} vs {cone}");
+        // Back out of the edge is allowed.
+        pv.step(&p, cmd(0.0, -0.3, 0.0, 0.0), &Vector3::zeros(), 0.01);
+        assert_eq!(pv.limit, None);
+        assert!(pv.direction().angle(&-Vector3::z()) < angle);
+    }
+
+    #[test]
+    fn bad_or_old_commands_hold_still() {
+        let (p, mut pv) = setup();
+        let before = pv.clone();
+        let nan = Stamped {
+            stamp: 1.0,
+            value: ScopeCommand {
+                pan: f64::NAN,
+                ..Default::default()
+            },
+        };
+        let c = live_command(&p, 1.0, Some(nan));
+        assert!(c.unwrap_err().contains("not finite"));
+        pv.step(&p, c, &Vector3::zeros(), 0.01);
+        assert_eq!(pv.rot, before.rot);
+        assert_eq!(pv.tip_depth, before.tip_depth);
+        assert!(pv
+            .report(&p, &Isometry3::identity(), &Vector3::zeros())
+            .ignored
+            .is_some());
+        let inf_stamp = Stamped {
+            stamp: f64::INFINITY,
+            value: ScopeCommand::default(),
+        };
+        assert!(live_command(&p, 1.0, Some(inf_stamp)).is_err());
+        let pan = ScopeCommand {
+            pan: 0.1,
+            ..Default::default()
+        };
+        let at = |stamp| Some(Stamped { stamp, value: pan });
+        assert_eq!(live_command(&p, 1.0, at(0.85)), Ok(Some(pan)), "0.15 s old: live");
+        assert_eq!(live_command(&p, 1.0, at(0.75)), Ok(None), "0.25 s old: dead-man");
+        assert!(live_command(&p, 1.0, at(1.5)).is_err(), "from the future");
+        assert_eq!(live_command(&p, 1.0, None), Ok(None));
+    }
+
+    #[test]
+    fn retract_withdraws_to_the_end_and_ignores_commands() {
+        let (p, mut pv) = setup();
+        pv.retract_to(-0.02);
+        let mut steps = 0;
+        while !pv.retracted() {
+            pv.step(&p, cmd(0.3, 0.0, 0.0, 0.02), &Vector3::zeros(), 0.01);
+            steps += 1;
+            assert!(steps < 1000);
+        }
+        assert_eq!(pv.target_depth(), -0.02);
+        assert!((steps as f64 - 0.05 / p.retract_speed / 0.01).abs() <= 1.0);
+        assert!(pv.direction().angle(&-Vector3::z()) < 1e-12);
+    }
+}

@@ -1,0 +1,371 @@
+//! After docking, on the simulated plant: dock with the controller, then steer the scope
+//! through the port with a script of surgeon's commands, and measure how well the port is
+//! held as the remote centre of motion ([`crate::control::pivot`]).
+//!
+//! **The true port** is where the abdominal wall holds the trocar: the anchor of the
+//! trocar's mount at its fulcrum ([`crate::sim::trocar::Trocar::anchor`]), which moves with
+//! the breathing. A scope that pivots about it leaves the wall where it is; one that
+//! pivots about another point drags the trocar, and the wall, across. (The trocar's own
+//! face port is no measure: the shaft lies in its bore, so it always passes within the
+//! bore's clearance of it, even when it drags the trocar centimetres.)
+//!
+//! Per control step while commanded: the distance of the true shaft line (the link-side tip
+//! pose's optical axis) from the true port, the controller's estimate of the force across
+//! the shaft and the simulator's true one, any hold. After the script's last command, a
+//! settling time and then the tip's largest distance from where it was (stillness).
+
+use std::sync::Arc;
+
+use nalgebra::{Point3, Vector3};
+use rand::{RngExt, SeedableRng};
+use serde::Serialize;
+
+use super::run::TrialParams;
+use crate::control::{ControlInput, Controller, ControllerParams, Phase, ScopeCommand, Stamped};
+use crate::kinematics::Kinematics;
+use crate::sim::{SimError, SimParams, SimWorld};
+
+/// One piece of a script: a command held for a duration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Segment {
+    /// How long, s.
+    pub duration: f64,
+    /// The command sent at every control step meanwhile.
+    pub command: ScopeCommand,
+}
+
+fn seg(duration: f64, pan: f64, tilt: f64, zoom: f64) -> Segment {
+    Segment {
+        duration,
+        command: ScopeCommand {
+            pan,
+            tilt,
+            roll: 0.0,
+            zoom,
+        },
+    }
+}
+
+/// Issue 16's "Done when": 2 s of pan at 0.17 rad/s, 2 s of tilt, the same back, 1 s in
+/// and 1 s out at 10 mm/s (then the run's silence).
+pub fn done_when_script() -> Vec<Segment> {
+    let w = 0.17;
+    vec![
+        seg(2.0, w, 0.0, 0.0),
+        seg(2.0, 0.0, w, 0.0),
+        seg(2.0, -w, 0.0, 0.0),
+        seg(2.0, 0.0, -w, 0.0),
+        seg(1.0, 0.0, 0.0, 0.01),
+        seg(1.0, 0.0, 0.0, -0.01),
+    ]
+}
+
+/// A random script: `n` segments of 0.5-2 s, each a pan/tilt at `speed` rad/s in a random
+/// direction, or (one in four) a zoom at 10 mm/s in or out; then, segment by segment, the
+/// same back in reverse order, so the scope returns near its start and stays in its cone.
+pub fn random_script(seed: u64, n: usize, speed: f64) -> Vec<Segment> {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let out: Vec<Segment> = (0..n)
+        .map(|_| {
+            let duration = rng.random_range(0.5..2.0);
+            if rng.random_bool(0.25) {
+                let zoom = if rng.random_bool(0.5) { 0.01 } else { -0.01 };
+                seg(duration, 0.0, 0.0, zoom)
+            } else {
+                let a: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+                seg(duration, speed * a.cos(), speed * a.sin(), 0.0)
+            }
+        })
+        .collect();
+    let back = out.iter().rev().map(|s| Segment {
+        duration: s.duration,
+        command: ScopeCommand {
+            pan: -s.command.pan,
+            tilt: -s.command.tilt,
+            roll: -s.command.roll,
+            zoom: -s.command.zoom,
+        },
+    });
+    out.iter().copied().chain(back).collect()
+}
+
+/// How a pivoting run went. Distances in m, forces in N, angles in deg.
+#[derive(Debug, Clone, Serialize)]
+pub struct PivotResult {
+    /// The world's seed.
+    pub seed: u64,
+    /// Whether the docking reached DONE (nothing else is measured otherwise).
+    pub docked: bool,
+    /// Why not, or why the run stopped early.
+    pub reason: String,
+    /// Docking time, s.
+    pub dock_time_s: f64,
+    /// The shaft line's distance from the true port while commanded: p95 and max.
+    pub distance_p95_m: f64,
+    /// ...
+    pub distance_max_m: f64,
+    /// The same at the start of the script (after docking).
+    pub distance_start_m: f64,
+    /// The largest angle of the shaft from its direction at DONE.
+    pub swept_deg: f64,
+    /// The controller's estimate of the force across the shaft while commanded: mean, max.
+    pub lateral_force_est_mean_n: f64,
+    /// ...
+    pub lateral_force_est_max_n: f64,
+    /// The true contact force across the shaft while commanded: mean, max.
+    pub lateral_force_true_mean_n: f64,
+    /// ...
+    pub lateral_force_true_max_n: f64,
+    /// Control steps with a hold (or any phase but DONE) while commanded.
+    pub held_steps: usize,
+    /// Control steps in which a limit stopped the command.
+    pub limited_steps: usize,
+    /// After the commands and a settling time: the tip's largest distance from where it
+    /// was at the settling time's end, and the shaft's p95 distance from the true port.
+    pub still_motion_m: f64,
+    /// ...
+    pub still_distance_p95_m: f64,
+    /// The fulcrum's adapted depth past the port at the end, m (the true one is the
+    /// trocar's `pivot_depth_m` below its face).
+    pub fulcrum_depth_m: f64,
+    /// The phase at the end.
+    pub final_phase: &'static str,
+}
+
+/// Durations of a pivoting run around its script.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PivotTiming {
+    /// Give up docking after this long, s.
+    pub dock_timeout_s: f64,
+    /// Wait this long after DONE before the script, s.
+    pub settle_before_s: f64,
+    /// After the script: settle this long, then measure stillness this long, s.
+    pub settle_after_s: f64,
+    /// ...
+    pub still_s: f64,
+}
+
+impl Default for PivotTiming {
+    fn default() -> Self {
+        Self {
+            dock_timeout_s: 20.0,
+            settle_before_s: 0.5,
+            settle_after_s: 0.5,
+            still_s: 2.0,
+        }
+    }
+}
+
+/// Distance of the line through `e` along unit `a` from `p`.
+fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
+    let u = p - e;
+    (u - a * a.dot(&u)).norm()
+}
+
+/// Samples while commanded and while still.
+#[derive(Default)]
+struct Series {
+    distance: Vec<f64>,
+    f_est: Vec<f64>,
+    f_true: Vec<f64>,
+    still_distance: Vec<f64>,
+    swept: f64,
+    held: usize,
+    limited: usize,
+    still_from: Option<Point3<f64>>,
+    still_motion: f64,
+}
+
+struct Loop<'a> {
+    world: SimWorld,
+    ctrl: Controller,
+    kin: &'a dyn Kinematics,
+    period: f64,
+    physics_per_tick: usize,
+}
+
+impl Loop<'_> {
+    /// One control step with `scope` sent now (if any); then the physics until the next.
+    fn tick(&mut self, scope: Option<ScopeCommand>) -> Result<crate::control::ControlOutput, SimError> {
+        let t = self.world.time();
+        let input = ControlInput {
+            now: t,
+            joints: Some(Stamped {
+                stamp: t,
+                value: self.world.joint_positions(),
+            }),
+            tau_ext: Some(Stamped {
+                stamp: t,
+                value: self.world.external_torques(),
+            }),
+            trocar: self.world.measure_trocar(t).map(|m| Stamped {
+                stamp: m.stamp,
+                value: m.pose,
+            }),
+            scope: scope.map(|value| Stamped { stamp: t, value }),
+        };
+        let out = self.ctrl.step(self.kin, &input);
+        if let Some(q) = out.command {
+            self.world.set_command(&q)?;
+        }
+        for _ in 0..self.physics_per_tick {
+            self.world.step_physics()?;
+        }
+        Ok(out)
+    }
+
+    fn shaft(&self) -> (Point3<f64>, Vector3<f64>) {
+        let tip = self.world.tip_pose();
+        (Point3::from(tip.translation.vector), tip.rotation * Vector3::z())
+    }
+
+    fn distance(&self) -> f64 {
+        let (e, a) = self.shaft();
+        line_distance(&e, &a, &self.world.trocar().anchor())
+    }
+}
+
+/// Dock in a fresh world of `seed`, then play `script` and measure (see the module doc).
+/// `controller` runs as the trials run it (its `dt` from the trial's control rate).
+pub fn run_pivot(
+    sim: &SimParams,
+    trial: &TrialParams,
+    controller: &ControllerParams,
+    kin: Arc<dyn Kinematics>,
+    seed: u64,
+    script: &[Segment],
+    timing: &PivotTiming,
+) -> Result<PivotResult, String> {
+    let params = ControllerParams {
+        dt: 1.0 / trial.control_rate_hz,
+        ..controller.clone()
+    };
+    let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
+    let ctrl = Controller::new(params, kin.limits().clone()).map_err(|e| e.to_string())?;
+    let period = 1.0 / trial.control_rate_hz;
+    let mut lp = Loop {
+        physics_per_tick: (period * sim.physics_rate_hz).round().max(1.0) as usize,
+        world,
+        ctrl,
+        kin: kin.as_ref(),
+        period,
+    };
+    lp.ctrl.start().map_err(|e| e.to_string())?;
+    let mut result = empty(seed);
+    let mut last = Phase::Idle;
+    while lp.world.time() < timing.dock_timeout_s && last != Phase::Done {
+        last = lp.tick(None).map_err(|e| e.to_string())?.phase;
+    }
+    if last != Phase::Done {
+        result.reason = format!("not DONE after {} s (phase {last})", timing.dock_timeout_s);
+        return Ok(result);
+    }
+    result.docked = true;
+    result.dock_time_s = lp.world.time();
+    play(&mut lp, script, timing, &mut result).map_err(|e| e.to_string())?;
+    Ok(result)
+}
+
+fn empty(seed: u64) -> PivotResult {
+    PivotResult {
+        seed,
+        docked: false,
+        reason: String::new(),
+        dock_time_s: f64::NAN,
+        distance_p95_m: f64::NAN,
+        distance_max_m: f64::NAN,
+        distance_start_m: f64::NAN,
+        swept_deg: 0.0,
+        lateral_force_est_mean_n: f64::NAN,
+        lateral_force_est_max_n: f64::NAN,
+        lateral_force_true_mean_n: f64::NAN,
+        lateral_force_true_max_n: f64::NAN,
+        held_steps: 0,
+        limited_steps: 0,
+        still_motion_m: f64::NAN,
+        still_distance_p95_m: f64::NAN,
+        fulcrum_depth_m: f64::NAN,
+        final_phase: "",
+    }
+}
+
+/// Settle, play the script, settle, watch the stillness; fill in `r`.
+fn play(lp: &mut Loop<'_>, script: &[Segment], timing: &PivotTiming, r: &mut PivotResult) -> Result<(), SimError> {
+    let period = lp.period;
+    let steps = |s: f64| (s / period).round() as usize;
+    for _ in 0..steps(timing.settle_before_s) {
+        lp.tick(None)?;
+    }
+    r.distance_start_m = lp.distance();
+    let a0 = lp.shaft().1;
+    let mut s = Series::default();
+    let mut out = None;
+    for segment in script {
+        for _ in 0..steps(segment.duration) {
+            let o = lp.tick(Some(segment.command))?;
+            let (_, a) = lp.shaft();
+            let f = lp.world.contact().force;
+            s.distance.push(lp.distance());
+            s.f_true.push((f - a * a.dot(&f)).norm());
+            s.f_est.push(o.pivot.map_or(f64::NAN, |p| p.lateral_force));
+            s.swept = s.swept.max(a.angle(&a0));
+            s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
+            s.limited += usize::from(o.pivot.is_some_and(|p| p.limit.is_some()));
+            if std::env::var("PIVOT_TRACE").is_ok() && s.distance.len() % 10 == 0 {
+                let pr = o.pivot.unwrap();
+                let an = lp.world.trocar().anchor();
+                let (e, a) = lp.shaft();
+                eprintln!(
+                    "t {:.2} d {:.2} rcm {:.2} fdepth {:.1} f-an {:?} piv-an {:.2} fest {:.2} ftrue {:.2} depth_an {:.1}",
+                    lp.world.time(),
+                    lp.distance() * 1e3,
+                    pr.shaft_distance * 1e3,
+                    pr.fulcrum_depth * 1e3,
+                    ((pr.fulcrum - an) * 1e3).map(|x| (x * 10.0).round() / 10.0),
+                    (lp.world.trocar().pivot() - an).norm() * 1e3,
+                    pr.lateral_force,
+                    (f - a * a.dot(&f)).norm(),
+                    a.dot(&(an - e)) * 1e3
+                );
+            }
+            out = Some(o);
+        }
+    }
+    for _ in 0..steps(timing.settle_after_s) {
+        out = Some(lp.tick(None)?);
+    }
+    for _ in 0..steps(timing.still_s) {
+        out = Some(lp.tick(None)?);
+        let (e, _) = lp.shaft();
+        let from = *s.still_from.get_or_insert(e);
+        s.still_motion = s.still_motion.max((e - from).norm());
+        s.still_distance.push(lp.distance());
+    }
+    let q = |v: &[f64], p: f64| {
+        let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+        v.sort_by(f64::total_cmp);
+        if v.is_empty() {
+            f64::NAN
+        } else {
+            super::plot::quantile(&v, p)
+        }
+    };
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
+    r.distance_p95_m = q(&s.distance, 0.95);
+    r.distance_max_m = max(&s.distance);
+    r.swept_deg = s.swept.to_degrees();
+    r.lateral_force_est_mean_n = mean(&s.f_est);
+    r.lateral_force_est_max_n = max(&s.f_est);
+    r.lateral_force_true_mean_n = mean(&s.f_true);
+    r.lateral_force_true_max_n = max(&s.f_true);
+    r.held_steps = s.held;
+    r.limited_steps = s.limited;
+    r.still_motion_m = s.still_motion;
+    r.still_distance_p95_m = q(&s.still_distance, 0.95);
+    if let Some(o) = out {
+        r.final_phase = o.phase.as_str();
+        r.fulcrum_depth_m = o.pivot.map_or(f64::NAN, |p| p.fulcrum_depth);
+    }
+    Ok(())
+}
