@@ -16,9 +16,10 @@
 //! latest-value input, stamped with its header stamp (a zero stamp: its arrival on the
 //! node's clock). A bad one (NaN, a frame other than '' or the tip's, a stamp that goes
 //! back) clears it, so the scope holds still, with a throttled warning; it is no fault of
-//! the docking and never holds the controller. The controller's dead-man drops a command
-//! older than `scope.command_timeout`; the loop drops one stamped further ahead of its clock
-//! than that (a clock that went back), which would otherwise count as fresh.
+//! the docking and never holds the controller. The controller's dead-man
+//! ([`crate::control::pivot::live_command`]) drops a command older than
+//! `scope.command_timeout`, and ignores one stamped further ahead of its clock (a clock that
+//! went back).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -42,8 +43,6 @@ pub struct InputReaders {
     tau_ext: SlotReader<Slot<JointVector>>,
     trocar: SlotReader<Slot<Isometry3<f64>>>,
     scope: SlotReader<Slot<ScopeCommand>>,
-    /// A scope command stamped further ahead of the loop's clock than this is dropped, s.
-    scope_ahead_limit: f64,
     faults: [SlotReader<Option<FaultText>>; 3],
     restarts: SlotReader<Option<Restart>>,
     last_restart: u64,
@@ -103,9 +102,8 @@ impl JointStream {
 impl InputReaders {
     /// The inputs of a control step at `now`, and the first input fault, if any.
     pub fn read(&mut self, now: f64) -> (ControlInput, Option<FaultText>) {
-        let limit = self.scope_ahead_limit;
         let input = ControlInput {
-            scope: self.scope.read().filter(|c| c.stamp - now <= limit),
+            scope: self.scope.read(),
             now,
             joints: self.joints.read(),
             tau_ext: self.tau_ext.read(),
@@ -288,7 +286,6 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
         tau_ext,
         trocar,
         scope,
-        scope_ahead_limit: p.controller.scope.command_timeout,
         faults: [jfault, tfault, pfault],
         restarts,
         last_restart: 0,
