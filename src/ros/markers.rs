@@ -381,17 +381,21 @@ mod tests {
         assert!((axis.points[1].z - (0.3 + style.axis_length)).abs() < 1e-12);
     }
 
-    #[test]
-    fn unknown_geometry_is_deleted() {
-        let scene = Scene {
+    /// A scene that knows nothing.
+    fn unknown() -> Scene {
+        Scene {
             trocar: None,
             goal: None,
             tip: None,
             f_ext: Vector3::zeros(),
             reference: None,
             pivot: None,
-        };
-        let a = docking_markers(rosrust::Time::new(), "b", &scene, &MarkerStyle::default());
+        }
+    }
+
+    #[test]
+    fn unknown_geometry_is_deleted() {
+        let a = docking_markers(rosrust::Time::new(), "b", &unknown(), &MarkerStyle::default());
         let del = visualization_msgs::Marker::DELETE as i32;
         assert_eq!(a.markers.len(), 11);
         assert!(a.markers.iter().all(|m| m.action == del));
@@ -403,11 +407,6 @@ mod tests {
         let half = 30f64.to_radians();
         let fulcrum = Point3::new(0.5, -0.1, 0.3);
         let scene = Scene {
-            trocar: None,
-            goal: None,
-            tip: None,
-            f_ext: Vector3::zeros(),
-            reference: None,
             pivot: Some(PivotReport {
                 fulcrum,
                 shaft_distance: 2e-4,
@@ -416,7 +415,10 @@ mod tests {
                 cone_axis: axis,
                 cone_half_angle: half,
                 limit: None,
+                ignored: None,
+                fulcrum_depth: 0.02,
             }),
+            ..unknown()
         };
         let style = MarkerStyle::default();
         let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);

@@ -156,7 +156,7 @@ impl Default for CheckParams {
             min_sweep_deg: 15.0,
             max_mean_force: 1.0,
             command_timeout: 0.2,
-            dead_man_margin_s: 0.3,
+            dead_man_margin_s: 0.1,
             max_still_motion: 0.0005,
             still_window_s: 2.0,
             retract_timeout: 30.0,

@@ -268,6 +268,94 @@ fn status_figures(status: &[(f64, StatusSample)], from: f64, to: f64) -> (usize,
     (window.len(), other, force, lateral)
 }
 
+/// What `scope_pivot` measured.
+#[derive(Debug, Clone, Default)]
+struct Figures {
+    /// Joint states and status while commanded.
+    counts: (usize, usize),
+    /// p95 distance of the shaft from the true port while commanded, m.
+    p95: f64,
+    /// Largest angle of the shaft from its first direction, rad.
+    sweep: f64,
+    /// Mean force estimate and lateral force while commanded, N.
+    force: (f64, f64),
+    /// Phases other than DONE while commanded.
+    others: Vec<String>,
+    /// Tip travel from the last command to the start of the still window, m.
+    travel: f64,
+    /// Tip motion over the still window in the base frame, and relative to the true port, m.
+    still: (f64, f64),
+}
+
+impl Figures {
+    /// Measure the run: commanded over [t0, t1], then silence.
+    fn measure(p: &CheckParams, kin: &LbrKinematics, rec: &Records, t0: f64, t1: f64) -> Result<Self, String> {
+        let joints = lock(&rec.joints).clone();
+        let truth = lock(&rec.truth).clone();
+        let tips = tips_between(kin, &joints, t0, t1)?;
+        let (distances, sweep) = pivot_figures(&tips, &truth);
+        let n = distances.len();
+        let (n_status, others, force, lateral) = status_figures(&lock(&rec.status), t0, t1);
+        let still_from = t1 + p.command_timeout + p.dead_man_margin_s;
+        let still = tips_between(kin, &joints, still_from, still_from + p.still_window_s)?;
+        let from_port: Vec<_> = still
+            .iter()
+            .filter_map(|(s, t)| {
+                let port = port_at(&truth, *s)?;
+                Some((
+                    *s,
+                    Isometry3::from_parts((t.translation.vector - port.coords).into(), t.rotation),
+                ))
+            })
+            .collect();
+        Ok(Self {
+            counts: (n, n_status),
+            p95: quantile(distances, 0.95),
+            sweep,
+            force: (force, lateral),
+            others,
+            travel: spread(&tips_between(kin, &joints, t1, still_from)?),
+            still: (spread(&still), spread(&from_port)),
+        })
+    }
+
+    fn text(&self, p: &CheckParams) -> String {
+        format!(
+            "shaft to the true port p95 {:.3} mm over {} joint states, sweep {:.1} deg, mean force estimate {:.2} N \
+             (lateral {:.2} N), travel after the last command {:.2} mm, then still within {:.3} mm over {} s \
+             ({:.3} mm relative to the true port)",
+            self.p95 * 1e3,
+            self.counts.0,
+            self.sweep.to_degrees(),
+            self.force.0,
+            self.force.1,
+            self.travel * 1e3,
+            self.still.0 * 1e3,
+            p.still_window_s,
+            self.still.1 * 1e3
+        )
+    }
+
+    /// Every bound the figures break, in words.
+    fn failures(&self, p: &CheckParams) -> Vec<String> {
+        let (n, n_status) = self.counts;
+        let max_travel = p.zoom_speed * (p.command_timeout + p.dead_man_margin_s);
+        let over = |v: f64, bound: f64| v.is_nan() || v > bound;
+        [
+            (n < 100 || n_status < 100).then(|| format!("only {n} joint states and {n_status} status while commanded")),
+            over(self.p95, p.max_shaft_distance).then(|| format!("shaft p95 above {} mm", p.max_shaft_distance * 1e3)),
+            (self.sweep.to_degrees() < p.min_sweep_deg).then(|| format!("swept less than {} deg", p.min_sweep_deg)),
+            over(self.force.0, p.max_mean_force).then(|| format!("mean force above {} N", p.max_mean_force)),
+            (!self.others.is_empty()).then(|| format!("left DONE while commanded: {:?}", self.others)),
+            over(self.travel, max_travel).then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
+            over(self.still.0, p.max_still_motion).then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
+        ]
+        .into_iter()
+        .flatten()
+        .collect()
+    }
+}
+
 /// `scope_pivot`: see the module documentation.
 pub fn scope_pivot(p: &CheckParams) -> Result<String, String> {
     let kin = LbrKinematics::from_model_or_file(LbrModel::Med7, &p.urdf_file, TIP_LINK).map_err(|e| e.to_string())?;
@@ -275,48 +363,19 @@ pub fn scope_pivot(p: &CheckParams) -> Result<String, String> {
     dock(p)?;
     sleep_ros(p.settle_s);
     let (t0, t1) = drive(p)?;
-    let still_from = t1 + p.command_timeout + p.dead_man_margin_s;
-    sleep_ros(still_from - t1 + p.still_window_s + 0.2);
-    let joints = lock(&rec.joints).clone();
-    let truth = lock(&rec.truth).clone();
-    let tips = tips_between(&kin, &joints, t0, t1)?;
-    let (distances, sweep) = pivot_figures(&tips, &truth);
-    let (n, p95) = (distances.len(), quantile(distances, 0.95));
-    let (n_status, others, force, lateral) = status_figures(&lock(&rec.status), t0, t1);
-    let travel = spread(&tips_between(&kin, &joints, t1, still_from)?);
-    let still = spread(&tips_between(&kin, &joints, still_from, still_from + p.still_window_s)?);
-    let figures = format!(
-        "shaft to the true port p95 {:.3} mm over {n} joint states, sweep {:.1} deg, mean force estimate {:.2} N \
-         (lateral {:.2} N), travel after the last command {:.2} mm, then still within {:.3} mm over {} s",
-        p95 * 1e3,
-        sweep.to_degrees(),
-        force,
-        lateral,
-        travel * 1e3,
-        still * 1e3,
-        p.still_window_s
-    );
-    let max_travel = p.zoom_speed * (p.command_timeout + p.dead_man_margin_s);
-    let failures: Vec<String> = [
-        (n < 100 || n_status < 100).then(|| format!("only {n} joint states and {n_status} status while commanded")),
-        (p95.is_nan() || p95 > p.max_shaft_distance)
-            .then(|| format!("shaft p95 above {} mm", p.max_shaft_distance * 1e3)),
-        (sweep.to_degrees() < p.min_sweep_deg).then(|| format!("swept less than {} deg", p.min_sweep_deg)),
-        (force.is_nan() || force > p.max_mean_force).then(|| format!("mean force above {} N", p.max_mean_force)),
-        (!others.is_empty()).then(|| format!("left DONE while commanded: {others:?}")),
-        (travel.is_nan() || travel > max_travel)
-            .then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
-        (still.is_nan() || still > p.max_still_motion)
-            .then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
-    ]
-    .into_iter()
-    .flatten()
-    .collect();
-    if !failures.is_empty() {
-        return Err(format!("{}: {figures}", failures.join("; ")));
+    sleep_ros(p.command_timeout + p.dead_man_margin_s + p.still_window_s + 0.2);
+    let figures = Figures::measure(p, &kin, &rec, t0, t1)?;
+    let mut failures = figures.failures(p);
+    let retracted = retract(p, &rec.status).unwrap_or_else(|e| {
+        failures.push(e);
+        f64::NAN
+    });
+    let text = figures.text(p);
+    if failures.is_empty() {
+        Ok(format!("{text}; ~retract: RETRACT then IDLE in {retracted:.1} s"))
+    } else {
+        Err(format!("{}: {text}", failures.join("; ")))
     }
-    let took = retract(p, &rec.status)?;
-    Ok(format!("{figures}; ~retract: RETRACT then IDLE in {took:.1} s"))
 }
 
 #[cfg(test)]

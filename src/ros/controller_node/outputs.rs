@@ -2,7 +2,8 @@
 //! [`StepRecord`] per step into a lock-free queue ([`crate::ros::handover::outputs`]) and
 //! a publisher thread turns it into messages (rosrust's publish serialises and allocates):
 //! the joint command every step, `/docking/status` and `/docking/f_ext` at the status rate,
-//! markers and tf at the markers rate.
+//! markers and tf at the markers rate. A scope command the controller ignored (not finite,
+//! stamped in the future) is logged here, throttled.
 
 use std::time::Duration;
 
@@ -15,7 +16,7 @@ use crate::ros::convert;
 use crate::ros::handover::{FaultText, OutputReceiver, RecvError};
 use crate::ros::markers::{self, Scene};
 use crate::ros::msgs::{geometry_msgs, std_msgs, tf2_msgs, trajectory_msgs, trocar_docking, visualization_msgs};
-use crate::ros::node::{ros_err, CommandType, NodeError};
+use crate::ros::node::{ros_err, CommandType, NodeError, Throttle};
 use crate::ros::stats::Percentiles;
 
 /// What the loop hands the publisher after a step.
@@ -58,6 +59,7 @@ struct Outputs {
     f_ext: rosrust::Publisher<geometry_msgs::WrenchStamped>,
     markers: rosrust::Publisher<visualization_msgs::MarkerArray>,
     tf: rosrust::Publisher<tf2_msgs::TFMessage>,
+    ignored_log: Throttle,
 }
 
 impl Outputs {
@@ -73,6 +75,7 @@ impl Outputs {
             f_ext: rosrust::publish(&p.f_ext_topic, 10).map_err(ros_err)?,
             markers: rosrust::publish(&p.markers_topic, 2).map_err(ros_err)?,
             tf: rosrust::publish(crate::ros::topics::TF, 10).map_err(ros_err)?,
+            ignored_log: Throttle::new(Duration::from_secs(2)),
         })
     }
 
@@ -93,6 +96,11 @@ impl Outputs {
     }
 
     fn publish(&self, p: &ControllerNodeParams, r: &StepRecord) {
+        if let Some(why) = r.out.pivot.and_then(|v| v.ignored) {
+            if self.ignored_log.ready() {
+                rosrust::ros_warn!("{why}");
+            }
+        }
         if let Some(q) = &r.out.command {
             self.command(p, r.stamp, q);
         }
@@ -278,6 +286,8 @@ mod tests {
             cone_axis: nalgebra::Vector3::z(),
             cone_half_angle: 0.5,
             limit: Some(ScopeLimit::MaxDepth),
+            ignored: None,
+            fulcrum_depth: 0.02,
         };
         let held = ControlOutput {
             pivot: Some(pivot),
