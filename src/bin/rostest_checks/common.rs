@@ -108,6 +108,8 @@ pub struct CheckParams {
     pub still_window_s: f64,
     /// `scope_pivot`: wall time for `~retract` to reach IDLE, s.
     pub retract_timeout: f64,
+    /// `scope_joy`: the joystick node's YAML (its mapping, rate, topics).
+    pub joy_config: String,
 }
 
 impl Default for CheckParams {
@@ -160,6 +162,7 @@ impl Default for CheckParams {
             max_still_motion: 0.0005,
             still_window_s: 2.0,
             retract_timeout: 30.0,
+            joy_config: String::new(),
         }
     }
 }

@@ -11,6 +11,12 @@
 //! travels at most the zoom speed times `command_timeout + dead_man_margin_s`, and from
 //! then on stays within `max_still_motion` over `still_window_s`; and `~retract` leads
 //! through RETRACT to IDLE within `retract_timeout`.
+//!
+//! `scope_joy` checks the joystick node alone: the test node plays a joystick (Joy at
+//! 20 Hz) and reads `/docking/scope_command`. Held: commands at the node's rate, each the
+//! pure mapping's ([`trocar_docking::ros::joy`]) of the played Joy under the same YAML, in
+//! the tip's frame, stamped; released: one zero command, then silence; a joystick that stops
+//! while held: one zero command within `joy_timeout` and a tick, then silence.
 
 use std::sync::{Arc, Mutex};
 
@@ -21,8 +27,10 @@ use ::trocar_docking::control::ScopeCommand;
 use ::trocar_docking::kinematics::lbr::LbrModel;
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics, TIP_LINK};
 use ::trocar_docking::ros::convert;
+use ::trocar_docking::ros::joy::JoyParams;
 use ::trocar_docking::ros::msgs::{geometry_msgs, sensor_msgs, trocar_docking};
 use ::trocar_docking::ros::node::lock;
+use ::trocar_docking::ros::params;
 
 /// A time series recorded from a topic: (stamp s, value).
 type Series<T> = Arc<Mutex<Vec<(f64, T)>>>;
@@ -373,6 +381,117 @@ pub fn scope_pivot(p: &CheckParams) -> Result<String, String> {
     let text = figures.text(p);
     if failures.is_empty() {
         Ok(format!("{text}; ~retract: RETRACT then IDLE in {retracted:.1} s"))
+    } else {
+        Err(format!("{}: {text}", failures.join("; ")))
+    }
+}
+
+/// A joystick played by the test node: publish `axes` with the dead-man `held` at 20 Hz for
+/// `seconds` (wall time).
+fn play_joy(publ: &rosrust::Publisher<sensor_msgs::Joy>, j: &JoyParams, axes: &[f32], held: bool, seconds: f64) {
+    let mut buttons = vec![0; usize::try_from(j.deadman_button).unwrap_or(0) + 1];
+    if let Some(b) = buttons.last_mut() {
+        *b = i32::from(held);
+    }
+    let msg = sensor_msgs::Joy {
+        axes: axes.to_vec(),
+        buttons,
+        ..Default::default()
+    };
+    let t0 = std::time::Instant::now();
+    while t0.elapsed().as_secs_f64() < seconds {
+        let _ = publ.send(msg.clone());
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+}
+
+/// The commands that arrived since `from` (an index into the record): (count, zero ones).
+fn arrived(got: &Series<ScopeCommand>, from: usize) -> (usize, usize) {
+    let g = lock(got);
+    let new = &g[from.min(g.len())..];
+    (
+        new.len(),
+        new.iter().filter(|(_, c)| *c == ScopeCommand::default()).count(),
+    )
+}
+
+/// `scope_joy`: see the module documentation.
+pub fn scope_joy(p: &CheckParams) -> Result<String, String> {
+    let j: JoyParams = params::from_yaml_file(std::path::Path::new(&p.joy_config)).map_err(|e| e.to_string())?;
+    let got: Series<ScopeCommand> = Series::default();
+    let frame = j.frame_id.clone();
+    let bad: Arc<Mutex<Vec<String>>> = Arc::default();
+    let bad_w = bad.clone();
+    let _sub = record(&j.command_topic, &got, move |m: &geometry_msgs::TwistStamped| {
+        let c = convert::scope_command("joy", m, &frame);
+        if m.header.frame_id != frame || m.header.stamp.seconds() <= 0.0 || c.is_err() {
+            lock(&bad_w).push(format!("{:?} {} {:?}", m.header.frame_id, m.header.stamp.seconds(), c));
+        }
+        Some((convert::seconds(rosrust::now()), c.ok()?))
+    })?;
+    let publ = rosrust::publish::<sensor_msgs::Joy>(&j.joy_topic, 10).map_err(|e| e.to_string())?;
+    let axes = [0.8, -0.5, 0.0, 0.3, 1.0, 0.0];
+    wait_for(p.startup_timeout, || (publ.subscriber_count() > 0).then_some(()))
+        .ok_or("scope_joy never subscribed to the joystick")?;
+    play_joy(&publ, &j, &axes, false, 0.5);
+    let silent_released = arrived(&got, 0).0;
+    let held_from = lock(&got).len();
+    play_joy(&publ, &j, &axes, true, 2.0);
+    let (n_held, _) = arrived(&got, held_from);
+    let expected = j
+        .command(&sensor_msgs::Joy {
+            axes: axes.to_vec(),
+            buttons: vec![1; usize::try_from(j.deadman_button).unwrap_or(0) + 1],
+            ..Default::default()
+        })
+        .map_err(|e| e.to_string())?
+        .ok_or("the mapping gave no command with the dead-man held")?;
+    let last = lock(&got).last().map(|c| c.1);
+    let released_from = lock(&got).len();
+    play_joy(&publ, &j, &axes, false, 1.0);
+    let released = arrived(&got, released_from);
+    play_joy(&publ, &j, &axes, true, 0.5);
+    let stopped_from = lock(&got).len();
+    std::thread::sleep(std::time::Duration::from_secs_f64(j.joy_timeout + 1.0));
+    let (n_after, zeros_after) = arrived(&got, stopped_from);
+    let ticks_timeout = (j.joy_timeout * j.rate_hz).ceil() as usize + 2;
+    let rate = n_held as f64 / 2.0;
+    let mut failures = Vec::new();
+    if silent_released != 0 {
+        failures.push(format!("{silent_released} commands with the dead-man released"));
+    }
+    if (rate - j.rate_hz).abs() > 0.25 * j.rate_hz {
+        failures.push(format!("{rate:.1} commands/s held, expected {} Hz", j.rate_hz));
+    }
+    if last
+        .map(|c| {
+            (c.pan - expected.pan).abs()
+                + (c.tilt - expected.tilt).abs()
+                + (c.roll - expected.roll).abs()
+                + (c.zoom - expected.zoom).abs()
+                > 1e-6
+        })
+        .unwrap_or(true)
+    {
+        failures.push(format!("held: sent {last:?}, the mapping gives {expected:?}"));
+    }
+    if released != (1, 1) {
+        failures.push(format!(
+            "released: {} commands ({} zero), expected one zero",
+            released.0, released.1
+        ));
+    }
+    if zeros_after != 1 || n_after > ticks_timeout {
+        failures.push(format!("joystick stopped: {n_after} commands ({zeros_after} zero), expected at most {ticks_timeout} ending in one zero"));
+    }
+    if let Some(b) = lock(&bad).first() {
+        failures.push(format!("a command off its frame, unstamped or malformed: {b}"));
+    }
+    let text = format!(
+        "held: {rate:.1} commands/s, {expected:?}; released: one stop; joystick stopped: {n_after} commands then silence"
+    );
+    if failures.is_empty() {
+        Ok(text)
     } else {
         Err(format!("{}: {text}", failures.join("; ")))
     }
