@@ -9,8 +9,10 @@
 //! averaging at most `max_mean_force` while commanded; the phase DONE throughout (no HOLD);
 //! the dead-man: after the last command (a zoom out, never followed by a stop) the tip
 //! travels at most the zoom speed times `command_timeout + dead_man_margin_s`, and from
-//! then on stays within `max_still_motion` over `still_window_s`; and `~retract` leads
-//! through RETRACT to IDLE within `retract_timeout`.
+//! then on stays within `max_still_motion` over `still_window_s`; bad commands (a pan in
+//! the base frame, then a NaN pan, 0.5 s each) move the scope by no more than
+//! `max_still_motion` and leave it DONE; and `~retract` leads through RETRACT to IDLE
+//! within `retract_timeout`.
 //!
 //! `scope_joy` checks the joystick node alone: the test node plays a joystick (Joy at
 //! 20 Hz) and reads `/docking/scope_command`. Held: commands at the node's rate, each the
@@ -113,12 +115,11 @@ fn sequence(p: &CheckParams) -> Vec<(ScopeCommand, f64)> {
     ]
 }
 
-/// Publish the sequence at `scope_rate_hz`, stamped with the ROS clock; returns its start
-/// and end (ROS time, s). The schedule runs on the ROS clock (the simulator's).
-fn drive(p: &CheckParams) -> Result<(f64, f64), String> {
+/// Publish `steps` in `frame` at `scope_rate_hz`, stamped with the ROS clock; returns
+/// their start and end (ROS time, s). The schedule runs on the ROS clock (the simulator's).
+fn drive(p: &CheckParams, steps: &[(ScopeCommand, f64)], frame: &str) -> Result<(f64, f64), String> {
     let publ = rosrust::publish::<geometry_msgs::TwistStamped>(&p.scope_command_topic, 10)
         .map_err(|e| format!("publish {}: {e}", p.scope_command_topic))?;
-    let steps = sequence(p);
     let total: f64 = steps.iter().map(|s| s.1).sum();
     let t0 = convert::seconds(rosrust::now());
     let period = std::time::Duration::from_secs_f64(1.0 / p.scope_rate_hz);
@@ -136,7 +137,7 @@ fn drive(p: &CheckParams) -> Result<(f64, f64), String> {
                 left < 0.0
             })
             .map_or(ScopeCommand::default(), |s| s.0);
-        let _ = publ.send(convert::scope_twist(now, &p.tip_frame, &cmd));
+        let _ = publ.send(convert::scope_twist(now, frame, &cmd));
         std::thread::sleep(period);
     }
 }
@@ -364,23 +365,54 @@ impl Figures {
     }
 }
 
+/// Bad commands: a pan in the base frame, then a NaN pan, 0.5 s each; the tip's motion
+/// from their start to 0.3 s after (m), and the phases other than DONE meanwhile.
+fn bad_commands(p: &CheckParams, kin: &LbrKinematics, rec: &Records) -> Result<(f64, Vec<String>), String> {
+    let pan = ScopeCommand {
+        pan: p.pan_speed,
+        ..ScopeCommand::default()
+    };
+    let nan = ScopeCommand {
+        pan: f64::NAN,
+        ..ScopeCommand::default()
+    };
+    let (t0, _) = drive(p, &[(pan, 0.5)], ::trocar_docking::kinematics::BASE_LINK)?;
+    let (_, t1) = drive(p, &[(nan, 0.5)], &p.tip_frame)?;
+    sleep_ros(0.5);
+    let joints = lock(&rec.joints).clone();
+    let moved = spread(&tips_between(kin, &joints, t0, t1 + 0.3)?);
+    let (_, others, _, _) = status_figures(&lock(&rec.status), t0, t1 + 0.3);
+    Ok((moved, others))
+}
+
 /// `scope_pivot`: see the module documentation.
 pub fn scope_pivot(p: &CheckParams) -> Result<String, String> {
     let kin = LbrKinematics::from_model_or_file(LbrModel::Med7, &p.urdf_file, TIP_LINK).map_err(|e| e.to_string())?;
     let (rec, _subs) = Records::subscribe(p)?;
     dock(p)?;
     sleep_ros(p.settle_s);
-    let (t0, t1) = drive(p)?;
+    let (t0, t1) = drive(p, &sequence(p), &p.tip_frame)?;
     sleep_ros(p.command_timeout + p.dead_man_margin_s + p.still_window_s + 0.2);
     let figures = Figures::measure(p, &kin, &rec, t0, t1)?;
     let mut failures = figures.failures(p);
+    let bad = bad_commands(p, &kin, &rec)?;
+    if bad.0.is_nan() || bad.0 > p.max_still_motion || !bad.1.is_empty() {
+        failures.push(format!(
+            "bad commands moved the scope {:.3} mm (phases {:?})",
+            bad.0 * 1e3,
+            bad.1
+        ));
+    }
     let retracted = retract(p, &rec.status).unwrap_or_else(|e| {
         failures.push(e);
         f64::NAN
     });
     let text = figures.text(p);
     if failures.is_empty() {
-        Ok(format!("{text}; ~retract: RETRACT then IDLE in {retracted:.1} s"))
+        Ok(format!(
+            "{text}; bad commands (base frame, NaN) moved it {:.3} mm; ~retract: RETRACT then IDLE in {retracted:.1} s",
+            bad.0 * 1e3
+        ))
     } else {
         Err(format!("{}: {text}", failures.join("; ")))
     }
