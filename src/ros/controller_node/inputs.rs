@@ -166,24 +166,15 @@ impl<T: Copy + Send> Feed<T> {
         }
     }
 
-    /// Take a converted message; `true` when it was accepted as the newest value.
+    /// Take a converted message; `true` when it was accepted as the newest value. A
+    /// rejected one is logged (throttled for the scope command).
     fn accept(&self, stamp: f64, value: Result<T, InputError>) -> bool {
-        let checked = value.and_then(|v| self.in_order(stamp).map(|fresh| fresh.then_some(v)));
-        match checked {
-            Ok(None) => false,
-            Ok(Some(value)) => {
-                self.value.write(Some(Stamped { stamp, value }));
-                if let OnReject::Fault(f) = &self.on_reject {
-                    f.write(None);
-                }
-                true
-            }
+        match self.take(stamp, value) {
+            Ok(fresh) => fresh,
             Err(e) => {
-                self.value.write(None);
                 match &self.on_reject {
-                    OnReject::Fault(f) => {
+                    OnReject::Fault(_) => {
                         rosrust::ros_warn!("input rejected, holding: {e}");
-                        f.write(Some(FaultText::from_display(&e)));
                     }
                     OnReject::Log(t) => {
                         if t.ready() {
@@ -192,6 +183,29 @@ impl<T: Copy + Send> Feed<T> {
                     }
                 }
                 false
+            }
+        }
+    }
+
+    /// Store a converted message: `Ok(true)` the newest value, `Ok(false)` a duplicate
+    /// (dropped), `Err` rejected: the input is cleared (and the fault set, for a docking input).
+    fn take(&self, stamp: f64, value: Result<T, InputError>) -> Result<bool, InputError> {
+        let checked = value.and_then(|v| self.in_order(stamp).map(|fresh| fresh.then_some(v)));
+        let fault = match &self.on_reject {
+            OnReject::Fault(f) => Some(f),
+            OnReject::Log(_) => None,
+        };
+        match checked {
+            Ok(None) => Ok(false),
+            Ok(Some(value)) => {
+                self.value.write(Some(Stamped { stamp, value }));
+                fault.inspect(|f| f.write(None));
+                Ok(true)
+            }
+            Err(e) => {
+                self.value.write(None);
+                fault.inspect(|f| f.write(Some(FaultText::from_display(&e))));
+                Err(e)
             }
         }
     }
@@ -315,5 +329,32 @@ mod tests {
         let order = s.observe(3.002, &reversed).expect("names in another order");
         assert!(order.names_reordered && order.seq == 3);
         assert_eq!(s.observe(3.004, &reversed), None, "the new order is now the stream's");
+    }
+
+    #[test]
+    fn a_bad_scope_command_clears_the_input_and_holds_no_fault() {
+        let epoch = Arc::new(AtomicU64::new(0));
+        let throttle = Throttle::new(SCOPE_LOG_PERIOD);
+        let (f, mut r) = feed_with::<ScopeCommand>("/docking/scope_command", &epoch, false, OnReject::Log(throttle));
+        let pan = ScopeCommand {
+            pan: 0.1,
+            ..ScopeCommand::default()
+        };
+        assert_eq!(f.take(1.0, Ok(pan)), Ok(true));
+        assert_eq!(r.read().map(|c| (c.stamp, c.value)), Some((1.0, pan)));
+        let bad = convert::scope_command(
+            "t",
+            &convert::scope_twist(convert::ros_time(1.1), "lbr_link_0", &pan),
+            "endoscope_tip",
+        );
+        assert!(matches!(f.take(1.1, bad), Err(InputError::WrongFrame { .. })));
+        assert_eq!(r.read(), None, "a rejected command stops the scope");
+        assert_eq!(f.take(1.2, Ok(pan)), Ok(true));
+        assert!(f.take(1.15, Ok(pan)).is_err(), "a stamp that goes back is rejected");
+        assert_eq!(r.read(), None);
+        // A clock that went back starts the order afresh.
+        epoch.fetch_add(1, Ordering::Release);
+        assert_eq!(f.take(0.5, Ok(pan)), Ok(true));
+        assert!(r.read().is_some());
     }
 }
