@@ -1,13 +1,21 @@
-//! After docking, closed loop on the realistic simulated plant (`config/sim.yaml`'s
-//! `realistic` protocol, the shipped `config/controller.yaml`): issue 16's "Done when"
-//! sequence, the fulcrum's adaptation, retract.
+//! After docking, in closed loop on the realistic simulated plant (`config/sim.yaml`'s
+//! `realistic` protocol: breathing trocar on a compliant mount, seal, elastic joints, torque
+//! model error, a biased 15 Hz pose sensor) with the shipped `config/controller.yaml`:
+//! issue 16's "Done when" sequence, the fulcrum's adaptation against a fixed fulcrum and a
+//! wrong prior, a biased trocar estimate, the dead-man and bad commands, retract.
+//!
+//! The bounds are the measured figures (README, "After docking") with a margin; where they
+//! are wider than the issue's targets, the README says so and why.
 
 use std::sync::Arc;
 
+use trocar_docking::control::{ControllerParams, Phase, ScopeCommand, Stamped};
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{Kinematics, LbrKinematics};
 use trocar_docking::trials::config::{load_controller, SimConfig};
-use trocar_docking::trials::pivot::{done_when_script, run_pivot, PivotResult, PivotTiming};
+use trocar_docking::trials::pivot::{
+    done_when_script, fixed_fulcrum, run_pivot, PivotResult, PivotSession, PivotTiming,
+};
 
 fn kin() -> Arc<dyn Kinematics> {
     Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap())
@@ -17,26 +25,230 @@ fn realistic() -> SimConfig {
     SimConfig::load_default().unwrap().with_protocol("realistic").unwrap()
 }
 
-fn run(seed: u64) -> PivotResult {
-    let cfg = realistic();
-    let path = std::env::var("PIVOT_CONTROLLER").ok().map(std::path::PathBuf::from);
-    let controller = load_controller(path.as_deref()).unwrap();
-    run_pivot(
+fn shipped() -> ControllerParams {
+    load_controller(None).unwrap()
+}
+
+fn run(cfg: &SimConfig, controller: &ControllerParams, seed: u64) -> PivotResult {
+    let r = run_pivot(
         &cfg.sim,
         &cfg.trial,
-        &controller,
+        controller,
         kin(),
         seed,
         &done_when_script(),
         &PivotTiming::default(),
     )
-    .unwrap()
+    .unwrap();
+    eprintln!("{}", serde_json::to_string(&r).unwrap());
+    assert!(r.docked, "seed {seed}: {}", r.reason);
+    r
+}
+
+const SEEDS: [u64; 3] = [1, 2, 3];
+
+#[test]
+fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
+    let cfg = realistic();
+    for seed in SEEDS {
+        let r = run(&cfg, &shipped(), seed);
+        assert_eq!(r.final_phase, "DONE");
+        assert_eq!(r.held_steps, 0, "seed {seed}: a hold while commanded");
+        assert!(r.swept_deg >= 15.0, "seed {seed}: swept {:.1} deg", r.swept_deg);
+        assert!(
+            r.lateral_force_est_mean_n <= 1.0,
+            "seed {seed}: mean force estimate {:.2} N",
+            r.lateral_force_est_mean_n
+        );
+        assert!(
+            r.lateral_force_true_max_n <= 5.0,
+            "seed {seed}: {:.2} N",
+            r.lateral_force_true_max_n
+        );
+        // The wall dragged by at most 1.5 mm (p95); the shaft line within 4.5 mm of the
+        // port (it tilts in the bore: README).
+        assert!(
+            r.wall_displacement_p95_m <= 0.0015,
+            "seed {seed}: {:.2} mm",
+            r.wall_displacement_p95_m * 1e3
+        );
+        assert!(
+            r.distance_p95_m <= 0.0045,
+            "seed {seed}: {:.2} mm",
+            r.distance_p95_m * 1e3
+        );
+        // Still once the commands stop (relative to the breathing port, across the shaft),
+        // while the port goes on breathing.
+        assert!(
+            r.still_motion_port_m <= 0.0012,
+            "seed {seed}: {:.2} mm",
+            r.still_motion_port_m * 1e3
+        );
+        assert!(
+            r.port_motion_m > 0.002,
+            "seed {seed}: breathing {:.2} mm",
+            r.port_motion_m * 1e3
+        );
+    }
 }
 
 #[test]
-fn explore() {
-    for seed in [3] {
-        let r = run(seed);
-        eprintln!("{}", serde_json::to_string(&r).unwrap());
+fn the_adapted_fulcrum_drags_the_wall_less_than_a_fixed_one() {
+    let cfg = realistic();
+    let (mut adapted, mut fixed) = (0.0, 0.0);
+    let (mut f_adapted, mut f_fixed) = (0.0, 0.0);
+    for seed in SEEDS {
+        let a = run(&cfg, &shipped(), seed);
+        let f = run(&cfg, &fixed_fulcrum(&shipped()), seed);
+        adapted += a.wall_displacement_p95_m;
+        fixed += f.wall_displacement_p95_m;
+        f_adapted += a.lateral_force_true_mean_n;
+        f_fixed += f.lateral_force_true_mean_n;
     }
+    assert!(
+        adapted < 0.6 * fixed,
+        "wall displacement p95 sums: {adapted} vs {fixed}"
+    );
+    assert!(
+        f_adapted < 0.8 * f_fixed,
+        "true lateral force sums: {f_adapted} vs {f_fixed}"
+    );
+}
+
+#[test]
+fn a_wrong_prior_depth_is_corrected_while_pivoting() {
+    let cfg = realistic();
+    let truth = cfg.sim.trocar.pivot_depth_m;
+    for prior in [0.0, 0.045] {
+        let mut c = shipped();
+        c.scope.fulcrum.prior_depth = prior;
+        let r = run(&cfg, &c, 2);
+        assert!(
+            (r.fulcrum_depth_m - truth).abs() < 0.6 * (prior - truth).abs(),
+            "prior {prior}: ended at {:.1} mm (the wall holds at {truth})",
+            r.fulcrum_depth_m * 1e3
+        );
+    }
+}
+
+#[test]
+fn a_biased_trocar_estimate_does_not_bias_the_fulcrum() {
+    let mut cfg = realistic();
+    // Up to 6 mm off (uniform length, random direction), no rotation.
+    cfg.sim.measurement.bias_position_m = 0.006;
+    cfg.sim.measurement.bias_rotation_rad = 0.0;
+    cfg.sim.measurement.bias_frame = trocar_docking::sim::noise::BiasFrame::Port;
+    let mut biased = 0;
+    for seed in SEEDS {
+        let r = run(&cfg, &shipped(), seed);
+        if r.estimate_error_m > 0.0015 {
+            biased += 1;
+            assert!(r.fulcrum_error_start_m < 0.4 * r.estimate_error_m, "seed {seed}");
+        }
+        assert!(
+            r.fulcrum_error_start_m < 0.0015 && r.fulcrum_error_end_m < 0.0015,
+            "seed {seed}: estimate {:.2} mm off, fulcrum {:.2} then {:.2} mm",
+            r.estimate_error_m * 1e3,
+            r.fulcrum_error_start_m * 1e3,
+            r.fulcrum_error_end_m * 1e3
+        );
+    }
+    assert!(biased >= 2, "only {biased} estimates were off by more than 1.5 mm");
+}
+
+fn docked(seed: u64) -> PivotSession {
+    let cfg = realistic();
+    PivotSession::dock(&cfg.sim, &cfg.trial, &shipped(), kin(), seed, 20.0)
+        .unwrap()
+        .unwrap()
+}
+
+#[test]
+fn old_or_bad_commands_hold_still_and_fresh_ones_steer() {
+    let mut s = docked(2);
+    let a0 = s.shaft().1;
+    let pan = ScopeCommand {
+        pan: 0.17,
+        ..Default::default()
+    };
+    // 0.3 s old (dead-man at 0.2 s): nothing moves.
+    for _ in 0..100 {
+        let t = s.world().time();
+        let o = s
+            .tick_stamped(Some(Stamped {
+                stamp: t - 0.3,
+                value: pan,
+            }))
+            .unwrap();
+        assert_eq!(o.phase, Phase::Done);
+        assert_eq!(
+            o.pivot.unwrap().ignored,
+            None,
+            "an old command is silence, not an error"
+        );
+    }
+    assert!(
+        s.shaft().1.angle(&a0).to_degrees() < 0.3,
+        "{}",
+        s.shaft().1.angle(&a0).to_degrees()
+    );
+    // Not finite: ignored, with the reason, and nothing jumps.
+    let mut last: Option<trocar_docking::kinematics::JointVector> = None;
+    for bad in [f64::NAN, f64::INFINITY] {
+        for _ in 0..50 {
+            let o = s.tick(Some(ScopeCommand { tilt: bad, ..pan })).unwrap();
+            assert!(o.pivot.unwrap().ignored.unwrap().contains("not finite"));
+            let q = o.command.unwrap();
+            if let Some(l) = last {
+                // Well inside the guard's per-step box (0.5 x 98 deg/s x 10 ms = 8.6 mrad).
+                assert!((q - l).amax() < 3e-3, "a step of {} rad", (q - l).amax());
+            }
+            last = Some(q);
+        }
+    }
+    assert!(s.shaft().1.angle(&a0).to_degrees() < 0.3);
+    // Fresh: 1 s of pan at 0.17 rad/s turns the shaft by about 10 deg.
+    for _ in 0..100 {
+        s.tick(Some(pan)).unwrap();
+    }
+    let turned = s.shaft().1.angle(&a0).to_degrees();
+    assert!((7.0..12.0).contains(&turned), "{turned} deg");
+}
+
+#[test]
+fn retract_withdraws_to_the_stand_off_point_then_idles() {
+    let c = shipped();
+    let mut s = docked(1);
+    let mut max_force: f64 = 0.0;
+    assert!(s.controller().retract().is_ok());
+    let mut phase = Phase::Retract;
+    let mut depth = f64::NAN;
+    while phase == Phase::Retract {
+        let o = s
+            .tick(Some(ScopeCommand {
+                pan: 0.3,
+                ..Default::default()
+            }))
+            .unwrap();
+        assert!(o.hold.is_none(), "{:?}", o.hold);
+        phase = o.phase;
+        depth = o.pivot.map_or(depth, |p| p.depth);
+        max_force = max_force.max(s.world().contact().force.norm());
+        assert!(s.world().time() < 30.0, "still retracting");
+    }
+    assert_eq!(phase, Phase::Idle);
+    // At the stand-off point as the controller knows the port (the trocar estimate's face,
+    // which breathing moves by up to 4 mm and the hand-eye error biases), and out of the
+    // real trocar.
+    assert!(
+        (depth + c.standoff).abs() < 0.002,
+        "tip {:.1} mm past the port",
+        depth * 1e3
+    );
+    let tip = s.world().tip_in_port();
+    assert!(tip.z < -0.005, "tip {:.1} mm along the true axis", tip.z * 1e3);
+    assert!(max_force < 5.0, "{max_force} N");
+    // Nothing is sent in IDLE; a retract now is refused.
+    assert_eq!(s.tick(None).unwrap().command, None);
+    assert!(s.controller().retract().unwrap_err().contains("IDLE"));
 }

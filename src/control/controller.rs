@@ -605,12 +605,19 @@ impl OptimalController {
             let trocar = self.run.trocar_filtered.map(|(t, _)| InsertionAxis::from_pose(&t))?;
             self.run.pivot = Some(Pivot::new(sp, &kin.fk(&arm.prev).ok()?, &trocar));
         }
-        let f = self.run.admittance.force();
-        let command = match ctx.guard.check_force(f.norm()) {
+        let command = match ctx.guard.check_force(self.run.admittance.force().norm()) {
             Ok(()) => live_command(sp, input.now, input.scope),
             Err(_) => Err("force estimate over the force stop: scope commands ignored, holding still"),
         };
         let pivot = self.run.pivot.as_mut()?;
+        if self.run.supervisor.phase() == Phase::Retract && !pivot.retracting() {
+            pivot.retract_to(-self.params.standoff);
+        }
+        let a = &self.params.admittance;
+        let tau = input
+            .tau_ext
+            .map_or(JointVector::repeat(f64::NAN), |t| self.run.tare.correct(&t.value));
+        let f = pivot.sense(&arm.jac, &tau, a.pinv_damping, a.filter_cutoff_hz, ctx.dt);
         let t = pivot.step(sp, command, &f, ctx.dt);
         let (cmd, report) = self.solve(kin, ctx, arm.prev, (t.axis, t.point, t.point), &t.weights, Some(t.cost));
         self.run.last_command = Some(cmd);
@@ -712,12 +719,7 @@ impl CommandSource for OptimalController {
     }
 
     fn retract(&mut self) -> Result<(), String> {
-        let pivot = match (self.run.supervisor.phase(), self.run.pivot.as_mut()) {
-            (Phase::Done | Phase::Retract, Some(p)) => p,
-            (Phase::Done, None) => return Err("not holding the port yet: no trocar estimate".into()),
-            (p, _) => return Err(format!("cannot retract in {p}: only after docking (DONE)")),
-        };
-        pivot.retract_to(-self.params.standoff);
+        // The law begins the withdrawal at its next step ([`Self::pivot_step`]).
         self.run.supervisor.retract()
     }
 

@@ -28,10 +28,11 @@
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 
 use super::controller::Stamped;
-use super::fulcrum::Fulcrum;
+use super::fulcrum::{shaft_wrench, ForceFilter, Fulcrum};
 use super::geometry::InsertionAxis;
 use super::scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 use super::sqp::{CostWeights, PivotCost};
+use crate::kinematics::{Jacobian, JointVector};
 
 /// The surgeon's command for this step: `Ok(None)` when there is none or it is older than
 /// the timeout (dead-man), `Err(reason)` when it must be ignored.
@@ -77,6 +78,8 @@ pub struct Pivot {
     ignored: Option<&'static str>,
     /// While retracting: the depth to withdraw to.
     retract_to: Option<f64>,
+    /// The shaft's force, from its whole wrench ([`shaft_wrench`]).
+    force: ForceFilter,
 }
 
 impl Pivot {
@@ -98,6 +101,23 @@ impl Pivot {
             limit: None,
             ignored: None,
             retract_to: None,
+            force: ForceFilter::default(),
+        }
+    }
+
+    /// Feed this step's (tared) external torques at the measured Jacobian `jac`; returns the
+    /// filtered force on the shaft (base frame, N). Non-finite torques leave it unchanged.
+    pub fn sense(
+        &mut self,
+        jac: &Jacobian,
+        tau: &JointVector,
+        pinv_damping: f64,
+        cutoff_hz: f64,
+        dt: f64,
+    ) -> Vector3<f64> {
+        match shaft_wrench(jac, tau, pinv_damping) {
+            Some((f, _)) => self.force.update(&f, cutoff_hz, dt),
+            None => self.force.force(),
         }
     }
 
@@ -125,6 +145,11 @@ impl Pivot {
     /// now on.
     pub fn retract_to(&mut self, depth: f64) {
         self.retract_to = Some(depth.min(self.tip_depth));
+    }
+
+    /// Whether a retract has begun.
+    pub fn retracting(&self) -> bool {
+        self.retract_to.is_some()
     }
 
     /// Whether a retract has reached its end depth.
@@ -250,6 +275,7 @@ impl Pivot {
 mod tests {
     use super::*;
     use nalgebra::Translation3;
+    // (Stamped, JointVector: from the module's imports.)
 
     fn setup() -> (ScopeParams, Pivot) {
         let p = ScopeParams::default();
@@ -371,6 +397,32 @@ mod tests {
         assert_eq!(live_command(&p, 1.0, at(0.75)), Ok(None), "0.25 s old: dead-man");
         assert!(live_command(&p, 1.0, at(1.5)).is_err(), "from the future");
         assert_eq!(live_command(&p, 1.0, None), Ok(None));
+    }
+
+    #[test]
+    fn a_step_allocates_nothing() {
+        use crate::kinematics::lbr::{LbrModel, ToolParams};
+        use crate::kinematics::{Kinematics, LbrKinematics};
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let (_, jac) = kin.fk_jacobian(&JointVector::repeat(0.4)).unwrap();
+        let (p, mut pv) = setup();
+        let c = Some(Stamped {
+            stamp: 0.95,
+            value: ScopeCommand {
+                pan: 0.1,
+                tilt: -0.05,
+                roll: 0.1,
+                zoom: 0.005,
+            },
+        });
+        let before = crate::test_alloc::allocations_on_this_thread();
+        for _ in 0..100 {
+            let f = pv.sense(&jac, &JointVector::repeat(0.3), 0.02, 20.0, 0.01);
+            let cmd = live_command(&p, 1.0, c);
+            pv.step(&p, cmd, &f, 0.01);
+            let _ = pv.report(&p, &Isometry3::identity(), &f);
+        }
+        assert_eq!(crate::test_alloc::allocations_on_this_thread(), before);
     }
 
     #[test]

@@ -106,6 +106,20 @@ pub struct PivotResult {
     pub distance_max_m: f64,
     /// The same at the start of the script (after docking).
     pub distance_start_m: f64,
+    /// The controller's fulcrum from the true port, across the shaft, at the start of the
+    /// script (the fulcrum starts on the shaft through the real port, not on a biased
+    /// estimate) and at the end of the run.
+    pub fulcrum_error_start_m: f64,
+    /// ...
+    pub fulcrum_error_end_m: f64,
+    /// The trocar estimate's axis from the true port at DONE (the estimate's bias).
+    pub estimate_error_m: f64,
+    /// The shaft line's distance from the trocar's own port (the entry point on its face,
+    /// which tilts and slides with the trocar) while commanded: p95.
+    pub face_port_distance_p95_m: f64,
+    /// How far the wall was dragged: the trocar's fulcrum from the true port, across the
+    /// shaft, while commanded: p95 (times the wall's stiffness, the force on the wall).
+    pub wall_displacement_p95_m: f64,
     /// The largest angle of the shaft from its direction at DONE.
     pub swept_deg: f64,
     /// The controller's estimate of the force across the shaft while commanded: mean, max.
@@ -125,6 +139,11 @@ pub struct PivotResult {
     pub still_motion_m: f64,
     /// ...
     pub still_distance_p95_m: f64,
+    /// The tip's largest motion relative to the true port, across the shaft, meanwhile (a
+    /// scope that follows the breathing port moves with it, and is still relative to it).
+    pub still_motion_port_m: f64,
+    /// How far the true port moved (breathing) over the script and the stillness, m.
+    pub port_motion_m: f64,
     /// The fulcrum's adapted depth past the port at the end, m (the true one is the
     /// trocar's `pivot_depth_m` below its face).
     pub fulcrum_depth_m: f64,
@@ -156,6 +175,15 @@ impl Default for PivotTiming {
     }
 }
 
+/// The same controller with the fulcrum fixed where it starts (no adaptation): the
+/// benchmark's reference arm.
+pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
+    let mut c = c.clone();
+    c.scope.fulcrum.depth_gain = 0.0;
+    c.scope.fulcrum.max_displacement = 0.0;
+    c
+}
+
 /// Distance of the line through `e` along unit `a` from `p`.
 fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
     let u = p - e;
@@ -166,6 +194,8 @@ fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
 #[derive(Default)]
 struct Series {
     distance: Vec<f64>,
+    face: Vec<f64>,
+    wall: Vec<f64>,
     f_est: Vec<f64>,
     f_true: Vec<f64>,
     still_distance: Vec<f64>,
@@ -174,19 +204,78 @@ struct Series {
     limited: usize,
     still_from: Option<Point3<f64>>,
     still_motion: f64,
+    still_rel_from: Option<Vector3<f64>>,
+    still_rel: f64,
 }
 
-struct Loop<'a> {
+/// The controller closing the loop around a simulated world, one control step at a time,
+/// with the surgeon's commands.
+pub struct PivotSession {
     world: SimWorld,
     ctrl: Controller,
-    kin: &'a dyn Kinematics,
+    kin: Arc<dyn Kinematics>,
     period: f64,
     physics_per_tick: usize,
 }
 
-impl Loop<'_> {
+impl PivotSession {
+    /// A fresh world of `seed` and a started controller (`controller` with its `dt` from
+    /// the trial's control rate); steps until DONE or `timeout_s`. `Ok(Err(why))`: not DONE.
+    pub fn dock(
+        sim: &SimParams,
+        trial: &TrialParams,
+        controller: &ControllerParams,
+        kin: Arc<dyn Kinematics>,
+        seed: u64,
+        timeout_s: f64,
+    ) -> Result<Result<Self, String>, String> {
+        let params = ControllerParams {
+            dt: 1.0 / trial.control_rate_hz,
+            ..controller.clone()
+        };
+        let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
+        let ctrl = Controller::new(params, kin.limits().clone()).map_err(|e| e.to_string())?;
+        let period = 1.0 / trial.control_rate_hz;
+        let mut lp = Self {
+            physics_per_tick: (period * sim.physics_rate_hz).round().max(1.0) as usize,
+            world,
+            ctrl,
+            kin,
+            period,
+        };
+        lp.ctrl.start()?;
+        let mut last = Phase::Idle;
+        while lp.world.time() < timeout_s && last != Phase::Done {
+            last = lp.tick(None).map_err(|e| e.to_string())?.phase;
+        }
+        Ok(if last == Phase::Done {
+            Ok(lp)
+        } else {
+            Err(format!("not DONE after {timeout_s} s (phase {last})"))
+        })
+    }
+
+    /// The simulated world.
+    pub fn world(&self) -> &SimWorld {
+        &self.world
+    }
+
+    /// The controller (for `retract`, `abort`, ...).
+    pub fn controller(&mut self) -> &mut Controller {
+        &mut self.ctrl
+    }
+
     /// One control step with `scope` sent now (if any); then the physics until the next.
-    fn tick(&mut self, scope: Option<ScopeCommand>) -> Result<crate::control::ControlOutput, SimError> {
+    pub fn tick(&mut self, scope: Option<ScopeCommand>) -> Result<crate::control::ControlOutput, SimError> {
+        let t = self.world.time();
+        self.tick_stamped(scope.map(|value| Stamped { stamp: t, value }))
+    }
+
+    /// As [`PivotSession::tick`], with the command's own stamp.
+    pub fn tick_stamped(
+        &mut self,
+        scope: Option<Stamped<ScopeCommand>>,
+    ) -> Result<crate::control::ControlOutput, SimError> {
         let t = self.world.time();
         let input = ControlInput {
             now: t,
@@ -202,9 +291,9 @@ impl Loop<'_> {
                 stamp: m.stamp,
                 value: m.pose,
             }),
-            scope: scope.map(|value| Stamped { stamp: t, value }),
+            scope,
         };
-        let out = self.ctrl.step(self.kin, &input);
+        let out = self.ctrl.step(self.kin.as_ref(), &input);
         if let Some(q) = out.command {
             self.world.set_command(&q)?;
         }
@@ -214,12 +303,21 @@ impl Loop<'_> {
         Ok(out)
     }
 
-    fn shaft(&self) -> (Point3<f64>, Vector3<f64>) {
+    /// The true tip position and shaft direction (link side).
+    pub fn shaft(&self) -> (Point3<f64>, Vector3<f64>) {
         let tip = self.world.tip_pose();
         (Point3::from(tip.translation.vector), tip.rotation * Vector3::z())
     }
 
-    fn distance(&self) -> f64 {
+    /// The distance of `p` from the true port across the true shaft, m.
+    pub fn across_from_port(&self, p: &Point3<f64>) -> f64 {
+        let (_, a) = self.shaft();
+        let v = p - self.world.trocar().anchor();
+        (v - a * a.dot(&v)).norm()
+    }
+
+    /// The true shaft line's distance from the true port (the module doc), m.
+    pub fn distance(&self) -> f64 {
         let (e, a) = self.shaft();
         line_distance(&e, &a, &self.world.trocar().anchor())
     }
@@ -236,30 +334,14 @@ pub fn run_pivot(
     script: &[Segment],
     timing: &PivotTiming,
 ) -> Result<PivotResult, String> {
-    let params = ControllerParams {
-        dt: 1.0 / trial.control_rate_hz,
-        ..controller.clone()
-    };
-    let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
-    let ctrl = Controller::new(params, kin.limits().clone()).map_err(|e| e.to_string())?;
-    let period = 1.0 / trial.control_rate_hz;
-    let mut lp = Loop {
-        physics_per_tick: (period * sim.physics_rate_hz).round().max(1.0) as usize,
-        world,
-        ctrl,
-        kin: kin.as_ref(),
-        period,
-    };
-    lp.ctrl.start().map_err(|e| e.to_string())?;
     let mut result = empty(seed);
-    let mut last = Phase::Idle;
-    while lp.world.time() < timing.dock_timeout_s && last != Phase::Done {
-        last = lp.tick(None).map_err(|e| e.to_string())?.phase;
-    }
-    if last != Phase::Done {
-        result.reason = format!("not DONE after {} s (phase {last})", timing.dock_timeout_s);
-        return Ok(result);
-    }
+    let mut lp = match PivotSession::dock(sim, trial, controller, kin, seed, timing.dock_timeout_s)? {
+        Ok(lp) => lp,
+        Err(why) => {
+            result.reason = why;
+            return Ok(result);
+        }
+    };
     result.docked = true;
     result.dock_time_s = lp.world.time();
     play(&mut lp, script, timing, &mut result).map_err(|e| e.to_string())?;
@@ -275,6 +357,11 @@ fn empty(seed: u64) -> PivotResult {
         distance_p95_m: f64::NAN,
         distance_max_m: f64::NAN,
         distance_start_m: f64::NAN,
+        fulcrum_error_start_m: f64::NAN,
+        fulcrum_error_end_m: f64::NAN,
+        estimate_error_m: f64::NAN,
+        face_port_distance_p95_m: f64::NAN,
+        wall_displacement_p95_m: f64::NAN,
         swept_deg: 0.0,
         lateral_force_est_mean_n: f64::NAN,
         lateral_force_est_max_n: f64::NAN,
@@ -283,20 +370,30 @@ fn empty(seed: u64) -> PivotResult {
         held_steps: 0,
         limited_steps: 0,
         still_motion_m: f64::NAN,
+        still_motion_port_m: f64::NAN,
         still_distance_p95_m: f64::NAN,
+        port_motion_m: 0.0,
         fulcrum_depth_m: f64::NAN,
         final_phase: "",
     }
 }
 
 /// Settle, play the script, settle, watch the stillness; fill in `r`.
-fn play(lp: &mut Loop<'_>, script: &[Segment], timing: &PivotTiming, r: &mut PivotResult) -> Result<(), SimError> {
+fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut PivotResult) -> Result<(), SimError> {
     let period = lp.period;
     let steps = |s: f64| (s / period).round() as usize;
+    let mut first = None;
     for _ in 0..steps(timing.settle_before_s) {
-        lp.tick(None)?;
+        let o = lp.tick(None)?;
+        first = first.or(o.pivot);
     }
+    if let Some(m) = lp.world.measure_trocar(lp.world.time()) {
+        let axis = crate::control::geometry::InsertionAxis::from_pose(&m.pose);
+        r.estimate_error_m = axis.distance_to_axis(&lp.world.trocar().anchor());
+    }
+    r.fulcrum_error_start_m = first.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum));
     r.distance_start_m = lp.distance();
+    let anchor0 = lp.world.trocar().anchor();
     let a0 = lp.shaft().1;
     let mut s = Series::default();
     let mut out = None;
@@ -306,28 +403,17 @@ fn play(lp: &mut Loop<'_>, script: &[Segment], timing: &PivotTiming, r: &mut Piv
             let (_, a) = lp.shaft();
             let f = lp.world.contact().force;
             s.distance.push(lp.distance());
+            r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
+            let (e, _) = lp.shaft();
+            let port = Point3::from(lp.world.trocar_pose_true().translation.vector);
+            s.face.push(line_distance(&e, &a, &port));
+            let v = lp.world.trocar().pivot() - lp.world.trocar().anchor();
+            s.wall.push((v - a * a.dot(&v)).norm());
             s.f_true.push((f - a * a.dot(&f)).norm());
             s.f_est.push(o.pivot.map_or(f64::NAN, |p| p.lateral_force));
             s.swept = s.swept.max(a.angle(&a0));
             s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
             s.limited += usize::from(o.pivot.is_some_and(|p| p.limit.is_some()));
-            if std::env::var("PIVOT_TRACE").is_ok() && s.distance.len() % 10 == 0 {
-                let pr = o.pivot.unwrap();
-                let an = lp.world.trocar().anchor();
-                let (e, a) = lp.shaft();
-                eprintln!(
-                    "t {:.2} d {:.2} rcm {:.2} fdepth {:.1} f-an {:?} piv-an {:.2} fest {:.2} ftrue {:.2} depth_an {:.1}",
-                    lp.world.time(),
-                    lp.distance() * 1e3,
-                    pr.shaft_distance * 1e3,
-                    pr.fulcrum_depth * 1e3,
-                    ((pr.fulcrum - an) * 1e3).map(|x| (x * 10.0).round() / 10.0),
-                    (lp.world.trocar().pivot() - an).norm() * 1e3,
-                    pr.lateral_force,
-                    (f - a * a.dot(&f)).norm(),
-                    a.dot(&(an - e)) * 1e3
-                );
-            }
             out = Some(o);
         }
     }
@@ -339,7 +425,13 @@ fn play(lp: &mut Loop<'_>, script: &[Segment], timing: &PivotTiming, r: &mut Piv
         let (e, _) = lp.shaft();
         let from = *s.still_from.get_or_insert(e);
         s.still_motion = s.still_motion.max((e - from).norm());
+        let (_, a) = lp.shaft();
+        let rel = e - lp.world.trocar().anchor();
+        let rel_from = *s.still_rel_from.get_or_insert(rel);
+        let d = rel - rel_from;
+        s.still_rel = s.still_rel.max((d - a * a.dot(&d)).norm());
         s.still_distance.push(lp.distance());
+        r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
     }
     let q = |v: &[f64], p: f64| {
         let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
@@ -354,6 +446,8 @@ fn play(lp: &mut Loop<'_>, script: &[Segment], timing: &PivotTiming, r: &mut Piv
     let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
     r.distance_p95_m = q(&s.distance, 0.95);
     r.distance_max_m = max(&s.distance);
+    r.face_port_distance_p95_m = q(&s.face, 0.95);
+    r.wall_displacement_p95_m = q(&s.wall, 0.95);
     r.swept_deg = s.swept.to_degrees();
     r.lateral_force_est_mean_n = mean(&s.f_est);
     r.lateral_force_est_max_n = max(&s.f_est);
@@ -362,10 +456,12 @@ fn play(lp: &mut Loop<'_>, script: &[Segment], timing: &PivotTiming, r: &mut Piv
     r.held_steps = s.held;
     r.limited_steps = s.limited;
     r.still_motion_m = s.still_motion;
+    r.still_motion_port_m = s.still_rel;
     r.still_distance_p95_m = q(&s.still_distance, 0.95);
     if let Some(o) = out {
         r.final_phase = o.phase.as_str();
         r.fulcrum_depth_m = o.pivot.map_or(f64::NAN, |p| p.fulcrum_depth);
+        r.fulcrum_error_end_m = o.pivot.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum));
     }
     Ok(())
 }
