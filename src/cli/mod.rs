@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod bench;
 pub mod fk;
+pub mod pivot;
 pub mod soak;
 pub mod trials;
 pub mod urdf;
@@ -28,6 +29,9 @@ pub enum Command {
     Bench(bench::BenchArgs),
     /// Forward kinematics and Jacobian of a URDF chain.
     Fk(fk::FkArgs),
+    /// After docking: steer the scope through the port (random pan/tilt/zoom), with and
+    /// without the force-adapted fulcrum; the pivoting benchmark.
+    Pivot(pivot::PivotArgs),
     /// Run the paper's experiment in simulation: trials with and without force feedback.
     Trials(trials::TrialsArgs),
     /// Repeated docking cycles at 1 kHz for a long run: max step time, RSS growth, every
@@ -51,6 +55,7 @@ pub fn run(cli: Cli) -> CliResult {
         Command::Bench(a) => bench::run(&a),
         Command::Fk(a) => fk::run(&a),
         Command::Trials(a) => trials::run(&a),
+        Command::Pivot(a) => pivot::run(&a),
         Command::Soak(a) => soak::run(&a),
         Command::Urdf(a) => urdf::run(&a),
         Command::Detect(a) => vision::run_detect(&a),

@@ -618,7 +618,8 @@ impl OptimalController {
             .tau_ext
             .map_or(JointVector::repeat(f64::NAN), |t| self.run.tare.correct(&t.value));
         let f = pivot.sense(&arm.jac, &tau, a.pinv_damping, a.filter_cutoff_hz, ctx.dt);
-        let t = pivot.step(sp, command, &f, ctx.dt);
+        // Without force feedback the law uses no force: the fulcrum stays where it began.
+        let t = pivot.step(sp, command, &f, self.params.force_feedback, ctx.dt);
         let (cmd, report) = self.solve(kin, ctx, arm.prev, (t.axis, t.point, t.point), &t.weights, Some(t.cost));
         self.run.last_command = Some(cmd);
         let pivot = self.run.pivot.as_ref()?;

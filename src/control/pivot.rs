@@ -211,13 +211,15 @@ impl Pivot {
         };
     }
 
-    /// One step: `command` from [`live_command`], `force` the tip-force estimate (base
-    /// frame, N). Returns the SQP's targets.
+    /// One step: `command` from [`live_command`], `force` the shaft's force (base frame,
+    /// N; [`Pivot::sense`]); `adapt`: adapt the fulcrum from it (off: the fulcrum stays
+    /// where it started, as without force feedback). Returns the SQP's targets.
     pub fn step(
         &mut self,
         p: &ScopeParams,
         command: Result<Option<ScopeCommand>, &'static str>,
         force: &Vector3<f64>,
+        adapt: bool,
         dt: f64,
     ) -> PivotTargets {
         self.limit = None;
@@ -231,8 +233,10 @@ impl Pivot {
             self.zoom(p, c.zoom, dt);
         }
         let d = self.direction();
-        let moved = self.fulcrum.step(&p.fulcrum, force, &d, &omega, self.tip_depth, dt);
-        self.fulcrum_base += d.into_inner() * moved;
+        if adapt {
+            let moved = self.fulcrum.step(&p.fulcrum, force, &d, &omega, self.tip_depth, dt);
+            self.fulcrum_base += d.into_inner() * moved;
+        }
         let port = self.port();
         PivotTargets {
             axis: InsertionAxis { port, direction: d },
@@ -303,7 +307,7 @@ mod tests {
         );
         assert!((pv.fulcrum() - Point3::new(0.0, 0.0, -p.fulcrum.prior_depth)).norm() < 1e-12);
         for _ in 0..500 {
-            let t = pv.step(&p, Ok(None), &Vector3::zeros(), 0.01);
+            let t = pv.step(&p, Ok(None), &Vector3::zeros(), true, 0.01);
             assert!((t.point - Point3::new(0.0, 0.0, -0.03)).norm() < 1e-12);
             assert!((t.axis.direction.into_inner() + Vector3::z()).norm() < 1e-12);
         }
@@ -314,7 +318,7 @@ mod tests {
         let (p, mut pv) = setup();
         let f0 = pv.fulcrum();
         for _ in 0..100 {
-            let t = pv.step(&p, cmd(0.17, 0.0, 0.0, 0.0), &Vector3::zeros(), 0.01);
+            let t = pv.step(&p, cmd(0.17, 0.0, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
             // The target line passes through the fulcrum.
             assert!(t.axis.distance_to_axis(&f0) < 1e-12);
             assert!((t.cost.fulcrum - f0).norm() < 1e-12);
@@ -325,7 +329,7 @@ mod tests {
         let tip = pv.port() + d.into_inner() * pv.target_depth();
         assert!(((tip - f0).norm() - (0.03 - p.fulcrum.prior_depth)).abs() < 1e-12);
         for _ in 0..100 {
-            pv.step(&p, cmd(0.0, 0.0, 0.3, 0.01), &Vector3::zeros(), 0.01);
+            pv.step(&p, cmd(0.0, 0.0, 0.3, 0.01), &Vector3::zeros(), true, 0.01);
         }
         assert!((pv.target_depth() - 0.04).abs() < 1e-12);
         assert!(pv.direction().angle(&d) < 1e-12, "roll and zoom keep the direction");
@@ -334,23 +338,23 @@ mod tests {
     #[test]
     fn each_limit_stops_the_command_at_it_and_says_so() {
         let (p, mut pv) = setup();
-        let t = pv.step(&p, cmd(3.0, 0.0, 0.0, 0.0), &Vector3::zeros(), 0.01);
+        let t = pv.step(&p, cmd(3.0, 0.0, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
         assert_eq!(pv.limit, Some(ScopeLimit::Speed));
         assert!((t.axis.direction.angle(&-Vector3::z()) - p.max_angular_speed * 0.01).abs() < 1e-12);
         // Zoom out to the minimum depth and no further.
         for _ in 0..200 {
-            pv.step(&p, cmd(0.0, 0.0, 0.0, -0.02), &Vector3::zeros(), 0.01);
+            pv.step(&p, cmd(0.0, 0.0, 0.0, -0.02), &Vector3::zeros(), true, 0.01);
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MinDepth));
         assert_eq!(pv.target_depth(), p.min_depth);
         for _ in 0..600 {
-            pv.step(&p, cmd(0.0, 0.0, 0.0, 0.02), &Vector3::zeros(), 0.01);
+            pv.step(&p, cmd(0.0, 0.0, 0.0, 0.02), &Vector3::zeros(), true, 0.01);
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MaxDepth));
         assert_eq!(pv.target_depth(), p.max_depth);
         // Tilt into the cone's edge: stops within one step of it, roll still turns.
         for _ in 0..400 {
-            pv.step(&p, cmd(0.0, 0.3, 0.1, 0.0), &Vector3::zeros(), 0.01);
+            pv.step(&p, cmd(0.0, 0.3, 0.1, 0.0), &Vector3::zeros(), true, 0.01);
         }
         let r = pv.report(&p, &Isometry3::identity(), &Vector3::zeros());
         assert_eq!(r.limit, Some(ScopeLimit::Cone));
@@ -358,7 +362,7 @@ mod tests {
         let cone = p.cone_half_angle_deg.to_radians();
         assert!(angle <= cone && angle > cone - 0.003 - 1e-9, "{angle} vs {cone}");
         // Back out of the edge is allowed.
-        pv.step(&p, cmd(0.0, -0.3, 0.0, 0.0), &Vector3::zeros(), 0.01);
+        pv.step(&p, cmd(0.0, -0.3, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
         assert_eq!(pv.limit, None);
         assert!(pv.direction().angle(&-Vector3::z()) < angle);
     }
@@ -376,7 +380,7 @@ mod tests {
         };
         let c = live_command(&p, 1.0, Some(nan));
         assert!(c.unwrap_err().contains("not finite"));
-        pv.step(&p, c, &Vector3::zeros(), 0.01);
+        pv.step(&p, c, &Vector3::zeros(), true, 0.01);
         assert_eq!(pv.rot, before.rot);
         assert_eq!(pv.tip_depth, before.tip_depth);
         assert!(pv
@@ -419,7 +423,7 @@ mod tests {
         for _ in 0..100 {
             let f = pv.sense(&jac, &JointVector::repeat(0.3), 0.02, 20.0, 0.01);
             let cmd = live_command(&p, 1.0, c);
-            pv.step(&p, cmd, &f, 0.01);
+            pv.step(&p, cmd, &f, true, 0.01);
             let _ = pv.report(&p, &Isometry3::identity(), &f);
         }
         assert_eq!(crate::test_alloc::allocations_on_this_thread(), before);
@@ -431,7 +435,7 @@ mod tests {
         pv.retract_to(-0.02);
         let mut steps = 0;
         while !pv.retracted() {
-            pv.step(&p, cmd(0.3, 0.0, 0.0, 0.02), &Vector3::zeros(), 0.01);
+            pv.step(&p, cmd(0.3, 0.0, 0.0, 0.02), &Vector3::zeros(), true, 0.01);
             steps += 1;
             assert!(steps < 1000);
         }

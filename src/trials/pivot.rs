@@ -208,6 +208,37 @@ struct Series {
     still_rel: f64,
 }
 
+impl Series {
+    /// The figures of the series into `r`.
+    fn finish(&self, r: &mut PivotResult) {
+        let q = |v: &[f64], p: f64| {
+            let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+            v.sort_by(f64::total_cmp);
+            if v.is_empty() {
+                f64::NAN
+            } else {
+                super::plot::quantile(&v, p)
+            }
+        };
+        let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+        let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
+        r.distance_p95_m = q(&self.distance, 0.95);
+        r.distance_max_m = max(&self.distance);
+        r.face_port_distance_p95_m = q(&self.face, 0.95);
+        r.wall_displacement_p95_m = q(&self.wall, 0.95);
+        r.swept_deg = self.swept.to_degrees();
+        r.lateral_force_est_mean_n = mean(&self.f_est);
+        r.lateral_force_est_max_n = max(&self.f_est);
+        r.lateral_force_true_mean_n = mean(&self.f_true);
+        r.lateral_force_true_max_n = max(&self.f_true);
+        r.held_steps = self.held;
+        r.limited_steps = self.limited;
+        r.still_motion_m = self.still_motion;
+        r.still_motion_port_m = self.still_rel;
+        r.still_distance_p95_m = q(&self.still_distance, 0.95);
+    }
+}
+
 /// The controller closing the loop around a simulated world, one control step at a time,
 /// with the surgeon's commands.
 pub struct PivotSession {
@@ -433,31 +464,7 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
         s.still_distance.push(lp.distance());
         r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
     }
-    let q = |v: &[f64], p: f64| {
-        let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-        v.sort_by(f64::total_cmp);
-        if v.is_empty() {
-            f64::NAN
-        } else {
-            super::plot::quantile(&v, p)
-        }
-    };
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
-    r.distance_p95_m = q(&s.distance, 0.95);
-    r.distance_max_m = max(&s.distance);
-    r.face_port_distance_p95_m = q(&s.face, 0.95);
-    r.wall_displacement_p95_m = q(&s.wall, 0.95);
-    r.swept_deg = s.swept.to_degrees();
-    r.lateral_force_est_mean_n = mean(&s.f_est);
-    r.lateral_force_est_max_n = max(&s.f_est);
-    r.lateral_force_true_mean_n = mean(&s.f_true);
-    r.lateral_force_true_max_n = max(&s.f_true);
-    r.held_steps = s.held;
-    r.limited_steps = s.limited;
-    r.still_motion_m = s.still_motion;
-    r.still_motion_port_m = s.still_rel;
-    r.still_distance_p95_m = q(&s.still_distance, 0.95);
+    s.finish(r);
     if let Some(o) = out {
         r.final_phase = o.phase.as_str();
         r.fulcrum_depth_m = o.pivot.map_or(f64::NAN, |p| p.fulcrum_depth);
