@@ -44,6 +44,7 @@ struct StatusSample {
     hold_code: String,
     f_ext_norm: f64,
     lateral_force: f64,
+    shaft_to_fulcrum: f64,
 }
 
 /// What the check records while it runs.
@@ -88,6 +89,7 @@ impl Records {
                     hold_code: s.hold_code.clone(),
                     f_ext_norm: s.f_ext_norm,
                     lateral_force: s.lateral_force,
+                    shaft_to_fulcrum: s.shaft_to_fulcrum,
                 };
                 Some((convert::seconds(s.header.stamp), v))
             })?,
@@ -263,8 +265,9 @@ fn mean(v: impl Iterator<Item = f64>) -> f64 {
 }
 
 /// Status over [from, to]: how many, the phases other than DONE (with their codes), and
-/// the mean force estimate and lateral force (NaN: none).
-fn status_figures(status: &[(f64, StatusSample)], from: f64, to: f64) -> (usize, Vec<String>, f64, f64) {
+/// the means of the force estimate, the lateral force and the shaft's distance from the
+/// controller's own fulcrum (NaN: none).
+fn status_figures(status: &[(f64, StatusSample)], from: f64, to: f64) -> (usize, Vec<String>, [f64; 3]) {
     let window: Vec<_> = status.iter().filter(|(s, _)| *s >= from && *s <= to).collect();
     let mut other: Vec<String> = window
         .iter()
@@ -272,9 +275,12 @@ fn status_figures(status: &[(f64, StatusSample)], from: f64, to: f64) -> (usize,
         .map(|(_, s)| format!("{} {}", s.phase, s.hold_code))
         .collect();
     other.dedup();
-    let force = mean(window.iter().map(|(_, s)| s.f_ext_norm));
-    let lateral = mean(window.iter().map(|(_, s)| s.lateral_force));
-    (window.len(), other, force, lateral)
+    let means = [
+        mean(window.iter().map(|(_, s)| s.f_ext_norm)),
+        mean(window.iter().map(|(_, s)| s.lateral_force)),
+        mean(window.iter().map(|(_, s)| s.shaft_to_fulcrum)),
+    ];
+    (window.len(), other, means)
 }
 
 /// What `scope_pivot` measured.
@@ -286,8 +292,9 @@ struct Figures {
     p95: f64,
     /// Largest angle of the shaft from its first direction, rad.
     sweep: f64,
-    /// Mean force estimate and lateral force while commanded, N.
-    force: (f64, f64),
+    /// Means while commanded: force estimate and lateral force (N), the shaft's distance
+    /// from the controller's fulcrum (m).
+    status: [f64; 3],
     /// Phases other than DONE while commanded.
     others: Vec<String>,
     /// Tip travel from the last command to the start of the still window, m.
@@ -304,7 +311,7 @@ impl Figures {
         let tips = tips_between(kin, &joints, t0, t1)?;
         let (distances, sweep) = pivot_figures(&tips, &truth);
         let n = distances.len();
-        let (n_status, others, force, lateral) = status_figures(&lock(&rec.status), t0, t1);
+        let (n_status, others, status) = status_figures(&lock(&rec.status), t0, t1);
         let still_from = t1 + p.command_timeout + p.dead_man_margin_s;
         let still = tips_between(kin, &joints, still_from, still_from + p.still_window_s)?;
         let from_port: Vec<_> = still
@@ -321,7 +328,7 @@ impl Figures {
             counts: (n, n_status),
             p95: quantile(distances, 0.95),
             sweep,
-            force: (force, lateral),
+            status,
             others,
             travel: spread(&tips_between(kin, &joints, t1, still_from)?),
             still: (spread(&still), spread(&from_port)),
@@ -330,14 +337,15 @@ impl Figures {
 
     fn text(&self, p: &CheckParams) -> String {
         format!(
-            "shaft to the true port p95 {:.3} mm over {} joint states, sweep {:.1} deg, mean force estimate {:.2} N \
-             (lateral {:.2} N), travel after the last command {:.2} mm, then still within {:.3} mm over {} s \
+            "shaft to the true port p95 {:.3} mm over {} joint states (to the controller's fulcrum: mean {:.3} mm), \
+             sweep {:.1} deg, mean force estimate {:.2} N (lateral {:.2} N), travel after the last command {:.2} mm, then still within {:.3} mm over {} s \
              ({:.3} mm relative to the true port)",
             self.p95 * 1e3,
             self.counts.0,
+            self.status[2] * 1e3,
             self.sweep.to_degrees(),
-            self.force.0,
-            self.force.1,
+            self.status[0],
+            self.status[1],
             self.travel * 1e3,
             self.still.0 * 1e3,
             p.still_window_s,
@@ -354,7 +362,7 @@ impl Figures {
             (n < 100 || n_status < 100).then(|| format!("only {n} joint states and {n_status} status while commanded")),
             over(self.p95, p.max_shaft_distance).then(|| format!("shaft p95 above {} mm", p.max_shaft_distance * 1e3)),
             (self.sweep.to_degrees() < p.min_sweep_deg).then(|| format!("swept less than {} deg", p.min_sweep_deg)),
-            over(self.force.0, p.max_mean_force).then(|| format!("mean force above {} N", p.max_mean_force)),
+            over(self.status[0], p.max_mean_force).then(|| format!("mean force above {} N", p.max_mean_force)),
             (!self.others.is_empty()).then(|| format!("left DONE while commanded: {:?}", self.others)),
             over(self.travel, max_travel).then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
             over(self.still.0, p.max_still_motion).then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
@@ -381,7 +389,7 @@ fn bad_commands(p: &CheckParams, kin: &LbrKinematics, rec: &Records) -> Result<(
     sleep_ros(0.5);
     let joints = lock(&rec.joints).clone();
     let moved = spread(&tips_between(kin, &joints, t0, t1 + 0.3)?);
-    let (_, others, _, _) = status_figures(&lock(&rec.status), t0, t1 + 0.3);
+    let (_, others, _) = status_figures(&lock(&rec.status), t0, t1 + 0.3);
     Ok((moved, others))
 }
 
