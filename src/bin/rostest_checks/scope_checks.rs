@@ -14,6 +14,12 @@
 //! `max_still_motion` and leave it DONE; and `~retract` leads through RETRACT to IDLE
 //! within `retract_timeout`.
 //!
+//! "Still" is judged beyond the true port's motion across the shaft ([`beyond_port`]):
+//! the port breathes (config/sim.yaml: 1 mm across the axis, 4 mm along it) and the
+//! controller's fulcrum follows it, as the issue asks, which carries the scope across its
+//! shaft by up to the port's excursion; a scope that drifts, or keeps moving after its
+//! commands stop, moves beyond that. The tip's motion in the base frame is reported beside.
+//!
 //! `scope_joy` checks the joystick node alone: the test node plays a joystick (Joy at
 //! 20 Hz) and reads `/docking/scope_command`. Held: commands at the node's rate, each the
 //! pure mapping's ([`trocar_docking::ros::joy`]) of the played Joy under the same YAML, in
@@ -354,8 +360,8 @@ impl Figures {
     fn text(&self, p: &CheckParams) -> String {
         format!(
             "shaft to the true port p95 {:.3} mm over {} joint states (to the controller's fulcrum: mean {:.3} mm), \
-             sweep {:.1} deg, mean force estimate {:.2} N (lateral {:.2} N), travel after the last command {:.2} mm, then still within {:.3} mm over {} s \
-             ({:.3} mm beyond the true port's motion across the shaft)",
+             sweep {:.1} deg, mean force estimate {:.2} N (lateral {:.2} N), travel after the last command {:.2} mm, then still within {:.3} mm \
+             beyond the true port's motion across the shaft over {} s ({:.3} mm in the base frame)",
             self.p95 * 1e3,
             self.counts.0,
             self.status[2] * 1e3,
@@ -363,9 +369,9 @@ impl Figures {
             self.status[0],
             self.status[1],
             self.travel * 1e3,
-            self.still.0 * 1e3,
+            self.still.1 * 1e3,
             p.still_window_s,
-            self.still.1 * 1e3
+            self.still.0 * 1e3
         )
     }
 
@@ -381,7 +387,7 @@ impl Figures {
             over(self.status[0], p.max_mean_force).then(|| format!("mean force above {} N", p.max_mean_force)),
             (!self.others.is_empty()).then(|| format!("left DONE while commanded: {:?}", self.others)),
             over(self.travel, max_travel).then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
-            over(self.still.0, p.max_still_motion).then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
+            over(self.still.1, p.max_still_motion).then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
         ]
         .into_iter()
         .flatten()
@@ -390,7 +396,8 @@ impl Figures {
 }
 
 /// Bad commands: a pan in the base frame, then a NaN pan, 0.5 s each; the tip's motion
-/// from their start to 0.3 s after (m), and the phases other than DONE meanwhile.
+/// from their start to 0.3 s after, beyond the true port's across the shaft (m), and the
+/// phases other than DONE meanwhile.
 fn bad_commands(p: &CheckParams, kin: &LbrKinematics, rec: &Records) -> Result<(f64, Vec<String>), String> {
     let pan = ScopeCommand {
         pan: p.pan_speed,
@@ -404,7 +411,7 @@ fn bad_commands(p: &CheckParams, kin: &LbrKinematics, rec: &Records) -> Result<(
     let (_, t1) = drive(p, &[(nan, 0.5)], &p.tip_frame)?;
     sleep_ros(0.5);
     let joints = lock(&rec.joints).clone();
-    let moved = spread(&tips_between(kin, &joints, t0, t1 + 0.3)?);
+    let moved = beyond_port(&tips_between(kin, &joints, t0, t1 + 0.3)?, &lock(&rec.truth));
     let (_, others, _) = status_figures(&lock(&rec.status), t0, t1 + 0.3);
     Ok((moved, others))
 }
