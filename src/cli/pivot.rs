@@ -77,6 +77,8 @@ struct ArmPivot {
     lateral_force_true_max_n: Stats,
     swept_deg: Stats,
     still_motion_port_m: Stats,
+    solve_us_p99: Stats,
+    solve_us_max: Stats,
     held_steps: usize,
     failures: Vec<String>,
     trials: Vec<PivotResult>,
@@ -99,6 +101,8 @@ impl ArmPivot {
             lateral_force_true_max_n: s(|r| r.lateral_force_true_max_n),
             swept_deg: s(|r| r.swept_deg),
             still_motion_port_m: s(|r| r.still_motion_port_m),
+            solve_us_p99: s(|r| r.solve_us_p99),
+            solve_us_max: s(|r| r.solve_us_max),
             held_steps: ok.iter().map(|r| r.held_steps).sum(),
             failures: trials
                 .iter()
@@ -134,6 +138,10 @@ impl ArmPivot {
         println!(
             "  swept {:.1}-{:.1} deg, steps held {}",
             self.swept_deg.min, self.swept_deg.max, self.held_steps
+        );
+        println!(
+            "  SQP per step: p99 {:.0} µs (worst run), max {:.0} µs",
+            self.solve_us_p99.max, self.solve_us_max.max
         );
         for f in &self.failures {
             println!("  failed: {f}");

@@ -9,7 +9,10 @@
 //!   D ẋ + K x = f_⊥, |x| <= x_max: a wall that pushes the shaft sideways (the port moved
 //!   with breathing, or the scope pivots about a point beside the port) moves the fulcrum,
 //!   and with it the scope, the way it pushes. K pulls x back to zero, so a force
-//!   estimate's bias moves the fulcrum by at most bias / K;
+//!   estimate's bias moves the fulcrum by at most bias / K. While no command comes the
+//!   scope holds still: the law is then D ẋ = f_⊥ with a larger dead-band, so that only a
+//!   wall pushing harder than the estimate's drift (or the wall settling after a motion)
+//!   moves it;
 //! - **along the shaft**, the fulcrum's depth s (past the port) by a gradient law on the
 //!   lever: pivoting by an angle θ about a point δ short of the true fulcrum moves the
 //!   shaft there by δ θ x a and the wall pushes back, f_⊥ = -k δ (θ x a). So with the
@@ -44,8 +47,12 @@ pub struct FulcrumParams {
     pub stiffness: f64,
     /// Damping D of the same, N s/m.
     pub damping: f64,
-    /// Forces across the shaft below this are ignored, N.
+    /// Forces across the shaft below this are ignored while the surgeon steers, N.
     pub force_deadband: f64,
+    /// ... and below this while no command comes, N: the scope then holds still against
+    /// the small forces (the estimate's drift, the wall settling after a motion) and
+    /// yields only to a wall that pushes harder.
+    pub still_force_deadband: f64,
     /// Largest displacement of the fulcrum across the shaft, m.
     pub max_displacement: f64,
     /// Gain γ of the depth's adaptation, m/(N s) (0 = the depth stays at the prior).
@@ -61,6 +68,7 @@ impl Default for FulcrumParams {
             stiffness: 100.0,
             damping: 50.0,
             force_deadband: 0.3,
+            still_force_deadband: 2.0,
             max_displacement: 0.01,
             depth_gain: 0.1,
             min_pivot_speed: 0.02,
@@ -82,6 +90,7 @@ impl FulcrumParams {
         check("stiffness", self.stiffness, 0.0, 1e5)?;
         check("damping", self.damping, 1e-3, 1e5)?;
         check("force_deadband", self.force_deadband, 0.0, 50.0)?;
+        check("still_force_deadband", self.still_force_deadband, 0.0, 50.0)?;
         check("max_displacement", self.max_displacement, 0.0, 0.05)?;
         check("depth_gain", self.depth_gain, 0.0, 1.0)?;
         check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)
@@ -150,7 +159,8 @@ impl Fulcrum {
     /// One step of `dt`: `force` is the force on the shaft (base frame, N), `shaft` its
     /// direction (into the body), `omega` the commanded angular velocity of the pan and
     /// tilt (base frame, rad/s), `tip_depth` the tip's depth past the port (the depth's
-    /// upper bound). Returns the change of depth this step, m.
+    /// upper bound), `steering` whether a command moves the scope (the dead-band then is
+    /// `force_deadband`, else `still_force_deadband`). Returns the change of depth, m.
     pub fn step(
         &mut self,
         p: &FulcrumParams,
@@ -158,6 +168,7 @@ impl Fulcrum {
         shaft: &Unit<Vector3<f64>>,
         omega: &Vector3<f64>,
         tip_depth: f64,
+        steering: bool,
         dt: f64,
     ) -> f64 {
         let across = force - shaft.into_inner() * force.dot(shaft);
@@ -166,13 +177,20 @@ impl Fulcrum {
             return 0.0;
         }
         let f = if n > 0.0 {
-            across * (deadband(n, p.force_deadband) / n)
+            let band = if steering {
+                p.force_deadband
+            } else {
+                p.still_force_deadband
+            };
+            across * (deadband(n, band) / n)
         } else {
             across
         };
-        // Across: first-order admittance, exact for a constant force over the step.
+        // Across: first-order admittance, exact for a constant force over the step; while
+        // no command comes, damping only (the spring would pull the scope back to where the
+        // fulcrum began: a motion nobody asked for).
         let lateral = self.lateral - shaft.into_inner() * self.lateral.dot(shaft);
-        let x = if p.stiffness > 0.0 {
+        let x = if p.stiffness > 0.0 && steering {
             let rest = f / p.stiffness;
             rest + (lateral - rest) * (-p.stiffness / p.damping * dt).exp()
         } else {
@@ -217,12 +235,12 @@ mod tests {
                 theta += 0.17 * dt;
                 let delta = truth - fc.depth;
                 let force = -(omega.normalize() * theta).cross(&a) * (k * delta);
-                fc.step(&p, &force, &a, &omega, 0.04, dt);
+                fc.step(&p, &force, &a, &omega, 0.04, true, dt);
             }
             assert!((fc.depth - truth).abs() < 0.002, "truth {truth}: depth {}", fc.depth);
             // Still, the same force changes nothing along the shaft.
             let before = fc.depth;
-            let d = fc.step(&p, &Vector3::new(3.0, 0.0, 0.0), &a, &Vector3::zeros(), 0.04, dt);
+            let d = fc.step(&p, &Vector3::new(3.0, 0.0, 0.0), &a, &Vector3::zeros(), 0.04, true, dt);
             assert_eq!((d, fc.depth), (0.0, before));
         }
     }
@@ -233,7 +251,15 @@ mod tests {
         let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
         let mut fc = Fulcrum::new(&p);
         for _ in 0..1000 {
-            fc.step(&p, &Vector3::new(1.2, 0.0, 5.0), &a, &Vector3::zeros(), 0.03, 0.01);
+            fc.step(
+                &p,
+                &Vector3::new(1.2, 0.0, 5.0),
+                &a,
+                &Vector3::zeros(),
+                0.03,
+                true,
+                0.01,
+            );
         }
         // (1.2 - 0.3) N / 100 N/m = 9 mm, along x only; the axial 5 N moves nothing.
         assert!(
@@ -242,17 +268,77 @@ mod tests {
             fc.lateral
         );
         for _ in 0..1000 {
-            fc.step(&p, &Vector3::new(0.0, 9.0, 0.0), &a, &Vector3::zeros(), 0.03, 0.01);
+            fc.step(
+                &p,
+                &Vector3::new(0.0, 9.0, 0.0),
+                &a,
+                &Vector3::zeros(),
+                0.03,
+                true,
+                0.01,
+            );
         }
         assert!((fc.lateral.norm() - p.max_displacement).abs() < 1e-9);
-        // Below the dead-band: back to zero.
+        // Silent (no command): forces under the still dead-band move nothing, larger ones
+        // move it at (f - band) / D, with no spring back.
+        let before = fc.lateral;
+        for _ in 0..100 {
+            fc.step(
+                &p,
+                &Vector3::new(0.0, 0.9, 0.0),
+                &a,
+                &Vector3::zeros(),
+                0.03,
+                false,
+                0.01,
+            );
+        }
+        assert!((fc.lateral - before).norm() < 1e-12);
+        fc.step(
+            &p,
+            &Vector3::new(0.0, 0.0, 0.0),
+            &a,
+            &Vector3::zeros(),
+            0.03,
+            false,
+            0.01,
+        );
+        assert!((fc.lateral - before).norm() < 1e-12, "no spring back while silent");
+        fc.step(
+            &p,
+            &Vector3::new(0.0, -2.0, 0.0),
+            &a,
+            &Vector3::zeros(),
+            0.03,
+            false,
+            0.01,
+        );
+        let expect = -(2.0 - p.still_force_deadband) / p.damping * 0.01;
+        assert!((fc.lateral.y - before.y - expect).abs() < 1e-9);
+        // Below the dead-band while steering: back to zero.
         for _ in 0..2000 {
-            fc.step(&p, &Vector3::new(0.2, 0.0, 0.0), &a, &Vector3::zeros(), 0.03, 0.01);
+            fc.step(
+                &p,
+                &Vector3::new(0.2, 0.0, 0.0),
+                &a,
+                &Vector3::zeros(),
+                0.03,
+                true,
+                0.01,
+            );
         }
         assert!(fc.lateral.norm() < 1e-6);
         // Non-finite input: nothing changes.
         let before = fc;
-        fc.step(&p, &Vector3::new(f64::NAN, 0.0, 0.0), &a, &Vector3::x(), 0.03, 0.01);
+        fc.step(
+            &p,
+            &Vector3::new(f64::NAN, 0.0, 0.0),
+            &a,
+            &Vector3::x(),
+            0.03,
+            true,
+            0.01,
+        );
         assert_eq!(fc, before);
     }
 

@@ -225,6 +225,7 @@ impl Pivot {
         self.limit = None;
         self.ignored = command.err();
         let mut omega = Vector3::zeros();
+        let steering = matches!(command, Ok(Some(_))) || self.retract_to.is_some();
         if let Some(end) = self.retract_to {
             self.tip_depth = (self.tip_depth - p.retract_speed * dt).max(end);
         } else if let Ok(Some(c)) = command {
@@ -234,7 +235,9 @@ impl Pivot {
         }
         let d = self.direction();
         if adapt {
-            let moved = self.fulcrum.step(&p.fulcrum, force, &d, &omega, self.tip_depth, dt);
+            let moved = self
+                .fulcrum
+                .step(&p.fulcrum, force, &d, &omega, self.tip_depth, steering, dt);
             self.fulcrum_base += d.into_inner() * moved;
         }
         let port = self.port();

@@ -142,6 +142,13 @@ pub struct PivotResult {
     /// The tip's largest motion relative to the true port, across the shaft, meanwhile (a
     /// scope that follows the breathing port moves with it, and is still relative to it).
     pub still_motion_port_m: f64,
+    /// The SQP's wall time in the commanded steps (`SolveReport::solve_time_us`): median,
+    /// p99 and max, µs (this machine, its load included).
+    pub solve_us_p50: f64,
+    /// ...
+    pub solve_us_p99: f64,
+    /// ...
+    pub solve_us_max: f64,
     /// How far the true port moved (breathing) over the script and the stillness, m.
     pub port_motion_m: f64,
     /// The fulcrum's adapted depth past the port at the end, m (the true one is the
@@ -194,6 +201,7 @@ fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
 #[derive(Default)]
 struct Series {
     distance: Vec<f64>,
+    solve_us: Vec<f64>,
     face: Vec<f64>,
     wall: Vec<f64>,
     f_est: Vec<f64>,
@@ -224,6 +232,9 @@ impl Series {
         let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
         r.distance_p95_m = q(&self.distance, 0.95);
         r.distance_max_m = max(&self.distance);
+        r.solve_us_p50 = q(&self.solve_us, 0.5);
+        r.solve_us_p99 = q(&self.solve_us, 0.99);
+        r.solve_us_max = max(&self.solve_us);
         r.face_port_distance_p95_m = q(&self.face, 0.95);
         r.wall_displacement_p95_m = q(&self.wall, 0.95);
         r.swept_deg = self.swept.to_degrees();
@@ -403,6 +414,9 @@ fn empty(seed: u64) -> PivotResult {
         still_motion_m: f64::NAN,
         still_motion_port_m: f64::NAN,
         still_distance_p95_m: f64::NAN,
+        solve_us_p50: f64::NAN,
+        solve_us_p99: f64::NAN,
+        solve_us_max: f64::NAN,
         port_motion_m: 0.0,
         fulcrum_depth_m: f64::NAN,
         final_phase: "",
@@ -442,6 +456,7 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
             s.wall.push((v - a * a.dot(&v)).norm());
             s.f_true.push((f - a * a.dot(&f)).norm());
             s.f_est.push(o.pivot.map_or(f64::NAN, |p| p.lateral_force));
+            s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
             s.swept = s.swept.max(a.angle(&a0));
             s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
             s.limited += usize::from(o.pivot.is_some_and(|p| p.limit.is_some()));
