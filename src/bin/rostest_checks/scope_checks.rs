@@ -22,7 +22,7 @@
 //!
 //! `scope_joy` checks the joystick node alone: the test node plays a joystick (Joy at
 //! 20 Hz) and reads `/docking/scope_command`. Held: commands at the node's rate, each the
-//! pure mapping's ([`trocar_docking::ros::joy`]) of the played Joy under the same YAML, in
+//! pure mapping's ([`::trocar_docking::ros::joy`]) of the played Joy under the same YAML, in
 //! the tip's frame, stamped; released: one zero command, then silence; a joystick that stops
 //! while held: one zero command within `joy_timeout` and a tick, then silence.
 
