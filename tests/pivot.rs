@@ -14,7 +14,7 @@ use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{Kinematics, LbrKinematics};
 use trocar_docking::trials::config::{load_controller, SimConfig};
 use trocar_docking::trials::pivot::{
-    done_when_script, fixed_fulcrum, run_pivot, PivotResult, PivotSession, PivotTiming,
+    done_when_script, fixed_fulcrum, run_pivot, PivotResult, PivotSession, PivotTiming, Segment,
 };
 
 fn kin() -> Arc<dyn Kinematics> {
@@ -55,40 +55,27 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
         assert_eq!(r.final_phase, "DONE");
         assert_eq!(r.held_steps, 0, "seed {seed}: a hold while commanded");
         assert!(r.swept_deg >= 15.0, "seed {seed}: swept {:.1} deg", r.swept_deg);
-        assert!(
-            r.lateral_force_est_mean_n <= 1.0,
-            "seed {seed}: mean force estimate {:.2} N",
-            r.lateral_force_est_mean_n
+        let at_most = |what: &str, value: f64, bound: f64| {
+            assert!(value <= bound, "seed {seed}: {what} {value:.5} over {bound}");
+        };
+        at_most(
+            "mean force estimate across the shaft, N",
+            r.lateral_force_est_mean_n,
+            1.0,
         );
-        assert!(
-            r.lateral_force_true_max_n <= 5.0,
-            "seed {seed}: {:.2} N",
-            r.lateral_force_true_max_n
-        );
+        at_most("true force across the shaft, max, N", r.lateral_force_true_max_n, 5.0);
         // The wall dragged by at most 1.5 mm (p95); the shaft line within 4.5 mm of the
         // port (it tilts in the bore: README).
-        assert!(
-            r.wall_displacement_p95_m <= 0.0015,
-            "seed {seed}: {:.2} mm",
-            r.wall_displacement_p95_m * 1e3
-        );
-        assert!(
-            r.distance_p95_m <= 0.0045,
-            "seed {seed}: {:.2} mm",
-            r.distance_p95_m * 1e3
-        );
+        at_most("wall dragged, p95, m", r.wall_displacement_p95_m, 0.0015);
+        at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.0045);
         // Once the commands stop the scope yields only to a wall pushing over 2 N: it moved
         // 0.7-1.7 mm in these seeds (README: not the 0.5 mm), while the port goes on
         // breathing.
-        assert!(
-            r.still_motion_m <= 0.002,
-            "seed {seed}: {:.2} mm",
-            r.still_motion_m * 1e3
-        );
-        assert!(
-            r.still_motion_port_m <= 0.0015,
-            "seed {seed}: {:.2} mm",
-            r.still_motion_port_m * 1e3
+        at_most("motion once silent, m", r.still_motion_m, 0.002);
+        at_most(
+            "motion once silent relative to the port, m",
+            r.still_motion_port_m,
+            0.0015,
         );
         assert!(
             r.port_motion_m > 0.002,
@@ -257,4 +244,40 @@ fn retract_withdraws_to_the_stand_off_point_then_idles() {
     // Nothing is sent in IDLE; a retract now is refused.
     assert_eq!(s.tick(None).unwrap().command, None);
     assert!(s.controller().retract().unwrap_err().contains("IDLE"));
+}
+
+/// The surgeon holds the scope still with the dead-man pressed (zero commands) for 8 s
+/// while the port breathes 3 mm across its axis: the adapted fulcrum follows it, so the wall
+/// is dragged less and pushes less than with the fulcrum fixed.
+#[test]
+fn the_fulcrum_follows_a_breathing_port() {
+    let mut cfg = realistic();
+    cfg.sim.breathing.amplitude_lateral_m = 0.003;
+    let hold = [Segment {
+        duration: 8.0,
+        command: ScopeCommand::default(),
+    }];
+    let (mut adapted, mut fixed, mut wall_a, mut wall_f) = (0.0, 0.0, 0.0, 0.0);
+    for seed in SEEDS {
+        let go = |c: &ControllerParams| {
+            let r = run_pivot(&cfg.sim, &cfg.trial, c, kin(), seed, &hold, &PivotTiming::default()).unwrap();
+            eprintln!("{}", serde_json::to_string(&r).unwrap());
+            assert!(r.docked && r.held_steps == 0, "seed {seed}: {}", r.reason);
+            r
+        };
+        let a = go(&shipped());
+        let f = go(&fixed_fulcrum(&shipped()));
+        assert!(
+            a.swept_deg < 1.0,
+            "seed {seed}: a zero command turned the scope {}",
+            a.swept_deg
+        );
+        adapted += a.lateral_force_true_mean_n;
+        fixed += f.lateral_force_true_mean_n;
+        wall_a += a.wall_displacement_p95_m;
+        wall_f += f.wall_displacement_p95_m;
+    }
+    // Measured: 0.9-1.1 N against 4.0-5.5 N, and 1.0-1.3 mm against 5.1-6.3 mm.
+    assert!(adapted < 0.35 * fixed, "true lateral force sums: {adapted} vs {fixed}");
+    assert!(wall_a < 0.35 * wall_f, "wall displacement sums: {wall_a} vs {wall_f}");
 }

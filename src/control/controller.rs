@@ -600,6 +600,8 @@ impl OptimalController {
         if !matches!(self.run.supervisor.phase(), Phase::Done | Phase::Retract) {
             return None;
         }
+        // Every input the law needs is good: a passed hold's reason goes.
+        self.run.supervisor.clear_hold();
         let sp = &self.params.scope;
         if self.run.pivot.is_none() {
             let trocar = self.run.trocar_filtered.map(|(t, _)| InsertionAxis::from_pose(&t))?;

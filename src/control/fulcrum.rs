@@ -147,6 +147,18 @@ pub struct Fulcrum {
     pub lateral: Vector3<f64>,
 }
 
+/// How the scope moves in a step, for [`Fulcrum::step`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Motion {
+    /// The commanded angular velocity of the pan and tilt, base frame, rad/s.
+    pub omega: Vector3<f64>,
+    /// The tip's depth past the port (the fulcrum depth's upper bound), m.
+    pub tip_depth: f64,
+    /// Whether a command moves the scope (the dead-band is then `force_deadband`, else
+    /// `still_force_deadband`).
+    pub steering: bool,
+}
+
 impl Fulcrum {
     /// At the prior depth, not displaced.
     pub fn new(p: &FulcrumParams) -> Self {
@@ -157,20 +169,16 @@ impl Fulcrum {
     }
 
     /// One step of `dt`: `force` is the force on the shaft (base frame, N), `shaft` its
-    /// direction (into the body), `omega` the commanded angular velocity of the pan and
-    /// tilt (base frame, rad/s), `tip_depth` the tip's depth past the port (the depth's
-    /// upper bound), `steering` whether a command moves the scope (the dead-band then is
-    /// `force_deadband`, else `still_force_deadband`). Returns the change of depth, m.
+    /// direction (into the body), `m` how the scope moves. Returns the change of depth, m.
     pub fn step(
         &mut self,
         p: &FulcrumParams,
         force: &Vector3<f64>,
         shaft: &Unit<Vector3<f64>>,
-        omega: &Vector3<f64>,
-        tip_depth: f64,
-        steering: bool,
+        m: &Motion,
         dt: f64,
     ) -> f64 {
+        let (omega, tip_depth, steering) = (&m.omega, m.tip_depth, m.steering);
         let across = force - shaft.into_inner() * force.dot(shaft);
         let n = across.norm();
         if !(n.is_finite() && dt > 0.0 && dt.is_finite()) {
@@ -217,6 +225,22 @@ impl Fulcrum {
 mod tests {
     use super::*;
 
+    fn steer(omega: Vector3<f64>, tip_depth: f64) -> Motion {
+        Motion {
+            omega,
+            tip_depth,
+            steering: true,
+        }
+    }
+
+    fn silent() -> Motion {
+        Motion {
+            omega: Vector3::zeros(),
+            tip_depth: 0.03,
+            steering: false,
+        }
+    }
+
     /// The true fulcrum `delta` deeper than the estimate: pivoting about the estimate by θ
     /// moves the shaft there by delta θ x a and the wall (stiffness k) pushes it back.
     #[test]
@@ -235,12 +259,12 @@ mod tests {
                 theta += 0.17 * dt;
                 let delta = truth - fc.depth;
                 let force = -(omega.normalize() * theta).cross(&a) * (k * delta);
-                fc.step(&p, &force, &a, &omega, 0.04, true, dt);
+                fc.step(&p, &force, &a, &steer(omega, 0.04), dt);
             }
             assert!((fc.depth - truth).abs() < 0.002, "truth {truth}: depth {}", fc.depth);
             // Still, the same force changes nothing along the shaft.
             let before = fc.depth;
-            let d = fc.step(&p, &Vector3::new(3.0, 0.0, 0.0), &a, &Vector3::zeros(), 0.04, true, dt);
+            let d = fc.step(&p, &Vector3::new(3.0, 0.0, 0.0), &a, &steer(Vector3::zeros(), 0.04), dt);
             assert_eq!((d, fc.depth), (0.0, before));
         }
     }
@@ -249,17 +273,10 @@ mod tests {
     fn the_lateral_part_yields_to_the_force_within_its_bounds_and_ignores_the_axial_force() {
         let p = FulcrumParams::default();
         let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
+        let m = steer(Vector3::zeros(), 0.03);
         let mut fc = Fulcrum::new(&p);
         for _ in 0..1000 {
-            fc.step(
-                &p,
-                &Vector3::new(1.2, 0.0, 5.0),
-                &a,
-                &Vector3::zeros(),
-                0.03,
-                true,
-                0.01,
-            );
+            fc.step(&p, &Vector3::new(1.2, 0.0, 5.0), &a, &m, 0.01);
         }
         // (1.2 - 0.3) N / 100 N/m = 9 mm, along x only; the axial 5 N moves nothing.
         assert!(
@@ -268,64 +285,12 @@ mod tests {
             fc.lateral
         );
         for _ in 0..1000 {
-            fc.step(
-                &p,
-                &Vector3::new(0.0, 9.0, 0.0),
-                &a,
-                &Vector3::zeros(),
-                0.03,
-                true,
-                0.01,
-            );
+            fc.step(&p, &Vector3::new(0.0, 9.0, 0.0), &a, &m, 0.01);
         }
         assert!((fc.lateral.norm() - p.max_displacement).abs() < 1e-9);
-        // Silent (no command): forces under the still dead-band move nothing, larger ones
-        // move it at (f - band) / D, with no spring back.
-        let before = fc.lateral;
-        for _ in 0..100 {
-            fc.step(
-                &p,
-                &Vector3::new(0.0, 0.9, 0.0),
-                &a,
-                &Vector3::zeros(),
-                0.03,
-                false,
-                0.01,
-            );
-        }
-        assert!((fc.lateral - before).norm() < 1e-12);
-        fc.step(
-            &p,
-            &Vector3::new(0.0, 0.0, 0.0),
-            &a,
-            &Vector3::zeros(),
-            0.03,
-            false,
-            0.01,
-        );
-        assert!((fc.lateral - before).norm() < 1e-12, "no spring back while silent");
-        fc.step(
-            &p,
-            &Vector3::new(0.0, -2.0, 0.0),
-            &a,
-            &Vector3::zeros(),
-            0.03,
-            false,
-            0.01,
-        );
-        let expect = -(2.0 - p.still_force_deadband) / p.damping * 0.01;
-        assert!((fc.lateral.y - before.y - expect).abs() < 1e-9);
         // Below the dead-band while steering: back to zero.
         for _ in 0..2000 {
-            fc.step(
-                &p,
-                &Vector3::new(0.2, 0.0, 0.0),
-                &a,
-                &Vector3::zeros(),
-                0.03,
-                true,
-                0.01,
-            );
+            fc.step(&p, &Vector3::new(0.2, 0.0, 0.0), &a, &m, 0.01);
         }
         assert!(fc.lateral.norm() < 1e-6);
         // Non-finite input: nothing changes.
@@ -334,12 +299,41 @@ mod tests {
             &p,
             &Vector3::new(f64::NAN, 0.0, 0.0),
             &a,
-            &Vector3::x(),
-            0.03,
-            true,
+            &steer(Vector3::x(), 0.03),
             0.01,
         );
         assert_eq!(fc, before);
+    }
+
+    /// Silent (no command): forces under the still dead-band move nothing, larger ones move
+    /// the fulcrum at (f - band) / D, with no spring back.
+    #[test]
+    fn silent_it_holds_against_small_forces_and_yields_to_large_ones() {
+        let p = FulcrumParams::default();
+        let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
+        let mut fc = Fulcrum::new(&p);
+        for _ in 0..500 {
+            fc.step(
+                &p,
+                &Vector3::new(0.0, 0.9, 0.0),
+                &a,
+                &steer(Vector3::zeros(), 0.03),
+                0.01,
+            );
+        }
+        let before = fc.lateral;
+        assert!(before.y > 0.005);
+        for _ in 0..100 {
+            fc.step(&p, &Vector3::new(0.0, 1.9, 0.0), &a, &silent(), 0.01);
+        }
+        fc.step(&p, &Vector3::zeros(), &a, &silent(), 0.01);
+        assert!(
+            (fc.lateral - before).norm() < 1e-12,
+            "no motion and no spring back while silent"
+        );
+        fc.step(&p, &Vector3::new(0.0, -3.0, 0.0), &a, &silent(), 0.01);
+        let expect = -(3.0 - p.still_force_deadband) / p.damping * 0.01;
+        assert!((fc.lateral.y - before.y - expect).abs() < 1e-12);
     }
 
     #[test]

@@ -28,7 +28,7 @@
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 
 use super::controller::Stamped;
-use super::fulcrum::{shaft_wrench, ForceFilter, Fulcrum};
+use super::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
 use super::geometry::InsertionAxis;
 use super::scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 use super::sqp::{CostWeights, PivotCost};
@@ -235,9 +235,12 @@ impl Pivot {
         }
         let d = self.direction();
         if adapt {
-            let moved = self
-                .fulcrum
-                .step(&p.fulcrum, force, &d, &omega, self.tip_depth, steering, dt);
+            let m = Motion {
+                omega,
+                tip_depth: self.tip_depth,
+                steering,
+            };
+            let moved = self.fulcrum.step(&p.fulcrum, force, &d, &m, dt);
             self.fulcrum_base += d.into_inner() * moved;
         }
         let port = self.port();

@@ -158,15 +158,17 @@ impl Supervisor {
 
     /// Every input is good: an unlatched hold resumes the interrupted phase, and a moving
     /// phase no longer reports the reason of a hold that has passed (the status would
-    /// otherwise say "no trocar pose received" while the arm moves). A latched hold, and the
-    /// reason of a refused start in IDLE, stay.
+    /// otherwise say "no trocar pose received" while the arm moves; DONE and RETRACT, where
+    /// the surgeon steers, count as moving here). A latched hold, and the reason of a
+    /// refused start in IDLE, stay.
     pub fn clear_hold(&mut self) {
         match self.phase {
             Phase::Hold if !self.latched => {
                 self.phase = self.resume;
                 self.reason = None;
             }
-            Phase::Tare | Phase::Approach | Phase::Insert => self.reason = None,
+            // DONE and RETRACT move the scope too (steered through the port).
+            Phase::Tare | Phase::Approach | Phase::Insert | Phase::Done | Phase::Retract => self.reason = None,
             _ => {}
         }
     }
@@ -260,6 +262,9 @@ mod tests {
         assert_eq!(s.phase(), Phase::Retract);
         s.hold(HoldReason::NoJointState, false);
         assert_eq!(s.phase(), Phase::Retract, "a hold keeps the phase, as in DONE");
+        assert_eq!(s.reason().map(HoldReason::code), Some("NO_JOINT_STATE"));
+        s.clear_hold();
+        assert!(s.reason().is_none(), "the data back: the passed hold's reason goes");
         s.retract_done();
         assert_eq!(s.phase(), Phase::Idle);
         assert!(s.retract().unwrap_err().contains("IDLE"));

@@ -366,4 +366,39 @@ mod tests {
         assert!((w.force + w.trocar_force).norm() < 1e-12);
         assert!(w.moment.norm() > 1e-4);
     }
+
+    /// The mount answers the shaft's lever: a shaft tilted in the bore about a point above
+    /// the trocar's fulcrum presses the bore as a couple, which turns the trocar (force and
+    /// moment both reach the body) the way the shaft leans, against its tilt spring.
+    #[test]
+    fn a_shaft_levered_in_the_bore_turns_the_trocar_with_it() {
+        // The realistic world's 5.5 mm cannula: 0.25 mm of clearance for the 5 mm shaft.
+        let tp = TrocarParams {
+            port_diameter_m: 0.0055,
+            ..Default::default()
+        };
+        let m = ContactModel::new(&ContactParams::default(), &tp).unwrap();
+        let mut t = Trocar::new(&tp, &Isometry3::identity()).unwrap();
+        // Tip 30 mm deep, the shaft turned 3 deg about y through the point 20 mm deep: it
+        // presses the bore at its top (10 mm) and at the tip.
+        let deg = 3f64.to_radians();
+        let lean = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), deg);
+        let axis = lean * Vector3::z();
+        let tip = Vector3::new(0.0, 0.0, 0.02) + axis * 0.01;
+        let w = m.evaluate(&motion(tip, axis, Vector3::zeros()), &t);
+        assert!(w.contacts >= 2, "{}", w.contacts);
+        assert!((w.force + w.trocar_force).norm() < 1e-12);
+        // A moment about the fulcrum, the way the shaft leans (about +y), besides the force.
+        assert!(w.trocar_torque.y > 0.05, "{:?}", w.trocar_torque);
+        // Held there, the trocar turns the way the shaft leans (and slides) until the bore
+        // is free.
+        for _ in 0..20_000 {
+            let w = m.evaluate(&motion(tip, axis, Vector3::zeros()), &t);
+            t.step(1e-4, &w.trocar_force, &w.trocar_torque);
+        }
+        let trocar_axis = t.pose().rotation * Vector3::z();
+        let turned = trocar_axis.angle(&Vector3::z());
+        assert!(trocar_axis.x > 0.0 && turned > 0.2 * deg, "{turned} rad");
+        assert!(turned < deg, "{turned} rad");
+    }
 }
