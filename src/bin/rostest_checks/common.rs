@@ -96,7 +96,8 @@ pub struct CheckParams {
     pub max_shaft_distance: f64,
     /// `scope_pivot`: the smallest accepted sweep of the shaft, deg.
     pub min_sweep_deg: f64,
-    /// `scope_pivot`: the largest accepted mean force estimate while commanded, N.
+    /// `scope_pivot`: the largest accepted mean of the status `lateral_force` (the force
+    /// estimate across the shaft) while commanded, N.
     pub max_mean_force: f64,
     /// `scope_pivot`: the controller's dead-man timeout (`scope.command_timeout`), s.
     pub command_timeout: f64,
