@@ -16,7 +16,8 @@
 //! `max_still_motion` and leave it DONE; and `~retract` leads through RETRACT to IDLE
 //! within `retract_timeout`.
 //!
-//! "Still" is judged beyond the true port's motion across the shaft ([`beyond_port`]):
+//! "Still" and the dead-man's travel are judged beyond the true port's motion across the
+//! shaft ([`beyond_port`]):
 //! the port breathes (config/sim.yaml: 1 mm across the axis, 4 mm along it) and the
 //! controller's fulcrum follows it, as the issue asks, which carries the scope across its
 //! shaft by up to the port's excursion; a scope that drifts, or keeps moving after its
@@ -330,7 +331,8 @@ struct Figures {
     status: [f64; 3],
     /// Phases other than DONE while commanded.
     others: Vec<String>,
-    /// Tip travel from the last command to the start of the still window, m.
+    /// Tip travel from the last command to the start of the still window, beyond the true
+    /// port's motion across the shaft, m.
     travel: f64,
     /// Tip motion over the still window in the base frame, and beyond the true port's
     /// motion across the shaft (what following a breathing port explains), m.
@@ -354,7 +356,7 @@ impl Figures {
             sweep,
             status,
             others,
-            travel: spread(&tips_between(kin, &joints, t1, still_from)?),
+            travel: beyond_port(&tips_between(kin, &joints, t1, still_from)?, &truth),
             still: (spread(&still), beyond_port(&still, &truth)),
         })
     }
