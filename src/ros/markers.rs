@@ -1,11 +1,14 @@
 //! RViz markers of a docking scene (`/docking/markers`): the insertion axis and the port of
 //! the trocar, the goal, the endoscope tip and its optical axis, the external force arrow and
-//! the admittance reference r. Only message assembly; the geometry comes from the controller.
+//! the admittance reference r; after docking, the fulcrum (the remote centre of motion) and
+//! the cone about the docking axis the shaft must stay in. Only message assembly; the
+//! geometry comes from the controller.
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::convert::{header, point_msg, pose_msg};
 use super::msgs::{std_msgs, visualization_msgs};
+use crate::control::PivotReport;
 
 /// What to draw, all in the base frame.
 #[derive(Debug, Clone)]
@@ -20,6 +23,8 @@ pub struct Scene {
     pub f_ext: Vector3<f64>,
     /// The admittance reference r, if any.
     pub reference: Option<Point3<f64>>,
+    /// The pivot while the port is held as the remote centre of motion (DONE, RETRACT).
+    pub pivot: Option<PivotReport>,
 }
 
 /// Marker sizes.
@@ -40,6 +45,8 @@ pub struct MarkerStyle {
     pub trocar_diameter: f64,
     /// Length of the drawn cannula, m.
     pub trocar_length: f64,
+    /// Length of each nappe of the drawn cone of the shaft, from the fulcrum, m.
+    pub cone_length: f64,
 }
 
 impl Default for MarkerStyle {
@@ -52,6 +59,7 @@ impl Default for MarkerStyle {
             sphere: 0.012,
             trocar_diameter: 0.012,
             trocar_length: 0.05,
+            cone_length: 0.08,
         }
     }
 }
@@ -68,9 +76,18 @@ enum Id {
     Reference = 6,
     TrocarBody = 7,
     ForceLabel = 8,
+    Fulcrum = 9,
+    Cone = 10,
 }
 
+/// Points on each rim of the drawn cone; every `CONE_RIM / CONE_GENERATORS`-th one is
+/// joined to the apex.
+const CONE_RIM: usize = 24;
+const CONE_GENERATORS: usize = 8;
+
 const NS: &str = "docking";
+/// The namespace of the fulcrum and the cone (RViz shows or hides them together).
+const PIVOT_NS: &str = "pivot";
 
 fn color(r: f32, g: f32, b: f32) -> std_msgs::ColorRGBA {
     std_msgs::ColorRGBA { r, g, b, a: 1.0 }
@@ -140,7 +157,7 @@ pub fn docking_markers(
     scene: &Scene,
     style: &MarkerStyle,
 ) -> visualization_msgs::MarkerArray {
-    let mut markers = Vec::with_capacity(9);
+    let mut markers = Vec::with_capacity(11);
     match &scene.trocar {
         Some(t) => trocar_markers(&mut markers, stamp, frame, t, style),
         None => {
@@ -172,7 +189,64 @@ pub fn docking_markers(
         )),
         None => markers.push(delete(stamp, frame, Id::Reference)),
     }
+    let mut pivot = match &scene.pivot {
+        Some(p) => [
+            sphere(
+                stamp,
+                frame,
+                Id::Fulcrum,
+                p.fulcrum,
+                style.sphere * 1.2,
+                color(1.0, 0.2, 0.6),
+            ),
+            cone(stamp, frame, p, style.cone_length),
+        ],
+        None => [delete(stamp, frame, Id::Fulcrum), delete(stamp, frame, Id::Cone)],
+    };
+    for m in &mut pivot {
+        m.ns = PIVOT_NS.into();
+    }
+    markers.extend(pivot);
     visualization_msgs::MarkerArray { markers }
+}
+
+/// The cone the shaft stays in: a line list of both nappes about the cone axis through the
+/// fulcrum (the shaft is a line through it), each `length` long along its generators, with
+/// their rims.
+fn cone(stamp: rosrust::Time, frame: &str, p: &PivotReport, length: f64) -> visualization_msgs::Marker {
+    let mut m = base(stamp, frame, Id::Cone, visualization_msgs::Marker::LINE_LIST as i32);
+    m.scale.x = 0.001;
+    m.color = std_msgs::ColorRGBA {
+        r: 1.0,
+        g: 0.2,
+        b: 0.6,
+        a: 0.5,
+    };
+    let axis = p.cone_axis.try_normalize(1e-9).unwrap_or_else(Vector3::z);
+    let u = axis
+        .cross(&Vector3::x())
+        .try_normalize(1e-3)
+        .unwrap_or_else(|| axis.cross(&Vector3::y()).normalize());
+    let v = axis.cross(&u);
+    let (sin, cos) = p.cone_half_angle.sin_cos();
+    let rim = |side: f64, k: usize| {
+        let phi = std::f64::consts::TAU * k as f64 / CONE_RIM as f64;
+        let dir = axis * cos + (u * phi.cos() + v * phi.sin()) * sin;
+        point_msg(&(p.fulcrum + dir * side * length))
+    };
+    let apex = point_msg(&p.fulcrum);
+    m.points = Vec::with_capacity(4 * (CONE_RIM + CONE_GENERATORS));
+    for side in [1.0, -1.0] {
+        for k in 0..CONE_RIM {
+            m.points.push(rim(side, k));
+            m.points.push(rim(side, k + 1));
+            if k % (CONE_RIM / CONE_GENERATORS) == 0 {
+                m.points.push(apex.clone());
+                m.points.push(rim(side, k));
+            }
+        }
+    }
+    m
 }
 
 /// The insertion axis, the port and the cannula of the trocar at `t`.
@@ -274,14 +348,22 @@ mod tests {
             tip: Some(Isometry3::translation(0.5, 0.0, 0.2)),
             f_ext: Vector3::new(0.0, 0.0, -0.5),
             reference: Some(Point3::new(0.5, 0.0, 0.21)),
+            pivot: None,
         };
         let style = MarkerStyle::default();
         let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);
-        assert_eq!(a.markers.len(), 9);
+        assert_eq!(a.markers.len(), 11);
+        let del = visualization_msgs::Marker::DELETE as i32;
+        assert!(a
+            .markers
+            .iter()
+            .filter(|m| m.id == Id::Fulcrum as i32 || m.id == Id::Cone as i32)
+            .all(|m| m.action == del));
         let add = visualization_msgs::Marker::ADD as i32;
         assert!(a
             .markers
             .iter()
+            .filter(|m| m.id <= Id::ForceLabel as i32)
             .all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
         let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
         assert!((force.points[1].z - (0.2 - 0.5 * style.force_scale)).abs() < 1e-12);
@@ -299,18 +381,77 @@ mod tests {
         assert!((axis.points[1].z - (0.3 + style.axis_length)).abs() < 1e-12);
     }
 
-    #[test]
-    fn unknown_geometry_is_deleted() {
-        let scene = Scene {
+    /// A scene that knows nothing.
+    fn unknown() -> Scene {
+        Scene {
             trocar: None,
             goal: None,
             tip: None,
             f_ext: Vector3::zeros(),
             reference: None,
-        };
-        let a = docking_markers(rosrust::Time::new(), "b", &scene, &MarkerStyle::default());
+            pivot: None,
+        }
+    }
+
+    #[test]
+    fn unknown_geometry_is_deleted() {
+        let a = docking_markers(rosrust::Time::new(), "b", &unknown(), &MarkerStyle::default());
         let del = visualization_msgs::Marker::DELETE as i32;
-        assert_eq!(a.markers.len(), 9);
+        assert_eq!(a.markers.len(), 11);
         assert!(a.markers.iter().all(|m| m.action == del));
+    }
+
+    #[test]
+    fn the_fulcrum_and_the_cone_follow_the_pivot() {
+        let axis = Vector3::new(0.0, 0.6, -0.8);
+        let half = 30f64.to_radians();
+        let fulcrum = Point3::new(0.5, -0.1, 0.3);
+        let scene = Scene {
+            pivot: Some(PivotReport {
+                fulcrum,
+                shaft_distance: 2e-4,
+                lateral_force: 0.3,
+                depth: 0.03,
+                cone_axis: axis,
+                cone_half_angle: half,
+                limit: None,
+                ignored: None,
+                fulcrum_depth: 0.02,
+            }),
+            ..unknown()
+        };
+        let style = MarkerStyle::default();
+        let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);
+        let add = visualization_msgs::Marker::ADD as i32;
+        let f = a.markers.iter().find(|m| m.id == Id::Fulcrum as i32).unwrap();
+        assert_eq!(f.action, add);
+        assert_eq!(
+            (f.pose.position.x, f.pose.position.y, f.pose.position.z),
+            (0.5, -0.1, 0.3)
+        );
+        let c = a.markers.iter().find(|m| m.id == Id::Cone as i32).unwrap();
+        assert!(f.ns == PIVOT_NS && c.ns == PIVOT_NS, "one namespace to toggle in RViz");
+        assert_eq!(c.type_, visualization_msgs::Marker::LINE_LIST as i32);
+        assert_eq!(c.points.len() % 2, 0, "a line list takes pairs");
+        assert_eq!(c.points.len(), 4 * (CONE_RIM + CONE_GENERATORS));
+        // Every point but the apex lies on the double cone: at the cone's length from the
+        // fulcrum, at the half angle from the axis on one side or the other.
+        let (mut inside, mut outside) = (0, 0);
+        for p in &c.points {
+            let d = Point3::new(p.x, p.y, p.z) - fulcrum;
+            if d.norm() < 1e-12 {
+                continue;
+            }
+            assert!((d.norm() - style.cone_length).abs() < 1e-9);
+            let angle = d.angle(&axis);
+            if angle < std::f64::consts::FRAC_PI_2 {
+                assert!((angle - half).abs() < 1e-9, "{angle}");
+                inside += 1;
+            } else {
+                assert!((std::f64::consts::PI - angle - half).abs() < 1e-9, "{angle}");
+                outside += 1;
+            }
+        }
+        assert_eq!(inside, outside, "both nappes drawn alike");
     }
 }

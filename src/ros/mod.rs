@@ -4,7 +4,8 @@
 //!
 //! - Nodes: [`controller_node`] (`docking_controller`, driving the guarded
 //!   [`crate::control::Controller`]), [`estimator_node`] (`trocar_estimator`), [`sim_node`]
-//!   (`lbr_med_sim`).
+//!   (`lbr_med_sim`), [`joy_node`] (`scope_joy`: a joystick -> scope commands, mapped by
+//!   [`joy`]).
 //! - Shared: [`node`] (start-up errors, `main`, throttled logs), [`params`] (parameters from
 //!   the server, checked with [`crate::validate`]), [`topics`] (default topic names),
 //!   [`msgs`] (the generated message types), [`convert`] (messages <-> core types, input
@@ -19,6 +20,8 @@ pub mod controller_node;
 pub mod convert;
 pub mod estimator_node;
 pub mod handover;
+pub mod joy;
+pub mod joy_node;
 pub mod markers;
 pub mod msgs;
 pub mod node;

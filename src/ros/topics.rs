@@ -23,6 +23,10 @@ pub const DOCKING_STATUS: &str = "/docking/status";
 pub const DOCKING_F_EXT: &str = "/docking/f_ext";
 /// RViz markers (visualization_msgs/MarkerArray).
 pub const DOCKING_MARKERS: &str = "/docking/markers";
+/// The surgeon's scope commands after docking (geometry_msgs/TwistStamped, `endoscope_tip`).
+pub const SCOPE_COMMAND: &str = "/docking/scope_command";
+/// A joystick (sensor_msgs/Joy, the `joy` package's `joy_node`).
+pub const JOY: &str = "/joy";
 /// tf.
 pub const TF: &str = "/tf";
 /// The simulated clock (with `/use_sim_time`).

@@ -75,6 +75,45 @@ pub struct CheckParams {
     pub rate_tolerance: f64,
     /// `flood`: the largest accepted RSS growth of a node, MB.
     pub max_rss_growth_mb: f64,
+    /// `scope_pivot`: the scope command topic (TwistStamped).
+    pub scope_command_topic: String,
+    /// `scope_pivot`: the frame of the scope commands.
+    pub tip_frame: String,
+    /// `scope_pivot`: the measured joint states.
+    pub joint_states_topic: String,
+    /// `scope_pivot`: the URDF whose KDL chain gives the shaft ('' = the built-in Med 7).
+    pub urdf_file: String,
+    /// `scope_pivot`: ROS time between DONE and the first command, s.
+    pub settle_s: f64,
+    /// `scope_pivot`: the rate of the scope commands, Hz.
+    pub scope_rate_hz: f64,
+    /// `scope_pivot`: pan and tilt speed (rad/s) and how long each lasts (s).
+    pub pan_speed: f64,
+    /// See `pan_speed`.
+    pub pan_time: f64,
+    /// `scope_pivot`: in and out speed (m/s) and how long each lasts (s).
+    pub zoom_speed: f64,
+    /// See `zoom_speed`.
+    pub zoom_time: f64,
+    /// `scope_pivot`: the largest accepted p95 distance of the shaft from the true port, m.
+    pub max_shaft_distance: f64,
+    /// `scope_pivot`: the smallest accepted sweep of the shaft, deg.
+    pub min_sweep_deg: f64,
+    /// `scope_pivot`: the largest accepted mean of the status `lateral_force` (the force
+    /// estimate across the shaft) while commanded, N.
+    pub max_mean_force: f64,
+    /// `scope_pivot`: the controller's dead-man timeout (`scope.command_timeout`), s.
+    pub command_timeout: f64,
+    /// `scope_pivot`: time past the dead-man timeout for the scope to stop, s.
+    pub dead_man_margin_s: f64,
+    /// `scope_pivot`: the largest accepted tip motion once stopped, m.
+    pub max_still_motion: f64,
+    /// `scope_pivot`: how long the tip must stay still, s.
+    pub still_window_s: f64,
+    /// `scope_pivot`: wall time for `~retract` to reach IDLE, s.
+    pub retract_timeout: f64,
+    /// `scope_joy`: the joystick node's YAML (its mapping, rate, topics).
+    pub joy_config: String,
 }
 
 impl Default for CheckParams {
@@ -110,6 +149,25 @@ impl Default for CheckParams {
             flood_factor: 10.0,
             rate_tolerance: 0.01,
             max_rss_growth_mb: 2.0,
+            scope_command_topic: topics::SCOPE_COMMAND.into(),
+            tip_frame: ::trocar_docking::kinematics::TIP_LINK.into(),
+            joint_states_topic: topics::JOINT_STATES.into(),
+            urdf_file: String::new(),
+            settle_s: 1.0,
+            scope_rate_hz: 50.0,
+            pan_speed: 0.17,
+            pan_time: 2.0,
+            zoom_speed: 0.01,
+            zoom_time: 1.0,
+            max_shaft_distance: 0.001,
+            min_sweep_deg: 15.0,
+            max_mean_force: 1.0,
+            command_timeout: 0.2,
+            dead_man_margin_s: 0.1,
+            max_still_motion: 0.0005,
+            still_window_s: 2.0,
+            retract_timeout: 30.0,
+            joy_config: String::new(),
         }
     }
 }
@@ -135,6 +193,20 @@ impl CheckParams {
         validate::positive_at_most("flood_factor", self.flood_factor, 100.0)?;
         validate::positive("rate_tolerance", self.rate_tolerance)?;
         validate::positive("max_rss_growth_mb", self.max_rss_growth_mb)?;
+        validate::non_negative("settle_s", self.settle_s)?;
+        validate::period_of_rate("scope_rate_hz", self.scope_rate_hz)?;
+        validate::positive("pan_speed", self.pan_speed)?;
+        validate::positive("pan_time", self.pan_time)?;
+        validate::positive("zoom_speed", self.zoom_speed)?;
+        validate::positive("zoom_time", self.zoom_time)?;
+        validate::positive("max_shaft_distance", self.max_shaft_distance)?;
+        validate::positive("min_sweep_deg", self.min_sweep_deg)?;
+        validate::positive("max_mean_force", self.max_mean_force)?;
+        validate::positive("command_timeout", self.command_timeout)?;
+        validate::non_negative("dead_man_margin_s", self.dead_man_margin_s)?;
+        validate::positive("max_still_motion", self.max_still_motion)?;
+        validate::duration("still_window_s", self.still_window_s)?;
+        validate::duration("retract_timeout", self.retract_timeout)?;
         Ok(())
     }
 }

@@ -31,6 +31,10 @@ pub fn roundtrip(p: &CheckParams) -> Result<(), String> {
         metric_m: 2.25,
         f_ext: convert::vector_msg(&nalgebra::Vector3::new(0.5, -1.0, 2.0)),
         steps: 1234,
+        fulcrum: convert::point_msg(&nalgebra::Point3::new(0.6, -0.05, 0.25)),
+        shaft_to_fulcrum: 3.5e-4,
+        lateral_force: 0.42,
+        scope_limit: "CONE".into(),
         ..Default::default()
     };
     let q = JointVector::from_fn(|i, _| i as f64 * 0.1);

@@ -3,7 +3,7 @@
 //! code 0 when it passed. The checks: `roundtrip`, `docking`, `stale_hold`, `replay`
 //! ([`docking_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
 //! ([`camera_checks`]), `blocked_arm`, `clock_back`, `clock_forward`, `driver_restart` and
-//! `flood` ([`failure_modes`]).
+//! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]).
 
 mod camera_checks;
 mod common;
@@ -11,6 +11,7 @@ mod docking_checks;
 mod failure_modes;
 mod fault_injection;
 mod junit;
+mod scope_checks;
 
 use ::trocar_docking::ros::params;
 use common::CheckParams;
@@ -49,6 +50,8 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "clock_forward" => failure_modes::clock_jump(&p, 5.0),
             "driver_restart" => failure_modes::driver_restart(&p),
             "flood" => failure_modes::flood(&p),
+            "scope_pivot" => scope_checks::scope_pivot(&p),
+            "scope_joy" => scope_checks::scope_joy(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

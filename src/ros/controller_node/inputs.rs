@@ -11,6 +11,15 @@
 //! reach the loop as [`Restart`] events, which hold the controller until a new start.
 //! Joint values are always picked by name. A message with the same stamp as the last one
 //! (a duplicate) is dropped without clearing the input.
+//!
+//! The surgeon's scope command (`/docking/scope_command`, a TwistStamped) is a fourth
+//! latest-value input, stamped with its header stamp (a zero stamp: its arrival on the
+//! node's clock). A bad one (NaN, a frame other than '' or the tip's, a stamp that goes
+//! back) clears it, so the scope holds still, with a throttled warning; it is no fault of
+//! the docking and never holds the controller. The controller's dead-man
+//! ([`crate::control::pivot::live_command`]) drops a command older than
+//! `scope.command_timeout`, and ignores one stamped further ahead of its clock (a clock that
+//! went back).
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
@@ -18,12 +27,12 @@ use std::sync::{Arc, Mutex};
 use nalgebra::Isometry3;
 
 use super::ControllerNodeParams;
-use crate::control::{ControlInput, Stamped};
+use crate::control::{ControlInput, ScopeCommand, Stamped};
 use crate::kinematics::JointVector;
 use crate::ros::convert::{self, InputError, StampOrder};
 use crate::ros::handover::{latest, FaultText, SlotReader, SlotWriter};
 use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs};
-use crate::ros::node::{lock, ros_err, NodeError};
+use crate::ros::node::{lock, ros_err, NodeError, Throttle};
 
 /// One input as the loop sees it: the newest valid value and the last fault.
 type Slot<T> = Option<Stamped<T>>;
@@ -33,6 +42,7 @@ pub struct InputReaders {
     joints: SlotReader<Slot<JointVector>>,
     tau_ext: SlotReader<Slot<JointVector>>,
     trocar: SlotReader<Slot<Isometry3<f64>>>,
+    scope: SlotReader<Slot<ScopeCommand>>,
     faults: [SlotReader<Option<FaultText>>; 3],
     restarts: SlotReader<Option<Restart>>,
     last_restart: u64,
@@ -93,7 +103,7 @@ impl InputReaders {
     /// The inputs of a control step at `now`, and the first input fault, if any.
     pub fn read(&mut self, now: f64) -> (ControlInput, Option<FaultText>) {
         let input = ControlInput {
-            scope: None,
+            scope: self.scope.read(),
             now,
             joints: self.joints.read(),
             tau_ext: self.tau_ext.read(),
@@ -116,11 +126,19 @@ impl InputReaders {
     }
 }
 
-/// A subscriber's end: its slot, its fault slot, and its stamp order (touched only by the
-/// subscriber's own thread).
+/// What a rejected message does besides clearing its input.
+enum OnReject {
+    /// The docking inputs: the reason goes to the loop (the hold's cause), logged each time.
+    Fault(SlotWriter<Option<FaultText>>),
+    /// The scope command: logged at most once per period of the throttle.
+    Log(Throttle),
+}
+
+/// A subscriber's end: its slot, what a rejection does, and its stamp order (touched only
+/// by the subscriber's own thread).
 struct Feed<T: Send> {
     value: SlotWriter<Slot<T>>,
-    fault: SlotWriter<Option<FaultText>>,
+    on_reject: OnReject,
     order: Mutex<(StampOrder, u64)>,
     epoch: Arc<AtomicU64>,
     topic: String,
@@ -148,24 +166,67 @@ impl<T: Copy + Send> Feed<T> {
         }
     }
 
-    /// Take a converted message; `true` when it was accepted as the newest value.
+    /// Take a converted message; `true` when it was accepted as the newest value. A
+    /// rejected one is logged (throttled for the scope command).
     fn accept(&self, stamp: f64, value: Result<T, InputError>) -> bool {
-        let checked = value.and_then(|v| self.in_order(stamp).map(|fresh| fresh.then_some(v)));
-        match checked {
-            Ok(None) => false,
-            Ok(Some(value)) => {
-                self.value.write(Some(Stamped { stamp, value }));
-                self.fault.write(None);
-                true
-            }
+        match self.take(stamp, value) {
+            Ok(fresh) => fresh,
             Err(e) => {
-                rosrust::ros_warn!("input rejected, holding: {e}");
-                self.value.write(None);
-                self.fault.write(Some(FaultText::from_display(&e)));
+                match &self.on_reject {
+                    OnReject::Fault(_) => {
+                        rosrust::ros_warn!("input rejected, holding: {e}");
+                    }
+                    OnReject::Log(t) => {
+                        if t.ready() {
+                            rosrust::ros_warn!("scope command rejected, the scope holds still: {e}");
+                        }
+                    }
+                }
                 false
             }
         }
     }
+
+    /// Store a converted message: `Ok(true)` the newest value, `Ok(false)` a duplicate
+    /// (dropped), `Err` rejected: the input is cleared (and the fault set, for a docking input).
+    fn take(&self, stamp: f64, value: Result<T, InputError>) -> Result<bool, InputError> {
+        let checked = value.and_then(|v| self.in_order(stamp).map(|fresh| fresh.then_some(v)));
+        let fault = match &self.on_reject {
+            OnReject::Fault(f) => Some(f),
+            OnReject::Log(_) => None,
+        };
+        match checked {
+            Ok(None) => Ok(false),
+            Ok(Some(value)) => {
+                self.value.write(Some(Stamped { stamp, value }));
+                fault.inspect(|f| f.write(None));
+                Ok(true)
+            }
+            Err(e) => {
+                self.value.write(None);
+                fault.inspect(|f| f.write(Some(FaultText::from_display(&e))));
+                Err(e)
+            }
+        }
+    }
+}
+
+fn feed_with<T: Copy + Send>(
+    topic: &str,
+    epoch: &Arc<AtomicU64>,
+    restartable: bool,
+    on_reject: OnReject,
+) -> (Feed<T>, SlotReader<Slot<T>>) {
+    let (value, value_r) = latest(None);
+    let feed = Feed {
+        value,
+        on_reject,
+        order: Mutex::new((StampOrder::default(), epoch.load(Ordering::Acquire))),
+        epoch: epoch.clone(),
+        topic: topic.to_string(),
+        restartable,
+    };
+    (feed, value_r)
 }
 
 fn feed<T: Copy + Send>(
@@ -173,25 +234,27 @@ fn feed<T: Copy + Send>(
     epoch: &Arc<AtomicU64>,
     restartable: bool,
 ) -> (Feed<T>, SlotReader<Slot<T>>, SlotReader<Option<FaultText>>) {
-    let (value, value_r) = latest(None);
     let (fault, fault_r) = latest(None);
-    let feed = Feed {
-        value,
-        fault,
-        order: Mutex::new((StampOrder::default(), epoch.load(Ordering::Acquire))),
-        epoch: epoch.clone(),
-        topic: topic.to_string(),
-        restartable,
-    };
+    let (feed, value_r) = feed_with(topic, epoch, restartable, OnReject::Fault(fault));
     (feed, value_r, fault_r)
 }
 
-/// Subscribe the three inputs; the subscribers live as long as the returned handles.
+/// How often a rejected scope command is logged at most.
+const SCOPE_LOG_PERIOD: std::time::Duration = std::time::Duration::from_secs(2);
+
+/// Subscribe the four inputs; the subscribers live as long as the returned handles.
 pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust::Subscriber>), NodeError> {
     let epoch = Arc::new(AtomicU64::new(0));
     let (jf, joints, jfault) = feed::<JointVector>(&p.joint_states_topic, &epoch, true);
     let (tf, tau_ext, tfault) = feed::<JointVector>(&p.lbr_state_topic, &epoch, true);
     let (pf, trocar, pfault) = feed::<Isometry3<f64>>(&p.trocar_pose_topic, &epoch, false);
+    let (sf, scope) = feed_with::<ScopeCommand>(
+        &p.scope_command_topic,
+        &epoch,
+        false,
+        OnReject::Log(Throttle::new(SCOPE_LOG_PERIOD)),
+    );
+    let tip_frame = p.tip_frame.clone();
     let (restart_w, restarts) = latest(None);
     let stream = Mutex::new(JointStream::new(p.driver_restart_gap_s));
     let names = p.joint_names.clone();
@@ -226,11 +289,17 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
             pf.accept(convert::seconds(m.header.stamp), pose);
         })
         .map_err(ros_err)?,
+        rosrust::subscribe(&p.scope_command_topic, 1, move |m: geometry_msgs::TwistStamped| {
+            let stamp = convert::scope_stamp(&m, convert::seconds(rosrust::now()));
+            sf.accept(stamp, convert::scope_command(&sf.topic, &m, &tip_frame));
+        })
+        .map_err(ros_err)?,
     ];
     let readers = InputReaders {
         joints,
         tau_ext,
         trocar,
+        scope,
         faults: [jfault, tfault, pfault],
         restarts,
         last_restart: 0,
@@ -260,5 +329,32 @@ mod tests {
         let order = s.observe(3.002, &reversed).expect("names in another order");
         assert!(order.names_reordered && order.seq == 3);
         assert_eq!(s.observe(3.004, &reversed), None, "the new order is now the stream's");
+    }
+
+    #[test]
+    fn a_bad_scope_command_clears_the_input_and_holds_no_fault() {
+        let epoch = Arc::new(AtomicU64::new(0));
+        let throttle = Throttle::new(SCOPE_LOG_PERIOD);
+        let (f, mut r) = feed_with::<ScopeCommand>("/docking/scope_command", &epoch, false, OnReject::Log(throttle));
+        let pan = ScopeCommand {
+            pan: 0.1,
+            ..ScopeCommand::default()
+        };
+        assert_eq!(f.take(1.0, Ok(pan)), Ok(true));
+        assert_eq!(r.read().map(|c| (c.stamp, c.value)), Some((1.0, pan)));
+        let bad = convert::scope_command(
+            "t",
+            &convert::scope_twist(convert::ros_time(1.1), "lbr_link_0", &pan),
+            "endoscope_tip",
+        );
+        assert!(matches!(f.take(1.1, bad), Err(InputError::WrongFrame { .. })));
+        assert_eq!(r.read(), None, "a rejected command stops the scope");
+        assert_eq!(f.take(1.2, Ok(pan)), Ok(true));
+        assert!(f.take(1.15, Ok(pan)).is_err(), "a stamp that goes back is rejected");
+        assert_eq!(r.read(), None);
+        // A clock that went back starts the order afresh.
+        epoch.fetch_add(1, Ordering::Release);
+        assert_eq!(f.take(0.5, Ok(pan)), Ok(true));
+        assert!(r.read().is_some());
     }
 }

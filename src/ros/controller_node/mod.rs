@@ -1,8 +1,10 @@
 //! The `docking_controller` node: subscribes the joint states, the driver's LBRState
 //! (external torques) and the trocar pose; runs the guarded [`Controller`] at a fixed rate;
 //! publishes the joint command, `/docking/status`, `/docking/f_ext`, `/docking/markers` and
-//! tf frames of the trocar and the goal; serves `~start`, `~abort` and `~reset`. Every
-//! topic and frame name is a parameter (see [`ControllerNodeParams`]).
+//! tf frames of the trocar and the goal; serves `~start`, `~abort`, `~reset` and `~retract`.
+//! After DONE it takes the surgeon's scope commands (`/docking/scope_command`) and
+//! reports the pivot (fulcrum, shaft distance, lateral force, limit) in the status and
+//! the markers. Every topic and frame name is a parameter (see [`ControllerNodeParams`]).
 //!
 //! Nothing moves before `~start`. A bad message (wrong joints, NaN, wrong frame, a stamp
 //! that goes back) is dropped with a logged reason and clears that input, so the controller
@@ -61,6 +63,10 @@ pub struct ControllerNodeParams {
     pub lbr_state_topic: String,
     /// Trocar pose in.
     pub trocar_pose_topic: String,
+    /// The surgeon's scope commands in (TwistStamped), after DONE.
+    pub scope_command_topic: String,
+    /// The frame scope commands are in (a command in another, non-empty frame is rejected).
+    pub tip_frame: String,
     /// Joint command out.
     pub command_topic: String,
     /// Message type of the command.
@@ -112,6 +118,8 @@ impl Default for ControllerNodeParams {
             joint_states_topic: topics::JOINT_STATES.into(),
             lbr_state_topic: topics::LBR_STATE.into(),
             trocar_pose_topic: topics::TROCAR_POSE.into(),
+            scope_command_topic: topics::SCOPE_COMMAND.into(),
+            tip_frame: TIP_LINK.into(),
             command_topic: topics::COMMAND.into(),
             command_type: CommandType::Trajectory,
             command_lookahead_periods: 2.0,
@@ -160,6 +168,7 @@ enum Request {
     Start,
     Abort,
     Reset,
+    Retract,
 }
 
 type Reply = Result<String, String>;
@@ -240,6 +249,10 @@ impl LoopState {
                 controller.reset();
                 self.start_time = None;
                 Ok("reset to IDLE".into())
+            }
+            Request::Retract => {
+                controller.retract()?;
+                Ok("retracting along the shaft to the stand-off point, then IDLE".into())
             }
         }
     }
@@ -334,6 +347,7 @@ pub fn run() -> Result<(), NodeError> {
         trigger_service("~start", &client, Request::Start)?,
         trigger_service("~abort", &client, Request::Abort)?,
         trigger_service("~reset", &client, Request::Reset)?,
+        trigger_service("~retract", &client, Request::Retract)?,
     ];
     let (records, receiver) = handover::outputs::<StepRecord>(64);
     let publisher = outputs::spawn_publisher(&p, receiver)?;

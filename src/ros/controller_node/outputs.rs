@@ -2,7 +2,8 @@
 //! [`StepRecord`] per step into a lock-free queue ([`crate::ros::handover::outputs`]) and
 //! a publisher thread turns it into messages (rosrust's publish serialises and allocates):
 //! the joint command every step, `/docking/status` and `/docking/f_ext` at the status rate,
-//! markers and tf at the markers rate.
+//! markers and tf at the markers rate. A scope command the controller ignored (not finite,
+//! stamped in the future) is logged here, throttled.
 
 use std::time::Duration;
 
@@ -15,7 +16,7 @@ use crate::ros::convert;
 use crate::ros::handover::{FaultText, OutputReceiver, RecvError};
 use crate::ros::markers::{self, Scene};
 use crate::ros::msgs::{geometry_msgs, std_msgs, tf2_msgs, trajectory_msgs, trocar_docking, visualization_msgs};
-use crate::ros::node::{ros_err, CommandType, NodeError};
+use crate::ros::node::{ros_err, CommandType, NodeError, Throttle};
 use crate::ros::stats::Percentiles;
 
 /// What the loop hands the publisher after a step.
@@ -58,6 +59,7 @@ struct Outputs {
     f_ext: rosrust::Publisher<geometry_msgs::WrenchStamped>,
     markers: rosrust::Publisher<visualization_msgs::MarkerArray>,
     tf: rosrust::Publisher<tf2_msgs::TFMessage>,
+    ignored_log: Throttle,
 }
 
 impl Outputs {
@@ -73,6 +75,7 @@ impl Outputs {
             f_ext: rosrust::publish(&p.f_ext_topic, 10).map_err(ros_err)?,
             markers: rosrust::publish(&p.markers_topic, 2).map_err(ros_err)?,
             tf: rosrust::publish(crate::ros::topics::TF, 10).map_err(ros_err)?,
+            ignored_log: Throttle::new(Duration::from_secs(2)),
         })
     }
 
@@ -93,6 +96,11 @@ impl Outputs {
     }
 
     fn publish(&self, p: &ControllerNodeParams, r: &StepRecord) {
+        if let Some(why) = r.out.pivot.and_then(|v| v.ignored) {
+            if self.ignored_log.ready() {
+                rosrust::ros_warn!("{why}");
+            }
+        }
         if let Some(q) = &r.out.command {
             self.command(p, r.stamp, q);
         }
@@ -119,6 +127,7 @@ impl Outputs {
             tip: out.tip,
             f_ext: out.f_ext,
             reference: out.reference,
+            pivot: out.pivot,
         };
         let _ = self
             .markers
@@ -159,6 +168,7 @@ fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::
     let (hold_reason, hold_code) = hold_text_and_code(out, r.fault.as_ref());
     let costs = out.solve.as_ref().map_or([f64::NAN; 5], |s| s.costs);
     let tip_point = out.tip.map(|t| Point3::from(t.translation.vector));
+    let pivot = out.pivot.as_ref();
     trocar_docking::DockingStatus {
         header: convert::header(r.stamp, frame),
         phase: out.phase.to_string(),
@@ -198,6 +208,12 @@ fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::
         latency_max_ms: s.latency.max,
         trocar_age_ms: r.ages_ms.0,
         joints_age_ms: r.ages_ms.1,
+        fulcrum: convert::point_msg(&pivot.map_or(Point3::new(f64::NAN, f64::NAN, f64::NAN), |p| p.fulcrum)),
+        shaft_to_fulcrum: pivot.map_or(f64::NAN, |p| p.shaft_distance),
+        lateral_force: pivot.map_or(f64::NAN, |p| p.lateral_force),
+        scope_limit: pivot
+            .and_then(|p| p.limit)
+            .map_or_else(String::new, |l| l.code().to_string()),
     }
 }
 
@@ -244,5 +260,53 @@ mod tests {
         );
         assert_eq!(hold_text_and_code(&o, None).1, "NO_TROCAR_POSE");
         assert_eq!(hold_text_and_code(&out(None), None), (String::new(), ""));
+    }
+
+    fn record(out: ControlOutput) -> StepRecord {
+        StepRecord {
+            stamp: convert::ros_time(10.0),
+            out,
+            trocar: None,
+            fault: None,
+            elapsed: 1.0,
+            ages_ms: (0.0, 0.0),
+            status: None,
+            markers: false,
+        }
+    }
+
+    #[test]
+    fn the_status_carries_the_pivot_while_the_port_is_held() {
+        use crate::control::{PivotReport, ScopeLimit};
+        let pivot = PivotReport {
+            fulcrum: Point3::new(0.6, -0.05, 0.25),
+            shaft_distance: 3e-4,
+            lateral_force: 0.4,
+            depth: 0.03,
+            cone_axis: nalgebra::Vector3::z(),
+            cone_half_angle: 0.5,
+            limit: Some(ScopeLimit::MaxDepth),
+            ignored: None,
+            fulcrum_depth: 0.02,
+        };
+        let held = ControlOutput {
+            pivot: Some(pivot),
+            ..ControlOutput::empty(Phase::Done)
+        };
+        let s = status_msg("lbr_link_0", &record(held), &LoopSnapshot::default());
+        assert_eq!(s.phase, "DONE");
+        assert_eq!((s.fulcrum.x, s.fulcrum.y, s.fulcrum.z), (0.6, -0.05, 0.25));
+        assert_eq!(s.shaft_to_fulcrum, 3e-4);
+        assert_eq!(s.lateral_force, 0.4);
+        assert_eq!(s.scope_limit, "MAX_DEPTH");
+        let free = ControlOutput {
+            pivot: Some(PivotReport { limit: None, ..pivot }),
+            ..ControlOutput::empty(Phase::Retract)
+        };
+        let s = status_msg("lbr_link_0", &record(free), &LoopSnapshot::default());
+        assert_eq!((s.phase.as_str(), s.scope_limit.as_str()), ("RETRACT", ""));
+        let s = status_msg("lbr_link_0", &record(out(None)), &LoopSnapshot::default());
+        assert!(s.fulcrum.x.is_nan() && s.shaft_to_fulcrum.is_nan() && s.lateral_force.is_nan());
+        assert_eq!(s.scope_limit, "");
     }
 }

@@ -2,9 +2,12 @@
 //! message from the wire needs: joint names and count, finite values, frames, unit
 //! quaternions, stamps that move forward. A bad message becomes an [`InputError`] whose text
 //! the node logs and hands to the supervisor as the hold reason. [`image`] converts camera
-//! images and intrinsics.
+//! images and intrinsics, [`scope`] the surgeon's scope commands.
 
 pub mod image;
+pub mod scope;
+
+pub use scope::{scope_command, scope_stamp, scope_twist};
 
 use nalgebra::{Isometry3, Point3, Quaternion, Translation3, UnitQuaternion, Vector3};
 
