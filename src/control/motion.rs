@@ -248,12 +248,15 @@ mod tests {
         (JointVector::repeat(-10.0), JointVector::repeat(10.0))
     }
 
+    /// One limited step with the default limits, [`jac`] and a wide box; `left` m to go.
+    fn shaped(m: &mut MotionLimiter, q: &JointVector, cmd: &JointVector, left: f64, dt: f64) -> JointVector {
+        let (lo, hi) = wide();
+        m.limit(&MotionLimits::default(), &jac(), (q, cmd), (left, 0.0), dt, (&lo, &hi))
+    }
+
     #[test]
     fn a_steady_slow_motion_is_followed_exactly_once_up_to_speed() {
-        let lim = MotionLimits::default();
         let mut m = MotionLimiter::default();
-        let (lo, hi) = wide();
-        let j = jac();
         let dt = 0.01;
         // The SQP asks for a target that moves at 0.03 m/s in x (the insertion speed).
         let mut q = JointVector::zeros();
@@ -263,7 +266,7 @@ mod tests {
             let mut cmd = q;
             let gap = target - (q[0] + q[6]);
             cmd[0] += gap;
-            let out = m.limit(&lim, &j, (&q, &cmd), (gap.abs(), 0.0), dt, (&lo, &hi));
+            let out = shaped(&mut m, &q, &cmd, gap.abs(), dt);
             last = (target, out[0] + out[6]);
             q = out;
         }
@@ -278,7 +281,6 @@ mod tests {
     fn noise_of_5_mm_per_step_is_cut_to_the_limits_in_speed_acceleration_and_jerk() {
         let lim = MotionLimits::default();
         let mut m = MotionLimiter::default();
-        let (lo, hi) = wide();
         let j = jac();
         let dt = 0.01;
         let mut q = JointVector::zeros();
@@ -290,7 +292,7 @@ mod tests {
             let mut cmd = q;
             cmd[0] = 0.005 * s;
             cmd[1] = -0.005 * s;
-            let out = m.limit(&lim, &j, (&q, &cmd), (0.0, 0.0), dt, (&lo, &hi));
+            let out = shaped(&mut m, &q, &cmd, 0.0, dt);
             let d = j * (out - q);
             let v = Vector3::new(d[0], d[1], d[2]) / dt;
             let a = (v - v0) / dt;
@@ -310,7 +312,6 @@ mod tests {
     fn a_far_target_is_reached_at_the_speed_limit_and_without_overshoot() {
         let lim = MotionLimits::default();
         let mut m = MotionLimiter::default();
-        let (lo, hi) = wide();
         let j = jac();
         let dt = 0.01;
         let mut q = JointVector::zeros();
@@ -321,7 +322,7 @@ mod tests {
             let mut cmd = q;
             let gap = 0.02 - (q[0] + q[6]);
             cmd[0] += gap.clamp(-0.005, 0.005);
-            let out = m.limit(&lim, &j, (&q, &cmd), (gap.abs(), 0.0), dt, (&lo, &hi));
+            let out = shaped(&mut m, &q, &cmd, gap.abs(), dt);
             top = top.max((j * (out - q))[0] / dt);
             q = out;
             max_x = max_x.max(q[0] + q[6]);
@@ -339,10 +340,7 @@ mod tests {
     /// the share `dt / 0.2 s` of the remaining gap per step (a time constant of 0.2 s,
     /// whatever the control period `dt`).
     fn time_to_target(dt: f64, tell_the_gap: bool) -> f64 {
-        let lim = MotionLimits::default();
         let mut m = MotionLimiter::default();
-        let (lo, hi) = wide();
-        let j = jac();
         let mut q = JointVector::zeros();
         for k in 1..=(20.0 / dt) as usize {
             let gap = 0.02 - (q[0] + q[6]);
@@ -352,7 +350,7 @@ mod tests {
             let mut cmd = q;
             cmd[0] += dt / 0.2 * gap;
             let left = if tell_the_gap { gap.abs() } else { 0.0 };
-            q = m.limit(&lim, &j, (&q, &cmd), (left, 0.0), dt, (&lo, &hi));
+            q = shaped(&mut m, &q, &cmd, left, dt);
         }
         f64::INFINITY
     }
