@@ -86,6 +86,8 @@ pub struct SoakReport {
     pub max_step_cpu_us: f64,
     /// Controller steps over 1 ms on the thread's CPU clock.
     pub steps_over_1ms_cpu: u64,
+    /// Of those, the steps in which Clarabel solved a QP.
+    pub steps_over_1ms_cpu_clarabel: u64,
     /// Largest lead of a command over the measured joints, deg (bound:
     /// `guard.max_command_lead`).
     pub max_command_lead_deg: f64,
@@ -128,11 +130,13 @@ struct Timing {
     over_1ms: u64,
     max_cpu: Duration,
     over_1ms_cpu: u64,
+    /// Of those, the steps in which Clarabel solved a QP (the active set did not settle it).
+    over_1ms_cpu_clarabel: u64,
     max_lead: f64,
 }
 
 impl Timing {
-    fn add(&mut self, wall: Duration, cpu: Option<Duration>) {
+    fn add(&mut self, wall: Duration, cpu: Option<Duration>, clarabel: bool) {
         let ms = Duration::from_millis(1);
         self.steps += 1;
         self.max = self.max.max(wall);
@@ -140,6 +144,7 @@ impl Timing {
         if let Some(c) = cpu {
             self.max_cpu = self.max_cpu.max(c);
             self.over_1ms_cpu += u64::from(c > ms);
+            self.over_1ms_cpu_clarabel += u64::from(c > ms && clarabel);
         }
     }
 }
@@ -173,7 +178,8 @@ fn run_cycle(
         let (started, cpu0) = (Instant::now(), thread_cpu_time());
         let out = ctrl.step(kin, &input);
         let cpu = thread_cpu_time().zip(cpu0).map(|(b, a)| b.saturating_sub(a));
-        timing.add(started.elapsed(), cpu);
+        let clarabel = out.solve.as_ref().is_some_and(|r| r.clarabel_qps > 0);
+        timing.add(started.elapsed(), cpu, clarabel);
         out_phase = out.phase;
         hold_code = out.hold.as_ref().map_or("", |h| h.code());
         if matches!(out.phase, Phase::Done | Phase::Aborted | Phase::Idle) {
@@ -249,6 +255,7 @@ pub fn soak(a: &SoakArgs) -> Result<SoakReport, Box<dyn std::error::Error + Send
         steps_over_1ms: timing.over_1ms,
         max_step_cpu_us: timing.max_cpu.as_secs_f64() * 1e6,
         steps_over_1ms_cpu: timing.over_1ms_cpu,
+        steps_over_1ms_cpu_clarabel: timing.over_1ms_cpu_clarabel,
         max_command_lead_deg: timing.max_lead.to_degrees(),
         rss_start_kb: rss_start,
         rss_end_kb: rss_end,
