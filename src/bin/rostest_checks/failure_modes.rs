@@ -6,7 +6,8 @@
 //!
 //! - `blocked_arm`: the arm stops following mid-APPROACH. The command never leads the
 //!   measured joints by more than `max_lead_deg`; HOLD `ARM_NOT_FOLLOWING` within
-//!   `max_hold_delay_s` of the lead reaching its bound; the arm freed, nothing moves until
+//!   `max_hold_delay_s` of the lead reaching a quarter of its bound (where the guard's
+//!   not-following watch starts); the arm freed, nothing moves until
 //!   `~start`, and the new start begins from the measured joints (no command step over
 //!   `max_step_deg`).
 //! - `clock_back`, `clock_forward`: the test node's `/clock` jumps 5 s back or forward:
@@ -31,6 +32,7 @@ use nalgebra::{Isometry3, Translation3, Vector3};
 
 use crate::camera_checks::camera_frame;
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
+use ::trocar_docking::control::guard::LEAD_WATCH_FRACTION;
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
@@ -194,7 +196,8 @@ impl Plant {
                 let mut s = lock(&seen);
                 let lead = (cmd - measured).amax();
                 s.max_lead = s.max_lead.max(lead);
-                if lead >= 0.98 * lead_bound && s.saturated_at.is_none() {
+                // The guard's not-following watch runs from a quarter of the bound.
+                if lead >= LEAD_WATCH_FRACTION * lead_bound && s.saturated_at.is_none() {
                     s.saturated_at = Some(Instant::now());
                 }
                 if let Some(prev) = s.last {
@@ -455,12 +458,13 @@ pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
             p.max_lead_deg
         ));
     }
-    let delay = seen
-        .saturated_at
-        .map_or(0.0, |t| held_at.saturating_duration_since(t).as_secs_f64());
+    let Some(led_at) = seen.saturated_at else {
+        return Err("HOLD, but the command never led the blocked arm by a quarter of its bound".into());
+    };
+    let delay = held_at.saturating_duration_since(led_at).as_secs_f64();
     if delay > p.max_hold_delay_s {
         return Err(format!(
-            "HOLD {delay:.3} s after the command reached its lead bound (bound {} s)",
+            "HOLD {delay:.3} s after the command led by a quarter of its bound (bound {} s)",
             p.max_hold_delay_s
         ));
     }
@@ -468,7 +472,7 @@ pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
     plant.set(|m| m.blocked = false);
     let rest = no_motion_until_start(p, &plant, &status, "ARM_NOT_FOLLOWING")?;
     Ok(format!(
-        "lead at most {:.3} deg; HOLD {:.3} s after blocking, {delay:.3} s after the lead bound; {rest}",
+        "lead at most {:.3} deg; HOLD {:.3} s after blocking, {delay:.3} s after the lead reached a quarter of its bound; {rest}",
         seen.max_lead.to_degrees(),
         held_at.duration_since(blocked_at).as_secs_f64()
     ))
