@@ -412,4 +412,50 @@ mod tests {
             assert_eq!(g.source().last_command(), Some(q), "the source holds too");
         }
     }
+
+    /// The Scripted source proposes a command 1 deg ahead of a still arm for 0.5 s; the
+    /// joints arrive fresh, or stop (a silent driver: the last ones, growing old).
+    fn lead_for_half_a_second(fresh: bool) -> Option<HoldReason> {
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let limits = JointLimits::of_model(LbrModel::Med7);
+        let q = JointVector::from_column_slice(&[0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0]);
+        let mut ahead = q;
+        ahead[1] += 1f64.to_radians();
+        let source = Scripted {
+            propose: ahead,
+            last: Some(ahead),
+            phase: Phase::Approach,
+            rejected: None,
+        };
+        let mut g = Guarded::wrap(source, CommandGuard::new(GuardParams::default(), &limits));
+        for k in 0..50 {
+            let now = 1.0 + f64::from(k) * 0.01;
+            let stamp = if fresh { now } else { 1.0 };
+            let input = ControlInput {
+                scope: None,
+                now,
+                joints: Some(Stamped { stamp, value: q }),
+                tau_ext: None,
+                trocar: None,
+            };
+            let out = g.step(&kin, &input);
+            if out.phase == Phase::Hold {
+                return out.hold;
+            }
+        }
+        None
+    }
+
+    #[test]
+    fn a_still_arm_behind_its_command_is_not_following_but_a_silent_driver_is_not_judged() {
+        let fresh = lead_for_half_a_second(true);
+        assert_eq!(
+            fresh.as_ref().map(HoldReason::code),
+            Some("ARM_NOT_FOLLOWING"),
+            "{fresh:?}"
+        );
+        // Stale joints say nothing of the arm's progress: the stale-data hold (the source's)
+        // speaks for them, not ARM_NOT_FOLLOWING.
+        assert_eq!(lead_for_half_a_second(false), None);
+    }
 }
