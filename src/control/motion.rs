@@ -180,34 +180,39 @@ impl MotionLimiter {
         }
         let dq = cmd - prev;
         let twist = jac * dq;
-        let lin = Block {
-            speed: lim.max_speed,
-            accel: lim.max_accel,
-            jerk: lim.max_jerk,
-        };
-        let ang = Block {
-            speed: lim.max_angular_speed,
-            accel: lim.max_angular_accel,
-            jerk: lim.max_angular_jerk,
-        };
+        let blocks = [
+            (
+                0,
+                left.0,
+                Block {
+                    speed: lim.max_speed,
+                    accel: lim.max_accel,
+                    jerk: lim.max_jerk,
+                },
+            ),
+            (
+                3,
+                left.1,
+                Block {
+                    speed: lim.max_angular_speed,
+                    accel: lim.max_angular_accel,
+                    jerk: lim.max_angular_jerk,
+                },
+            ),
+        ];
         let part = |x: &Vector6<f64>, i: usize| Vector3::new(x[i], x[i + 1], x[i + 2]);
-        let v_lin = shape(
-            part(&twist, 0),
-            left.0,
-            part(&self.velocity, 0),
-            part(&self.accel, 0),
-            lin,
-            dt,
-        );
-        let v_ang = shape(
-            part(&twist, 3),
-            left.1,
-            part(&self.velocity, 3),
-            part(&self.accel, 3),
-            ang,
-            dt,
-        );
-        let want = Vector6::new(v_lin.x, v_lin.y, v_lin.z, v_ang.x, v_ang.y, v_ang.z) * dt;
+        let mut want = Vector6::zeros();
+        for (i, to_go, b) in blocks {
+            let v = shape(
+                part(&twist, i),
+                to_go,
+                part(&self.velocity, i),
+                part(&self.accel, i),
+                b,
+                dt,
+            );
+            want.fixed_rows_mut::<3>(i).copy_from(&(v * dt));
+        }
         let err = want - twist;
         let out = if err.norm() > 1e-12 {
             let jjt = jac * jac.transpose() + Matrix6::identity() * (DAMPING * DAMPING);
