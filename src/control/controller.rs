@@ -750,6 +750,7 @@ impl CommandSource for OptimalController {
 
     fn reset(&mut self) {
         self.run = RunState::default();
+        self.sqp.forget();
     }
 
     fn last_command(&self) -> Option<JointVector> {

@@ -330,6 +330,12 @@ impl SqpSolver {
         })
     }
 
+    /// Forget the warm start (the last QP's active set), so that the next solve starts as a
+    /// new solver's would: a reset controller then steps exactly as a new one.
+    pub fn forget(&mut self) {
+        self.active = NONE_ACTIVE;
+    }
+
     /// The settings.
     pub fn settings(&self) -> &SqpSettings {
         &self.settings
