@@ -483,9 +483,10 @@ impl OptimalController {
         };
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
         let cmd = if sol.status.is_usable() && pivot_on {
-            // Pivoting (DONE, RETRACT) commands its own bounded speeds (the scope's limits)
-            // and uses no trocar pose, whose noise the motion limits are for; limiting its
-            // linear and angular parts apart would move the shaft off the fulcrum.
+            // Pivoting (DONE, RETRACT) shapes its own rates within the motion limits (see
+            // [`super::pivot`]) and uses no trocar pose, whose noise the limiter is for;
+            // limiting its linear and angular parts apart would move the shaft off the
+            // fulcrum.
             self.run.motion.rest();
             sol.q
         } else if sol.status.is_usable() {
@@ -642,7 +643,13 @@ impl OptimalController {
             .map_or(JointVector::repeat(f64::NAN), |t| self.run.tare.correct(&t.value));
         let f = pivot.sense(&arm.jac, &tau, a.pinv_damping, a.filter_cutoff_hz, ctx.dt);
         // Without force feedback the law uses no force: the fulcrum stays where it began.
-        let t = pivot.step(sp, command, &f, self.params.force_feedback, ctx.dt);
+        let t = pivot.step(
+            (sp, &self.params.motion),
+            command,
+            &f,
+            self.params.force_feedback,
+            ctx.dt,
+        );
         let (cmd, report) = self.solve(kin, ctx, arm, (t.axis, t.point, t.point), &t.weights, Some(t.cost));
         self.run.last_command = Some(cmd);
         let pivot = self.run.pivot.as_ref()?;

@@ -81,6 +81,26 @@ impl MotionLimits {
     }
 }
 
+impl MotionLimits {
+    /// The linear block.
+    fn linear(&self) -> Block {
+        Block {
+            speed: self.max_speed,
+            accel: self.max_accel,
+            jerk: self.max_jerk,
+        }
+    }
+
+    /// The angular block.
+    fn angular(&self) -> Block {
+        Block {
+            speed: self.max_angular_speed,
+            accel: self.max_angular_accel,
+            jerk: self.max_angular_jerk,
+        }
+    }
+}
+
 /// One block (linear or angular) of the limits.
 #[derive(Debug, Clone, Copy)]
 struct Block {
@@ -180,26 +200,7 @@ impl MotionLimiter {
         }
         let dq = cmd - prev;
         let twist = jac * dq;
-        let blocks = [
-            (
-                0,
-                left.0,
-                Block {
-                    speed: lim.max_speed,
-                    accel: lim.max_accel,
-                    jerk: lim.max_jerk,
-                },
-            ),
-            (
-                3,
-                left.1,
-                Block {
-                    speed: lim.max_angular_speed,
-                    accel: lim.max_angular_accel,
-                    jerk: lim.max_angular_jerk,
-                },
-            ),
-        ];
+        let blocks = [(0, left.0, lim.linear()), (3, left.1, lim.angular())];
         let part = |x: &Vector6<f64>, i: usize| Vector3::new(x[i], x[i + 1], x[i + 2]);
         let mut want = Vector6::zeros();
         for (i, to_go, b) in blocks {
@@ -231,6 +232,61 @@ impl MotionLimiter {
         self.accel = (v - self.velocity) / dt;
         self.velocity = v;
         out
+    }
+}
+
+/// Which block of the limits a [`RateShaper`] keeps to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Rate {
+    /// A linear velocity, m/s.
+    Linear,
+    /// An angular velocity, rad/s.
+    Angular,
+}
+
+/// A velocity command (e.g. the surgeon's pan, tilt and zoom rates after docking) brought
+/// towards its wanted value within the speed, acceleration and jerk limits, so that a
+/// command that starts, stops or reverses at once moves the target smoothly. Used where
+/// the target itself is the motion (pivoting), rather than a point the SQP is drawn to.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RateShaper {
+    velocity: Vector3<f64>,
+    accel: Vector3<f64>,
+}
+
+impl RateShaper {
+    /// The shaped velocity of this step, towards `want`, braking to stop within `left`
+    /// (m or rad; `f64::INFINITY` when nothing is ahead). A `dt` of 0 (or NaN) stops.
+    pub fn step(&mut self, lim: &MotionLimits, rate: Rate, want: Vector3<f64>, left: f64, dt: f64) -> Vector3<f64> {
+        if dt.is_nan() || dt <= 0.0 || !want.iter().all(|x| x.is_finite()) {
+            self.stop();
+            return self.velocity;
+        }
+        let b = match rate {
+            Rate::Linear => lim.linear(),
+            Rate::Angular => lim.angular(),
+        };
+        let v = shape(want * dt, left.max(0.0), self.velocity, self.accel, b, dt);
+        self.accel = (v - self.velocity) / dt;
+        self.velocity = v;
+        v
+    }
+
+    /// The velocity of the last step.
+    pub fn velocity(&self) -> Vector3<f64> {
+        self.velocity
+    }
+
+    /// At rest at once.
+    pub fn stop(&mut self) {
+        *self = Self::default();
+    }
+
+    /// The velocity was cut to `v` by a limit that stopped the target (the cone, a depth
+    /// limit): the shaping goes on from `v`, not accelerating.
+    pub fn cut_to(&mut self, v: Vector3<f64>) {
+        self.velocity = v;
+        self.accel = Vector3::zeros();
     }
 }
 

@@ -11,7 +11,10 @@
 //!
 //! **Per step** the surgeon's command (dead-man: older than `command_timeout` is none; not
 //! finite, or stamped in the future, is ignored with the reason) is cut to the speed
-//! limits; the angular velocity R (pan, tilt, roll) turns R about F (the port P turns with
+//! limits, and its rates are shaped within the controller's `motion:` limits
+//! ([`super::motion::RateShaper`]: a command that starts, stops or reverses at once, or
+//! the dead-man, moves the target with bounded acceleration and jerk, braking ahead of the
+//! cone and the depth limits); the angular velocity R (pan, tilt, roll) turns R about F (the port P turns with
 //! it: P = F - d s_f), unless the new d would leave the cone about the docking axis
 //! (then only the roll turns: `CONE`); the zoom moves s_t, stopped at `min_depth` /
 //! `max_depth` (never pushed back into the range when it started outside it). The SQP
@@ -30,6 +33,7 @@ use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 use super::controller::Stamped;
 use super::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
 use super::geometry::InsertionAxis;
+use super::motion::{MotionLimits, Rate, RateShaper};
 use super::scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 use super::sqp::{CostWeights, PivotCost};
 use crate::kinematics::{Jacobian, JointVector};
@@ -80,6 +84,10 @@ pub struct Pivot {
     retract_to: Option<f64>,
     /// The shaft's force, from its whole wrench ([`shaft_wrench`]).
     force: ForceFilter,
+    /// The shaped pan, tilt and roll rates (tip frame), rad/s.
+    turn_rate: RateShaper,
+    /// The shaped zoom (z), m/s.
+    zoom_rate: RateShaper,
 }
 
 impl Pivot {
@@ -102,6 +110,8 @@ impl Pivot {
             ignored: None,
             retract_to: None,
             force: ForceFilter::default(),
+            turn_rate: RateShaper::default(),
+            zoom_rate: RateShaper::default(),
         }
     }
 
@@ -177,6 +187,18 @@ impl Pivot {
         out
     }
 
+    /// The angle left before the cone when pan and tilt at `turn` (tip frame) head out of
+    /// it; infinite when they do not.
+    fn cone_room(&self, p: &ScopeParams, turn: &Vector3<f64>, dt: f64) -> f64 {
+        let axis = |r: &UnitQuaternion<f64>| (r * Vector3::z()).angle(&self.cone_axis);
+        let next = UnitQuaternion::from_scaled_axis(self.rot * Vector3::new(turn.x, turn.y, 0.0) * dt) * self.rot;
+        if axis(&next) > axis(&self.rot) {
+            p.cone_half_angle_deg.to_radians() - axis(&self.rot)
+        } else {
+            f64::INFINITY
+        }
+    }
+
     /// Turn the target about the fulcrum by the command's angular velocity (tip frame),
     /// within the cone; returns the pan and tilt's angular velocity taken, base frame.
     fn turn(&mut self, p: &ScopeParams, c: &ScopeCommand, dt: f64) -> Vector3<f64> {
@@ -187,6 +209,8 @@ impl Pivot {
         let cone = p.cone_half_angle_deg.to_radians();
         let taken = if angle(&turned) > cone && angle(&turned) > angle(&self.rot) {
             self.limit = Some(ScopeLimit::Cone);
+            // Pan and tilt stopped here: the shaped rates start again from rest.
+            self.turn_rate.cut_to(Vector3::new(0.0, 0.0, c.roll));
             self.rot = UnitQuaternion::from_scaled_axis(roll * dt) * self.rot;
             Vector3::zeros()
         } else {
@@ -202,9 +226,11 @@ impl Pivot {
         let s = self.tip_depth + zoom * dt;
         self.tip_depth = if zoom > 0.0 && s > p.max_depth {
             self.limit = Some(ScopeLimit::MaxDepth);
+            self.zoom_rate.cut_to(Vector3::zeros());
             self.tip_depth.max(p.max_depth)
         } else if zoom < 0.0 && s < p.min_depth {
             self.limit = Some(ScopeLimit::MinDepth);
+            self.zoom_rate.cut_to(Vector3::zeros());
             self.tip_depth.min(p.min_depth)
         } else {
             s
@@ -216,7 +242,7 @@ impl Pivot {
     /// where it started, as without force feedback). Returns the SQP's targets.
     pub fn step(
         &mut self,
-        p: &ScopeParams,
+        (p, lim): (&ScopeParams, &MotionLimits),
         command: Result<Option<ScopeCommand>, &'static str>,
         force: &Vector3<f64>,
         adapt: bool,
@@ -224,12 +250,38 @@ impl Pivot {
     ) -> PivotTargets {
         self.limit = None;
         self.ignored = command.err();
-        let mut omega = Vector3::zeros();
         let steering = matches!(command, Ok(Some(_))) || self.retract_to.is_some();
+        // The wanted rates (pan, tilt, roll; zoom), and how far the zoom may go.
+        let (turn, zoom, zoom_room) = match (self.retract_to, command) {
+            (Some(end), _) => (Vector3::zeros(), -p.retract_speed, self.tip_depth - end),
+            (None, Ok(Some(c))) => {
+                let c = self.capped(p, c);
+                let room = if c.zoom > 0.0 {
+                    p.max_depth - self.tip_depth
+                } else {
+                    self.tip_depth - p.min_depth
+                };
+                (Vector3::new(c.pan, c.tilt, c.roll), c.zoom, room)
+            }
+            (None, _) => (Vector3::zeros(), 0.0, f64::INFINITY),
+        };
+        let turn = self
+            .turn_rate
+            .step(lim, Rate::Angular, turn, self.cone_room(p, &turn, dt), dt);
+        let zoom = self
+            .zoom_rate
+            .step(lim, Rate::Linear, Vector3::new(0.0, 0.0, zoom), zoom_room, dt)
+            .z;
+        let mut omega = Vector3::zeros();
         if let Some(end) = self.retract_to {
-            self.tip_depth = (self.tip_depth - p.retract_speed * dt).max(end);
-        } else if let Ok(Some(c)) = command {
-            let c = self.capped(p, c);
+            self.tip_depth = (self.tip_depth + zoom * dt).max(end);
+        } else {
+            let c = ScopeCommand {
+                pan: turn.x,
+                tilt: turn.y,
+                roll: turn.z,
+                zoom,
+            };
             omega = self.turn(p, &c, dt);
             self.zoom(p, c.zoom, dt);
         }
@@ -313,7 +365,7 @@ mod tests {
         );
         assert!((pv.fulcrum() - Point3::new(0.0, 0.0, -p.fulcrum.prior_depth)).norm() < 1e-12);
         for _ in 0..500 {
-            let t = pv.step(&p, Ok(None), &Vector3::zeros(), true, 0.01);
+            let t = pv.step((&p, &MotionLimits::default()), Ok(None), &Vector3::zeros(), true, 0.01);
             assert!((t.point - Point3::new(0.0, 0.0, -0.03)).norm() < 1e-12);
             assert!((t.axis.direction.into_inner() + Vector3::z()).norm() < 1e-12);
         }
@@ -323,44 +375,106 @@ mod tests {
     fn pan_turns_the_shaft_about_the_fulcrum_and_zoom_moves_along_it() {
         let (p, mut pv) = setup();
         let f0 = pv.fulcrum();
-        for _ in 0..100 {
-            let t = pv.step(&p, cmd(0.17, 0.0, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
+        let lim = MotionLimits::default();
+        let (mut angle, mut rate) = (0.0, 0.0);
+        for k in 0..100 {
+            let t = pv.step((&p, &lim), cmd(0.17, 0.0, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
             // The target line passes through the fulcrum.
             assert!(t.axis.distance_to_axis(&f0) < 1e-12);
             assert!((t.cost.fulcrum - f0).norm() < 1e-12);
+            // The rate builds up within the jerk and acceleration limits, up to the command.
+            let now = pv.direction().angle(&-Vector3::z());
+            let r = (now - angle) / 0.01;
+            let jerk_bound = if k == 0 {
+                lim.max_angular_jerk * 0.01 * 0.01
+            } else {
+                0.17
+            };
+            assert!(
+                r <= jerk_bound + 1e-9 && r - rate <= lim.max_angular_accel * 0.01 + 1e-9,
+                "step {k}: {r} rad/s"
+            );
+            (angle, rate) = (now, r);
+        }
+        assert!((rate - 0.17).abs() < 1e-9, "{rate} rad/s");
+        // Released: the rate falls to 0 within the limits, in a few steps.
+        for _ in 0..5 {
+            pv.step((&p, &lim), Ok(None), &Vector3::zeros(), true, 0.01);
         }
         let d = pv.direction();
-        assert!((d.angle(&-Vector3::z()) - 0.17).abs() < 1e-9, "0.17 rad in 1 s");
+        let turned = d.angle(&-Vector3::z());
+        assert!((turned - 0.17).abs() < 0.003, "{turned} rad for 1 s at 0.17 rad/s");
+        pv.step((&p, &lim), Ok(None), &Vector3::zeros(), true, 0.01);
+        assert!(
+            pv.direction().angle(&d) < 1e-12,
+            "still turning after 5 steps of release"
+        );
         // The tip moved on a circle about the fulcrum.
         let tip = pv.port() + d.into_inner() * pv.target_depth();
         assert!(((tip - f0).norm() - (0.03 - p.fulcrum.prior_depth)).abs() < 1e-12);
-        for _ in 0..100 {
-            pv.step(&p, cmd(0.0, 0.0, 0.3, 0.01), &Vector3::zeros(), true, 0.01);
+        for _ in 0..101 {
+            pv.step(
+                (&p, &MotionLimits::default()),
+                cmd(0.0, 0.0, 0.3, 0.01),
+                &Vector3::zeros(),
+                true,
+                0.01,
+            );
         }
-        assert!((pv.target_depth() - 0.04).abs() < 1e-12);
+        // 10 mm in 1 s (the ramp's loss made up by the one more step).
+        assert!((pv.target_depth() - 0.04).abs() < 2e-4, "{}", pv.target_depth());
         assert!(pv.direction().angle(&d) < 1e-12, "roll and zoom keep the direction");
     }
 
     #[test]
     fn each_limit_stops_the_command_at_it_and_says_so() {
         let (p, mut pv) = setup();
-        let t = pv.step(&p, cmd(3.0, 0.0, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
-        assert_eq!(pv.limit, Some(ScopeLimit::Speed));
-        assert!((t.axis.direction.angle(&-Vector3::z()) - p.max_angular_speed * 0.01).abs() < 1e-12);
+        let mut before = 0.0;
+        for _ in 0..20 {
+            before = pv.direction().angle(&-Vector3::z());
+            pv.step(
+                (&p, &MotionLimits::default()),
+                cmd(3.0, 0.0, 0.0, 0.0),
+                &Vector3::zeros(),
+                true,
+                0.01,
+            );
+            assert_eq!(pv.limit, Some(ScopeLimit::Speed));
+        }
+        let step = pv.direction().angle(&-Vector3::z()) - before;
+        assert!((step - p.max_angular_speed * 0.01).abs() < 1e-12, "{step} rad per step");
         // Zoom out to the minimum depth and no further.
         for _ in 0..200 {
-            pv.step(&p, cmd(0.0, 0.0, 0.0, -0.02), &Vector3::zeros(), true, 0.01);
+            pv.step(
+                (&p, &MotionLimits::default()),
+                cmd(0.0, 0.0, 0.0, -0.02),
+                &Vector3::zeros(),
+                true,
+                0.01,
+            );
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MinDepth));
         assert_eq!(pv.target_depth(), p.min_depth);
         for _ in 0..600 {
-            pv.step(&p, cmd(0.0, 0.0, 0.0, 0.02), &Vector3::zeros(), true, 0.01);
+            pv.step(
+                (&p, &MotionLimits::default()),
+                cmd(0.0, 0.0, 0.0, 0.02),
+                &Vector3::zeros(),
+                true,
+                0.01,
+            );
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MaxDepth));
         assert_eq!(pv.target_depth(), p.max_depth);
         // Tilt into the cone's edge: stops within one step of it, roll still turns.
         for _ in 0..400 {
-            pv.step(&p, cmd(0.0, 0.3, 0.1, 0.0), &Vector3::zeros(), true, 0.01);
+            pv.step(
+                (&p, &MotionLimits::default()),
+                cmd(0.0, 0.3, 0.1, 0.0),
+                &Vector3::zeros(),
+                true,
+                0.01,
+            );
         }
         let r = pv.report(&p, &Isometry3::identity(), &Vector3::zeros());
         assert_eq!(r.limit, Some(ScopeLimit::Cone));
@@ -368,7 +482,13 @@ mod tests {
         let cone = p.cone_half_angle_deg.to_radians();
         assert!(angle <= cone && angle > cone - 0.003 - 1e-9, "{angle} vs {cone}");
         // Back out of the edge is allowed.
-        pv.step(&p, cmd(0.0, -0.3, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
+        pv.step(
+            (&p, &MotionLimits::default()),
+            cmd(0.0, -0.3, 0.0, 0.0),
+            &Vector3::zeros(),
+            true,
+            0.01,
+        );
         assert_eq!(pv.limit, None);
         assert!(pv.direction().angle(&-Vector3::z()) < angle);
     }
@@ -386,7 +506,7 @@ mod tests {
         };
         let c = live_command(&p, 1.0, Some(nan));
         assert!(c.unwrap_err().contains("not finite"));
-        pv.step(&p, c, &Vector3::zeros(), true, 0.01);
+        pv.step((&p, &MotionLimits::default()), c, &Vector3::zeros(), true, 0.01);
         assert_eq!(pv.rot, before.rot);
         assert_eq!(pv.tip_depth, before.tip_depth);
         assert!(pv
@@ -429,7 +549,7 @@ mod tests {
         for _ in 0..100 {
             let f = pv.sense(&jac, &JointVector::repeat(0.3), 0.02, 20.0, 0.01);
             let cmd = live_command(&p, 1.0, c);
-            pv.step(&p, cmd, &f, true, 0.01);
+            pv.step((&p, &MotionLimits::default()), cmd, &f, true, 0.01);
             let _ = pv.report(&p, &Isometry3::identity(), &f);
         }
         assert_eq!(crate::test_alloc::allocations_on_this_thread(), before);
@@ -441,7 +561,13 @@ mod tests {
         pv.retract_to(-0.02);
         let mut steps = 0;
         while !pv.retracted() {
-            pv.step(&p, cmd(0.3, 0.0, 0.0, 0.02), &Vector3::zeros(), true, 0.01);
+            pv.step(
+                (&p, &MotionLimits::default()),
+                cmd(0.3, 0.0, 0.0, 0.02),
+                &Vector3::zeros(),
+                true,
+                0.01,
+            );
             steps += 1;
             assert!(steps < 1000);
         }
