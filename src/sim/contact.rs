@@ -13,12 +13,15 @@
 //! tangent f_t   = -mu f_n v_t / sqrt(|v_t|^2 + v_s^2)      v_t = v_rel - (v_rel . n) n
 //! ```
 //! where v_rel is the velocity of the shaft point minus that of the trocar point at Q, and
-//! v_s the slip velocity of the regularisation. The force f = f_n n + f_t acts on the
+//! v_s the slip velocity of the regularisation. The contact's stiffness against the tip's
+//! motion (a small twist [dx; dθ] of the shaft changes the wrench on it by -K_c [dx; dθ]) is
+//! K_c = sum k g g^T with g = [n; (Q - tip) x n] over the spheres in contact: the deflection
+//! of the arm's joints is integrated implicitly in it ([`super::arm`]). The force f = f_n n + f_t acts on the
 //! shaft at Q and -f on the trocar. Summed over spheres: the force F on the arm and its
 //! moment M about the tip, which make the external joint torques tau = J^T [F; M]
 //! (the point Jacobian of Q is J_v - [Q - tip]x J_w, so J_Q^T f = J_v^T f + J_w^T ((Q - tip) x f)).
 
-use nalgebra::{Isometry3, Point3, Vector2, Vector3};
+use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::trocar::{Trocar, TrocarParams};
@@ -47,8 +50,8 @@ pub struct ContactParams {
 impl Default for ContactParams {
     fn default() -> Self {
         Self {
-            stiffness_n_per_m: 2.0e4,
-            damping_ns_per_m: 20.0,
+            stiffness_n_per_m: 1.0e6,
+            damping_ns_per_m: 200.0,
             friction: 0.3,
             slip_velocity_m_s: 0.01,
             shaft_diameter_m: 0.005,
@@ -102,6 +105,8 @@ pub struct ContactWrench {
     pub contacts: usize,
     /// Deepest penetration, m.
     pub max_depth: f64,
+    /// The normal stiffness against the tip's motion (module doc), [N/m, N/rad; N, Nm/rad].
+    pub stiffness: Matrix6<f64>,
 }
 
 impl ContactWrench {
@@ -253,6 +258,9 @@ impl ContactModel {
             let vt = v_rel - n * vn;
             let ft = vt * (-p.friction * fn_ / (vt.norm_squared() + p.slip_velocity_m_s * p.slip_velocity_m_s).sqrt());
             out.add_point_force(&(n * fn_ + ft), &q, &tip, &pivot);
+            let rn = (q - tip).cross(&n);
+            let g = Vector6::new(n.x, n.y, n.z, rn.x, rn.y, rn.z);
+            out.stiffness += g * g.transpose() * p.stiffness_n_per_m;
             out.contacts += 1;
             out.max_depth = out.max_depth.max(lc.depth);
         }
