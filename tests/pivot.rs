@@ -64,12 +64,17 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
             1.0,
         );
         at_most("true force across the shaft, max, N", r.lateral_force_true_max_n, 5.0);
-        // The wall dragged by at most 1.5 mm (p95); the shaft line within 4.5 mm of the
-        // port (it tilts in the bore: README).
+        at_most("true force across the shaft, mean, N", r.lateral_force_true_mean_n, 1.0);
+        // The rigid cannula keeps the shaft line within its clearance of the trocar's
+        // fulcrum (measured 0.2-0.6 mm; the soft penalty bore let it sink 0.8-3.1 mm); the
+        // wall dragged by at most 1.5 mm (p95, measured 0.8-1.1); the shaft line within 2 mm
+        // of the port (measured 0.8-1.7 mm, not the 1 mm: README; 1.7-3.6 mm with
+        // the soft bore and the fulcrum's force through the tare's dead-band).
+        at_most("shaft from the trocar's fulcrum, p95, m", r.bore_distance_p95_m, 0.0008);
         at_most("wall dragged, p95, m", r.wall_displacement_p95_m, 0.0015);
-        at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.0045);
+        at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.002);
         // Once the commands stop the scope yields only to a wall pushing over 2 N: it moved
-        // 0.7-1.7 mm in these seeds (README: not the 0.5 mm), while the port goes on
+        // 0.8-1.2 mm in these seeds (README: not the 0.5 mm), while the port goes on
         // breathing.
         at_most("motion once silent, m", r.still_motion_m, 0.002);
         at_most(
@@ -98,12 +103,14 @@ fn the_adapted_fulcrum_drags_the_wall_less_than_a_fixed_one() {
         f_adapted += a.lateral_force_true_mean_n;
         f_fixed += f.lateral_force_true_mean_n;
     }
+    // Measured 0.22 x and 0.16 x (0.33 x and 0.35 x with the soft bore and the fulcrum's
+    // force through the tare's dead-band).
     assert!(
-        adapted < 0.6 * fixed,
+        adapted < 0.3 * fixed,
         "wall displacement p95 sums: {adapted} vs {fixed}"
     );
     assert!(
-        f_adapted < 0.8 * f_fixed,
+        f_adapted < 0.3 * f_fixed,
         "true lateral force sums: {f_adapted} vs {f_fixed}"
     );
 }
