@@ -375,6 +375,50 @@ mod tests {
         assert!(w.moment.norm() > 1e-4);
     }
 
+    /// K_c is the wrench's derivative: a small twist of a shaft pressed into the bore's side
+    /// (at rest, so no damping or friction) changes the wrench on it by -K_c
+    /// times the twist, within the surface's curvature (second order at micrometre depths).
+    #[test]
+    fn the_contact_stiffness_is_the_wrench_derivative() {
+        let tp = TrocarParams {
+            port_diameter_m: 0.0055,
+            ..Default::default()
+        };
+        let m = ContactModel::new(&ContactParams::default(), &tp).unwrap();
+        let t = Trocar::new(&tp, &Isometry3::identity()).unwrap();
+        // 30 mm deep, 5 um into the bore's side (0.25 mm clearance) along its length.
+        let axis = Vector3::z();
+        let tip = Vector3::new(0.000255, 0.0, 0.03);
+        let w0 = m.evaluate(&motion(tip, axis, Vector3::zeros()), &t);
+        assert!(
+            w0.contacts >= 2 && w0.max_depth < 2e-5,
+            "{} {}",
+            w0.contacts,
+            w0.max_depth
+        );
+        let wrench =
+            |w: &ContactWrench| Vector6::new(w.force.x, w.force.y, w.force.z, w.moment.x, w.moment.y, w.moment.z);
+        for twist in [
+            Vector6::new(1e-6, 0.0, 0.0, 0.0, 0.0, 0.0),
+            Vector6::new(0.0, 0.0, 0.0, 0.0, 2e-5, 0.0),
+            Vector6::new(-5e-7, 3e-7, 0.0, 1e-5, -1e-5, 0.0),
+        ] {
+            let dx = Vector3::new(twist[0], twist[1], twist[2]);
+            let rot = UnitQuaternion::from_scaled_axis(Vector3::new(twist[3], twist[4], twist[5]));
+            let w1 = m.evaluate(&motion(tip + dx, rot * axis, Vector3::zeros()), &t);
+            assert_eq!(w1.contacts, w0.contacts);
+            let got = wrench(&w1) - wrench(&w0);
+            let want = -w0.stiffness * twist;
+            assert!((got - want).norm() < 0.05 * want.norm(), "{got} vs {want}");
+        }
+        // Out of contact: no stiffness.
+        let free = m.evaluate(
+            &motion(Vector3::new(0.0, 0.0, 0.03), Vector3::z(), Vector3::zeros()),
+            &t,
+        );
+        assert_eq!(free.stiffness, Matrix6::zeros());
+    }
+
     /// The mount answers the shaft's lever: a shaft tilted in the bore about a point above
     /// the trocar's fulcrum presses the bore as a couple, which turns the trocar (force and
     /// moment both reach the body) the way the shaft leans, against its tilt spring.
