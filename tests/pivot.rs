@@ -64,12 +64,17 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
             1.0,
         );
         at_most("true force across the shaft, max, N", r.lateral_force_true_max_n, 5.0);
-        // The wall dragged by at most 1.5 mm (p95); the shaft line within 4.5 mm of the
-        // port (it tilts in the bore: README).
+        at_most("true force across the shaft, mean, N", r.lateral_force_true_mean_n, 1.0);
+        // The rigid cannula keeps the shaft line within its clearance of the trocar's
+        // fulcrum (measured 0.2-0.6 mm; the soft penalty bore let it sink 0.8-3.1 mm); the
+        // wall dragged by at most 1.5 mm (p95, measured 0.8-1.1); the shaft line within 2 mm
+        // of the port (measured 0.8-1.7 mm, not the issue's 1 mm: README; 1.7-3.6 mm with
+        // the soft bore and the fulcrum's force through the tare's dead-band).
+        at_most("shaft from the trocar's fulcrum, p95, m", r.bore_distance_p95_m, 0.0008);
         at_most("wall dragged, p95, m", r.wall_displacement_p95_m, 0.0015);
-        at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.0045);
+        at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.002);
         // Once the commands stop the scope yields only to a wall pushing over 2 N: it moved
-        // 0.7-1.7 mm in these seeds (README: not the issue's 0.5 mm), while the port goes on
+        // 0.8-1.2 mm in these seeds (README: not the issue's 0.5 mm), while the port goes on
         // breathing.
         at_most("motion once silent, m", r.still_motion_m, 0.002);
         at_most(
@@ -98,12 +103,14 @@ fn the_adapted_fulcrum_drags_the_wall_less_than_a_fixed_one() {
         f_adapted += a.lateral_force_true_mean_n;
         f_fixed += f.lateral_force_true_mean_n;
     }
+    // Measured 0.22 x and 0.16 x (0.33 x and 0.35 x with the soft bore and the fulcrum's
+    // force through the tare's dead-band).
     assert!(
-        adapted < 0.6 * fixed,
+        adapted < 0.3 * fixed,
         "wall displacement p95 sums: {adapted} vs {fixed}"
     );
     assert!(
-        f_adapted < 0.8 * f_fixed,
+        f_adapted < 0.3 * f_fixed,
         "true lateral force sums: {f_adapted} vs {f_fixed}"
     );
 }
@@ -285,9 +292,11 @@ fn the_fulcrum_follows_a_breathing_port() {
         wall_a += a.wall_displacement_p95_m;
         wall_f += f.wall_displacement_p95_m;
     }
-    // Measured: 0.9-1.1 N against 4.0-5.5 N, and 1.0-1.3 mm against 5.1-6.3 mm.
-    assert!(adapted < 0.35 * fixed, "true lateral force sums: {adapted} vs {fixed}");
-    assert!(wall_a < 0.35 * wall_f, "wall displacement sums: {wall_a} vs {wall_f}");
+    // Measured: 0.48-0.64 N against 3.3-5.8 N, and 0.74-0.99 mm against 4.6-6.5 mm (sums
+    // 0.12 x and 0.15 x; with the soft bore and the fulcrum's force through the tare's
+    // dead-band 0.9-1.1 N against 4.0-5.5 N, 1.0-1.3 mm against 5.1-6.3 mm: 0.2 x).
+    assert!(adapted < 0.18 * fixed, "true lateral force sums: {adapted} vs {fixed}");
+    assert!(wall_a < 0.18 * wall_f, "wall displacement sums: {wall_a} vs {wall_f}");
 }
 
 /// Issue 14's "bounded tip speed, acceleration and jerk in every phase", after docking:

@@ -71,6 +71,12 @@ struct ArmPivot {
     distance_p95_m: Stats,
     face_port_distance_p95_m: Stats,
     wall_displacement_p95_m: Stats,
+    bore_distance_p95_m: Stats,
+    bore_angle_p95_deg: Stats,
+    contact_depth_p95_m: Stats,
+    fulcrum_estimate_p95_m: Stats,
+    rcm_tracking_p95_m: Stats,
+    breathing_across_p95_m: Stats,
     lateral_force_est_mean_n: Stats,
     lateral_force_est_max_n: Stats,
     lateral_force_true_mean_n: Stats,
@@ -95,6 +101,12 @@ impl ArmPivot {
             distance_p95_m: s(|r| r.distance_p95_m),
             face_port_distance_p95_m: s(|r| r.face_port_distance_p95_m),
             wall_displacement_p95_m: s(|r| r.wall_displacement_p95_m),
+            bore_distance_p95_m: s(|r| r.bore_distance_p95_m),
+            bore_angle_p95_deg: s(|r| r.bore_angle_p95_deg),
+            contact_depth_p95_m: s(|r| r.contact_depth_p95_m),
+            fulcrum_estimate_p95_m: s(|r| r.fulcrum_estimate_p95_m),
+            rcm_tracking_p95_m: s(|r| r.rcm_tracking_p95_m),
+            breathing_across_p95_m: s(|r| r.breathing_across_p95_m),
             lateral_force_est_mean_n: s(|r| r.lateral_force_est_mean_n),
             lateral_force_est_max_n: s(|r| r.lateral_force_est_max_n),
             lateral_force_true_mean_n: s(|r| r.lateral_force_true_mean_n),
@@ -121,6 +133,28 @@ impl ArmPivot {
         println!(
             "  wall dragged, p95:              {}",
             mm(&self.wall_displacement_p95_m)
+        );
+        println!(
+            "  shaft from the trocar's fulcrum, p95: {}",
+            mm(&self.bore_distance_p95_m)
+        );
+        println!(
+            "  shaft to the trocar's axis, p95: mean {:.2} max {:.2} deg; contact depth p95 {}",
+            self.bore_angle_p95_deg.mean,
+            self.bore_angle_p95_deg.max,
+            mm(&self.contact_depth_p95_m)
+        );
+        println!(
+            "  controller's fulcrum from the true port, p95: {}",
+            mm(&self.fulcrum_estimate_p95_m)
+        );
+        println!(
+            "  shaft from the controller's fulcrum, p95: {}",
+            mm(&self.rcm_tracking_p95_m)
+        );
+        println!(
+            "  true port's breathing across the shaft, p95: {}",
+            mm(&self.breathing_across_p95_m)
         );
         println!(
             "  lateral force estimate, mean:   {}",

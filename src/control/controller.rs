@@ -637,11 +637,15 @@ impl OptimalController {
         if self.run.supervisor.phase() == Phase::Retract && !pivot.retracting() {
             pivot.retract_to(-self.params.standoff);
         }
+        // The torques less the tare's offset but not its per-joint dead-band (2 sigma of the
+        // tare window's noise, 0.6 Nm in the realistic world): a few newtons across the shaft
+        // load the wrist joints by tenths of Nm, which the band would zero and the wrench
+        // would lose; the fulcrum low-passes its force and bands it across the shaft instead.
         let a = &self.params.admittance;
         let tau = input
             .tau_ext
-            .map_or(JointVector::repeat(f64::NAN), |t| self.run.tare.correct(&t.value));
-        let f = pivot.sense(&arm.jac, &tau, a.pinv_damping, a.filter_cutoff_hz, ctx.dt);
+            .map_or(JointVector::repeat(f64::NAN), |t| self.run.tare.remove_offset(&t.value));
+        let f = pivot.sense(&arm.jac, &tau, a.pinv_damping, sp.fulcrum.filter_cutoff_hz, ctx.dt);
         // Without force feedback the law uses no force: the fulcrum stays where it began.
         let t = pivot.step(
             (sp, &self.params.motion),

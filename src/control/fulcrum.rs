@@ -59,6 +59,8 @@ pub struct FulcrumParams {
     pub depth_gain: f64,
     /// The depth adapts only while the scope pivots faster than this, rad/s.
     pub min_pivot_speed: f64,
+    /// Cut-off of the force's first-order low-pass, Hz (0: none).
+    pub filter_cutoff_hz: f64,
 }
 
 impl Default for FulcrumParams {
@@ -72,6 +74,7 @@ impl Default for FulcrumParams {
             max_displacement: 0.01,
             depth_gain: 0.1,
             min_pivot_speed: 0.02,
+            filter_cutoff_hz: 5.0,
         }
     }
 }
@@ -93,7 +96,8 @@ impl FulcrumParams {
         check("still_force_deadband", self.still_force_deadband, 0.0, 50.0)?;
         check("max_displacement", self.max_displacement, 0.0, 0.05)?;
         check("depth_gain", self.depth_gain, 0.0, 1.0)?;
-        check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)
+        check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)?;
+        check("filter_cutoff_hz", self.filter_cutoff_hz, 0.0, 1000.0)
     }
 }
 

@@ -186,6 +186,12 @@ impl Tare {
         self.offset += (tau - self.offset) * a;
     }
 
+    /// The torques less the offset, without the dead-band: for a consumer that filters
+    /// them and bands its own estimate (the fulcrum's, [`super::fulcrum`]).
+    pub fn remove_offset(&self, tau: &JointVector) -> JointVector {
+        tau - self.offset
+    }
+
     /// The torques less the offset, with the dead-band applied per joint.
     pub fn correct(&self, tau: &JointVector) -> JointVector {
         (tau - self.offset).zip_map(&self.band, super::admittance::deadband)

@@ -13,12 +13,15 @@
 //! tangent f_t   = -mu f_n v_t / sqrt(|v_t|^2 + v_s^2)      v_t = v_rel - (v_rel . n) n
 //! ```
 //! where v_rel is the velocity of the shaft point minus that of the trocar point at Q, and
-//! v_s the slip velocity of the regularisation. The force f = f_n n + f_t acts on the
+//! v_s the slip velocity of the regularisation. The contact's stiffness against the tip's
+//! motion (a small twist [dx; dθ] of the shaft changes the wrench on it by -K_c [dx; dθ]) is
+//! K_c = sum k g g^T with g = [n; (Q - tip) x n] over the spheres in contact: the deflection
+//! of the arm's joints is integrated implicitly in it ([`super::arm`]). The force f = f_n n + f_t acts on the
 //! shaft at Q and -f on the trocar. Summed over spheres: the force F on the arm and its
 //! moment M about the tip, which make the external joint torques tau = J^T [F; M]
 //! (the point Jacobian of Q is J_v - [Q - tip]x J_w, so J_Q^T f = J_v^T f + J_w^T ((Q - tip) x f)).
 
-use nalgebra::{Isometry3, Point3, Vector2, Vector3};
+use nalgebra::{Isometry3, Matrix6, Point3, Vector2, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
 use super::trocar::{Trocar, TrocarParams};
@@ -47,8 +50,8 @@ pub struct ContactParams {
 impl Default for ContactParams {
     fn default() -> Self {
         Self {
-            stiffness_n_per_m: 2.0e4,
-            damping_ns_per_m: 20.0,
+            stiffness_n_per_m: 1.0e6,
+            damping_ns_per_m: 200.0,
             friction: 0.3,
             slip_velocity_m_s: 0.01,
             shaft_diameter_m: 0.005,
@@ -102,6 +105,8 @@ pub struct ContactWrench {
     pub contacts: usize,
     /// Deepest penetration, m.
     pub max_depth: f64,
+    /// The normal stiffness against the tip's motion (module doc), [N/m, N/rad; N, Nm/rad].
+    pub stiffness: Matrix6<f64>,
 }
 
 impl ContactWrench {
@@ -253,6 +258,9 @@ impl ContactModel {
             let vt = v_rel - n * vn;
             let ft = vt * (-p.friction * fn_ / (vt.norm_squared() + p.slip_velocity_m_s * p.slip_velocity_m_s).sqrt());
             out.add_point_force(&(n * fn_ + ft), &q, &tip, &pivot);
+            let rn = (q - tip).cross(&n);
+            let g = Vector6::new(n.x, n.y, n.z, rn.x, rn.y, rn.z);
+            out.stiffness += g * g.transpose() * p.stiffness_n_per_m;
             out.contacts += 1;
             out.max_depth = out.max_depth.max(lc.depth);
         }
@@ -365,6 +373,50 @@ mod tests {
         // The force on the arm and on the trocar balance; the moment is non-trivial.
         assert!((w.force + w.trocar_force).norm() < 1e-12);
         assert!(w.moment.norm() > 1e-4);
+    }
+
+    /// K_c is the wrench's derivative: a small twist of a shaft pressed into the bore's side
+    /// (at rest, so no damping or friction) changes the wrench on it by -K_c
+    /// times the twist, within the surface's curvature (second order at micrometre depths).
+    #[test]
+    fn the_contact_stiffness_is_the_wrench_derivative() {
+        let tp = TrocarParams {
+            port_diameter_m: 0.0055,
+            ..Default::default()
+        };
+        let m = ContactModel::new(&ContactParams::default(), &tp).unwrap();
+        let t = Trocar::new(&tp, &Isometry3::identity()).unwrap();
+        // 30 mm deep, 5 um into the bore's side (0.25 mm clearance) along its length.
+        let axis = Vector3::z();
+        let tip = Vector3::new(0.000255, 0.0, 0.03);
+        let w0 = m.evaluate(&motion(tip, axis, Vector3::zeros()), &t);
+        assert!(
+            w0.contacts >= 2 && w0.max_depth < 2e-5,
+            "{} {}",
+            w0.contacts,
+            w0.max_depth
+        );
+        let wrench =
+            |w: &ContactWrench| Vector6::new(w.force.x, w.force.y, w.force.z, w.moment.x, w.moment.y, w.moment.z);
+        for twist in [
+            Vector6::new(1e-6, 0.0, 0.0, 0.0, 0.0, 0.0),
+            Vector6::new(0.0, 0.0, 0.0, 0.0, 2e-5, 0.0),
+            Vector6::new(-5e-7, 3e-7, 0.0, 1e-5, -1e-5, 0.0),
+        ] {
+            let dx = Vector3::new(twist[0], twist[1], twist[2]);
+            let rot = UnitQuaternion::from_scaled_axis(Vector3::new(twist[3], twist[4], twist[5]));
+            let w1 = m.evaluate(&motion(tip + dx, rot * axis, Vector3::zeros()), &t);
+            assert_eq!(w1.contacts, w0.contacts);
+            let got = wrench(&w1) - wrench(&w0);
+            let want = -w0.stiffness * twist;
+            assert!((got - want).norm() < 0.05 * want.norm(), "{got} vs {want}");
+        }
+        // Out of contact: no stiffness.
+        let free = m.evaluate(
+            &motion(Vector3::new(0.0, 0.0, 0.03), Vector3::z(), Vector3::zeros()),
+            &t,
+        );
+        assert_eq!(free.stiffness, Matrix6::zeros());
     }
 
     /// The mount answers the shaft's lever: a shaft tilted in the bore about a point above

@@ -101,7 +101,7 @@ impl Default for SimParams {
     fn default() -> Self {
         Self {
             physics_rate_hz: 1000.0,
-            substeps: 5,
+            substeps: 10,
             arm: ArmParams::default(),
             trocar: TrocarParams::default(),
             seal: SealParams::default(),

@@ -237,7 +237,8 @@ impl SimWorld {
         }
         self.trocar.step(h, &w.trocar_force, &w.trocar_torque);
         let wrench = Vector6::new(w.force.x, w.force.y, w.force.z, w.moment.x, w.moment.y, w.moment.z);
-        self.arm.relax(&(jac.transpose() * wrench), h);
+        let kq = jac.transpose() * w.stiffness * jac;
+        self.arm.relax(&(jac.transpose() * wrench), &kq, h);
         w
     }
 

@@ -120,6 +120,23 @@ pub struct PivotResult {
     /// How far the wall was dragged: the trocar's fulcrum from the true port, across the
     /// shaft, while commanded: p95 (times the wall's stiffness, the force on the wall).
     pub wall_displacement_p95_m: f64,
+    /// The miss decomposed, each p95 while commanded. The trocar's side: how far the shaft
+    /// line passes from the trocar's own fulcrum (it tilts or sinks in the bore; with
+    /// `wall_displacement_p95_m`, the trocar's fulcrum from the true port, the two add up
+    /// to the miss) ...
+    pub bore_distance_p95_m: f64,
+    /// ... and the angle between the shaft and the trocar's axis, deg ...
+    pub bore_angle_p95_deg: f64,
+    /// ... and the contact's deepest penetration into the trocar, m.
+    pub contact_depth_p95_m: f64,
+    /// The controller's side: its fulcrum from the true port across the shaft (the
+    /// estimate's error) ...
+    pub fulcrum_estimate_p95_m: f64,
+    /// ... and the true shaft line from its fulcrum (how well the RCM is tracked).
+    pub rcm_tracking_p95_m: f64,
+    /// The true port's motion across the shaft since the script began (breathing): what a
+    /// fulcrum that did not follow it would miss by.
+    pub breathing_across_p95_m: f64,
     /// The largest angle of the shaft from its direction at DONE.
     pub swept_deg: f64,
     /// The controller's estimate of the force across the shaft while commanded: mean, max.
@@ -204,6 +221,12 @@ struct Series {
     solve_us: Vec<f64>,
     face: Vec<f64>,
     wall: Vec<f64>,
+    bore: Vec<f64>,
+    bore_angle: Vec<f64>,
+    depth: Vec<f64>,
+    estimate: Vec<f64>,
+    tracking: Vec<f64>,
+    breathing: Vec<f64>,
     f_est: Vec<f64>,
     f_true: Vec<f64>,
     still_distance: Vec<f64>,
@@ -237,6 +260,12 @@ impl Series {
         r.solve_us_max = max(&self.solve_us);
         r.face_port_distance_p95_m = q(&self.face, 0.95);
         r.wall_displacement_p95_m = q(&self.wall, 0.95);
+        r.bore_distance_p95_m = q(&self.bore, 0.95);
+        r.bore_angle_p95_deg = q(&self.bore_angle, 0.95).to_degrees();
+        r.contact_depth_p95_m = q(&self.depth, 0.95);
+        r.fulcrum_estimate_p95_m = q(&self.estimate, 0.95);
+        r.rcm_tracking_p95_m = q(&self.tracking, 0.95);
+        r.breathing_across_p95_m = q(&self.breathing, 0.95);
         r.swept_deg = self.swept.to_degrees();
         r.lateral_force_est_mean_n = mean(&self.f_est);
         r.lateral_force_est_max_n = max(&self.f_est);
@@ -404,6 +433,12 @@ fn empty(seed: u64) -> PivotResult {
         estimate_error_m: f64::NAN,
         face_port_distance_p95_m: f64::NAN,
         wall_displacement_p95_m: f64::NAN,
+        bore_distance_p95_m: f64::NAN,
+        bore_angle_p95_deg: f64::NAN,
+        contact_depth_p95_m: f64::NAN,
+        fulcrum_estimate_p95_m: f64::NAN,
+        rcm_tracking_p95_m: f64::NAN,
+        breathing_across_p95_m: f64::NAN,
         swept_deg: 0.0,
         lateral_force_est_mean_n: f64::NAN,
         lateral_force_est_max_n: f64::NAN,
@@ -452,8 +487,19 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
             let (e, _) = lp.shaft();
             let port = Point3::from(lp.world.trocar_pose_true().translation.vector);
             s.face.push(line_distance(&e, &a, &port));
-            let v = lp.world.trocar().pivot() - lp.world.trocar().anchor();
+            let anchor = lp.world.trocar().anchor();
+            let v = lp.world.trocar().pivot() - anchor;
             s.wall.push((v - a * a.dot(&v)).norm());
+            s.bore.push(line_distance(&e, &a, &lp.world.trocar().pivot()));
+            let trocar_axis = lp.world.trocar_pose_true().rotation * Vector3::z();
+            s.bore_angle.push(a.angle(&trocar_axis));
+            s.depth.push(lp.world.contact().max_depth);
+            s.estimate
+                .push(o.pivot.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum)));
+            s.tracking
+                .push(o.pivot.map_or(f64::NAN, |p| line_distance(&e, &a, &p.fulcrum)));
+            let b = anchor - anchor0;
+            s.breathing.push((b - a * a.dot(&b)).norm());
             s.f_true.push((f - a * a.dot(&f)).norm());
             s.f_est.push(o.pivot.map_or(f64::NAN, |p| p.lateral_force));
             s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
