@@ -47,6 +47,9 @@ pub struct SoakArgs {
     /// controller and world) to measure its own cost.
     #[arg(long, default_value_t = 5)]
     pub replays: usize,
+    /// At most this many steps over 1 ms of CPU are replayed (the longest).
+    #[arg(long, default_value_t = 300)]
+    pub max_replayed: usize,
     /// Seconds of the fixed reference workload timed before the run (0: none).
     #[arg(long, default_value_t = 60.0)]
     pub reference_seconds: f64,
@@ -150,6 +153,10 @@ struct Sample {
 /// A step over 1 ms of thread CPU: where it was, to replay it.
 #[derive(Debug, Clone, Copy)]
 struct SlowStep {
+    /// The cycle's number in the run.
+    cycle: usize,
+    /// Its thread CPU time in the run.
+    cpu: Duration,
     /// The cycle's seed.
     seed: u64,
     /// The step's index in its cycle.
@@ -173,8 +180,8 @@ struct Timing {
     /// Of those, the steps in which Clarabel solved a QP (the active set did not settle it).
     over_1ms_cpu_clarabel: u64,
     max_lead: f64,
-    /// This cycle's steps over 1 ms of CPU (their indices).
-    slow_in_cycle: Vec<u64>,
+    /// This cycle's steps over 1 ms of CPU (their indices and CPU times).
+    slow_in_cycle: Vec<(u64, Duration)>,
 }
 
 impl Timing {
@@ -189,7 +196,7 @@ impl Timing {
             self.over_1ms_cpu += u64::from(c > ms);
             self.over_1ms_cpu_clarabel += u64::from(c > ms && s.clarabel);
             if c > ms && self.slow_in_cycle.len() < MAX_SLOW {
-                self.slow_in_cycle.push(s.index);
+                self.slow_in_cycle.push((s.index, c));
             }
         }
     }
@@ -269,7 +276,7 @@ fn run_cycle(
 pub struct Replay {
     /// Times each slow step's cycle was replayed (a new controller and world each time).
     pub replays_per_step: usize,
-    /// Slow steps replayed (at most 10 000 are kept).
+    /// Slow steps replayed: all of them, or the `--max-replayed` longest.
     pub steps: usize,
     /// Of those, the steps whose replays commanded the same as the run, bit for bit (the
     /// same computation; a replay that differs is not a measure of the step).
@@ -388,10 +395,7 @@ fn replay(slow: &[SlowStep], times: usize, setup: &Setup, a: &SoakArgs) -> Resul
     let mut i = 0;
     while i < slow.len() {
         // The slow steps of one cycle sit together.
-        let n = slow[i..]
-            .iter()
-            .take_while(|s| s.seed == slow[i].seed && s.checksum == slow[i].checksum)
-            .count();
+        let n = slow[i..].iter().take_while(|s| s.cycle == slow[i].cycle).count();
         let cycle = &slow[i..i + n];
         let mut best = vec![Duration::MAX; n];
         let mut identical = true;
@@ -446,9 +450,11 @@ fn run_cycles(a: &SoakArgs, setup: &Setup, deadline: Duration) -> Result<(Cycles
             timing.max_lead = timing.max_lead.max(lead);
         };
         let c = run_cycle(&mut world, &mut ctrl, &setup.kin, a, &mut on_step)?;
-        for &index in &r.timing.slow_in_cycle {
+        for &(index, cpu) in &r.timing.slow_in_cycle {
             if r.slow.len() < MAX_SLOW {
                 r.slow.push(SlowStep {
+                    cycle: r.count,
+                    cpu,
                     seed,
                     index,
                     checksum: c.checksum,
@@ -490,7 +496,12 @@ pub fn soak(a: &SoakArgs) -> Result<SoakReport, Box<dyn std::error::Error + Send
     let rss_end = rss_kb();
     let hours = baseline_at.elapsed().as_secs_f64() / 3600.0;
     let wall_s = t0.elapsed().as_secs_f64();
-    let replay = replay(&c.slow, a.replays, &setup, a)?;
+    // The longest `max_replayed` slow steps, in the order they came (a cycle's together).
+    let mut slow = c.slow;
+    slow.sort_by(|x, y| y.cpu.cmp(&x.cpu));
+    slow.truncate(a.max_replayed);
+    slow.sort_by_key(|x| (x.cycle, x.index));
+    let replay = replay(&slow, a.replays, &setup, a)?;
     let t = &c.timing;
     Ok(SoakReport {
         wall_s,
@@ -581,6 +592,7 @@ mod tests {
             cycle_timeout: 30.0,
             controller_config: None,
             replays: 2,
+            max_replayed: 10,
             reference_seconds: 0.0,
             json: false,
         }
@@ -611,6 +623,8 @@ mod tests {
         let mut ctrl = s.controller().unwrap();
         let cycle = run_cycle(&mut s.world(1).unwrap(), &mut ctrl, &s.kin, &a, &mut |_, _| {}).unwrap();
         let at = |index, checksum| SlowStep {
+            cycle: 0,
+            cpu: Duration::from_millis(2),
             seed: 1,
             index,
             checksum,
