@@ -498,7 +498,7 @@ pub fn soak(a: &SoakArgs) -> Result<SoakReport, Box<dyn std::error::Error + Send
     let wall_s = t0.elapsed().as_secs_f64();
     // The longest `max_replayed` slow steps, in the order they came (a cycle's together).
     let mut slow = c.slow;
-    slow.sort_by(|x, y| y.cpu.cmp(&x.cpu));
+    slow.sort_by_key(|x| std::cmp::Reverse(x.cpu));
     slow.truncate(a.max_replayed);
     slow.sort_by_key(|x| (x.cycle, x.index));
     let replay = replay(&slow, a.replays, &setup, a)?;
