@@ -339,6 +339,11 @@ mod tests {
     use nalgebra::Translation3;
     // (Stamped, JointVector: from the module's imports.)
 
+    /// One 10 ms step of `pv` with `c`, no force, the default motion limits.
+    fn go(pv: &mut Pivot, p: &ScopeParams, c: Result<Option<ScopeCommand>, &'static str>) -> PivotTargets {
+        pv.step((p, &MotionLimits::default()), c, &Vector3::zeros(), true, 0.01)
+    }
+
     fn setup() -> (ScopeParams, Pivot) {
         let p = ScopeParams::default();
         // The shaft pointing down, tip 30 mm past a port at the origin; the estimate's
@@ -365,7 +370,7 @@ mod tests {
         );
         assert!((pv.fulcrum() - Point3::new(0.0, 0.0, -p.fulcrum.prior_depth)).norm() < 1e-12);
         for _ in 0..500 {
-            let t = pv.step((&p, &MotionLimits::default()), Ok(None), &Vector3::zeros(), true, 0.01);
+            let t = go(&mut pv, &p, Ok(None));
             assert!((t.point - Point3::new(0.0, 0.0, -0.03)).norm() < 1e-12);
             assert!((t.axis.direction.into_inner() + Vector3::z()).norm() < 1e-12);
         }
@@ -413,13 +418,7 @@ mod tests {
         let tip = pv.port() + d.into_inner() * pv.target_depth();
         assert!(((tip - f0).norm() - (0.03 - p.fulcrum.prior_depth)).abs() < 1e-12);
         for _ in 0..101 {
-            pv.step(
-                (&p, &MotionLimits::default()),
-                cmd(0.0, 0.0, 0.3, 0.01),
-                &Vector3::zeros(),
-                true,
-                0.01,
-            );
+            go(&mut pv, &p, cmd(0.0, 0.0, 0.3, 0.01));
         }
         // 10 mm in 1 s (the ramp's loss made up by the one more step).
         assert!((pv.target_depth() - 0.04).abs() < 2e-4, "{}", pv.target_depth());
@@ -432,49 +431,25 @@ mod tests {
         let mut before = 0.0;
         for _ in 0..20 {
             before = pv.direction().angle(&-Vector3::z());
-            pv.step(
-                (&p, &MotionLimits::default()),
-                cmd(3.0, 0.0, 0.0, 0.0),
-                &Vector3::zeros(),
-                true,
-                0.01,
-            );
+            go(&mut pv, &p, cmd(3.0, 0.0, 0.0, 0.0));
             assert_eq!(pv.limit, Some(ScopeLimit::Speed));
         }
         let step = pv.direction().angle(&-Vector3::z()) - before;
         assert!((step - p.max_angular_speed * 0.01).abs() < 1e-12, "{step} rad per step");
         // Zoom out to the minimum depth and no further.
         for _ in 0..200 {
-            pv.step(
-                (&p, &MotionLimits::default()),
-                cmd(0.0, 0.0, 0.0, -0.02),
-                &Vector3::zeros(),
-                true,
-                0.01,
-            );
+            go(&mut pv, &p, cmd(0.0, 0.0, 0.0, -0.02));
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MinDepth));
         assert_eq!(pv.target_depth(), p.min_depth);
         for _ in 0..600 {
-            pv.step(
-                (&p, &MotionLimits::default()),
-                cmd(0.0, 0.0, 0.0, 0.02),
-                &Vector3::zeros(),
-                true,
-                0.01,
-            );
+            go(&mut pv, &p, cmd(0.0, 0.0, 0.0, 0.02));
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MaxDepth));
         assert_eq!(pv.target_depth(), p.max_depth);
         // Tilt into the cone's edge: stops within one step of it, roll still turns.
         for _ in 0..400 {
-            pv.step(
-                (&p, &MotionLimits::default()),
-                cmd(0.0, 0.3, 0.1, 0.0),
-                &Vector3::zeros(),
-                true,
-                0.01,
-            );
+            go(&mut pv, &p, cmd(0.0, 0.3, 0.1, 0.0));
         }
         let r = pv.report(&p, &Isometry3::identity(), &Vector3::zeros());
         assert_eq!(r.limit, Some(ScopeLimit::Cone));
@@ -482,13 +457,7 @@ mod tests {
         let cone = p.cone_half_angle_deg.to_radians();
         assert!(angle <= cone && angle > cone - 0.003 - 1e-9, "{angle} vs {cone}");
         // Back out of the edge is allowed.
-        pv.step(
-            (&p, &MotionLimits::default()),
-            cmd(0.0, -0.3, 0.0, 0.0),
-            &Vector3::zeros(),
-            true,
-            0.01,
-        );
+        go(&mut pv, &p, cmd(0.0, -0.3, 0.0, 0.0));
         assert_eq!(pv.limit, None);
         assert!(pv.direction().angle(&-Vector3::z()) < angle);
     }
@@ -506,7 +475,7 @@ mod tests {
         };
         let c = live_command(&p, 1.0, Some(nan));
         assert!(c.unwrap_err().contains("not finite"));
-        pv.step((&p, &MotionLimits::default()), c, &Vector3::zeros(), true, 0.01);
+        go(&mut pv, &p, c);
         assert_eq!(pv.rot, before.rot);
         assert_eq!(pv.tip_depth, before.tip_depth);
         assert!(pv
@@ -561,13 +530,7 @@ mod tests {
         pv.retract_to(-0.02);
         let mut steps = 0;
         while !pv.retracted() {
-            pv.step(
-                (&p, &MotionLimits::default()),
-                cmd(0.3, 0.0, 0.0, 0.02),
-                &Vector3::zeros(),
-                true,
-                0.01,
-            );
+            go(&mut pv, &p, cmd(0.3, 0.0, 0.0, 0.02));
             steps += 1;
             assert!(steps < 1000);
         }
