@@ -375,17 +375,23 @@ mod tests {
         assert!(w.moment.norm() > 1e-4);
     }
 
-    /// K_c is the wrench's derivative: a small twist of a shaft pressed into the bore's side
-    /// (at rest, so no damping or friction) changes the wrench on it by -K_c
-    /// times the twist, within the surface's curvature (second order at micrometre depths).
-    #[test]
-    fn the_contact_stiffness_is_the_wrench_derivative() {
+    /// The realistic world's 5.5 mm cannula (0.25 mm of clearance for the 5 mm shaft) at
+    /// the origin, with the default contact.
+    fn cannula_5_5_mm() -> (ContactModel, Trocar) {
         let tp = TrocarParams {
             port_diameter_m: 0.0055,
             ..Default::default()
         };
         let m = ContactModel::new(&ContactParams::default(), &tp).unwrap();
-        let t = Trocar::new(&tp, &Isometry3::identity()).unwrap();
+        (m, Trocar::new(&tp, &Isometry3::identity()).unwrap())
+    }
+
+    /// K_c is the wrench's derivative: a small twist of a shaft pressed into the bore's side
+    /// (at rest, so no damping or friction) changes the wrench on it by -K_c
+    /// times the twist, within the surface's curvature (second order at micrometre depths).
+    #[test]
+    fn the_contact_stiffness_is_the_wrench_derivative() {
+        let (m, t) = cannula_5_5_mm();
         // 30 mm deep, 5 um into the bore's side (0.25 mm clearance) along its length.
         let axis = Vector3::z();
         let tip = Vector3::new(0.000255, 0.0, 0.03);
@@ -424,13 +430,7 @@ mod tests {
     /// moment both reach the body) the way the shaft leans, against its tilt spring.
     #[test]
     fn a_shaft_levered_in_the_bore_turns_the_trocar_with_it() {
-        // The realistic world's 5.5 mm cannula: 0.25 mm of clearance for the 5 mm shaft.
-        let tp = TrocarParams {
-            port_diameter_m: 0.0055,
-            ..Default::default()
-        };
-        let m = ContactModel::new(&ContactParams::default(), &tp).unwrap();
-        let mut t = Trocar::new(&tp, &Isometry3::identity()).unwrap();
+        let (m, mut t) = cannula_5_5_mm();
         // Tip 30 mm deep, the shaft turned 3 deg about y through the point 20 mm deep: it
         // presses the bore at its top (10 mm) and at the tip.
         let deg = 3f64.to_radians();
