@@ -61,6 +61,9 @@ pub struct CheckParams {
     pub max_latency_ms: f64,
     /// `latency`: the largest accepted median of image -> command, ms.
     pub max_latency_p50_ms: f64,
+    /// `latency`: where to write the run's figures as one JSON object ('' = nowhere), for
+    /// `scripts/measure-latency`.
+    pub json_out: String,
     /// Failure modes: the largest accepted lead of the command over the measured joints, deg.
     pub max_lead_deg: f64,
     /// `blocked_arm`: the largest accepted delay of the hold after the lead bound, s.
@@ -142,6 +145,7 @@ impl Default for CheckParams {
             camera_rate_hz: 30.0,
             max_latency_ms: 10.0,
             max_latency_p50_ms: 10.0,
+            json_out: String::new(),
             max_lead_deg: 2.0,
             max_hold_delay_s: 0.2,
             max_step_deg: 1.0,
@@ -209,6 +213,17 @@ impl CheckParams {
         validate::duration("retract_timeout", self.retract_timeout)?;
         Ok(())
     }
+}
+
+/// CPU time the hypervisor gave to others (`steal` in `/proc/stat`, all CPUs summed), s;
+/// `None` where the kernel does not report it.
+pub fn stolen_cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let line = stat.lines().find(|l| l.starts_with("cpu "))?;
+    let ticks: f64 = line.split_whitespace().nth(8)?.parse().ok()?;
+    // SAFETY: sysconf only reads a configuration value.
+    let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    (hz > 0).then(|| ticks / hz as f64)
 }
 
 /// The newest message of a topic, shared between the subscriber thread and a reader.
