@@ -81,6 +81,7 @@ struct ArmPivot {
     lateral_force_est_max_n: Stats,
     lateral_force_true_mean_n: Stats,
     lateral_force_true_max_n: Stats,
+    axial_force_true_max_n: Stats,
     swept_deg: Stats,
     still_motion_port_m: Stats,
     solve_us_p99: Stats,
@@ -111,6 +112,7 @@ impl ArmPivot {
             lateral_force_est_max_n: s(|r| r.lateral_force_est_max_n),
             lateral_force_true_mean_n: s(|r| r.lateral_force_true_mean_n),
             lateral_force_true_max_n: s(|r| r.lateral_force_true_max_n),
+            axial_force_true_max_n: s(|r| r.axial_force_true_max_n),
             swept_deg: s(|r| r.swept_deg),
             still_motion_port_m: s(|r| r.still_motion_port_m),
             solve_us_p99: s(|r| r.solve_us_p99),
@@ -169,6 +171,7 @@ impl ArmPivot {
             "  true lateral force, max:        {}",
             n(&self.lateral_force_true_max_n)
         );
+        println!("  true axial force, max:          {}", n(&self.axial_force_true_max_n));
         println!(
             "  swept {:.1}-{:.1} deg, steps held {}",
             self.swept_deg.min, self.swept_deg.max, self.held_steps

@@ -61,6 +61,16 @@ pub struct FulcrumParams {
     pub min_pivot_speed: f64,
     /// Cut-off of the force's first-order low-pass, Hz (0: none).
     pub filter_cutoff_hz: f64,
+    /// Damping of the tip's target depth against the force along the shaft, N s/m (0: the
+    /// depth does not yield): the scope gives way along the shaft to a trocar that pushes
+    /// or drags it (breathing, or a shaft wedged in the bore), as the fulcrum does across.
+    pub axial_damping: f64,
+    /// Forces along the shaft below this are ignored while the surgeon steers, N: the
+    /// seal's sliding friction while zooming is not a reason to move ...
+    pub axial_deadband: f64,
+    /// ... and below this while no command comes, N: the scope then holds still against
+    /// the breathing trocar's pull through the seal, and yields only to more.
+    pub axial_still_deadband: f64,
 }
 
 impl Default for FulcrumParams {
@@ -75,6 +85,9 @@ impl Default for FulcrumParams {
             depth_gain: 0.1,
             min_pivot_speed: 0.02,
             filter_cutoff_hz: 5.0,
+            axial_damping: 50.0,
+            axial_deadband: 2.0,
+            axial_still_deadband: 5.0,
         }
     }
 }
@@ -97,7 +110,27 @@ impl FulcrumParams {
         check("max_displacement", self.max_displacement, 0.0, 0.05)?;
         check("depth_gain", self.depth_gain, 0.0, 1.0)?;
         check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)?;
-        check("filter_cutoff_hz", self.filter_cutoff_hz, 0.0, 1000.0)
+        check("filter_cutoff_hz", self.filter_cutoff_hz, 0.0, 1000.0)?;
+        check("axial_damping", self.axial_damping, 0.0, 1e5)?;
+        check("axial_deadband", self.axial_deadband, 0.0, 50.0)?;
+        check("axial_still_deadband", self.axial_still_deadband, 0.0, 50.0)
+    }
+
+    /// How far the tip's target depth yields in a step of `dt` to `along`, the force on the
+    /// shaft along its direction (into the body; negative pushes the scope out), m: past
+    /// the dead-band (`axial_deadband` while `steering`, else `axial_still_deadband`), at
+    /// 1 / `axial_damping` m/s per N; zero when off or not finite.
+    pub fn axial_yield(&self, along: f64, steering: bool, dt: f64) -> f64 {
+        let band = if steering {
+            self.axial_deadband
+        } else {
+            self.axial_still_deadband
+        };
+        if self.axial_damping > 0.0 && along.is_finite() && dt.is_finite() && dt > 0.0 {
+            deadband(along, band) / self.axial_damping * dt
+        } else {
+            0.0
+        }
     }
 }
 
@@ -370,5 +403,28 @@ mod tests {
         };
         assert!(bad.validate().unwrap_err().contains("scope.fulcrum.damping"));
         assert!(FulcrumParams::default().validate().is_ok());
+    }
+
+    #[test]
+    fn the_depth_yields_along_the_shaft_past_its_dead_band_only() {
+        let p = FulcrumParams::default();
+        let dt = 0.01;
+        // Inside the band: nothing, steering or not.
+        assert_eq!(p.axial_yield(1.9, true, dt), 0.0);
+        assert_eq!(p.axial_yield(-4.9, false, dt), 0.0);
+        // Past it: the way the force pushes, at 1/D per newton over the band.
+        let out = p.axial_yield(-4.0, true, dt);
+        assert!((out - (-2.0 / p.axial_damping * dt)).abs() < 1e-15, "{out}");
+        assert!(p.axial_yield(7.0, false, dt) > 0.0);
+        assert!((p.axial_yield(7.0, false, dt) - 2.0 / p.axial_damping * dt).abs() < 1e-15);
+        // Off, or bad input: nothing.
+        let off = FulcrumParams {
+            axial_damping: 0.0,
+            ..p.clone()
+        };
+        assert_eq!(off.axial_yield(-40.0, true, dt), 0.0);
+        assert_eq!(p.axial_yield(f64::NAN, true, dt), 0.0);
+        assert_eq!(p.axial_yield(-40.0, true, f64::NAN), 0.0);
+        assert_eq!(p.axial_yield(-40.0, true, -dt), 0.0);
     }
 }

@@ -237,6 +237,17 @@ impl Pivot {
         };
     }
 
+    /// Yield along the shaft to the force `along` it ([`FulcrumParams::axial_yield`]),
+    /// within the depth limits (a depth already outside them is not pushed further out).
+    fn yield_along(&mut self, p: &ScopeParams, along: f64, steering: bool, dt: f64) {
+        let ds = p.fulcrum.axial_yield(along, steering, dt);
+        if ds == 0.0 {
+            return;
+        }
+        let (lo, hi) = (p.min_depth.min(self.tip_depth), p.max_depth.max(self.tip_depth));
+        self.tip_depth = (self.tip_depth + ds).clamp(lo, hi);
+    }
+
     /// One step: `command` from [`live_command`], `force` the shaft's force (base frame,
     /// N; [`Pivot::sense`]); `adapt`: adapt the fulcrum from it (off: the fulcrum stays
     /// where it started, as without force feedback). Returns the SQP's targets.
@@ -286,6 +297,9 @@ impl Pivot {
             self.zoom(p, c.zoom, dt);
         }
         let d = self.direction();
+        if adapt && self.retract_to.is_none() {
+            self.yield_along(p, force.dot(&d), steering, dt);
+        }
         if adapt {
             let m = Motion {
                 omega,

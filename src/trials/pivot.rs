@@ -147,6 +147,9 @@ pub struct PivotResult {
     pub lateral_force_true_mean_n: f64,
     /// ...
     pub lateral_force_true_max_n: f64,
+    /// The largest true contact force along the shaft while commanded (the trocar pushed
+    /// or dragged along its axis), N.
+    pub axial_force_true_max_n: f64,
     /// Control steps with a hold (or any phase but DONE) while commanded.
     pub held_steps: usize,
     /// Control steps in which a limit stopped the command.
@@ -229,6 +232,7 @@ struct Series {
     breathing: Vec<f64>,
     f_est: Vec<f64>,
     f_true: Vec<f64>,
+    f_axial: Vec<f64>,
     still_distance: Vec<f64>,
     swept: f64,
     held: usize,
@@ -271,6 +275,7 @@ impl Series {
         r.lateral_force_est_max_n = max(&self.f_est);
         r.lateral_force_true_mean_n = mean(&self.f_true);
         r.lateral_force_true_max_n = max(&self.f_true);
+        r.axial_force_true_max_n = max(&self.f_axial);
         r.held_steps = self.held;
         r.limited_steps = self.limited;
         r.still_motion_m = self.still_motion;
@@ -444,6 +449,7 @@ fn empty(seed: u64) -> PivotResult {
         lateral_force_est_max_n: f64::NAN,
         lateral_force_true_mean_n: f64::NAN,
         lateral_force_true_max_n: f64::NAN,
+        axial_force_true_max_n: f64::NAN,
         held_steps: 0,
         limited_steps: 0,
         still_motion_m: f64::NAN,
@@ -501,6 +507,7 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
             let b = anchor - anchor0;
             s.breathing.push((b - a * a.dot(&b)).norm());
             s.f_true.push((f - a * a.dot(&f)).norm());
+            s.f_axial.push(a.dot(&f).abs());
             s.f_est.push(o.pivot.map_or(f64::NAN, |p| p.lateral_force));
             s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
             s.swept = s.swept.max(a.angle(&a0));
