@@ -237,14 +237,16 @@ impl Pivot {
         };
     }
 
-    /// Yield along the shaft to the force `along` it ([`FulcrumParams::axial_yield`]),
-    /// within the depth limits (a depth already outside them is not pushed further out).
+    /// Yield along the shaft to the force `along` it ([`FulcrumParams::axial_yield`]).
+    /// Past `min_depth` too (the trocar that pushes the scope out moves the bore with it; a
+    /// limit that stopped the yield would leave the scope pushing on it), but never out of
+    /// the port nor past `max_depth` (a depth already beyond is not pushed further).
     fn yield_along(&mut self, p: &ScopeParams, along: f64, steering: bool, dt: f64) {
         let ds = p.fulcrum.axial_yield(along, steering, dt);
         if ds == 0.0 {
             return;
         }
-        let (lo, hi) = (p.min_depth.min(self.tip_depth), p.max_depth.max(self.tip_depth));
+        let (lo, hi) = (self.tip_depth.min(0.0), p.max_depth.max(self.tip_depth));
         self.tip_depth = (self.tip_depth + ds).clamp(lo, hi);
     }
 
@@ -388,6 +390,38 @@ mod tests {
             assert!((t.point - Point3::new(0.0, 0.0, -0.03)).norm() < 1e-12);
             assert!((t.axis.direction.into_inner() + Vector3::z()).norm() < 1e-12);
         }
+    }
+
+    #[test]
+    fn the_depth_yields_to_a_push_along_the_shaft_past_min_depth_but_not_out_of_the_port() {
+        let (p, mut pv) = setup();
+        let lim = MotionLimits::default();
+        // The shaft points down (-z): a force +z on it pushes the scope out.
+        let out = Vector3::new(0.0, 0.0, 10.0);
+        // Under the still dead-band (5 N): nothing moves without a command.
+        pv.step((&p, &lim), Ok(None), &Vector3::new(0.0, 0.0, 4.0), true, 0.01);
+        assert_eq!(pv.target_depth(), 0.03);
+        // Steering (a zero command: the dead-man held), 10 N out: (10 - 2) / 50 = 0.16 m/s.
+        pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
+        assert!(
+            (pv.target_depth() - (0.03 - 0.0016)).abs() < 1e-12,
+            "{}",
+            pv.target_depth()
+        );
+        // Off without force feedback.
+        let (_, mut off) = setup();
+        off.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, false, 0.01);
+        assert_eq!(off.target_depth(), 0.03);
+        // Past min_depth (15 mm), but never out of the port.
+        for _ in 0..100 {
+            pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
+        }
+        assert_eq!(pv.target_depth(), 0.0);
+        // Pulled in: up to max_depth, no further.
+        for _ in 0..200 {
+            pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &-out, true, 0.01);
+        }
+        assert_eq!(pv.target_depth(), p.max_depth);
     }
 
     #[test]
