@@ -6,7 +6,8 @@
 //! is the step box of the safety guard (position limits with margin ∩ velocity limit from
 //! the previous command). The Clarabel solver is built once with the problem's fixed
 //! sparsity (dense upper-triangular H, A = [I; -I]) and only its data is updated per solve,
-//! so a solve allocates nothing of its own beyond what Clarabel does internally.
+//! so a solve allocates nothing of its own; Clarabel itself allocates once per solve (its
+//! timers; `a_solve_allocates_nothing_of_its_own`).
 //!
 //! **Active-set warm start** ([`SqpSettings::active_set_warm_start`], on by default). An
 //! interior-point solver cannot start from a known solution, but consecutive QPs of a
@@ -677,6 +678,41 @@ mod tests {
         let kin = stalling.inner;
         let sol = s.solve(&kin, &q, &q.add_scalar(-0.5), &q.add_scalar(0.5), &t, &weights());
         assert_eq!(sol.status, SqpStatus::Converged);
+    }
+
+    /// The real-time loop's budget of allocations: a QP the active set settles allocates
+    /// nothing; a QP Clarabel solves allocates once, inside Clarabel (its solve timers
+    /// drop and re-create a sub-timer table on every solve, clarabel 0.11). Any more is
+    /// ours and fails here.
+    #[test]
+    fn a_solve_allocates_nothing_of_its_own() {
+        let (kin, q, t) = setup();
+        let (lo, hi) = (q.add_scalar(-0.05), q.add_scalar(0.05));
+        let count = |s: &mut SqpSolver, start: &JointVector| {
+            let before = crate::test_alloc::allocations_on_this_thread();
+            let sol = s.solve(&kin, start, &lo, &hi, &t, &weights());
+            (crate::test_alloc::allocations_on_this_thread() - before, sol)
+        };
+        let mut clarabel = SqpSolver::new(SqpSettings {
+            active_set_warm_start: false,
+            ..SqpSettings::rti()
+        })
+        .unwrap();
+        let mut warm = SqpSolver::new(SqpSettings::rti()).unwrap();
+        let mut settled = 0;
+        for k in 0..5 {
+            let start = q.add_scalar(0.001 * f64::from(k));
+            let (n, sol) = count(&mut clarabel, &start);
+            assert!(sol.status.is_usable(), "{:?}", sol.status);
+            assert!(sol.clarabel_qps > 0, "Clarabel did not solve");
+            assert!(n <= 1, "solve {k} with Clarabel: {n} allocations");
+            let (n, sol) = count(&mut warm, &start);
+            if sol.clarabel_qps == 0 {
+                assert_eq!(n, 0, "solve {k} settled by the active set: {n} allocations");
+                settled += 1;
+            }
+        }
+        assert!(settled >= 3, "the active set settled only {settled} of 5");
     }
 
     #[test]
