@@ -55,6 +55,19 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
         assert_eq!(r.final_phase, "DONE");
         assert_eq!(r.held_steps, 0, "seed {seed}: a hold while commanded");
         assert!(r.swept_deg >= 15.0, "seed {seed}: swept {:.1} deg", r.swept_deg);
+        // The trace for `pivot --plot`: every step after docking (0.5 s settle, the 10 s
+        // script, 0.5 s settle, 2 s still at 100 Hz), the script's steps marked commanded,
+        // its peak the figure's max.
+        assert_eq!(r.trace.len(), 1300, "seed {seed}");
+        assert_eq!(r.trace.iter().filter(|s| s.commanded).count(), 1000);
+        assert!(r.trace.windows(2).all(|w| w[1].t > w[0].t));
+        let peak = r
+            .trace
+            .iter()
+            .filter(|s| s.commanded)
+            .map(|s| s.distance_m)
+            .fold(0.0, f64::max);
+        assert_eq!(peak, r.distance_max_m);
         let at_most = |what: &str, value: f64, bound: f64| {
             assert!(value <= bound, "seed {seed}: {what} {value:.5} over {bound}");
         };

@@ -60,6 +60,9 @@ pub struct PivotArgs {
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
+    /// Also plot the first docked run of each arm over time to this PNG.
+    #[arg(long)]
+    pub plot: Option<PathBuf>,
 }
 
 /// One arm's figures over its runs.
@@ -242,6 +245,14 @@ pub fn run(a: &PivotArgs) -> CliResult {
         arms,
         controller,
     };
+    if let Some(path) = &a.plot {
+        let first: Vec<(&str, &PivotResult)> = report
+            .arms
+            .iter()
+            .filter_map(|arm| arm.trials.iter().find(|r| r.docked).map(|r| (arm.arm, r)))
+            .collect();
+        crate::trials::plot::pivot_runs(path, &first)?;
+    }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

@@ -89,6 +89,25 @@ pub fn random_script(seed: u64, n: usize, speed: f64) -> Vec<Segment> {
     out.iter().copied().chain(back).collect()
 }
 
+/// One control step of a pivoting run, for plots (true values from the simulator).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PivotSample {
+    /// Time since the end of docking, s.
+    pub t: f64,
+    /// Whether a command was sent at this step (else: settling or silence).
+    pub commanded: bool,
+    /// The shaft line's distance from the true port, m.
+    pub distance_m: f64,
+    /// The trocar's fulcrum from the true port across the shaft (the wall dragged), m.
+    pub wall_m: f64,
+    /// The true contact force across the shaft, N.
+    pub lateral_true_n: f64,
+    /// The controller's estimate of it, N.
+    pub lateral_est_n: f64,
+    /// The true contact force along the shaft (its magnitude), N.
+    pub axial_true_n: f64,
+}
+
 /// How a pivoting run went. Distances in m, forces in N, angles in deg.
 #[derive(Debug, Clone, Serialize)]
 pub struct PivotResult {
@@ -176,6 +195,9 @@ pub struct PivotResult {
     pub fulcrum_depth_m: f64,
     /// The phase at the end.
     pub final_phase: &'static str,
+    /// Every control step after docking (not in the JSON: for `pivot --plot`).
+    #[serde(skip)]
+    pub trace: Vec<PivotSample>,
 }
 
 /// Durations of a pivoting run around its script.
@@ -461,7 +483,33 @@ fn empty(seed: u64) -> PivotResult {
         port_motion_m: 0.0,
         fulcrum_depth_m: f64::NAN,
         final_phase: "",
+        trace: Vec::new(),
     }
+}
+
+/// One control step of `lp` with `scope`, its [`PivotSample`] (time since `t0`) appended
+/// to `trace`.
+fn traced(
+    lp: &mut PivotSession,
+    scope: Option<ScopeCommand>,
+    t0: f64,
+    trace: &mut Vec<PivotSample>,
+) -> Result<(crate::control::ControlOutput, PivotSample), SimError> {
+    let o = lp.tick(scope)?;
+    let (_, a) = lp.shaft();
+    let f = lp.world.contact().force;
+    let v = lp.world.trocar().pivot() - lp.world.trocar().anchor();
+    let sample = PivotSample {
+        t: lp.world.time() - t0,
+        commanded: scope.is_some(),
+        distance_m: lp.distance(),
+        wall_m: (v - a * a.dot(&v)).norm(),
+        lateral_true_n: (f - a * a.dot(&f)).norm(),
+        lateral_est_n: o.pivot.map_or(f64::NAN, |p| p.lateral_force),
+        axial_true_n: a.dot(&f).abs(),
+    };
+    trace.push(sample);
+    Ok((o, sample))
 }
 
 /// Settle, play the script, settle, watch the stillness; fill in `r`.
@@ -469,8 +517,9 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
     let period = lp.period;
     let steps = |s: f64| (s / period).round() as usize;
     let mut first = None;
+    let t0 = lp.world.time();
     for _ in 0..steps(timing.settle_before_s) {
-        let o = lp.tick(None)?;
+        let (o, _) = traced(lp, None, t0, &mut r.trace)?;
         first = first.or(o.pivot);
     }
     if let Some(m) = lp.world.measure_trocar(lp.world.time()) {
@@ -485,17 +534,15 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
     let mut out = None;
     for segment in script {
         for _ in 0..steps(segment.duration) {
-            let o = lp.tick(Some(segment.command))?;
+            let (o, smp) = traced(lp, Some(segment.command), t0, &mut r.trace)?;
             let (_, a) = lp.shaft();
-            let f = lp.world.contact().force;
-            s.distance.push(lp.distance());
+            s.distance.push(smp.distance_m);
             r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
             let (e, _) = lp.shaft();
             let port = Point3::from(lp.world.trocar_pose_true().translation.vector);
             s.face.push(line_distance(&e, &a, &port));
             let anchor = lp.world.trocar().anchor();
-            let v = lp.world.trocar().pivot() - anchor;
-            s.wall.push((v - a * a.dot(&v)).norm());
+            s.wall.push(smp.wall_m);
             s.bore.push(line_distance(&e, &a, &lp.world.trocar().pivot()));
             let trocar_axis = lp.world.trocar_pose_true().rotation * Vector3::z();
             s.bore_angle.push(a.angle(&trocar_axis));
@@ -506,9 +553,9 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
                 .push(o.pivot.map_or(f64::NAN, |p| line_distance(&e, &a, &p.fulcrum)));
             let b = anchor - anchor0;
             s.breathing.push((b - a * a.dot(&b)).norm());
-            s.f_true.push((f - a * a.dot(&f)).norm());
-            s.f_axial.push(a.dot(&f).abs());
-            s.f_est.push(o.pivot.map_or(f64::NAN, |p| p.lateral_force));
+            s.f_true.push(smp.lateral_true_n);
+            s.f_axial.push(smp.axial_true_n);
+            s.f_est.push(smp.lateral_est_n);
             s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
             s.swept = s.swept.max(a.angle(&a0));
             s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
@@ -517,10 +564,10 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
         }
     }
     for _ in 0..steps(timing.settle_after_s) {
-        out = Some(lp.tick(None)?);
+        out = Some(traced(lp, None, t0, &mut r.trace)?.0);
     }
     for _ in 0..steps(timing.still_s) {
-        out = Some(lp.tick(None)?);
+        out = Some(traced(lp, None, t0, &mut r.trace)?.0);
         let (e, _) = lp.shaft();
         let from = *s.still_from.get_or_insert(e);
         s.still_motion = s.still_motion.max((e - from).norm());

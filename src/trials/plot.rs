@@ -9,6 +9,7 @@ use std::sync::OnceLock;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
+use crate::trials::pivot::{PivotResult, PivotSample};
 use crate::trials::run::TrialResult;
 
 /// Where the plot font is read from.
@@ -189,6 +190,128 @@ pub fn box_plot(path: &Path, title: &str, y_desc: &str, groups: &[(String, Vec<f
     root.present().map_err(|x| e(x.to_string()))
 }
 
+/// One panel of [`lines_over_time`]: a title, the y axis, and named lines of (t, y).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TimePanel {
+    /// The panel's caption.
+    pub title: String,
+    /// The y axis' description (with its unit).
+    pub y_desc: &'static str,
+    /// Each line's legend and points.
+    pub lines: Vec<(String, Vec<(f64, f64)>)>,
+    /// Spans of time to shade (e.g. while commanded), s.
+    pub shaded: Vec<(f64, f64)>,
+}
+
+/// Panels stacked vertically over a common time axis, one colour per line with a legend.
+pub fn lines_over_time(path: &Path, panels: &[TimePanel]) -> Result<(), PlotError> {
+    let finite = |p: &&(f64, f64)| p.0.is_finite() && p.1.is_finite();
+    let points = || {
+        panels
+            .iter()
+            .flat_map(|p| p.lines.iter())
+            .flat_map(|(_, v)| v.iter())
+            .filter(finite)
+    };
+    if points().next().is_none() {
+        return Err(PlotError::Empty("no finite points to plot"));
+    }
+    ensure_font()?;
+    let e = draw_err(path);
+    let (t0, t1) = points().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), p| (a.min(p.0), b.max(p.0)));
+    let root = BitMapBackend::new(path, (1100, 320 * panels.len() as u32)).into_drawing_area();
+    root.fill(&WHITE).map_err(|x| e(x.to_string()))?;
+    for (panel, area) in panels.iter().zip(root.split_evenly((panels.len(), 1)).iter()) {
+        let y_max = panel
+            .lines
+            .iter()
+            .flat_map(|(_, v)| v.iter())
+            .filter(finite)
+            .fold(1e-3, |m, p| f64::max(m, p.1))
+            * 1.1;
+        let mut chart = ChartBuilder::on(area)
+            .caption(&panel.title, (FAMILY, 20))
+            .margin(10)
+            .x_label_area_size(36)
+            .y_label_area_size(55)
+            .build_cartesian_2d(t0..t1.max(t0 + 1e-3), 0.0..y_max)
+            .map_err(|x| e(x.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc("time [s]")
+            .y_desc(panel.y_desc)
+            .label_style((FAMILY, 14))
+            .draw()
+            .map_err(|x| e(x.to_string()))?;
+        chart
+            .draw_series(
+                panel
+                    .shaded
+                    .iter()
+                    .map(|&(a, b)| Rectangle::new([(a, 0.0), (b, y_max)], RGBColor(235, 235, 245).filled())),
+            )
+            .map_err(|x| e(x.to_string()))?;
+        for (i, (label, v)) in panel.lines.iter().enumerate() {
+            let colour = Palette99::pick(i).to_rgba();
+            chart
+                .draw_series(LineSeries::new(
+                    v.iter().filter(finite).copied(),
+                    colour.stroke_width(2),
+                ))
+                .map_err(|x| e(x.to_string()))?
+                .label(label.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], colour.stroke_width(2)));
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK)
+            .label_font((FAMILY, 14))
+            .position(SeriesLabelPosition::UpperRight)
+            .draw()
+            .map_err(|x| e(x.to_string()))?;
+    }
+    root.present().map_err(|x| e(x.to_string()))
+}
+
+/// One pivoting run per arm (`(label, run)`) over time: the shaft's distance from the true
+/// port and the wall dragged (mm), then the true force across the shaft, its estimate and
+/// the true force along it (N); the commanded steps shaded.
+pub fn pivot_runs(path: &Path, arms: &[(&str, &PivotResult)]) -> Result<(), PlotError> {
+    let mut panels = Vec::new();
+    for (label, r) in arms {
+        let line =
+            |name: &str, f: fn(&PivotSample) -> f64| (name.to_string(), r.trace.iter().map(|s| (s.t, f(s))).collect());
+        let mut shaded: Vec<(f64, f64)> = Vec::new();
+        for s in r.trace.iter().filter(|s| s.commanded) {
+            match shaded.last_mut() {
+                Some(span) if s.t - span.1 < 0.05 => span.1 = s.t,
+                _ => shaded.push((s.t, s.t)),
+            }
+        }
+        panels.push(TimePanel {
+            title: format!("{label}, seed {}: distances (shaded: commanded)", r.seed),
+            y_desc: "[mm]",
+            lines: vec![
+                line("shaft from the true port", |s| s.distance_m * 1e3),
+                line("wall dragged", |s| s.wall_m * 1e3),
+            ],
+            shaded: shaded.clone(),
+        });
+        panels.push(TimePanel {
+            title: format!("{label}, seed {}: forces on the shaft", r.seed),
+            y_desc: "[N]",
+            lines: vec![
+                line("across, true", |s| s.lateral_true_n),
+                line("across, the controller's estimate", |s| s.lateral_est_n),
+                line("along, true", |s| s.axial_true_n),
+            ],
+            shaded,
+        });
+    }
+    lines_over_time(path, &panels)
+}
+
 /// Linear-interpolated quantile of sorted, non-empty `v`.
 pub(crate) fn quantile(v: &[f64], p: f64) -> f64 {
     let pos = p.clamp(0.0, 1.0) * (v.len() - 1) as f64;
@@ -231,6 +354,20 @@ mod tests {
         assert_eq!(&png[1..4], b"PNG");
         assert!(box_plot(&p, "M", "M", &[]).is_err());
         assert!(force_over_time(&dir.join("f.png"), &[]).is_err());
+        let panel = TimePanel {
+            title: "t".into(),
+            y_desc: "y",
+            lines: vec![("a".into(), vec![(0.0, 1.0), (1.0, 2.0), (2.0, f64::NAN)])],
+            shaded: vec![(0.5, 1.0)],
+        };
+        let lines = dir.join("lines.png");
+        lines_over_time(&lines, &[panel.clone(), panel.clone()]).unwrap();
+        assert_eq!(&std::fs::read(&lines).unwrap()[1..4], b"PNG");
+        let empty = TimePanel {
+            lines: vec![("a".into(), vec![(0.0, f64::NAN)])],
+            ..panel
+        };
+        assert!(lines_over_time(&dir.join("none.png"), &[empty]).is_err());
         std::fs::remove_dir_all(&dir).ok();
     }
 }
