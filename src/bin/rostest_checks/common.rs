@@ -111,6 +111,8 @@ pub struct CheckParams {
     pub dead_man_margin_s: f64,
     /// `scope_pivot`: the largest accepted tip motion once stopped, m.
     pub max_still_motion: f64,
+    /// `scope_pivot`: the largest accepted turn of the shaft under bad commands, deg.
+    pub max_bad_turn_deg: f64,
     /// `scope_pivot`: how long the tip must stay still, s.
     pub still_window_s: f64,
     /// `scope_pivot`: wall time for `~retract` to reach IDLE, s.
@@ -169,6 +171,7 @@ impl Default for CheckParams {
             command_timeout: 0.2,
             dead_man_margin_s: 0.1,
             max_still_motion: 0.0005,
+            max_bad_turn_deg: 1.0,
             still_window_s: 2.0,
             retract_timeout: 30.0,
             joy_config: String::new(),
@@ -209,6 +212,7 @@ impl CheckParams {
         validate::positive("command_timeout", self.command_timeout)?;
         validate::non_negative("dead_man_margin_s", self.dead_man_margin_s)?;
         validate::positive("max_still_motion", self.max_still_motion)?;
+        validate::positive("max_bad_turn_deg", self.max_bad_turn_deg)?;
         validate::duration("still_window_s", self.still_window_s)?;
         validate::duration("retract_timeout", self.retract_timeout)?;
         Ok(())
