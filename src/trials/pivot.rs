@@ -242,19 +242,14 @@ fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
 /// Samples while commanded and while still.
 #[derive(Default)]
 struct Series {
-    distance: Vec<f64>,
     solve_us: Vec<f64>,
     face: Vec<f64>,
-    wall: Vec<f64>,
     bore: Vec<f64>,
     bore_angle: Vec<f64>,
     depth: Vec<f64>,
     estimate: Vec<f64>,
     tracking: Vec<f64>,
     breathing: Vec<f64>,
-    f_est: Vec<f64>,
-    f_true: Vec<f64>,
-    f_axial: Vec<f64>,
     still_distance: Vec<f64>,
     swept: f64,
     held: usize,
@@ -266,8 +261,15 @@ struct Series {
 }
 
 impl Series {
-    /// The figures of the series into `r`.
+    /// The figures of the series, and of the commanded steps of `r.trace`, into `r`.
     fn finish(&self, r: &mut PivotResult) {
+        let commanded =
+            |f: fn(&PivotSample) -> f64| -> Vec<f64> { r.trace.iter().filter(|s| s.commanded).map(f).collect() };
+        let distance = commanded(|s| s.distance_m);
+        let wall = commanded(|s| s.wall_m);
+        let f_est = commanded(|s| s.lateral_est_n);
+        let f_true = commanded(|s| s.lateral_true_n);
+        let f_axial = commanded(|s| s.axial_true_n);
         let q = |v: &[f64], p: f64| {
             let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
             v.sort_by(f64::total_cmp);
@@ -279,13 +281,13 @@ impl Series {
         };
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
         let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
-        r.distance_p95_m = q(&self.distance, 0.95);
-        r.distance_max_m = max(&self.distance);
+        r.distance_p95_m = q(&distance, 0.95);
+        r.distance_max_m = max(&distance);
         r.solve_us_p50 = q(&self.solve_us, 0.5);
         r.solve_us_p99 = q(&self.solve_us, 0.99);
         r.solve_us_max = max(&self.solve_us);
         r.face_port_distance_p95_m = q(&self.face, 0.95);
-        r.wall_displacement_p95_m = q(&self.wall, 0.95);
+        r.wall_displacement_p95_m = q(&wall, 0.95);
         r.bore_distance_p95_m = q(&self.bore, 0.95);
         r.bore_angle_p95_deg = q(&self.bore_angle, 0.95).to_degrees();
         r.contact_depth_p95_m = q(&self.depth, 0.95);
@@ -293,11 +295,11 @@ impl Series {
         r.rcm_tracking_p95_m = q(&self.tracking, 0.95);
         r.breathing_across_p95_m = q(&self.breathing, 0.95);
         r.swept_deg = self.swept.to_degrees();
-        r.lateral_force_est_mean_n = mean(&self.f_est);
-        r.lateral_force_est_max_n = max(&self.f_est);
-        r.lateral_force_true_mean_n = mean(&self.f_true);
-        r.lateral_force_true_max_n = max(&self.f_true);
-        r.axial_force_true_max_n = max(&self.f_axial);
+        r.lateral_force_est_mean_n = mean(&f_est);
+        r.lateral_force_est_max_n = max(&f_est);
+        r.lateral_force_true_mean_n = mean(&f_true);
+        r.lateral_force_true_max_n = max(&f_true);
+        r.axial_force_true_max_n = max(&f_axial);
         r.held_steps = self.held;
         r.limited_steps = self.limited;
         r.still_motion_m = self.still_motion;
@@ -534,15 +536,13 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
     let mut out = None;
     for segment in script {
         for _ in 0..steps(segment.duration) {
-            let (o, smp) = traced(lp, Some(segment.command), t0, &mut r.trace)?;
+            let (o, _) = traced(lp, Some(segment.command), t0, &mut r.trace)?;
             let (_, a) = lp.shaft();
-            s.distance.push(smp.distance_m);
             r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
             let (e, _) = lp.shaft();
             let port = Point3::from(lp.world.trocar_pose_true().translation.vector);
             s.face.push(line_distance(&e, &a, &port));
             let anchor = lp.world.trocar().anchor();
-            s.wall.push(smp.wall_m);
             s.bore.push(line_distance(&e, &a, &lp.world.trocar().pivot()));
             let trocar_axis = lp.world.trocar_pose_true().rotation * Vector3::z();
             s.bore_angle.push(a.angle(&trocar_axis));
@@ -553,9 +553,6 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
                 .push(o.pivot.map_or(f64::NAN, |p| line_distance(&e, &a, &p.fulcrum)));
             let b = anchor - anchor0;
             s.breathing.push((b - a * a.dot(&b)).norm());
-            s.f_true.push(smp.lateral_true_n);
-            s.f_axial.push(smp.axial_true_n);
-            s.f_est.push(smp.lateral_est_n);
             s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
             s.swept = s.swept.max(a.angle(&a0));
             s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
