@@ -131,6 +131,10 @@ mod tests {
             }
         });
         assert!(wall >= 5_000.0, "{wall}");
-        assert!(cpu > 0.0 && cpu <= wall + 100.0, "cpu {cpu} wall {wall}");
+        // The same unit as the wall time (a ns/µs mix-up is 1000x off). Not `<= wall`: on
+        // this project's Firecracker VMs the thread CPU clock counts time the vCPU did not
+        // run (README, the soak) and once read more than the wall time under a parallel
+        // `cargo test` (2026-12-02).
+        assert!(cpu > 0.0 && cpu <= 2.0 * wall, "cpu {cpu} wall {wall}");
     }
 }
