@@ -550,7 +550,16 @@ pub fn scope_joy(p: &CheckParams) -> Result<String, String> {
     let last = lock(&got).last().map(|c| c.1);
     let released_from = lock(&got).len();
     play_joy(&publ, &j, &axes, false, 1.0);
-    let released = arrived(&got, released_from);
+    // Held commands still in flight when the release began (the node published them before
+    // it saw the release) are the hold's tail, not the release's.
+    let in_flight = {
+        let g = lock(&got);
+        g[released_from.min(g.len())..]
+            .iter()
+            .take_while(|(_, c)| *c == expected)
+            .count()
+    };
+    let released = arrived(&got, released_from + in_flight);
     play_joy(&publ, &j, &axes, true, 0.5);
     let stopped_from = lock(&got).len();
     std::thread::sleep(std::time::Duration::from_secs_f64(j.joy_timeout + 1.0));
