@@ -516,6 +516,13 @@ fn arrived(got: &Series<ScopeCommand>, from: usize) -> (usize, usize) {
     )
 }
 
+/// Commands from `from` on equal to the held `held` command: the hold's tail still in
+/// flight when the release began (published before the node saw the release).
+fn in_flight(got: &Series<ScopeCommand>, from: usize, held: &ScopeCommand) -> usize {
+    let g = lock(got);
+    g[from.min(g.len())..].iter().take_while(|(_, c)| c == held).count()
+}
+
 /// `scope_joy`: see the module documentation.
 pub fn scope_joy(p: &CheckParams) -> Result<String, String> {
     let j: JoyParams = params::from_yaml_file(std::path::Path::new(&p.joy_config)).map_err(|e| e.to_string())?;
@@ -550,16 +557,7 @@ pub fn scope_joy(p: &CheckParams) -> Result<String, String> {
     let last = lock(&got).last().map(|c| c.1);
     let released_from = lock(&got).len();
     play_joy(&publ, &j, &axes, false, 1.0);
-    // Held commands still in flight when the release began (the node published them before
-    // it saw the release) are the hold's tail, not the release's.
-    let in_flight = {
-        let g = lock(&got);
-        g[released_from.min(g.len())..]
-            .iter()
-            .take_while(|(_, c)| *c == expected)
-            .count()
-    };
-    let released = arrived(&got, released_from + in_flight);
+    let released = arrived(&got, released_from + in_flight(&got, released_from, &expected));
     play_joy(&publ, &j, &axes, true, 0.5);
     let stopped_from = lock(&got).len();
     std::thread::sleep(std::time::Duration::from_secs_f64(j.joy_timeout + 1.0));
