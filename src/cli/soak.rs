@@ -15,6 +15,7 @@ use crate::control::{ControlInput, Controller, Phase, Stamped};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{Kinematics, LbrKinematics};
 use crate::realtime::thread_cpu_time;
+use crate::signal::StreamLowPass;
 use crate::sim::SimWorld;
 use crate::trials::config::{load_controller, Protocol, SimConfig};
 
@@ -225,6 +226,8 @@ fn run_cycle(
     let mut out_phase = ctrl.phase();
     let mut hold_code = "";
     let (mut index, mut checksum) = (0u64, 0u64);
+    let mut torques = StreamLowPass::new(ctrl.params().torque_filter_time_constant);
+    let mut tau_ext = torques.update(world.time(), &world.external_torques());
     while world.time() < a.cycle_timeout {
         let t = world.time();
         let stamped = |value| Some(Stamped { stamp: t, value });
@@ -232,7 +235,7 @@ fn run_cycle(
             scope: None,
             now: t,
             joints: stamped(world.joint_positions()),
-            tau_ext: stamped(world.external_torques()),
+            tau_ext: stamped(tau_ext),
             trocar: world.measure_trocar(t).map(|m| Stamped {
                 stamp: m.stamp,
                 value: m.pose,
@@ -261,6 +264,7 @@ fn run_cycle(
         }
         for _ in 0..physics {
             world.step_physics().map_err(|e| e.to_string())?;
+            tau_ext = torques.update(world.time(), &world.external_torques());
         }
     }
     Ok(Cycle {

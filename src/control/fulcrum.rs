@@ -8,8 +8,9 @@
 //! - **across the shaft**, a first-order admittance of the fulcrum point,
 //!   D ẋ + K x = f_⊥, |x| <= x_max: a wall that pushes the shaft sideways (the port moved
 //!   with breathing, or the scope pivots about a point beside the port) moves the fulcrum,
-//!   and with it the scope, the way it pushes. K pulls x back to zero, so a force
-//!   estimate's bias moves the fulcrum by at most bias / K. While no command comes the
+//!   and with it the scope, the way it pushes. K (shipped 0: the wall is the spring) pulls x
+//!   back to zero; without it a force estimate's bias moves the fulcrum until the wall
+//!   pushes back as hard (bias / the wall's stiffness), within x_max. While no command comes the
 //!   scope holds still: the law is then D ẋ = f_⊥ with a larger dead-band, so that only a
 //!   wall pushing harder than the estimate's drift (or the wall settling after a motion)
 //!   moves it;
@@ -77,7 +78,7 @@ impl Default for FulcrumParams {
     fn default() -> Self {
         Self {
             prior_depth: 0.02,
-            stiffness: 100.0,
+            stiffness: 0.0,
             damping: 50.0,
             force_deadband: 0.3,
             still_force_deadband: 2.0,
@@ -308,7 +309,11 @@ mod tests {
 
     #[test]
     fn the_lateral_part_yields_to_the_force_within_its_bounds_and_ignores_the_axial_force() {
-        let p = FulcrumParams::default();
+        // With a spring (the shipped 0 leaves the wall to place it).
+        let p = FulcrumParams {
+            stiffness: 100.0,
+            ..FulcrumParams::default()
+        };
         let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
         let m = steer(Vector3::zeros(), 0.03);
         let mut fc = Fulcrum::new(&p);
@@ -340,6 +345,20 @@ mod tests {
             0.01,
         );
         assert_eq!(fc, before);
+        // The shipped law has no spring: past the dead-band the fulcrum moves at
+        // (f - band) / D, steering or not, and stays where the force left it.
+        let p = FulcrumParams::default();
+        assert_eq!(p.stiffness, 0.0);
+        let mut fc = Fulcrum::new(&p);
+        for _ in 0..10 {
+            fc.step(&p, &Vector3::new(1.3, 0.0, 0.0), &a, &m, 0.01);
+        }
+        assert!((fc.lateral.x - 1.0 / p.damping * 0.1).abs() < 1e-12, "{}", fc.lateral);
+        let held = fc.lateral;
+        for _ in 0..100 {
+            fc.step(&p, &Vector3::zeros(), &a, &m, 0.01);
+        }
+        assert_eq!(fc.lateral, held);
     }
 
     /// Silent (no command): forces under the still dead-band move nothing, larger ones move

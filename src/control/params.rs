@@ -59,6 +59,12 @@ pub struct ControllerParams {
     pub seated: SeatedParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant: f64,
+    /// Time constant of the first-order low-pass on the external torques at the rate they
+    /// arrive (each FRI cycle), before the controller reads them once per period, s (0 =
+    /// the newest sample alone); see [`crate::signal::StreamLowPass`]. Applied by whoever
+    /// feeds the controller (the node's torque subscriber, the trial runners), not in
+    /// [`super::Controller::step`], which sees one sample per period.
+    pub torque_filter_time_constant: f64,
     /// Hold when external torques are missing or stale (force monitoring blind).
     pub require_torques: bool,
     /// After a force stop, back out along the axis by this distance, m (0 = stay).
@@ -114,6 +120,7 @@ impl Default for ControllerParams {
             goal_window: 0.3,
             seated: SeatedParams::default(),
             trocar_filter_time_constant: 0.1,
+            torque_filter_time_constant: 0.005,
             require_torques: true,
             retreat_distance: 0.0,
             limit_avoidance_weight: 1.0,
@@ -170,6 +177,7 @@ impl ControllerParams {
         nonneg("goal_window", self.goal_window)?;
         self.seated.validate()?;
         nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
+        nonneg("torque_filter_time_constant", self.torque_filter_time_constant)?;
         nonneg("retreat_distance", self.retreat_distance)?;
         nonneg("limit_avoidance_weight", self.limit_avoidance_weight)?;
         pos("approach_stall_timeout", self.approach_stall_timeout)?;

@@ -22,7 +22,8 @@ use serde::Serialize;
 
 use super::run::TrialParams;
 use crate::control::{ControlInput, Controller, ControllerParams, Phase, ScopeCommand, Stamped};
-use crate::kinematics::Kinematics;
+use crate::kinematics::{JointVector, Kinematics};
+use crate::signal::StreamLowPass;
 use crate::sim::{SimError, SimParams, SimWorld};
 
 /// One piece of a script: a command held for a duration.
@@ -316,6 +317,9 @@ pub struct PivotSession {
     kin: Arc<dyn Kinematics>,
     period: f64,
     physics_per_tick: usize,
+    /// The low-pass of the torques at the plant's rate (`torque_filter_time_constant`) and
+    /// its newest output.
+    torques: (StreamLowPass<7>, JointVector),
 }
 
 impl PivotSession {
@@ -334,9 +338,12 @@ impl PivotSession {
             ..controller.clone()
         };
         let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
-        let ctrl = Controller::new(params, kin.limits().clone()).map_err(|e| e.to_string())?;
+        let ctrl = Controller::new(params.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
         let period = 1.0 / trial.control_rate_hz;
+        let mut filter = StreamLowPass::new(params.torque_filter_time_constant);
+        let tau = filter.update(world.time(), &world.external_torques());
         let mut lp = Self {
+            torques: (filter, tau),
             physics_per_tick: (period * sim.physics_rate_hz).round().max(1.0) as usize,
             world,
             ctrl,
@@ -385,7 +392,7 @@ impl PivotSession {
             }),
             tau_ext: Some(Stamped {
                 stamp: t,
-                value: self.world.external_torques(),
+                value: self.torques.1,
             }),
             trocar: self.world.measure_trocar(t).map(|m| Stamped {
                 stamp: m.stamp,
@@ -399,6 +406,7 @@ impl PivotSession {
         }
         for _ in 0..self.physics_per_tick {
             self.world.step_physics()?;
+            self.torques.1 = self.torques.0.update(self.world.time(), &self.world.external_torques());
         }
         Ok(out)
     }

@@ -12,6 +12,7 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::kinematics::{JointVector, Kinematics};
+use crate::signal::StreamLowPass;
 use crate::sim::noise::TrocarMeasurement;
 use crate::sim::{check_range, SimError, SimWorld};
 
@@ -51,6 +52,11 @@ pub trait Policy {
     fn start(&mut self, kin: &dyn Kinematics);
     /// One control tick.
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action;
+    /// The time constant of the low-pass its torques pass at the plant's rate before each
+    /// tick, s ([`crate::signal::StreamLowPass`]; 0, the default: the newest sample).
+    fn torque_filter_time_constant(&self) -> f64 {
+        0.0
+    }
 }
 
 /// Parameters of a trial (the `trial:` section of `config/sim.yaml`).
@@ -233,6 +239,8 @@ fn drive(
     let period = 1.0 / p.control_rate_hz;
     let physics_per_tick = (period * world.params().physics_rate_hz).round().max(1.0) as usize;
     policy.start(world.kinematics());
+    let mut torques = StreamLowPass::new(policy.torque_filter_time_constant());
+    let mut tau_ext = torques.update(world.time(), &world.external_torques());
     // The true tip's last position and velocity (finite differences at the control rate).
     let mut last_tip: Option<(f64, Vector3<f64>, Option<Vector3<f64>>)> = None;
     loop {
@@ -240,7 +248,7 @@ fn drive(
         let obs = Observation {
             t,
             q: world.joint_positions(),
-            tau_ext: world.external_torques(),
+            tau_ext,
             trocar: world.measure_trocar(t),
         };
         let action = policy.tick(world.kinematics(), &obs);
@@ -290,6 +298,7 @@ fn drive(
         }
         for _ in 0..physics_per_tick {
             world.step_physics()?;
+            tau_ext = torques.update(world.time(), &world.external_torques());
             let f = world.contact().force.norm();
             if f > p.abort_force_n {
                 return Ok((

@@ -33,6 +33,7 @@ use crate::ros::convert::{self, InputError, StampOrder};
 use crate::ros::handover::{latest, FaultText, SlotReader, SlotWriter};
 use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs};
 use crate::ros::node::{lock, ros_err, NodeError, Throttle};
+use crate::signal::StreamLowPass;
 
 /// One input as the loop sees it: the newest valid value and the last fault.
 type Slot<T> = Option<Stamped<T>>;
@@ -258,6 +259,7 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
     let (restart_w, restarts) = latest(None);
     let stream = Mutex::new(JointStream::new(p.driver_restart_gap_s));
     let names = p.joint_names.clone();
+    let torque_filter = Mutex::new(StreamLowPass::new(p.controller.torque_filter_time_constant));
     let frame = p.base_frame.clone();
     // Queues of one: the loop only ever wants the newest message, and a flood is dropped
     // in the transport instead of queued.
@@ -279,9 +281,12 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
             }
         })
         .map_err(ros_err)?,
+        // Every FRI cycle's torques pass the low-pass; the loop reads the newest output once
+        // per period (the filter's mutex is this callback's alone).
         rosrust::subscribe(&p.lbr_state_topic, 1, move |m: lbr_msgs::LBRState| {
-            let t = convert::external_torques(&tf.topic, &m);
-            tf.accept(convert::seconds(m.stamp.data), t);
+            let stamp = convert::seconds(m.stamp.data);
+            let t = convert::external_torques(&tf.topic, &m).map(|v| lock(&torque_filter).update(stamp, &v));
+            tf.accept(stamp, t);
         })
         .map_err(ros_err)?,
         rosrust::subscribe(&p.trocar_pose_topic, 1, move |m: geometry_msgs::PoseStamped| {
