@@ -79,17 +79,18 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
         at_most("true force across the shaft, max, N", r.lateral_force_true_max_n, 5.0);
         at_most("true force across the shaft, mean, N", r.lateral_force_true_mean_n, 1.0);
         // The rigid cannula keeps the shaft line within its clearance of the trocar's
-        // fulcrum (measured 0.2-0.6 mm; the soft penalty bore let it sink 0.8-3.1 mm); the
-        // wall dragged by at most 1.5 mm (p95, measured 0.8-1.1); the shaft line within 2 mm
-        // of the port (measured 0.8-1.7 mm, not the 1 mm: README; 1.7-3.6 mm with
-        // the soft bore and the fulcrum's force through the tare's dead-band).
+        // fulcrum (measured 0.2-0.5 mm; the soft penalty bore let it sink 0.8-3.1 mm); the
+        // wall dragged by at most 1.2 mm (p95, measured 0.53-0.95; 0.8-1.1 before the
+        // torques' low-pass); the shaft line within 1.6 mm of the port (measured 0.68-1.41
+        // mm, not the 1 mm on seed 3: README; 0.8-1.7 before the low-pass, 1.7-3.6
+        // with the soft bore and the fulcrum's force through the tare's dead-band).
         at_most("shaft from the trocar's fulcrum, p95, m", r.bore_distance_p95_m, 0.0008);
-        at_most("wall dragged, p95, m", r.wall_displacement_p95_m, 0.0015);
-        at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.002);
+        at_most("wall dragged, p95, m", r.wall_displacement_p95_m, 0.0012);
+        at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.0016);
         // Once the commands stop the scope yields only to a wall pushing over 2 N: it moved
-        // 0.8-1.2 mm in these seeds (README: not the 0.5 mm), while the port goes on
-        // breathing.
-        at_most("motion once silent, m", r.still_motion_m, 0.002);
+        // 0.22-0.76 mm in these seeds (0.8-1.2 before the low-pass; README: the issue's
+        // 0.5 mm not met on seed 2), while the port goes on breathing.
+        at_most("motion once silent, m", r.still_motion_m, 0.001);
         at_most(
             "motion once silent relative to the port, m",
             r.still_motion_port_m,
@@ -101,6 +102,32 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
             r.port_motion_m * 1e3
         );
     }
+}
+
+#[test]
+fn the_torques_low_pass_lowers_the_wall_drag_and_the_force_across_the_shaft() {
+    // The shipped 5 ms low-pass at the plant's 1 kHz against the newest sample alone (the
+    // controller's read once per 10 ms period), everything else equal.
+    let cfg = realistic();
+    let raw = ControllerParams {
+        torque_filter_time_constant: 0.0,
+        ..shipped()
+    };
+    assert!(shipped().torque_filter_time_constant > 0.0);
+    let (mut wall, mut wall_raw, mut force, mut force_raw) = (0.0, 0.0, 0.0, 0.0);
+    for seed in SEEDS {
+        let (a, b) = (run(&cfg, &shipped(), seed), run(&cfg, &raw, seed));
+        wall += a.wall_displacement_p95_m;
+        wall_raw += b.wall_displacement_p95_m;
+        force += a.lateral_force_true_mean_n;
+        force_raw += b.lateral_force_true_mean_n;
+    }
+    // Measured 0.73 x and 0.67 x.
+    assert!(wall < 0.85 * wall_raw, "wall dragged p95 sums: {wall} vs {wall_raw}");
+    assert!(
+        force < 0.85 * force_raw,
+        "true lateral force sums: {force} vs {force_raw}"
+    );
 }
 
 #[test]
