@@ -684,6 +684,7 @@ impl OptimalController {
             self.run.supervisor.clear_hold();
             return Ok(self.tare_step(input, &arm, ctx.guard, dt));
         }
+        self.run.tare.at_pose(&self.params.tare, &arm.jac, &arm.tip.rotation);
         self.update_force(input, &arm, ctx.guard, dt)?;
         if let Some(out) = self.pivot_step(kin, input, ctx, &arm) {
             return Ok(out);
@@ -693,9 +694,10 @@ impl OptimalController {
         let goal = axis.point_at(self.params.insertion_depth);
         let tip_p = Point3::from(arm.tip.translation.vector);
         if let (Phase::Approach, Some(t)) = (self.run.supervisor.phase(), input.tau_ext) {
+            let pose = (&arm.jac, &arm.tip.rotation);
             self.run
                 .tare
-                .track(&self.params.tare, &t.value, axis.depth_of(&tip_p), dt);
+                .track(&self.params.tare, &t.value, axis.depth_of(&tip_p), pose, dt);
         }
 
         // Every input is good: an unlatched hold (stale data) resumes.

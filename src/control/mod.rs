@@ -17,6 +17,7 @@ pub mod hold;
 pub mod metrics;
 pub mod motion;
 pub mod params;
+pub mod payload;
 pub mod pivot;
 pub mod scope;
 pub mod seated;

@@ -27,8 +27,11 @@
 
 use serde::{Deserialize, Serialize};
 
+use nalgebra::UnitQuaternion;
+
 use super::hold::HoldReason;
-use crate::kinematics::JointVector;
+use super::payload::PayloadFit;
+use crate::kinematics::{Jacobian, JointVector};
 
 /// Parameters of the tare (`tare:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -48,6 +51,10 @@ pub struct TareParams {
     pub track_time_constant_s: f64,
     /// Tracking runs while the tip is at least this far before the trocar face, m.
     pub track_clearance_m: f64,
+    /// Prior standard deviation of a payload's mass error, kg, for the fit of the offset's
+    /// pose-dependent part from the tracked samples ([`super::payload`]; 0 = no fit: the
+    /// offset stays what tracking left).
+    pub payload_prior_kg: f64,
 }
 
 impl Default for TareParams {
@@ -60,6 +67,7 @@ impl Default for TareParams {
             deadband_sigmas: 2.0,
             track_time_constant_s: 0.3,
             track_clearance_m: 0.01,
+            payload_prior_kg: 0.5,
         }
     }
 }
@@ -90,7 +98,8 @@ impl TareParams {
         pos("max_noise_nm", self.max_noise_nm)?;
         nonneg("deadband_sigmas", self.deadband_sigmas)?;
         nonneg("track_time_constant_s", self.track_time_constant_s)?;
-        nonneg("track_clearance_m", self.track_clearance_m)
+        nonneg("track_clearance_m", self.track_clearance_m)?;
+        nonneg("payload_prior_kg", self.payload_prior_kg)
     }
 }
 
@@ -116,6 +125,9 @@ pub struct Tare {
     offset: JointVector,
     band: JointVector,
     done: bool,
+    /// The fit of the offset's pose-dependent part, and its change at this step's pose.
+    payload: PayloadFit,
+    change: JointVector,
 }
 
 impl Tare {
@@ -176,25 +188,45 @@ impl Tare {
     }
 
     /// Follow the offset out of contact: `tip_depth` is the tip's depth along the
-    /// insertion axis (negative before the face).
-    pub fn track(&mut self, p: &TareParams, tau: &JointVector, tip_depth: f64, dt: f64) {
+    /// insertion axis (negative before the face); `jac`, `rot` the tip's Jacobian and
+    /// orientation, for the fit of the offset's pose-dependent part.
+    pub fn track(
+        &mut self,
+        p: &TareParams,
+        tau: &JointVector,
+        tip_depth: f64,
+        pose: (&Jacobian, &UnitQuaternion<f64>),
+        dt: f64,
+    ) {
         let tc = p.track_time_constant_s;
         if !self.done || tc <= 0.0 || tip_depth.is_nan() || tip_depth >= -p.track_clearance_m || dt <= 0.0 {
             return;
         }
         let a = dt / (tc + dt);
         self.offset += (tau - self.offset) * a;
+        self.payload.add(pose.0, pose.1, tau, dt);
+    }
+
+    /// Set this step's pose (the measured tip's Jacobian and orientation): the fitted
+    /// payload's change of gravity torque since the last tracked sample joins the offset.
+    pub fn at_pose(&mut self, p: &TareParams, jac: &Jacobian, rot: &UnitQuaternion<f64>) {
+        self.change = self.payload.change(p.payload_prior_kg, jac, rot);
+    }
+
+    /// The offset at this step's pose: the tracked one plus the payload's change, Nm.
+    pub fn offset_here(&self) -> JointVector {
+        self.offset + self.change
     }
 
     /// The torques less the offset, without the dead-band: for a consumer that filters
     /// them and bands its own estimate (the fulcrum's, [`super::fulcrum`]).
     pub fn remove_offset(&self, tau: &JointVector) -> JointVector {
-        tau - self.offset
+        tau - self.offset_here()
     }
 
     /// The torques less the offset, with the dead-band applied per joint.
     pub fn correct(&self, tau: &JointVector) -> JointVector {
-        (tau - self.offset).zip_map(&self.band, super::admittance::deadband)
+        (tau - self.offset_here()).zip_map(&self.band, super::admittance::deadband)
     }
 }
 
@@ -280,17 +312,60 @@ mod tests {
         let mut t = Tare::default();
         still(&mut t, &p, |_| JointVector::zeros(), 100);
         let drifted = JointVector::repeat(0.5);
+        let (jac, rot) = (Jacobian::identity(), UnitQuaternion::identity());
         for _ in 0..300 {
-            t.track(&p, &drifted, -0.05, 0.01);
+            t.track(&p, &drifted, -0.05, (&jac, &rot), 0.01);
         }
         assert!((t.offset() - drifted).amax() < 1e-3, "out of contact: follows");
         let pushed = JointVector::repeat(3.0);
         for _ in 0..300 {
-            t.track(&p, &pushed, -0.005, 0.01);
+            t.track(&p, &pushed, -0.005, (&jac, &rot), 0.01);
         }
         assert!(
             (t.offset() - drifted).amax() < 1e-3,
             "within reach of the trocar: frozen"
         );
+    }
+
+    /// A payload's gravity torque (the sim's load-data error): tracked over an approach, then
+    /// the scope pivots within reach, where tracking is frozen. The fitted change keeps the
+    /// corrected torques near zero; without the fit they read the change.
+    #[test]
+    fn the_payloads_change_of_gravity_is_removed_after_tracking() {
+        use crate::kinematics::lbr::{LbrModel, ToolParams};
+        use crate::kinematics::{Kinematics, LbrKinematics};
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let q0 = JointVector::from_column_slice(&[0.3, 0.6, -0.2, -1.2, 0.4, 0.8, 0.1]);
+        let tau_at = |q: &JointVector| {
+            let (tip, jac) = kin.fk_jacobian(q).unwrap();
+            let f = nalgebra::Vector3::new(0.0, 0.0, -9.81 * 0.15);
+            let lever = tip.rotation * nalgebra::Vector3::new(0.0, 0.0, -0.2);
+            let tau = jac.fixed_rows::<3>(0).transpose() * f + jac.fixed_rows::<3>(3).transpose() * lever.cross(&f);
+            (tau.add_scalar(0.4), jac, tip.rotation)
+        };
+        let run = |p: &TareParams| {
+            let mut t = Tare::default();
+            still(&mut t, p, |_| tau_at(&q0).0, 100);
+            for k in 0..300 {
+                let s = k as f64 / 300.0;
+                let q = q0 + JointVector::from_column_slice(&[0.0, 0.1 * s, 0.0, 0.2 * s, 0.3 * s, -0.3 * s, 0.2 * s]);
+                let (tau, jac, rot) = tau_at(&q);
+                t.at_pose(p, &jac, &rot);
+                t.track(p, &tau, -0.05, (&jac, &rot), 0.01);
+            }
+            // Pivoted within reach.
+            let q = q0 + JointVector::from_column_slice(&[0.0, 0.1, 0.0, 0.2, 0.7, 0.0, 0.2]);
+            let (tau, jac, rot) = tau_at(&q);
+            t.at_pose(p, &jac, &rot);
+            t.remove_offset(&tau).amax()
+        };
+        let fitted = run(&TareParams::default());
+        let frozen = run(&TareParams {
+            payload_prior_kg: 0.0,
+            ..TareParams::default()
+        });
+        assert!(frozen > 0.05, "the pivot changes the payload's torque: {frozen}");
+        // Measured 0.24 x: the prior (0.5 kg) shrinks what the approach's poses leave open.
+        assert!(fitted < 0.35 * frozen, "fitted {fitted} vs frozen {frozen}");
     }
 }
