@@ -31,6 +31,10 @@ pub const FEASIBILITY_TOL: f64 = 1e-12;
 /// How far a multiplier may have the wrong sign, relative to max(1, |g|∞).
 pub const MULTIPLIER_TOL: f64 = 1e-10;
 
+/// Switches of the primal-dual active-set iteration after the two guesses, at most: each
+/// is one 7 x 7 Cholesky solve (about 0.3 µs); a QP not settled by then goes to Clarabel.
+pub const SWITCHES: usize = 8;
+
 /// Where one joint sits in a solution.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Bound {
@@ -139,8 +143,11 @@ pub fn active_set_of(x: &JointVector, lo: &JointVector, hi: &JointVector) -> Act
 
 /// The QP's solution from the first guess that [`certify`] proves optimal: `hint` (the
 /// last QP's active set), then the bounds the unconstrained minimiser crosses (no bound
-/// at all when it crosses none). Returns it with its active set, or `None` when neither
-/// guess is proven.
+/// at all when it crosses none), then up to [`SWITCHES`] steps of a primal-dual
+/// active-set iteration from there (a free joint that crosses a bound is put on it, a
+/// joint whose multiplier has the wrong sign is freed: the switch that settles a QP whose
+/// active set changed on several joints at once, as when the arm starts to move).
+/// Returns it with its active set, or `None` when nothing is proven.
 pub fn solve_from_guesses(
     h: &Matrix7,
     g: &JointVector,
@@ -166,10 +173,29 @@ pub fn solve_from_guesses(
             set[i] = Bound::Lower;
         }
     }
-    if set == *hint {
-        return None;
+    let r_tol = MULTIPLIER_TOL * g.amax().max(1.0);
+    for _ in 0..=SWITCHES {
+        let x = reduced_minimiser(h, g, lo, hi, &set)?;
+        if set != *hint && is_optimal(h, g, lo, hi, &set, &x) {
+            return Some((x, set));
+        }
+        let r = h * x + g;
+        let mut next = set;
+        for i in 0..N_JOINTS {
+            next[i] = match set[i] {
+                Bound::Free if x[i] > hi[i] + FEASIBILITY_TOL => Bound::Upper,
+                Bound::Free if x[i] < lo[i] - FEASIBILITY_TOL => Bound::Lower,
+                Bound::Upper if lo[i] < hi[i] && r[i] > r_tol => Bound::Free,
+                Bound::Lower if lo[i] < hi[i] && r[i] < -r_tol => Bound::Free,
+                b => b,
+            };
+        }
+        if next == set {
+            return None;
+        }
+        set = next;
     }
-    certify(h, g, lo, hi, &set).map(|x| (x, set))
+    None
 }
 
 #[cfg(test)]
@@ -255,6 +281,50 @@ mod tests {
         x[2] = 0.0099;
         let s = active_set_of(&x, &lo, &hi);
         assert_eq!(&s[..3], &[Bound::Upper, Bound::Lower, Bound::Free]);
+    }
+
+    #[test]
+    fn the_switches_settle_a_qp_whose_active_set_changed_on_several_joints() {
+        // Two coupled joints. The unconstrained minimiser (5.8, -4.2) crosses joint 0's
+        // upper bound and joint 1's lower one, but with both there joint 1's multiplier has
+        // the wrong sign: neither guess holds. Freed, joint 1 goes to 0.55, past its upper
+        // bound; with both on their upper bounds the conditions hold.
+        let mut h = Matrix7::identity();
+        h[(0, 1)] = 0.9;
+        h[(1, 0)] = 0.9;
+        let g = JointVector::from_column_slice(&[-2.0, -1.0, 0.0, 0.0, 0.0, 0.0, 0.0]);
+        let (lo, hi) = (JointVector::from_element(-1.0), JointVector::from_element(0.5));
+        let mut crossing = NONE_ACTIVE;
+        crossing[0] = Bound::Upper;
+        crossing[1] = Bound::Lower;
+        assert!(certify(&h, &g, &lo, &hi, &crossing).is_none());
+        assert!(certify(&h, &g, &lo, &hi, &NONE_ACTIVE).is_none());
+        let (x, set) = solve_from_guesses(&h, &g, &lo, &hi, &NONE_ACTIVE).unwrap();
+        let mut both = NONE_ACTIVE;
+        both[0] = Bound::Upper;
+        both[1] = Bound::Upper;
+        assert_eq!(set, both);
+        assert!((x - JointVector::from_column_slice(&[0.5, 0.5, 0.0, 0.0, 0.0, 0.0, 0.0])).amax() < 1e-15);
+    }
+
+    proptest! {
+        /// The switches settle (almost) every QP: with random boxes and gradients, the
+        /// guesses and switches together certify the solution in at least 95 % of cases
+        /// (a QP left to Clarabel is still solved; this bounds how often).
+        #[test]
+        fn the_switches_settle_nearly_every_qp(
+            cases in prop::collection::vec((prop::collection::vec(-1.0f64..1.0, 49), prop::collection::vec(-2.0f64..2.0, 7), prop::collection::vec(0.01f64..0.3, 7)), 40),
+        ) {
+            let mut settled = 0;
+            for (a, g, w) in &cases {
+                let h = spd(a, 0.05);
+                let g = JointVector::from_column_slice(g);
+                let lo = JointVector::from_fn(|i, _| -w[i]);
+                let hi = JointVector::from_fn(|i, _| w[i]);
+                settled += usize::from(solve_from_guesses(&h, &g, &lo, &hi, &NONE_ACTIVE).is_some());
+            }
+            prop_assert!(settled * 100 >= 95 * cases.len(), "{settled} of {}", cases.len());
+        }
     }
 
     proptest! {
