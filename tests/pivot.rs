@@ -80,16 +80,16 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
         at_most("true force across the shaft, mean, N", r.lateral_force_true_mean_n, 1.0);
         // The rigid cannula keeps the shaft line within its clearance of the trocar's
         // fulcrum (measured 0.2-0.5 mm; the soft penalty bore let it sink 0.8-3.1 mm); the
-        // wall dragged by at most 1.2 mm (p95, measured 0.57-0.80; 0.8-1.1 before the
+        // wall dragged by at most 1.2 mm (p95, measured 0.59-0.80; 0.8-1.1 before the
         // torques' low-pass and the payload fit); the shaft line within 1.6 mm of the port
-        // (measured 0.72-1.25 mm, not the 1 mm on seed 3: README; 0.8-1.7 before the
+        // (measured 0.73-1.26 mm, not the 1 mm on seed 3: README; 0.8-1.7 before the
         // low-pass, 1.7-3.6 with the soft bore and the fulcrum's force through the tare's
         // dead-band).
         at_most("shaft from the trocar's fulcrum, p95, m", r.bore_distance_p95_m, 0.0008);
         at_most("wall dragged, p95, m", r.wall_displacement_p95_m, 0.0012);
         at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.0016);
         // Once the commands stop the scope yields only to a wall pushing over 2 N: it moved
-        // 0.22-0.76 mm in these seeds (0.8-1.2 before the low-pass; README: the issue's
+        // 0.21-0.82 mm in these seeds (0.8-1.2 before the low-pass; README: the issue's
         // 0.5 mm not met on seed 2), while the port goes on breathing.
         at_most("motion once silent, m", r.still_motion_m, 0.001);
         at_most(
@@ -179,16 +179,20 @@ fn a_biased_trocar_estimate_does_not_bias_the_fulcrum() {
     cfg.sim.measurement.bias_position_m = 0.006;
     cfg.sim.measurement.bias_rotation_rad = 0.0;
     cfg.sim.measurement.bias_frame = trocar_docking::sim::noise::BiasFrame::Port;
-    let mut biased = 0;
+    let (mut biased, mut strongly) = (0, 0);
     for seed in SEEDS {
         let r = run(&cfg, &shipped(), seed);
-        if r.estimate_error_m > 0.0015 {
-            biased += 1;
-            // The start (the estimate's port projected onto the shaft) keeps well under the
-            // estimate's error (ratios 0.26-0.51 measured on seeds 1-3 with the torques'
-            // low-pass, 0.37-0.48 without; the absolute bound below is the one that matters).
+        biased += usize::from(r.estimate_error_m > 0.0015);
+        if r.estimate_error_m > 0.003 {
+            strongly += 1;
+            // Where the estimate is off by more than twice the absolute bound below, the
+            // start (the estimate's port projected onto the shaft) keeps under half of its
+            // error: a fulcrum that followed the estimate would keep all of it (seed 2: 3.4
+            // mm off, 0.26 kept; at 1.7-2.5 mm off, seeds 1 and 3, the start's own 0.9-1.1 mm
+            // of clearance and breathing make a ratio meaningless, and the absolute bound
+            // is the one that matters).
             assert!(
-                r.fulcrum_error_start_m < 0.6 * r.estimate_error_m,
+                r.fulcrum_error_start_m < 0.5 * r.estimate_error_m,
                 "seed {seed}: estimate {:.2} mm off, fulcrum {:.2} mm at the start",
                 r.estimate_error_m * 1e3,
                 r.fulcrum_error_start_m * 1e3
@@ -203,6 +207,7 @@ fn a_biased_trocar_estimate_does_not_bias_the_fulcrum() {
         );
     }
     assert!(biased >= 2, "only {biased} estimates were off by more than 1.5 mm");
+    assert!(strongly >= 1, "no estimate was off by more than 3 mm");
 }
 
 fn docked(seed: u64) -> PivotSession {
