@@ -53,7 +53,9 @@ pub struct PayloadFit {
     rhs: SVector<f64, 11>,
     /// The regressor of the last fitted sample.
     last: Option<SMatrix<f64, 7, 4>>,
+    /// The last solution and the prior it was solved under.
     theta: Option<Vector4<f64>>,
+    solved_prior: f64,
     dirty: bool,
 }
 
@@ -64,6 +66,7 @@ impl Default for PayloadFit {
             rhs: SVector::zeros(),
             last: None,
             theta: None,
+            solved_prior: f64::NAN,
             dirty: false,
         }
     }
@@ -88,13 +91,14 @@ impl PayloadFit {
     }
 
     /// The fitted θ = [dm (kg); dm r (kg m, tip frame)] under a prior of `prior_kg` (0: off,
-    /// none), re-solved when samples came since the last call.
+    /// none), re-solved when samples came, or the prior changed, since the last call.
     pub fn theta(&mut self, prior_kg: f64) -> Option<Vector4<f64>> {
         if !(prior_kg > 0.0 && prior_kg.is_finite()) || self.last.is_none() {
             return None;
         }
-        if self.dirty {
+        if self.dirty || prior_kg != self.solved_prior {
             self.dirty = false;
+            self.solved_prior = prior_kg;
             let mut n = self.info;
             let s = prior_kg * PRIOR_LEVER_M;
             n[(7, 7)] += 1.0 / (prior_kg * prior_kg);
@@ -127,14 +131,14 @@ impl PayloadFit {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::kinematics::lbr::{LbrModel, ToolParams};
     use crate::kinematics::{Kinematics, LbrKinematics};
 
     /// The sim's model of a load-data error (`src/sim/torque.rs`): J_c^T (dm g0) at the
-    /// point `r` of the tip frame, J_c = J_v - [c - tip]x J_w.
-    fn payload_torque(jac: &Jacobian, rot: &UnitQuaternion<f64>, dm: f64, r: &Vector3<f64>) -> JointVector {
+    /// point `r` of the tip frame, J_c = J_v - [c - tip]x J_w. (Also the tare's tests.)
+    pub(crate) fn payload_torque(jac: &Jacobian, rot: &UnitQuaternion<f64>, dm: f64, r: &Vector3<f64>) -> JointVector {
         let f = GRAVITY * dm;
         let lever = rot * r;
         jac.fixed_rows::<3>(0).transpose() * f + jac.fixed_rows::<3>(3).transpose() * lever.cross(&f)
@@ -160,8 +164,7 @@ mod tests {
         // does much the same over these poses, and the prior shrinks the part the poses do
         // not tell apart): with a prior of 100 kg it comes out at the true 0.15 kg, with
         // the shipped 0.5 kg about half of it.
-        let mut loose = fit.clone();
-        assert!((loose.theta(100.0).unwrap()[0] - dm).abs() < 0.01);
+        assert!((fit.theta(100.0).unwrap()[0] - dm).abs() < 0.01);
         assert!(fit.theta(0.5).unwrap()[0] > 0.0);
         // Pivoted on from the last pose by 0.4 rad at the wrist: the change predicted within
         // a seventh of what it is.

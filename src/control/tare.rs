@@ -338,9 +338,8 @@ mod tests {
         let q0 = JointVector::from_column_slice(&[0.3, 0.6, -0.2, -1.2, 0.4, 0.8, 0.1]);
         let tau_at = |q: &JointVector| {
             let (tip, jac) = kin.fk_jacobian(q).unwrap();
-            let f = nalgebra::Vector3::new(0.0, 0.0, -9.81 * 0.15);
-            let lever = tip.rotation * nalgebra::Vector3::new(0.0, 0.0, -0.2);
-            let tau = jac.fixed_rows::<3>(0).transpose() * f + jac.fixed_rows::<3>(3).transpose() * lever.cross(&f);
+            let r = nalgebra::Vector3::new(0.0, 0.0, -0.2);
+            let tau = super::super::payload::tests::payload_torque(&jac, &tip.rotation, 0.15, &r);
             (tau.add_scalar(0.4), jac, tip.rotation)
         };
         let run = |p: &TareParams| {
