@@ -131,16 +131,17 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
             std::thread::sleep(Duration::from_millis(300));
             trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
             std::thread::sleep(Duration::from_millis(300));
-            // Break it only once the controller has had clean joint states since the start
-            // (on a loaded machine the first can take longer than the 300 ms): a fault that
-            // comes first leaves it in TARE waiting for a joint state, not holding.
+            // Break it only once the controller has tared and moves (on a loaded machine the
+            // first joint state, or the end of the tare window, can come later than the
+            // 300 ms): a fault during TARE keeps the arm still in TARE with the reason (the
+            // supervisor's rule for a hold before the arm moves), not in HOLD.
             let started = status.count();
             wait_for(p.startup_timeout, || {
                 status
                     .get()
-                    .filter(|s| status.count() > started && !s.hold_reason.contains("no joint state"))
+                    .filter(|s| status.count() > started && (s.phase == "APPROACH" || s.phase == "INSERT"))
             })
-            .ok_or_else(|| format!("{f:?}: no clean joint state reached the controller after ~start"))?;
+            .ok_or_else(|| format!("{f:?}: the controller did not leave TARE on clean inputs after ~start"))?;
             *fault.lock().map_err(|e| e.to_string())? = f;
             let before = status.count();
             let held = wait_for(3.0, || {
