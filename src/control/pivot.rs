@@ -412,7 +412,7 @@ mod tests {
         let (_, mut off) = setup();
         off.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, false, 0.01);
         assert_eq!(off.target_depth(), 0.03);
-        // Past min_depth (15 mm), but never out of the port.
+        // Past min_depth (30 mm), but never out of the port.
         for _ in 0..100 {
             pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
         }

@@ -110,7 +110,7 @@ impl Default for ScopeParams {
             max_angular_speed: 0.35,
             max_roll_speed: 0.5,
             max_zoom_speed: 0.02,
-            min_depth: 0.015,
+            min_depth: 0.03,
             max_depth: 0.08,
             cone_half_angle_deg: 30.0,
             weights: CostWeights {
