@@ -664,6 +664,10 @@ impl OptimalController {
             self.run.supervisor.retract_done();
         }
         let mut out = self.output(Some(cmd), Some(arm.tip), None);
+        // The shaft's force from its whole wrench: the linear rows alone read the trocar's
+        // tilt spring (a couple across the bore) as a force. (The force stop still checks
+        // the linear rows' estimate, which reads that couple high: the safe side.)
+        out.f_ext = f;
         out.solve = Some(report);
         out.pivot = Some(status);
         Some(out)

@@ -130,13 +130,15 @@ impl InsertJoints {
     }
 }
 
-/// The peak force estimate of the status on `topic` outside IDLE, as it comes.
+/// The peak force estimate of the status on `topic` while docking (TARE to INSERT, HOLD),
+/// as it comes: after DONE `f_ext` is the shaft's force from another estimate (the whole
+/// wrench), of the steering, not of the docking.
 fn subscribe_max_force(topic: &str) -> Result<(Arc<Mutex<f64>>, rosrust::Subscriber), String> {
     let max_force = Arc::new(Mutex::new(0.0_f64));
     let m = max_force.clone();
     let sub = rosrust::subscribe(topic, 100, move |s: trocar_docking::DockingStatus| {
         if let Ok(mut m) = m.lock() {
-            if s.phase != "IDLE" && s.f_ext_norm.is_finite() {
+            if !matches!(s.phase.as_str(), "IDLE" | "DONE" | "RETRACT") && s.f_ext_norm.is_finite() {
                 *m = m.max(s.f_ext_norm);
             }
         }
