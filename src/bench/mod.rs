@@ -121,8 +121,14 @@ mod tests {
     #[test]
     fn thread_cpu_time_counts_work_but_not_sleep() {
         // Sleeping costs wall time, not CPU time; spinning costs both.
-        let ((), wall, cpu) = time_wall_and_cpu(|| std::thread::sleep(Duration::from_millis(20)));
-        assert!(wall >= 20_000.0, "{wall}");
+        // The least of three tries: this VM charges time it did not run to the running
+        // thread (README, Soak), now and then milliseconds of it.
+        let mut cpu = f64::INFINITY;
+        for _ in 0..3 {
+            let ((), wall, c) = time_wall_and_cpu(|| std::thread::sleep(Duration::from_millis(20)));
+            assert!(wall >= 20_000.0, "{wall}");
+            cpu = cpu.min(c);
+        }
         assert!(cpu < 5_000.0, "slept 20 ms but used {cpu} µs of CPU");
         let ((), wall, cpu) = time_wall_and_cpu(|| {
             let t0 = Instant::now();
