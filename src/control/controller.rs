@@ -626,14 +626,20 @@ impl OptimalController {
         self.run.supervisor.clear_hold();
         let sp = &self.params.scope;
         if self.run.pivot.is_none() {
-            let trocar = self.run.trocar_filtered.map(|(t, _)| InsertionAxis::from_pose(&t))?;
-            self.run.pivot = Some(Pivot::new(sp, &kin.fk(&arm.prev).ok()?, &trocar));
+            let (t, stamp) = self.run.trocar_filtered?;
+            let trocar = InsertionAxis::from_pose(&t);
+            self.run.pivot = Some(Pivot::new(sp, &kin.fk(&arm.prev).ok()?, &trocar, stamp));
         }
         let command = match ctx.guard.check_force(self.run.admittance.force().norm()) {
             Ok(()) => live_command(sp, input.now, input.scope),
             Err(_) => Err("force estimate over the force stop: scope commands ignored, holding still"),
         };
         let pivot = self.run.pivot.as_mut()?;
+        // The trocar estimate, where there is one, for the port's breathing; the law needs
+        // none (the marker may leave the camera's view while the surgeon steers).
+        if let Some(t) = input.trocar {
+            pivot.observe_port(sp, &t.value, t.stamp, input.now);
+        }
         if self.run.supervisor.phase() == Phase::Retract && !pivot.retracting() {
             pivot.retract_to(-self.params.standoff);
         }

@@ -19,6 +19,7 @@ pub mod motion;
 pub mod params;
 pub mod payload;
 pub mod pivot;
+pub mod port_follow;
 pub mod scope;
 pub mod seated;
 pub mod sqp;

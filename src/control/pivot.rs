@@ -34,6 +34,7 @@ use super::controller::Stamped;
 use super::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
 use super::geometry::InsertionAxis;
 use super::motion::{MotionLimits, Rate, RateShaper};
+use super::port_follow::PortFollow;
 use super::scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 use super::sqp::{CostWeights, PivotCost};
 use crate::kinematics::{Jacobian, JointVector};
@@ -88,12 +89,14 @@ pub struct Pivot {
     turn_rate: RateShaper,
     /// The shaped zoom (z), m/s.
     zoom_rate: RateShaper,
+    /// The port's breathing along the docking axis, from the trocar estimate.
+    follow: PortFollow,
 }
 
 impl Pivot {
     /// Begin holding the port: `tip` is the commanded tip pose (its z the shaft), `trocar`
-    /// the estimated docking axis (its direction the cone's axis).
-    pub fn new(p: &ScopeParams, tip: &Isometry3<f64>, trocar: &InsertionAxis) -> Self {
+    /// the estimated docking axis (its direction the cone's axis), estimated at `stamp`.
+    pub fn new(p: &ScopeParams, tip: &Isometry3<f64>, trocar: &InsertionAxis, stamp: f64) -> Self {
         let d = tip.rotation * Vector3::z();
         let e = Point3::from(tip.translation.vector);
         let tip_depth = -d.dot(&(trocar.port - e));
@@ -112,7 +115,22 @@ impl Pivot {
             force: ForceFilter::default(),
             turn_rate: RateShaper::default(),
             zoom_rate: RateShaper::default(),
+            follow: PortFollow::new(trocar.direction, trocar.port, stamp),
         }
+    }
+
+    /// Feed a trocar estimate `trocar` (its port and axis), stamped `stamp`, at time `now`
+    /// ([`PortFollow::observe`] at the fulcrum's depth: a bad or old one changes nothing).
+    pub fn observe_port(&mut self, p: &ScopeParams, trocar: &Isometry3<f64>, stamp: f64, now: f64) {
+        let port = Point3::from(trocar.translation.vector);
+        let axis = trocar.rotation * Vector3::z();
+        self.follow
+            .observe(&p.breathing, (&port, &axis), self.fulcrum.depth, stamp, now);
+    }
+
+    /// The port's breathing followed along the docking axis since DONE, m.
+    pub fn followed_offset(&self) -> f64 {
+        self.follow.offset()
     }
 
     /// Feed this step's (tared) external torques at the measured Jacobian `jac`; returns the
@@ -310,6 +328,9 @@ impl Pivot {
             };
             let moved = self.fulcrum.step(&p.fulcrum, force, &d, &m, dt);
             self.fulcrum_base += d.into_inner() * moved;
+            // The port's breathing along the docking axis: the port, the fulcrum and the
+            // tip's target move with it while the surgeon steers.
+            self.fulcrum_base += self.follow.step(&p.breathing, steering, dt);
         }
         let port = self.port();
         PivotTargets {
@@ -345,6 +366,7 @@ impl Pivot {
             limit: self.limit,
             ignored: self.ignored,
             fulcrum_depth: self.fulcrum.depth,
+            breathing_offset: self.follow.offset(),
         }
     }
 }
@@ -370,7 +392,7 @@ mod tests {
             port: Point3::new(0.002, 0.0, 0.0),
             direction: -Vector3::z_axis(),
         };
-        (p.clone(), Pivot::new(&p, &tip, &axis))
+        (p.clone(), Pivot::new(&p, &tip, &axis, 0.0))
     }
 
     fn cmd(pan: f64, tilt: f64, roll: f64, zoom: f64) -> Result<Option<ScopeCommand>, &'static str> {

@@ -9,6 +9,7 @@ use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::fulcrum::FulcrumParams;
+use super::port_follow::PortFollowParams;
 use super::sqp::CostWeights;
 
 /// A surgeon's scope command, in the `endoscope_tip` frame (a `TwistStamped` on
@@ -101,6 +102,8 @@ pub struct ScopeParams {
     pub retract_speed: f64,
     /// The fulcrum's adaptation from the force across the shaft.
     pub fulcrum: FulcrumParams,
+    /// The port's breathing along the docking axis, followed from the trocar estimate.
+    pub breathing: PortFollowParams,
 }
 
 impl Default for ScopeParams {
@@ -124,6 +127,7 @@ impl Default for ScopeParams {
             roll_weight: 5.0,
             retract_speed: 0.02,
             fulcrum: FulcrumParams::default(),
+            breathing: PortFollowParams::default(),
         }
     }
 }
@@ -150,6 +154,7 @@ impl ScopeParams {
             }
         }
         self.fulcrum.validate()?;
+        self.breathing.validate()?;
         pos("min_depth", self.min_depth)?;
         pos("max_depth", self.max_depth)?;
         if self.max_depth <= self.min_depth {
@@ -188,4 +193,7 @@ pub struct PivotReport {
     pub ignored: Option<&'static str>,
     /// The fulcrum's adapted depth past the port along the shaft, m.
     pub fulcrum_depth: f64,
+    /// The port's breathing followed along the docking axis since DONE, m
+    /// ([`super::port_follow`]).
+    pub breathing_offset: f64,
 }

@@ -417,6 +417,7 @@ mod tests {
                 limit: None,
                 ignored: None,
                 fulcrum_depth: 0.02,
+                breathing_offset: 0.0,
             }),
             ..unknown()
         };

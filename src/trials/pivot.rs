@@ -157,6 +157,10 @@ pub struct PivotResult {
     /// The true port's motion across the shaft since the script began (breathing): what a
     /// fulcrum that did not follow it would miss by.
     pub breathing_across_p95_m: f64,
+    /// The law's port from the true trocar face along the shaft, less its value at DONE,
+    /// while commanded: p95 of its magnitude (the trocar breathing along
+    /// its axis, where the law does not follow it: `scope.breathing`).
+    pub port_along_p95_m: f64,
     /// The largest angle of the shaft from its direction at DONE.
     pub swept_deg: f64,
     /// The controller's estimate of the force across the shaft while commanded: mean, max.
@@ -225,12 +229,14 @@ impl Default for PivotTiming {
     }
 }
 
-/// The same controller with the fulcrum fixed where it starts (no adaptation): the
+/// The same controller with the fulcrum fixed where it starts (no adaptation, no
+/// breathing followed): the
 /// benchmark's reference arm.
 pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
     let mut c = c.clone();
     c.scope.fulcrum.depth_gain = 0.0;
     c.scope.fulcrum.max_displacement = 0.0;
+    c.scope.breathing.follow = false;
     c
 }
 
@@ -251,6 +257,8 @@ struct Series {
     estimate: Vec<f64>,
     tracking: Vec<f64>,
     breathing: Vec<f64>,
+    port_along: Vec<f64>,
+    port_along_from: Option<f64>,
     still_distance: Vec<f64>,
     swept: f64,
     held: usize,
@@ -295,6 +303,7 @@ impl Series {
         r.fulcrum_estimate_p95_m = q(&self.estimate, 0.95);
         r.rcm_tracking_p95_m = q(&self.tracking, 0.95);
         r.breathing_across_p95_m = q(&self.breathing, 0.95);
+        r.port_along_p95_m = q(&self.port_along, 0.95);
         r.swept_deg = self.swept.to_degrees();
         r.lateral_force_est_mean_n = mean(&f_est);
         r.lateral_force_est_max_n = max(&f_est);
@@ -424,6 +433,14 @@ impl PivotSession {
         (v - a * a.dot(&v)).norm()
     }
 
+    /// The law's port (the tip less its reported `depth` past it along the shaft) from the
+    /// trocar's true face, along the true shaft, m.
+    pub fn port_along(&self, depth: f64) -> f64 {
+        let (e, a) = self.shaft();
+        let face = Point3::from(self.world.trocar_pose_true().translation.vector);
+        a.dot(&(e - face)) - depth
+    }
+
     /// The true shaft line's distance from the true port (the module doc), m.
     pub fn distance(&self) -> f64 {
         let (e, a) = self.shaft();
@@ -476,6 +493,7 @@ fn empty(seed: u64) -> PivotResult {
         fulcrum_estimate_p95_m: f64::NAN,
         rcm_tracking_p95_m: f64::NAN,
         breathing_across_p95_m: f64::NAN,
+        port_along_p95_m: f64::NAN,
         swept_deg: 0.0,
         lateral_force_est_mean_n: f64::NAN,
         lateral_force_est_max_n: f64::NAN,
@@ -528,9 +546,13 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
     let steps = |s: f64| (s / period).round() as usize;
     let mut first = None;
     let t0 = lp.world.time();
+    let mut s = Series::default();
     for _ in 0..steps(timing.settle_before_s) {
         let (o, _) = traced(lp, None, t0, &mut r.trace)?;
         first = first.or(o.pivot);
+        if s.port_along_from.is_none() {
+            s.port_along_from = o.pivot.map(|p| lp.port_along(p.depth));
+        }
     }
     if let Some(m) = lp.world.measure_trocar(lp.world.time()) {
         let axis = crate::control::geometry::InsertionAxis::from_pose(&m.pose);
@@ -540,7 +562,6 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
     r.distance_start_m = lp.distance();
     let anchor0 = lp.world.trocar().anchor();
     let a0 = lp.shaft().1;
-    let mut s = Series::default();
     let mut out = None;
     for segment in script {
         for _ in 0..steps(segment.duration) {
@@ -559,6 +580,11 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
                 .push(o.pivot.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum)));
             s.tracking
                 .push(o.pivot.map_or(f64::NAN, |p| line_distance(&e, &a, &p.fulcrum)));
+            if let Some(p) = o.pivot {
+                let along = lp.port_along(p.depth);
+                let from = *s.port_along_from.get_or_insert(along);
+                s.port_along.push((along - from).abs());
+            }
             let b = anchor - anchor0;
             s.breathing.push((b - a * a.dot(&b)).norm());
             s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));

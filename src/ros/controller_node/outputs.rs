@@ -288,6 +288,7 @@ mod tests {
             limit: Some(ScopeLimit::MaxDepth),
             ignored: None,
             fulcrum_depth: 0.02,
+            breathing_offset: 0.0,
         };
         let held = ControlOutput {
             pivot: Some(pivot),
