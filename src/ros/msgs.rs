@@ -15,6 +15,7 @@ rosrust::rosmsg_include!(
     sensor_msgs / CameraInfo,
     sensor_msgs / Joy,
     geometry_msgs / PoseStamped,
+    geometry_msgs / PointStamped,
     geometry_msgs / WrenchStamped,
     geometry_msgs / TwistStamped,
     geometry_msgs / TransformStamped,

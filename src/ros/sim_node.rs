@@ -64,6 +64,9 @@ pub struct SimNodeParams {
     pub trocar_pose_topic: String,
     /// Ground-truth trocar pose out (for tests and RViz), '' = off.
     pub trocar_true_topic: String,
+    /// Ground-truth fulcrum out: where the wall holds the trocar at rest, breathing (the
+    /// true port the scope should pivot about; for tests and RViz), '' = off.
+    pub trocar_fulcrum_true_topic: String,
     /// Base frame.
     pub base_frame: String,
     /// Stop camera and direct pose after this many simulated seconds (negative: never).
@@ -252,7 +255,8 @@ impl Default for SimNodeParams {
             camera_info_topic: "/zedm/zed_node/left/camera_info".into(),
             direct_pose_enabled: false,
             trocar_pose_topic: "/trocar/pose".into(),
-            trocar_true_topic: "/trocar/pose_true".into(),
+            trocar_true_topic: super::topics::TROCAR_POSE_TRUE.into(),
+            trocar_fulcrum_true_topic: super::topics::TROCAR_FULCRUM_TRUE.into(),
             base_frame: crate::kinematics::BASE_LINK.into(),
             trocar_dropout_after: -1.0,
             camera: SimCameraParams::default(),
@@ -372,6 +376,7 @@ struct Outputs {
     clock: Option<rosrust::Publisher<rosgraph_msgs::Clock>>,
     pose: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
     truth: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
+    fulcrum_truth: Option<rosrust::Publisher<geometry_msgs::PointStamped>>,
 }
 
 impl Outputs {
@@ -382,6 +387,7 @@ impl Outputs {
             clock: optional(p.publish_clock, "/clock", 10)?,
             pose: optional(p.direct_pose_enabled, &p.trocar_pose_topic, 10)?,
             truth: optional(!p.trocar_true_topic.is_empty(), &p.trocar_true_topic, 2)?,
+            fulcrum_truth: optional(!p.trocar_fulcrum_true_topic.is_empty(), &p.trocar_fulcrum_true_topic, 2)?,
         })
     }
 
@@ -538,6 +544,9 @@ pub fn run() -> Result<(), NodeError> {
         if truth.due(t) {
             if let Some(publ) = &out.truth {
                 let _ = publ.send(convert::pose_stamped(stamp, &p.base_frame, &world.trocar_pose_true()));
+            }
+            if let Some(publ) = &out.fulcrum_truth {
+                let _ = publ.send(convert::point_stamped(stamp, &p.base_frame, &world.trocar().anchor()));
             }
         }
         // Pace: simulated time runs real_time_factor times as fast as the wall clock.

@@ -17,6 +17,9 @@ pub const CAMERA_INFO: &str = "/zedm/zed_node/left/camera_info";
 pub const TROCAR_POSE: &str = "/trocar/pose";
 /// The simulator's true trocar pose.
 pub const TROCAR_POSE_TRUE: &str = "/trocar/pose_true";
+/// The simulator's true fulcrum: where the abdominal wall holds the trocar at rest, moving
+/// with the breathing (geometry_msgs/PointStamped); what the scope should pivot about.
+pub const TROCAR_FULCRUM_TRUE: &str = "/trocar/fulcrum_true";
 /// The controller's status (trocar_docking/DockingStatus).
 pub const DOCKING_STATUS: &str = "/docking/status";
 /// The estimated external force at the tip (geometry_msgs/WrenchStamped).

@@ -46,6 +46,8 @@ pub struct CheckParams {
     pub pose_topic: String,
     /// For `replay`: the recorded true trocar pose topic.
     pub true_pose_topic: String,
+    /// `scope_pivot`: the simulator's true fulcrum (where the wall holds the trocar).
+    pub true_fulcrum_topic: String,
     /// For `replay`: the largest accepted distance between estimate and truth, m.
     pub max_position_error: f64,
     /// `replay`: trocar poses the check must see before it judges.
@@ -98,7 +100,8 @@ pub struct CheckParams {
     pub zoom_speed: f64,
     /// See `zoom_speed`.
     pub zoom_time: f64,
-    /// `scope_pivot`: the largest accepted p95 distance of the shaft from the true port, m.
+    /// `scope_pivot`: the largest accepted p95 distance of the shaft from the true port
+    /// (the true fulcrum, where the wall holds the trocar), m.
     pub max_shaft_distance: f64,
     /// `scope_pivot`: the smallest accepted sweep of the shaft, deg.
     pub min_sweep_deg: f64,
@@ -140,6 +143,7 @@ impl Default for CheckParams {
             allowed_phases: vec!["HOLD".into(), "APPROACH".into(), "INSERT".into(), "DONE".into()],
             pose_topic: topics::TROCAR_POSE.into(),
             true_pose_topic: topics::TROCAR_POSE_TRUE.into(),
+            true_fulcrum_topic: topics::TROCAR_FULCRUM_TRUE.into(),
             max_position_error: 0.01,
             min_poses: 1,
             allowed_hold_code: String::new(),

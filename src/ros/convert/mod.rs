@@ -295,6 +295,14 @@ pub fn header(stamp: rosrust::Time, frame: &str) -> std_msgs::Header {
     }
 }
 
+/// A PointStamped of `p` in `frame`.
+pub fn point_stamped(stamp: rosrust::Time, frame: &str, p: &Point3<f64>) -> geometry_msgs::PointStamped {
+    geometry_msgs::PointStamped {
+        header: header(stamp, frame),
+        point: point_msg(p),
+    }
+}
+
 /// A Point message.
 pub fn point_msg(p: &Point3<f64>) -> geometry_msgs::Point {
     geometry_msgs::Point { x: p.x, y: p.y, z: p.z }
