@@ -65,12 +65,32 @@ pub struct PivotArgs {
     pub plot: Option<PathBuf>,
 }
 
+/// The p95 of the shaft's distance from the true port over the commanded steps of `runs`.
+fn pooled_p95(runs: &[&PivotResult]) -> f64 {
+    let mut all: Vec<f64> = runs
+        .iter()
+        .flat_map(|r| r.trace.iter().filter(|s| s.commanded).map(|s| s.distance_m))
+        .filter(|d| d.is_finite())
+        .collect();
+    all.sort_by(f64::total_cmp);
+    if all.is_empty() {
+        f64::NAN
+    } else {
+        crate::trials::plot::quantile(&all, 0.95)
+    }
+}
+
 /// One arm's figures over its runs.
 #[derive(Debug, Serialize)]
 struct ArmPivot {
     arm: &'static str,
     runs: usize,
     docked: usize,
+    /// The shaft's distance from the true port over every commanded step of every docked
+    /// run: p95 (the benchmark's whole sample, where `distance_p95_m` is per run).
+    distance_all_p95_m: f64,
+    /// Docked runs whose own p95 is within 1 mm.
+    runs_within_1mm: usize,
     distance_p95_m: Stats,
     face_port_distance_p95_m: Stats,
     wall_displacement_p95_m: Stats,
@@ -80,6 +100,7 @@ struct ArmPivot {
     fulcrum_estimate_p95_m: Stats,
     rcm_tracking_p95_m: Stats,
     breathing_across_p95_m: Stats,
+    port_along_p95_m: Stats,
     lateral_force_est_mean_n: Stats,
     lateral_force_est_max_n: Stats,
     lateral_force_true_mean_n: Stats,
@@ -102,6 +123,8 @@ impl ArmPivot {
             arm,
             runs: trials.len(),
             docked: ok.len(),
+            distance_all_p95_m: pooled_p95(&ok),
+            runs_within_1mm: ok.iter().filter(|r| r.distance_p95_m <= 1e-3).count(),
             distance_p95_m: s(|r| r.distance_p95_m),
             face_port_distance_p95_m: s(|r| r.face_port_distance_p95_m),
             wall_displacement_p95_m: s(|r| r.wall_displacement_p95_m),
@@ -111,6 +134,7 @@ impl ArmPivot {
             fulcrum_estimate_p95_m: s(|r| r.fulcrum_estimate_p95_m),
             rcm_tracking_p95_m: s(|r| r.rcm_tracking_p95_m),
             breathing_across_p95_m: s(|r| r.breathing_across_p95_m),
+            port_along_p95_m: s(|r| r.port_along_p95_m),
             lateral_force_est_mean_n: s(|r| r.lateral_force_est_mean_n),
             lateral_force_est_max_n: s(|r| r.lateral_force_est_max_n),
             lateral_force_true_mean_n: s(|r| r.lateral_force_true_mean_n),
@@ -134,7 +158,12 @@ impl ArmPivot {
         let mm = |s: &Stats| format!("mean {:.2} max {:.2} mm", s.mean * 1e3, s.max * 1e3);
         let n = |s: &Stats| format!("mean {:.2} max {:.2} N", s.mean, s.max);
         println!("{} ({} of {} docked)", self.arm, self.docked, self.runs);
-        println!("  shaft from the true port, p95:  {}", mm(&self.distance_p95_m));
+        println!(
+            "  shaft from the true port, p95:  {} per run ({} within 1 mm); {:.2} mm over every step",
+            mm(&self.distance_p95_m),
+            self.runs_within_1mm,
+            self.distance_all_p95_m * 1e3
+        );
         println!(
             "  wall dragged, p95:              {}",
             mm(&self.wall_displacement_p95_m)
