@@ -202,7 +202,7 @@ fn a_biased_trocar_estimate_does_not_bias_the_fulcrum() {
         // half the estimate's error where that is more: with the breathing followed along
         // the docking axis (`scope.breathing`) a bias fixed in the trocar's frame turns with
         // the trocar the scope tilts, and a part of it is followed while tilted (seed 2:
-        // 3.48 mm off, 1.52 mm at the end; 1.09 without the following).
+        // 3.48 mm off, 1.53 mm at the end; 1.09 without the following).
         assert!(
             r.fulcrum_error_start_m < 0.0015 && r.fulcrum_error_end_m < 0.0015f64.max(0.5 * r.estimate_error_m),
             "seed {seed}: estimate {:.2} mm off, fulcrum {:.2} then {:.2} mm",
@@ -505,7 +505,7 @@ fn zooming_out_stops_at_the_docked_depth_and_keeps_the_port() {
         assert!(r.limited_steps > 0, "seed {seed}: the zoom never reached a limit");
         assert_eq!(r.held_steps, 0);
         assert!(r.distance_p95_m < 1.5e-3, "seed {seed}: {} m", r.distance_p95_m);
-        // Measured 1.54 against 1.00 mm (seed 7) and 6.05 against 0.79 (seed 10); before the
+        // Measured 1.46 against 0.93 mm (seed 7) and 6.06 against 0.77 (seed 10); before the
         // breathing was followed along the docking axis 3.25 and 9.03 mm.
         assert!(
             before.distance_p95_m > 1.3 * r.distance_p95_m,
@@ -573,7 +573,7 @@ fn the_port_follows_the_breathing_along_the_docking_axis_while_steering() {
         "law's port from the true face along the shaft, p95 sums: {along} vs {along_off}"
     );
     // Across the shaft (the axial breathing's part once the scope is panned) it does not
-    // cost: the shaft from the true port, measured 2.58 against 2.86 mm (0.9 x; seeds 1-40
+    // cost: the shaft from the true port, measured 2.33 against 2.57 mm (0.9 x; seeds 1-40
     // of both benchmark scripts: README).
     assert!(
         dist <= dist_off,
