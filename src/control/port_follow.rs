@@ -22,7 +22,9 @@
 //! (a command, even a zero one: the dead-man pressed), the law's port and fulcrum move with
 //! it, a o, at most `max_speed`; while no command comes they stay (the scope holds still,
 //! the stillness), and when commands resume they catch up at `max_speed`. A
-//! missing, stale, non-finite or old-stamped estimate changes nothing: the offset holds.
+//! missing, stale, non-finite or old-stamped estimate changes nothing: the offset holds; one
+//! more than `max_jump` from the followed offset (a misdetected marker) is used only when
+//! the next one agrees with it.
 //!
 //! Nothing here allocates.
 
@@ -44,6 +46,11 @@ pub struct PortFollowParams {
     pub max_speed: f64,
     /// An estimate older than this is not used, s.
     pub max_age: f64,
+    /// An estimate this far (m) from the followed offset is an outlier (a breath moves the
+    /// port well under 1 mm between two 15 Hz frames) and is used only when the next one
+    /// agrees with it within the same distance (the port did move: the marker came back
+    /// into view elsewhere).
+    pub max_jump: f64,
 }
 
 impl Default for PortFollowParams {
@@ -54,6 +61,7 @@ impl Default for PortFollowParams {
             max_offset: 0.015,
             max_speed: 0.02,
             max_age: 0.2,
+            max_jump: 0.005,
         }
     }
 }
@@ -71,7 +79,8 @@ impl PortFollowParams {
         check("cutoff_hz", self.cutoff_hz, 1e-3, 100.0)?;
         check("max_offset", self.max_offset, 0.0, 0.05)?;
         check("max_speed", self.max_speed, 1e-4, 0.1)?;
-        check("max_age", self.max_age, 1e-3, 5.0)
+        check("max_age", self.max_age, 1e-3, 5.0)?;
+        check("max_jump", self.max_jump, 1e-4, 0.05)
     }
 }
 
@@ -86,6 +95,8 @@ pub struct PortFollow {
     applied: f64,
     /// The stamp of the newest estimate used, s.
     stamp: f64,
+    /// An outlier waiting for the next estimate to agree with it, m.
+    pending: Option<f64>,
 }
 
 impl PortFollow {
@@ -97,6 +108,7 @@ impl PortFollow {
             tracked: 0.0,
             applied: 0.0,
             stamp,
+            pending: None,
         }
     }
 
@@ -105,7 +117,8 @@ impl PortFollow {
     /// followed, which tilting about the fulcrum does not move (the face itself, `depth`
     /// above it, moves along the docking axis by `depth` (1 - cos tilt): 1.8 mm of 30 mm at
     /// 20 deg). An estimate that is not finite, older than `max_age`, or not newer than the
-    /// last one is not used.
+    /// last one is not used; one over `max_jump` from the followed offset only when the next
+    /// one confirms it.
     pub fn observe(
         &mut self,
         p: &PortFollowParams,
@@ -121,6 +134,14 @@ impl PortFollow {
         };
         let tilt = 1.0 - self.axis.dot(&u).clamp(-1.0, 1.0);
         let raw = (self.axis.dot(&(port - self.origin)) - depth * tilt).clamp(-p.max_offset, p.max_offset);
+        if (raw - self.tracked).abs() > p.max_jump {
+            let confirmed = self.pending.is_some_and(|q| (raw - q).abs() <= p.max_jump);
+            if !confirmed {
+                self.pending = Some(raw);
+                return;
+            }
+        }
+        self.pending = None;
         let gap = stamp - self.stamp;
         let a = 1.0 - (-std::f64::consts::TAU * p.cutoff_hz * gap).exp();
         self.tracked += a.clamp(0.0, 1.0) * (raw - self.tracked);
@@ -234,6 +255,23 @@ mod tests {
             f.step(&p, true, 0.01);
         }
         assert!((f.offset() - p.max_offset).abs() < 1e-9, "{}", f.offset());
+        // An outlier 8 mm away is not followed; the same place seen twice is (the port moved).
+        let mut g = PortFollow::new(Vector3::z_axis(), Point3::new(0.1, 0.2, 0.3), 0.0);
+        let seen = |g: &mut PortFollow, z: f64, t: f64| {
+            g.observe(&p, (&Point3::new(0.1, 0.2, 0.3 + z), &Vector3::z()), 0.03, t, t)
+        };
+        seen(&mut g, 0.008, 0.1);
+        seen(&mut g, 0.0, 0.2);
+        seen(&mut g, 0.008, 0.3);
+        for _ in 0..100 {
+            g.step(&p, true, 0.01);
+        }
+        assert!(g.offset().abs() < 1e-12, "{}", g.offset());
+        seen(&mut g, 0.008, 0.4);
+        for _ in 0..100 {
+            g.step(&p, true, 0.01);
+        }
+        assert!(g.offset() > 0.006, "{}", g.offset());
         // Off: nothing moves.
         let off = PortFollowParams {
             follow: true,
