@@ -47,6 +47,22 @@ fn run(cfg: &SimConfig, controller: &ControllerParams, seed: u64) -> PivotResult
 
 const SEEDS: [u64; 3] = [1, 2, 3];
 
+/// Two figures of the done-when runs on `SEEDS`, each summed over the seeds, with the
+/// controllers `a` and `b`: `[(a's first, b's first), (a's second, b's second)]`.
+fn sums(a: &ControllerParams, b: &ControllerParams, figures: [fn(&PivotResult) -> f64; 2]) -> [(f64, f64); 2] {
+    let cfg = realistic();
+    let mut out = [(0.0, 0.0); 2];
+    for seed in SEEDS {
+        let (ra, rb) = (run(&cfg, a, seed), run(&cfg, b, seed));
+        assert!(ra.held_steps == 0 && ra.swept_deg >= 15.0, "seed {seed}");
+        for (o, f) in out.iter_mut().zip(figures) {
+            o.0 += f(&ra);
+            o.1 += f(&rb);
+        }
+    }
+    out
+}
+
 #[test]
 fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
     let cfg = realistic();
@@ -109,20 +125,16 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
 fn the_torques_low_pass_lowers_the_wall_drag_and_the_force_across_the_shaft() {
     // The shipped 5 ms low-pass at the plant's 1 kHz against the newest sample alone (the
     // controller's read once per 10 ms period), everything else equal.
-    let cfg = realistic();
     let raw = ControllerParams {
         torque_filter_time_constant: 0.0,
         ..shipped()
     };
     assert!(shipped().torque_filter_time_constant > 0.0);
-    let (mut wall, mut wall_raw, mut force, mut force_raw) = (0.0, 0.0, 0.0, 0.0);
-    for seed in SEEDS {
-        let (a, b) = (run(&cfg, &shipped(), seed), run(&cfg, &raw, seed));
-        wall += a.wall_displacement_p95_m;
-        wall_raw += b.wall_displacement_p95_m;
-        force += a.lateral_force_true_mean_n;
-        force_raw += b.lateral_force_true_mean_n;
-    }
+    let [(wall, wall_raw), (force, force_raw)] = sums(
+        &shipped(),
+        &raw,
+        [|r| r.wall_displacement_p95_m, |r| r.lateral_force_true_mean_n],
+    );
     // Measured 0.73 x and 0.67 x.
     assert!(wall < 0.85 * wall_raw, "wall dragged p95 sums: {wall} vs {wall_raw}");
     assert!(
@@ -133,17 +145,11 @@ fn the_torques_low_pass_lowers_the_wall_drag_and_the_force_across_the_shaft() {
 
 #[test]
 fn the_adapted_fulcrum_drags_the_wall_less_than_a_fixed_one() {
-    let cfg = realistic();
-    let (mut adapted, mut fixed) = (0.0, 0.0);
-    let (mut f_adapted, mut f_fixed) = (0.0, 0.0);
-    for seed in SEEDS {
-        let a = run(&cfg, &shipped(), seed);
-        let f = run(&cfg, &fixed_fulcrum(&shipped()), seed);
-        adapted += a.wall_displacement_p95_m;
-        fixed += f.wall_displacement_p95_m;
-        f_adapted += a.lateral_force_true_mean_n;
-        f_fixed += f.lateral_force_true_mean_n;
-    }
+    let [(adapted, fixed), (f_adapted, f_fixed)] = sums(
+        &shipped(),
+        &fixed_fulcrum(&shipped()),
+        [|r| r.wall_displacement_p95_m, |r| r.lateral_force_true_mean_n],
+    );
     // Measured 0.22 x and 0.16 x (0.33 x and 0.35 x with the soft bore and the fulcrum's
     // force through the tare's dead-band).
     assert!(
@@ -557,15 +563,7 @@ fn the_port_follows_the_breathing_along_the_docking_axis_while_steering() {
         c
     };
     assert!(shipped().scope.breathing.follow);
-    let (mut along, mut along_off, mut dist, mut dist_off) = (0.0, 0.0, 0.0, 0.0);
-    for seed in SEEDS {
-        let (a, b) = (run(&cfg, &shipped(), seed), run(&cfg, &off, seed));
-        assert!(a.held_steps == 0 && a.swept_deg >= 15.0, "seed {seed}");
-        along += a.port_along_p95_m;
-        along_off += b.port_along_p95_m;
-        dist += a.distance_p95_m;
-        dist_off += b.distance_p95_m;
-    }
+    let [(along, along_off), (dist, dist_off)] = sums(&shipped(), &off, [|r| r.port_along_p95_m, |r| r.distance_p95_m]);
     // The law's port from the true face along the shaft (since DONE): measured 1.5-2.5 mm
     // against 5.1-9.2 mm (0.25 x).
     assert!(
