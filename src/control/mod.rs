@@ -3,7 +3,7 @@
 //! estimate and admittance law ([`admittance`]), the command guard ([`guard`]), the phase
 //! state machine ([`supervisor`]), seated completion ([`seated`]), the metric M
 //! ([`metrics`]), the insertion-axis geometry ([`geometry`]), and after docking the port
-//! held as a remote centre of motion ([`pivot`], [`fulcrum`], [`scope`]); [`controller`]
+//! held as a remote centre of motion ([`pivot`], [`fulcrum`], [`port_follow`], [`scope`]); [`controller`]
 //! runs them in one step per control period.
 
 pub mod admittance;
