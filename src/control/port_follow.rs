@@ -16,12 +16,14 @@
 //! tilt's cosine (1 - cos 2° = 6e-4 of 30 mm: 0.02 mm). Its position across the axis is not
 //! used: it moves with the lever (a fulcrum that followed it follows the wrong pivot).
 //!
-//! **Law.** o = a · (p - p0), the estimated port's displacement along the docking axis a
-//! since DONE (p0: the controller's filtered estimate at DONE), is low-passed at
-//! `cutoff_hz` on each fresh estimate and cut to ±`max_offset`. While the surgeon steers
-//! (a command, even a zero one: the dead-man pressed), the law's port and fulcrum move with
-//! it, a o, at most `max_speed`; while no command comes they stay (the scope holds still,
-//! the stillness), and when commands resume they catch up at `max_speed`. A
+//! **Law.** o = a · (p - p0) - s_f (1 - a · u), the estimated port's displacement along the
+//! docking axis a since DONE (p0: the controller's filtered estimate at DONE) less what
+//! tilting about the fulcrum adds there (u the estimated axis, s_f the fulcrum's depth), is
+//! low-passed at `cutoff_hz` on each fresh estimate and cut to ±`max_offset`. While the
+//! surgeon steers (a command, even a zero one: the dead-man pressed), the law's port and
+//! fulcrum move with a part of it, a g o (`gain` g), at most `max_speed`; while no command
+//! comes they stay (the scope holds still, the stillness), and when commands resume
+//! they catch up at `max_speed`. A
 //! missing, stale, non-finite or old-stamped estimate changes nothing: the offset holds; one
 //! more than `max_jump` from the followed offset (a misdetected marker) is used only when
 //! the next one agrees with it.
@@ -40,6 +42,10 @@ pub struct PortFollowParams {
     pub follow: bool,
     /// Cut-off of the first-order low-pass on the estimate's displacement, Hz.
     pub cutoff_hz: f64,
+    /// The part of the estimated displacement followed, 0..1: while the seal sticks, the
+    /// trocar moves with a scope that follows it, and a gain under one keeps that loop
+    /// from carrying it further (at the cost of following less of the breathing).
+    pub gain: f64,
     /// Largest offset followed, m: a port estimated further away is followed this far.
     pub max_offset: f64,
     /// Largest speed of the followed offset, m/s.
@@ -58,6 +64,7 @@ impl Default for PortFollowParams {
         Self {
             follow: true,
             cutoff_hz: 4.0,
+            gain: 1.0,
             max_offset: 0.015,
             max_speed: 0.02,
             max_age: 0.2,
@@ -77,6 +84,7 @@ impl PortFollowParams {
             }
         };
         check("cutoff_hz", self.cutoff_hz, 1e-3, 100.0)?;
+        check("gain", self.gain, 0.0, 1.0)?;
         check("max_offset", self.max_offset, 0.0, 0.05)?;
         check("max_speed", self.max_speed, 1e-4, 0.1)?;
         check("max_age", self.max_age, 1e-3, 5.0)?;
@@ -155,7 +163,7 @@ impl PortFollow {
             return Vector3::zeros();
         }
         let room = p.max_speed * dt;
-        let d = (self.tracked - self.applied).clamp(-room, room);
+        let d = (p.gain * self.tracked - self.applied).clamp(-room, room);
         self.applied += d;
         self.axis.into_inner() * d
     }
@@ -272,6 +280,18 @@ mod tests {
             g.step(&p, true, 0.01);
         }
         assert!(g.offset() > 0.006, "{}", g.offset());
+        // A gain under one follows its part of the displacement.
+        let half = PortFollowParams {
+            gain: 0.5,
+            ..PortFollowParams::default()
+        };
+        let mut h = PortFollow::new(Vector3::z_axis(), Point3::new(0.1, 0.2, 0.3), 0.0);
+        for k in 1..=30 {
+            let t = k as f64 * 0.07;
+            h.observe(&half, (&Point3::new(0.1, 0.2, 0.304), &Vector3::z()), 0.03, t, t);
+            h.step(&half, true, 0.07);
+        }
+        assert!((h.offset() - half.gain * 0.004).abs() < 1e-6, "{}", h.offset());
         // Off: nothing moves.
         let off = PortFollowParams {
             follow: true,
