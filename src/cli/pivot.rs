@@ -16,7 +16,9 @@ use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{Kinematics, LbrKinematics};
 use crate::trials::batch::Stats;
 use crate::trials::config::{load_controller, Protocol, SimConfig};
-use crate::trials::pivot::{done_when_script, fixed_fulcrum, random_script, run_pivot, PivotResult, PivotTiming};
+use crate::trials::pivot::{
+    done_when_script, finite_quantile, fixed_fulcrum, random_script, run_pivot, PivotResult, PivotTiming,
+};
 
 use super::CliResult;
 
@@ -67,17 +69,11 @@ pub struct PivotArgs {
 
 /// The p95 of the shaft's distance from the true port over the commanded steps of `runs`.
 fn pooled_p95(runs: &[&PivotResult]) -> f64 {
-    let mut all: Vec<f64> = runs
+    let all: Vec<f64> = runs
         .iter()
         .flat_map(|r| r.trace.iter().filter(|s| s.commanded).map(|s| s.distance_m))
-        .filter(|d| d.is_finite())
         .collect();
-    all.sort_by(f64::total_cmp);
-    if all.is_empty() {
-        f64::NAN
-    } else {
-        crate::trials::plot::quantile(&all, 0.95)
-    }
+    finite_quantile(&all, 0.95)
 }
 
 /// One arm's figures over its runs.

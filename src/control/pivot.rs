@@ -115,7 +115,7 @@ impl Pivot {
             force: ForceFilter::default(),
             turn_rate: RateShaper::default(),
             zoom_rate: RateShaper::default(),
-            follow: PortFollow::new(trocar.direction, trocar.port, stamp),
+            follow: PortFollow::new(&p.breathing, trocar.direction, trocar.port, stamp),
         }
     }
 
@@ -126,11 +126,6 @@ impl Pivot {
         let axis = trocar.rotation * Vector3::z();
         self.follow
             .observe(&p.breathing, (&port, &axis), self.fulcrum.depth, stamp, now);
-    }
-
-    /// The port's breathing followed along the docking axis since DONE, m.
-    pub fn followed_offset(&self) -> f64 {
-        self.follow.offset()
     }
 
     /// Feed this step's (tared) external torques at the measured Jacobian `jac`; returns the

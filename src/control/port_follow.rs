@@ -23,15 +23,17 @@
 //! surgeon steers (a command, even a zero one: the dead-man pressed), the law's port and
 //! fulcrum move with a part of it, a g o (`gain` g), at most `max_speed`; while no command
 //! comes they stay (the scope holds still, the stillness), and when commands resume
-//! they catch up at `max_speed`. A
-//! missing, stale, non-finite or old-stamped estimate changes nothing: the offset holds; one
-//! more than `max_jump` from the followed offset (a misdetected marker) is used only when
-//! the next one agrees with it.
+//! they catch up at `max_speed`. A missing, stale, non-finite or old-stamped estimate
+//! changes nothing: the offset holds; one more than `max_jump` from the followed offset (a
+//! misdetected marker) is used only when the next one agrees with it.
 //!
 //! Nothing here allocates.
 
-use nalgebra::{Point3, Unit, Vector3};
+use nalgebra::{Point3, Unit, Vector1, Vector3};
 use serde::{Deserialize, Serialize};
+
+use crate::signal::StreamLowPass;
+use crate::validate::in_range;
 
 /// Parameters (`scope.breathing` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -76,19 +78,17 @@ impl Default for PortFollowParams {
 impl PortFollowParams {
     /// Check every range; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let check = |n: &str, v: f64, lo: f64, hi: f64| {
-            if v.is_finite() && (lo..=hi).contains(&v) {
-                Ok(())
-            } else {
-                Err(format!("scope.breathing.{n} must be in [{lo}, {hi}], got {v}"))
-            }
-        };
-        check("cutoff_hz", self.cutoff_hz, 1e-3, 100.0)?;
-        check("gain", self.gain, 0.0, 1.0)?;
-        check("max_offset", self.max_offset, 0.0, 0.05)?;
-        check("max_speed", self.max_speed, 1e-4, 0.1)?;
-        check("max_age", self.max_age, 1e-3, 5.0)?;
-        check("max_jump", self.max_jump, 1e-4, 0.05)
+        for (key, v, lo, hi) in [
+            ("scope.breathing.cutoff_hz", self.cutoff_hz, 1e-3, 100.0),
+            ("scope.breathing.gain", self.gain, 0.0, 1.0),
+            ("scope.breathing.max_offset", self.max_offset, 0.0, 0.05),
+            ("scope.breathing.max_speed", self.max_speed, 1e-4, 0.1),
+            ("scope.breathing.max_age", self.max_age, 1e-3, 5.0),
+            ("scope.breathing.max_jump", self.max_jump, 1e-4, 0.05),
+        ] {
+            in_range(key, v, lo, hi).map_err(|e| e.to_string())?;
+        }
+        Ok(())
     }
 }
 
@@ -97,7 +97,9 @@ impl PortFollowParams {
 pub struct PortFollow {
     axis: Unit<Vector3<f64>>,
     origin: Point3<f64>,
-    /// The low-passed displacement along the axis, m.
+    /// The low-pass of the displacement along the axis (time constant 1 / (2 pi cutoff)) ...
+    filter: StreamLowPass<1>,
+    /// ... and its output, m.
     tracked: f64,
     /// The offset the law has taken, m.
     applied: f64,
@@ -109,10 +111,13 @@ pub struct PortFollow {
 
 impl PortFollow {
     /// Begin at the estimated port `origin` (stamped `stamp`) on the docking axis `axis`.
-    pub fn new(axis: Unit<Vector3<f64>>, origin: Point3<f64>, stamp: f64) -> Self {
+    pub fn new(p: &PortFollowParams, axis: Unit<Vector3<f64>>, origin: Point3<f64>, stamp: f64) -> Self {
+        let mut filter = StreamLowPass::new(1.0 / (std::f64::consts::TAU * p.cutoff_hz));
+        filter.update(stamp, &Vector1::zeros());
         Self {
             axis,
             origin,
+            filter,
             tracked: 0.0,
             applied: 0.0,
             stamp,
@@ -150,9 +155,7 @@ impl PortFollow {
             }
         }
         self.pending = None;
-        let gap = stamp - self.stamp;
-        let a = 1.0 - (-std::f64::consts::TAU * p.cutoff_hz * gap).exp();
-        self.tracked += a.clamp(0.0, 1.0) * (raw - self.tracked);
+        self.tracked = self.filter.update(stamp, &Vector1::new(raw)).x;
         self.stamp = stamp;
     }
 
@@ -180,7 +183,15 @@ mod tests {
 
     fn follow() -> (PortFollowParams, PortFollow) {
         let p = PortFollowParams::default();
-        (p, PortFollow::new(Vector3::z_axis(), Point3::new(0.1, 0.2, 0.3), 0.0))
+        (
+            p,
+            PortFollow::new(
+                &PortFollowParams::default(),
+                Vector3::z_axis(),
+                Point3::new(0.1, 0.2, 0.3),
+                0.0,
+            ),
+        )
     }
 
     #[test]
@@ -264,7 +275,12 @@ mod tests {
         }
         assert!((f.offset() - p.max_offset).abs() < 1e-9, "{}", f.offset());
         // An outlier 8 mm away is not followed; the same place seen twice is (the port moved).
-        let mut g = PortFollow::new(Vector3::z_axis(), Point3::new(0.1, 0.2, 0.3), 0.0);
+        let mut g = PortFollow::new(
+            &PortFollowParams::default(),
+            Vector3::z_axis(),
+            Point3::new(0.1, 0.2, 0.3),
+            0.0,
+        );
         let seen = |g: &mut PortFollow, z: f64, t: f64| {
             g.observe(&p, (&Point3::new(0.1, 0.2, 0.3 + z), &Vector3::z()), 0.03, t, t)
         };
@@ -285,7 +301,12 @@ mod tests {
             gain: 0.5,
             ..PortFollowParams::default()
         };
-        let mut h = PortFollow::new(Vector3::z_axis(), Point3::new(0.1, 0.2, 0.3), 0.0);
+        let mut h = PortFollow::new(
+            &PortFollowParams::default(),
+            Vector3::z_axis(),
+            Point3::new(0.1, 0.2, 0.3),
+            0.0,
+        );
         for k in 1..=30 {
             let t = k as f64 * 0.07;
             h.observe(&half, (&Point3::new(0.1, 0.2, 0.304), &Vector3::z()), 0.03, t, t);

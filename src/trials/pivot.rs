@@ -240,6 +240,17 @@ pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
     c
 }
 
+/// The `p`-quantile of the finite values of `v` (NaN if there are none).
+pub fn finite_quantile(v: &[f64], p: f64) -> f64 {
+    let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        super::plot::quantile(&v, p)
+    }
+}
+
 /// Distance of the line through `e` along unit `a` from `p`.
 fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
     let u = p - e;
@@ -279,15 +290,7 @@ impl Series {
         let f_est = commanded(|s| s.lateral_est_n);
         let f_true = commanded(|s| s.lateral_true_n);
         let f_axial = commanded(|s| s.axial_true_n);
-        let q = |v: &[f64], p: f64| {
-            let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-            v.sort_by(f64::total_cmp);
-            if v.is_empty() {
-                f64::NAN
-            } else {
-                super::plot::quantile(&v, p)
-            }
-        };
+        let q = finite_quantile;
         let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
         let max = |v: &[f64]| v.iter().copied().fold(f64::NAN, f64::max);
         r.distance_p95_m = q(&distance, 0.95);
