@@ -785,6 +785,10 @@ impl CommandSource for OptimalController {
             .unwrap_or_else(|e| self.hold_or_idle(e))
     }
 
+    fn hold_latched(&self) -> bool {
+        self.run.supervisor.is_latched()
+    }
+
     fn reject(&mut self, reason: HoldReason, hold_at: JointVector) {
         self.run.supervisor.hold(reason, true);
         self.run.motion.rest();

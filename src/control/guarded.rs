@@ -57,6 +57,11 @@ pub trait CommandSource {
     fn step(&mut self, kin: &dyn Kinematics, input: &ControlInput, ctx: &StepContext<'_>) -> ControlOutput;
     /// The guard rejected the command just proposed: hold at `hold_at` (latched) for `reason`.
     fn reject(&mut self, reason: HoldReason, hold_at: JointVector);
+    /// Whether the source holds, latched: only the operator's `start` resumes it (a hold
+    /// for stale data resumes by itself).
+    fn hold_latched(&self) -> bool {
+        false
+    }
 }
 
 /// The least an arm must move on a joint whose command sits on the lead bound, over
@@ -116,6 +121,12 @@ impl<S: CommandSource> Guarded<S> {
     /// The current phase.
     pub fn phase(&self) -> Phase {
         self.source.phase()
+    }
+
+    /// Whether the run holds, latched (the wrapper's own hold or the source's): it does not
+    /// resume by itself; the operator's `start` does.
+    pub fn hold_latched(&self) -> bool {
+        self.source.phase() == Phase::Hold && (self.latched.is_some() || self.source.hold_latched())
     }
 
     /// Start docking (from IDLE) or resume after a hold. A resume begins from the measured
