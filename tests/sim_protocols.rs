@@ -178,6 +178,8 @@ fn trials_json_records_protocol_controller_and_per_arm_figures() {
             "max_force_true_n",
             "time_s",
             "success_rate",
+            "paper_success_rate",
+            "false_done",
             "failures",
         ] {
             assert!(!a[key].is_null(), "{arm}.{key} missing: {a}");

@@ -8,7 +8,7 @@ use trocar_docking::kinematics::{Kinematics, LbrKinematics};
 use trocar_docking::sim::noise::NoiseModel;
 use trocar_docking::sim::{SimParams, SimWorld};
 use trocar_docking::trials::baseline::Baseline;
-use trocar_docking::trials::run::{run_trial, Outcome, TrialParams};
+use trocar_docking::trials::run::{run_trial, Action, Observation, Outcome, Policy, TrialParams};
 
 fn kin() -> Arc<dyn Kinematics> {
     Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("model"))
@@ -54,8 +54,86 @@ fn baseline_docks_without_noise_and_runs_are_reproducible() {
     let a = run(3);
     eprintln!("{:?} {} {} {} {}", a.outcome, a.time_s, a.m_est, a.m_true, a.max_f_true);
     assert_eq!(a.outcome, Outcome::Docked, "{}", a.reason);
+    // The trial runs to the policy's DONE, past the paper's 5 mm ball, and judges it there.
+    assert_eq!(a.final_phase, "DONE");
+    assert!(
+        a.paper_success && a.paper_time_s < a.time_s - 0.1,
+        "{} vs {}",
+        a.paper_time_s,
+        a.time_s
+    );
+    assert!(a.done_depth_error_m <= tp.done_depth_tolerance_m && a.done_angle_deg <= tp.done_angle_tolerance_deg);
     let b = run(3);
     assert_eq!(a, b);
+}
+
+/// A policy that reports DONE 3 mm short of the trial's goal: inside the paper's 5 mm ball,
+/// outside the 2 mm the truth at DONE allows.
+#[test]
+fn a_done_short_of_the_goal_is_a_false_done() {
+    let kin = kin();
+    let mut p = SimParams::default();
+    p.measurement.model = NoiseModel::None;
+    let tp = TrialParams {
+        timeout_s: 15.0,
+        ..Default::default()
+    };
+    let mut w = SimWorld::new(&p, kin, 3).unwrap();
+    let mut short = Baseline::new(
+        &Default::default(),
+        tp.goal_depth_m - 0.003,
+        1.0 / tp.control_rate_hz,
+        false,
+    );
+    let r = run_trial(&mut w, &mut short, &tp, 3);
+    assert_eq!(r.outcome, Outcome::FalseDone, "{}", r.reason);
+    assert!(
+        !r.success() && r.paper_success,
+        "the paper's test alone would call it docked: {}",
+        r.reason
+    );
+    assert!(
+        (r.done_depth_error_m - 0.003).abs() < 0.0015,
+        "{}",
+        r.done_depth_error_m
+    );
+    assert!(r.reason.contains("from the goal depth"), "{}", r.reason);
+}
+
+/// A policy that holds latched (only an operator resumes it) ends the trial there, as a
+/// failure with the hold's code: no trial waits out its timeout for an operator.
+#[test]
+fn a_latched_hold_ends_the_trial() {
+    struct Jammed(Baseline);
+    impl Policy for Jammed {
+        fn start(&mut self, kin: &dyn Kinematics) {
+            self.0.start(kin);
+        }
+        fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
+            let a = self.0.tick(kin, obs);
+            if obs.t < 0.5 {
+                return a;
+            }
+            Action {
+                command: None,
+                phase: "HOLD",
+                hold_code: Some("FORCE_LIMIT"),
+                latched: true,
+                ..a
+            }
+        }
+    }
+    let kin = kin();
+    let mut p = SimParams::default();
+    p.measurement.model = NoiseModel::None;
+    let tp = TrialParams::default();
+    let mut w = SimWorld::new(&p, kin, 3).unwrap();
+    let mut jammed = Jammed(Baseline::new(&Default::default(), tp.goal_depth_m, 0.01, false));
+    let r = run_trial(&mut w, &mut jammed, &tp, 3);
+    assert_eq!(r.outcome, Outcome::Held, "{}", r.reason);
+    assert!((r.time_s - 0.5).abs() < 0.011, "ended at {} s", r.time_s);
+    assert_eq!(r.final_hold, "FORCE_LIMIT");
+    assert!(r.done_depth_error_m.is_nan() && !r.paper_success);
 }
 
 #[test]

@@ -241,25 +241,37 @@ fn lateral_ratio(r: &[ArmReport]) -> Option<f64> {
     arm_ratio(r, |s| s.m_lateral_true_all.mean)
 }
 
+/// `mean ± std`, or how many trials have no value (they errored before they had one).
 fn ms(s: &Stats) -> String {
-    format!("{:.2} ± {:.2}", s.mean, s.std)
+    if s.missing > 0 {
+        format!("n/a ({} missing)", s.missing)
+    } else {
+        format!("{:.2} ± {:.2}", s.mean, s.std)
+    }
 }
 
 fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f64, simulated: f64, out: &Path) {
     let cfg = &s.cfg;
     println!(
-        "protocol {}; noise {}; {} trials per arm; timeout {} s; success = tip within {} mm of the goal {} mm deep, inside the port",
+        "protocol {}; noise {}; {} trials per arm, each run to DONE, a latched hold or the {} s timeout",
         s.protocol,
         cfg.sim.measurement.model,
         r.first().map_or(0, |x| x.trials.len()),
         cfg.trial.timeout_s,
-        cfg.trial.tolerance_m * 1e3,
-        cfg.trial.goal_depth_m * 1e3
     );
     println!(
-        "{:<6} {:>8} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9} {:>17} {:>8}  failures",
+        "docked = DONE with the true tip within {} mm of the goal depth ({} mm) inside the port and the shaft within {} deg of the true axis; paper = tip within {} mm of the goal at any time",
+        cfg.trial.done_depth_tolerance_m * 1e3,
+        cfg.trial.goal_depth_m * 1e3,
+        cfg.trial.done_angle_tolerance_deg,
+        cfg.trial.tolerance_m * 1e3,
+    );
+    println!(
+        "{:<6} {:>8} {:>8} {:>5} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9} {:>17} {:>8}  failures",
         "arm",
-        "success",
+        "docked",
+        "paper",
+        "falseD",
         "M true all [N]",
         "M true [N]",
         "M est [N]",
@@ -272,10 +284,13 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
     for a in r {
         let x: &ArmSummary = &a.summary;
         println!(
-            "{:<6} {:>3}/{:<4} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9.1} {:>17} {:>8.2}  {:?}",
+            "{:<6} {:>3}/{:<4} {:>3}/{:<4} {:>5} {:>15} {:>15} {:>15} {:>15} {:>15} {:>9.1} {:>17} {:>8.2}  {:?}",
             x.label,
             x.successes,
             x.trials,
+            x.paper_successes,
+            x.trials,
+            x.false_done,
             ms(&x.m_true_all),
             ms(&x.m_true),
             ms(&x.m_est),
@@ -290,7 +305,7 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
             x.failures
         );
     }
-    println!("M true all, M lat all: every trial (failures included); M true, M est, T: successes only");
+    println!("M true all, M lat all, max f: every trial to its end (failures included); M true, M est, T (to DONE): docked trials only");
     if let Some((e, t)) = ratio {
         println!(
             "M(no FF) / M(FF) on successes = {e:.2} estimated, {t:.2} true (paper: 21.4 / 3.4 = 6.3); lateral, all trials: {:.2}",
@@ -303,13 +318,13 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
     );
     println!("\nper trial:");
     println!(
-        "{:<6} {:>6} {:<12} {:>7} {:>8} {:>8} {:>8} {:>9}  reason",
-        "arm", "seed", "outcome", "T [s]", "M est", "M true", "M lat", "max f [N]"
+        "{:<6} {:>6} {:<12} {:>7} {:>8} {:>8} {:>8} {:>9} {:>6} {:>7} {:>7}  reason",
+        "arm", "seed", "outcome", "T [s]", "M est", "M true", "M lat", "max f [N]", "paper", "dz [mm]", "ang [°]"
     );
     for a in r {
         for t in &a.trials {
             println!(
-                "{:<6} {:>6} {:<12} {:>7.2} {:>8.3} {:>8.3} {:>8.3} {:>9.2}  {} {} {}",
+                "{:<6} {:>6} {:<12} {:>7.2} {:>8.3} {:>8.3} {:>8.3} {:>9.2} {:>6} {:>7.2} {:>7.2}  {} {} {}",
                 a.summary.label,
                 t.seed,
                 t.outcome.name(),
@@ -318,6 +333,9 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
                 t.m_true,
                 t.m_lateral_true,
                 t.max_f_true,
+                if t.paper_success { "yes" } else { "no" },
+                t.done_depth_error_m * 1e3,
+                t.done_angle_deg,
                 t.final_phase,
                 t.final_hold,
                 t.reason
@@ -331,18 +349,23 @@ fn write_table(path: &Path, r: &[ArmReport]) -> CliResult {
     let mut table = std::io::BufWriter::new(std::fs::File::create(path)?);
     writeln!(
         table,
-        "arm,seed,outcome,final_phase,time_s,m_est_n,m_paper_code_scale,m_true_n,m_lateral_true_n,max_f_est_n,max_f_true_n,seal_breakaways,reason"
+        "arm,seed,outcome,final_phase,time_s,paper_success,paper_time_s,done_depth_error_m,done_radial_m,done_angle_deg,m_est_n,m_paper_code_scale,m_true_n,m_lateral_true_n,max_f_est_n,max_f_true_n,seal_breakaways,reason"
     )?;
     for arm in r {
         for t in &arm.trials {
             writeln!(
                 table,
-                "{},{},{},{},{:.4},{:.5},{:.5},{:.5},{:.5},{:.4},{:.4},{},\"{}\"",
+                "{},{},{},{},{:.4},{},{:.4},{:.6},{:.6},{:.4},{:.5},{:.5},{:.5},{:.5},{:.4},{:.4},{},\"{}\"",
                 arm.summary.label,
                 t.seed,
                 t.outcome.name(),
                 t.final_phase,
                 t.time_s,
+                t.paper_success,
+                t.paper_time_s,
+                t.done_depth_error_m,
+                t.done_radial_m,
+                t.done_angle_deg,
                 t.m_est,
                 crate::trials::run::PAPER_CODE_SCALE * t.m_est,
                 t.m_true,

@@ -12,6 +12,12 @@ use serde::{Deserialize, Serialize};
 use super::run::{Action, Observation, Policy};
 use crate::kinematics::{JointVector, Kinematics};
 
+/// The baseline reports DONE within this distance of the measured goal, m, ...
+const DONE_TOLERANCE_M: f64 = 0.001;
+/// ... once it has stayed there this long, s (the arm lags its commands: DONE on the first
+/// tick inside left the true tip still sliding in).
+const DONE_SETTLE_S: f64 = 0.2;
+
 /// Tunables of the baseline (the `baseline:` section of `config/sim.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -53,6 +59,7 @@ pub struct Baseline {
     /// Admittance of the force feedback, m/N (0: none).
     pub admittance_m_per_n: f64,
     inserting: bool,
+    at_goal_s: f64,
 }
 
 impl Baseline {
@@ -67,6 +74,7 @@ impl Baseline {
             gain: p.gain,
             admittance_m_per_n: if ff { p.admittance_m_per_n } else { 0.0 },
             inserting: false,
+            at_goal_s: 0.0,
         }
     }
 }
@@ -74,6 +82,7 @@ impl Baseline {
 impl Policy for Baseline {
     fn start(&mut self, _kin: &dyn Kinematics) {
         self.inserting = false;
+        self.at_goal_s = 0.0;
     }
 
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
@@ -83,6 +92,7 @@ impl Policy for Baseline {
             phase: "HOLD",
             hold_code: None,
             aborted: Some(why.to_string()),
+            latched: false,
         };
         let Ok((tip, jac)) = kin.fk_jacobian(&obs.q) else {
             return hold("kinematics failed");
@@ -95,6 +105,7 @@ impl Policy for Baseline {
                 phase: "IDLE",
                 hold_code: None,
                 aborted: None,
+                latched: false,
             };
         };
         let axis = m.pose.rotation * Vector3::z();
@@ -105,11 +116,24 @@ impl Policy for Baseline {
         if !self.inserting && (p - pre).norm() < 0.003 && z.angle(&axis) < 0.03 {
             self.inserting = true;
         }
-        let target = if self.inserting {
-            port + axis * self.goal_depth_m
+        let goal = port + axis * self.goal_depth_m;
+        if self.inserting && (goal - p).norm() < DONE_TOLERANCE_M && z.angle(&axis) < 0.03 {
+            self.at_goal_s += self.period_s;
         } else {
-            pre
-        };
+            self.at_goal_s = 0.0;
+        }
+        if self.at_goal_s >= DONE_SETTLE_S {
+            // At the measured goal, aligned: done (nothing more to command).
+            return Action {
+                command: None,
+                f_ext: Some(f_ext),
+                phase: "DONE",
+                hold_code: None,
+                aborted: None,
+                latched: false,
+            };
+        }
+        let target = if self.inserting { goal } else { pre };
         let f_perp = f_ext - axis * axis.dot(&f_ext);
         let target = target + f_perp * self.admittance_m_per_n;
         let mut dp = (target - p) * self.gain;
@@ -129,6 +153,7 @@ impl Policy for Baseline {
             phase: if self.inserting { "INSERT" } else { "APPROACH" },
             hold_code: None,
             aborted: None,
+            latched: false,
         }
     }
 }

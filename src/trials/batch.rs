@@ -12,11 +12,15 @@ use super::run::{run_trial, Outcome, Policy, TrialParams, TrialResult, PAPER_COD
 use crate::kinematics::Kinematics;
 use crate::sim::{SimParams, SimWorld};
 
-/// Mean, standard deviation (sample, n - 1), min and max of a set of values.
+/// Mean, standard deviation (sample, n - 1), min and max of a set of values. A value that
+/// is not finite (a trial that errored before it had one) is never dropped: it is counted
+/// in `missing`, and the statistics are then NaN, so no figure silently leaves it out.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct Stats {
     /// Number of values.
     pub n: usize,
+    /// How many of them are not finite (then mean, std, min and max are NaN).
+    pub missing: usize,
     /// Mean (NaN when empty).
     pub mean: f64,
     /// Sample standard deviation (0 for one value, NaN when empty).
@@ -28,13 +32,15 @@ pub struct Stats {
 }
 
 impl Stats {
-    /// Statistics of the finite values in `v`.
+    /// Statistics of the values in `v` (NaN when any is not finite, or there are none).
     pub fn of(v: impl IntoIterator<Item = f64>) -> Self {
-        let v: Vec<f64> = v.into_iter().filter(|x| x.is_finite()).collect();
+        let v: Vec<f64> = v.into_iter().collect();
         let n = v.len();
-        if n == 0 {
+        let missing = v.iter().filter(|x| !x.is_finite()).count();
+        if n == 0 || missing > 0 {
             return Self {
                 n,
+                missing,
                 mean: f64::NAN,
                 std: f64::NAN,
                 min: f64::NAN,
@@ -49,6 +55,7 @@ impl Stats {
         };
         Self {
             n,
+            missing,
             mean,
             std: var.sqrt(),
             min: v.iter().copied().fold(f64::INFINITY, f64::min),
@@ -66,10 +73,17 @@ pub struct ArmSummary {
     pub label: String,
     /// Trials run.
     pub trials: usize,
-    /// Trials docked.
+    /// Trials docked at DONE: the controller reported DONE and the truth agreed.
     pub successes: usize,
-    /// successes / trials.
+    /// successes / trials: docked at DONE.
     pub success_rate: f64,
+    /// Trials that met the paper's success test (the tip within 5 mm of the goal, inside
+    /// the port) at any time in the run.
+    pub paper_successes: usize,
+    /// paper_successes / trials.
+    pub paper_success_rate: f64,
+    /// Trials whose DONE the truth contradicts (a failure class of its own).
+    pub false_done: usize,
     /// M from the true contact force over every trial, N (the headline).
     pub m_true_all: Stats,
     /// M from the true contact force, N (successful trials).
@@ -82,7 +96,7 @@ pub struct ArmSummary {
     pub m_est_all: Stats,
     /// M from the true contact force across the trocar axis over every trial, N.
     pub m_lateral_true_all: Stats,
-    /// Completion time T, s (successful trials).
+    /// Completion time T to DONE, s (successful trials).
     pub time_s: Stats,
     /// Largest true contact force over every trial, N.
     pub max_force_true_n: f64,
@@ -107,6 +121,8 @@ impl ArmSummary {
     /// Summarise the results of one arm.
     pub fn of(label: &str, r: &[TrialResult]) -> Self {
         let ok: Vec<&TrialResult> = r.iter().filter(|x| x.success()).collect();
+        let rate = |k: usize| if r.is_empty() { 0.0 } else { k as f64 / r.len() as f64 };
+        let paper_successes = r.iter().filter(|x| x.paper_success).count();
         let mut failures = BTreeMap::new();
         for x in r.iter().filter(|x| !x.success()) {
             let key = match (x.final_phase, x.final_hold) {
@@ -120,11 +136,10 @@ impl ArmSummary {
             label: label.to_string(),
             trials: r.len(),
             successes: ok.len(),
-            success_rate: if r.is_empty() {
-                0.0
-            } else {
-                ok.len() as f64 / r.len() as f64
-            },
+            success_rate: rate(ok.len()),
+            paper_successes,
+            paper_success_rate: rate(paper_successes),
+            false_done: r.iter().filter(|x| x.outcome == Outcome::FalseDone).count(),
             m_true_all: Stats::of(r.iter().map(|x| x.m_true)),
             m_true: Stats::of(ok.iter().map(|x| x.m_true)),
             m_est: Stats::of(ok.iter().map(|x| x.m_est)),
@@ -132,19 +147,31 @@ impl ArmSummary {
             m_est_all: Stats::of(r.iter().map(|x| x.m_est)),
             m_lateral_true_all: Stats::of(r.iter().map(|x| x.m_lateral_true)),
             time_s: Stats::of(ok.iter().map(|x| x.time_s)),
-            max_force_true_n: r.iter().map(|x| x.max_f_true).fold(0.0, f64::max),
-            max_force_est_n: r.iter().map(|x| x.max_f_est).fold(0.0, f64::max),
+            max_force_true_n: max_all(r.iter().map(|x| x.max_f_true)),
+            max_force_est_n: max_all(r.iter().map(|x| x.max_f_est)),
             rms_tip_speed_insert: Stats::of(
                 r.iter()
                     .filter(|x| x.rms_tip_speed_insert > 0.0)
                     .map(|x| x.rms_tip_speed_insert),
             ),
-            max_tip_speed: r.iter().map(|x| x.max_tip_speed).fold(0.0, f64::max),
-            max_tip_accel: r.iter().map(|x| x.max_tip_accel).fold(0.0, f64::max),
+            max_tip_speed: max_all(r.iter().map(|x| x.max_tip_speed)),
+            max_tip_accel: max_all(r.iter().map(|x| x.max_tip_accel)),
             seal_breakaways: Stats::of(r.iter().map(|x| f64::from(x.seal_breakaways))),
             failures,
         }
     }
+}
+
+/// The largest of `v` (0 for none; NaN when any is not finite: a trial without the value
+/// is not left out silently).
+fn max_all(v: impl Iterator<Item = f64>) -> f64 {
+    v.fold(0.0, |m, x| {
+        if x.is_finite() && m.is_finite() {
+            m.max(x)
+        } else {
+            f64::NAN
+        }
+    })
 }
 
 /// One arm's results and summary.
@@ -197,24 +224,7 @@ fn one(
     seed: u64,
     make_policy: &PolicyFactory,
 ) -> TrialResult {
-    let failed = |why: String| TrialResult {
-        seed,
-        outcome: Outcome::SimError,
-        reason: why,
-        time_s: 0.0,
-        m_est: f64::NAN,
-        m_true: f64::NAN,
-        m_lateral_true: f64::NAN,
-        max_f_est: 0.0,
-        max_f_true: 0.0,
-        final_phase: "",
-        final_hold: "",
-        seal_breakaways: 0,
-        rms_tip_speed_insert: 0.0,
-        max_tip_speed: 0.0,
-        max_tip_accel: 0.0,
-        samples: vec![],
-    };
+    let failed = |why: String| TrialResult::not_run(seed, why);
     let kin = match kin() {
         Ok(k) => k,
         Err(e) => return failed(e),
@@ -235,13 +245,18 @@ mod tests {
 
     #[test]
     fn stats_of_known_values() {
-        let s = Stats::of([1.0, 2.0, 3.0, 4.0, f64::NAN]);
-        assert_eq!(s.n, 4);
+        let s = Stats::of([1.0, 2.0, 3.0, 4.0]);
+        assert_eq!((s.n, s.missing), (4, 0));
         assert!((s.mean - 2.5).abs() < 1e-12);
         assert!((s.std - (5.0f64 / 3.0).sqrt()).abs() < 1e-12);
         assert_eq!((s.min, s.max), (1.0, 4.0));
         assert!(Stats::of([]).mean.is_nan());
         assert_eq!(Stats::of([2.0]).std, 0.0);
+        // A trial without a value is not dropped: it is counted and the mean says so.
+        let gap = Stats::of([1.0, f64::NAN, 3.0]);
+        assert_eq!((gap.n, gap.missing), (3, 1));
+        assert!(gap.mean.is_nan() && gap.max.is_nan());
+        assert!(max_all([1.0, f64::NAN].into_iter()).is_nan() && max_all([1.0, 2.0].into_iter()) == 2.0);
     }
 
     fn result(seed: u64, outcome: Outcome, m: f64, phase: &'static str) -> TrialResult {
@@ -250,6 +265,11 @@ mod tests {
             outcome,
             reason: String::new(),
             time_s: 2.0 * m,
+            paper_success: outcome != Outcome::ForceAbort,
+            paper_time_s: m,
+            done_depth_error_m: f64::NAN,
+            done_radial_m: f64::NAN,
+            done_angle_deg: f64::NAN,
             m_est: m,
             m_true: m,
             m_lateral_true: 0.5 * m,
@@ -272,16 +292,35 @@ mod tests {
             result(2, Outcome::Timeout, 3.0, "HOLD"),
             result(3, Outcome::Timeout, 5.0, "HOLD"),
             result(4, Outcome::ForceAbort, 7.0, "INSERT"),
+            result(5, Outcome::FalseDone, 1.0, "DONE"),
         ];
         let s = ArmSummary::of("ff", &r);
-        assert_eq!((s.trials, s.successes), (4, 1));
-        assert!((s.success_rate - 0.25).abs() < 1e-12);
-        assert!((s.m_true_all.mean - 4.0).abs() < 1e-12 && (s.m_true.mean - 1.0).abs() < 1e-12);
-        assert!((s.m_lateral_true_all.mean - 2.0).abs() < 1e-12);
+        assert_eq!((s.trials, s.successes, s.false_done, s.paper_successes), (5, 1, 1, 4));
+        assert!((s.success_rate - 0.2).abs() < 1e-12 && (s.paper_success_rate - 0.8).abs() < 1e-12);
+        assert!((s.m_true_all.mean - 3.4).abs() < 1e-12 && (s.m_true.mean - 1.0).abs() < 1e-12);
+        assert!((s.m_lateral_true_all.mean - 1.7).abs() < 1e-12);
         assert!((s.time_s.mean - 2.0).abs() < 1e-12 && s.max_force_true_n == 28.0);
         assert_eq!(s.failures.get("timeout in HOLD (FORCE_LIMIT)"), Some(&2));
         assert_eq!(s.failures.get("force_abort in INSERT"), Some(&1));
-        assert_eq!(s.failures.len(), 2);
-        assert!((s.rms_tip_speed_insert.mean - 0.04).abs() < 1e-12 && (s.max_tip_speed - 0.7).abs() < 1e-12);
+        assert_eq!(s.failures.get("false_done in DONE"), Some(&1));
+        assert_eq!(s.failures.len(), 3);
+        assert!((s.rms_tip_speed_insert.mean - 0.034).abs() < 1e-12 && (s.max_tip_speed - 0.7).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_trial_that_could_not_run_is_a_counted_failure() {
+        let r = [
+            result(1, Outcome::Docked, 1.0, "DONE"),
+            TrialResult::not_run(2, "no world".into()),
+        ];
+        let s = ArmSummary::of("ff", &r);
+        assert_eq!((s.trials, s.successes), (2, 1));
+        assert_eq!(s.failures.get("sim_error"), Some(&1));
+        assert_eq!(s.m_true_all.missing, 1);
+        assert!(s.m_true_all.mean.is_nan() && s.max_force_true_n.is_nan());
+        assert!(
+            (s.m_true.mean - 1.0).abs() < 1e-12,
+            "the successes' M has every success"
+        );
     }
 }

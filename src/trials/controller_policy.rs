@@ -59,6 +59,7 @@ impl Policy for ControllerPolicy {
             phase: out.phase.as_str(),
             hold_code: out.hold.as_ref().map(|h| h.code()),
             aborted: (out.phase == Phase::Aborted).then(|| out.reason_text().unwrap_or_else(|| "aborted".into())),
+            latched: self.ctrl.hold_latched(),
         }
     }
 }

@@ -1,7 +1,12 @@
 //! One closed-loop trial: a [`Policy`] (the docking controller, or a test double) runs at
-//! its control rate against a [`SimWorld`] stepped at the physics rate, until the tip docks
-//! (the paper's test: within `tolerance_m` of the point `goal_depth_m` along the true axis,
-//! inside the port), the force exceeds `abort_force_n`, the policy aborts, or the timeout.
+//! its control rate against a [`SimWorld`] stepped at the physics rate, until the policy
+//! reports DONE, holds latched (a hold only the operator resumes: where a lab's run stops
+//! too), aborts, the force exceeds `abort_force_n`, or the timeout. A DONE is judged
+//! against the truth there: **docked** when the true tip is within `done_depth_tolerance_m`
+//! of the goal depth and inside the port, and the shaft within `done_angle_tolerance_deg`
+//! of the true axis; otherwise it is a **false DONE**. Beside it, the paper's test (the tip
+//! within `tolerance_m` of the point `goal_depth_m` along the true axis, inside the port)
+//! is recorded if it holds at any time in the run.
 //!
 //! The metric follows the paper: M = (1/T) * integral_0^T ||f_ext|| dt over the trial, from
 //! the controller's estimate f_ext = J_lin^-T tau_ext (`m_est`) and, beside it, from the
@@ -44,6 +49,8 @@ pub struct Action {
     pub hold_code: Option<&'static str>,
     /// Set when the policy gave up (its reason).
     pub aborted: Option<String>,
+    /// The policy holds latched: only an operator resumes it (none does in a trial).
+    pub latched: bool,
 }
 
 /// A closed-loop controller as the simulator drives it.
@@ -65,8 +72,13 @@ pub trait Policy {
 pub struct TrialParams {
     /// Goal depth along the trocar axis, m.
     pub goal_depth_m: f64,
-    /// Success tolerance on the tip-to-goal distance, m.
+    /// The paper's success tolerance on the tip-to-goal distance, m.
     pub tolerance_m: f64,
+    /// At DONE, the largest distance of the true tip from the goal depth along the true
+    /// axis for the docking to count, m.
+    pub done_depth_tolerance_m: f64,
+    /// At DONE, the largest angle between the shaft and the true axis, deg.
+    pub done_angle_tolerance_deg: f64,
     /// Trial timeout, s.
     pub timeout_s: f64,
     /// Abort when the true contact force exceeds this, N.
@@ -80,6 +92,8 @@ impl Default for TrialParams {
         Self {
             goal_depth_m: 0.03,
             tolerance_m: 0.005,
+            done_depth_tolerance_m: 0.002,
+            done_angle_tolerance_deg: 2.0,
             timeout_s: 30.0,
             abort_force_n: 60.0,
             control_rate_hz: 100.0,
@@ -92,6 +106,13 @@ impl TrialParams {
     pub fn validate(&self) -> Result<(), SimError> {
         check_range("trial.goal_depth_m", self.goal_depth_m, 0.0, 0.5)?;
         check_range("trial.tolerance_m", self.tolerance_m, 1e-4, 0.1)?;
+        check_range("trial.done_depth_tolerance_m", self.done_depth_tolerance_m, 1e-4, 0.1)?;
+        check_range(
+            "trial.done_angle_tolerance_deg",
+            self.done_angle_tolerance_deg,
+            0.01,
+            45.0,
+        )?;
         check_range("trial.timeout_s", self.timeout_s, 0.01, 3600.0)?;
         check_range("trial.abort_force_n", self.abort_force_n, 0.1, 1e4)?;
         check_range("trial.control_rate_hz", self.control_rate_hz, 1.0, 1000.0)
@@ -102,8 +123,13 @@ impl TrialParams {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Outcome {
-    /// The tip reached the goal inside the port.
+    /// The policy reported DONE and the truth agrees: the tip at the goal depth inside the
+    /// port, the shaft along the axis.
     Docked,
+    /// The policy reported DONE but the truth does not agree.
+    FalseDone,
+    /// The policy held, latched (only an operator resumes it).
+    Held,
     /// The timeout passed first.
     Timeout,
     /// The contact force exceeded the abort threshold.
@@ -119,6 +145,8 @@ impl Outcome {
     pub fn name(self) -> &'static str {
         match self {
             Self::Docked => "docked",
+            Self::FalseDone => "false_done",
+            Self::Held => "held",
             Self::Timeout => "timeout",
             Self::ForceAbort => "force_abort",
             Self::PolicyAbort => "policy_abort",
@@ -165,8 +193,19 @@ pub struct TrialResult {
     pub outcome: Outcome,
     /// Why (abort reason, error text), empty otherwise.
     pub reason: String,
-    /// Duration T, s (the completion time when docked).
+    /// Duration T, s, to the trial's end (DONE when docked).
     pub time_s: f64,
+    /// The paper's success test held at some time in the run: the tip within `tolerance_m`
+    /// of the goal, inside the port.
+    pub paper_success: bool,
+    /// When the paper's test first held, s (NaN: never).
+    pub paper_time_s: f64,
+    /// At DONE, the true tip's distance from the goal depth along the true axis, m (NaN: no DONE).
+    pub done_depth_error_m: f64,
+    /// At DONE, the true tip's distance from the true axis, m (NaN: no DONE).
+    pub done_radial_m: f64,
+    /// At DONE, the angle between the shaft and the true axis, deg (NaN: no DONE).
+    pub done_angle_deg: f64,
     /// M from the policy's f_ext estimate, N (true-force M when the policy has none).
     pub m_est: f64,
     /// M from the true contact force, N.
@@ -195,25 +234,83 @@ pub struct TrialResult {
 }
 
 impl TrialResult {
-    /// True when the tip docked.
+    /// True when the policy reported DONE and the truth agreed (docked at DONE).
     pub fn success(&self) -> bool {
         self.outcome == Outcome::Docked
     }
+
+    /// A result for a trial that could not run (no world, no policy): a failure with its
+    /// reason, no time series, and no metric (NaN: it has none, and the summaries count it).
+    pub fn not_run(seed: u64, reason: String) -> Self {
+        Self {
+            seed,
+            outcome: Outcome::SimError,
+            reason,
+            time_s: 0.0,
+            paper_success: false,
+            paper_time_s: f64::NAN,
+            done_depth_error_m: f64::NAN,
+            done_radial_m: f64::NAN,
+            done_angle_deg: f64::NAN,
+            m_est: f64::NAN,
+            m_true: f64::NAN,
+            m_lateral_true: f64::NAN,
+            max_f_est: f64::NAN,
+            max_f_true: f64::NAN,
+            final_phase: "",
+            final_hold: "",
+            seal_breakaways: 0,
+            rms_tip_speed_insert: f64::NAN,
+            max_tip_speed: f64::NAN,
+            max_tip_accel: f64::NAN,
+            samples: vec![],
+        }
+    }
+}
+
+/// The truth at DONE: where the true tip and shaft are against the true trocar.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct DoneTruth {
+    depth_error_m: f64,
+    radial_m: f64,
+    angle_deg: f64,
+}
+
+/// What a run records beside its time series.
+#[derive(Debug, Clone, Copy)]
+struct RunEnd {
+    outcome: Outcome,
+    paper_time_s: Option<f64>,
+    done: Option<DoneTruth>,
 }
 
 /// Run one trial of `policy` in `world` (fresh from [`SimWorld::new`]).
 pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams, seed: u64) -> TrialResult {
     let mut samples = Vec::with_capacity((p.timeout_s * p.control_rate_hz).ceil() as usize + 2);
-    let (outcome, reason) = match drive(world, policy, p, &mut samples) {
-        Ok(o) => o,
-        Err(e) => (Outcome::SimError, e.to_string()),
+    let mut end = RunEnd {
+        outcome: Outcome::SimError,
+        paper_time_s: None,
+        done: None,
+    };
+    let reason = match drive(world, policy, p, &mut samples, &mut end) {
+        Ok(why) => why,
+        Err(e) => {
+            end.outcome = Outcome::SimError;
+            e.to_string()
+        }
     };
     let m = metrics(&samples);
+    let done = end.done;
     TrialResult {
         seed,
-        outcome,
+        outcome: end.outcome,
         reason,
         time_s: world.time(),
+        paper_success: end.paper_time_s.is_some(),
+        paper_time_s: end.paper_time_s.unwrap_or(f64::NAN),
+        done_depth_error_m: done.map_or(f64::NAN, |d| d.depth_error_m),
+        done_radial_m: done.map_or(f64::NAN, |d| d.radial_m),
+        done_angle_deg: done.map_or(f64::NAN, |d| d.angle_deg),
         m_est: m.m_est,
         m_true: m.m_true,
         m_lateral_true: m.m_lateral_true,
@@ -229,12 +326,31 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
     }
 }
 
+/// The truth at DONE, and whether it counts as docked.
+fn judge_done(world: &SimWorld, p: &TrialParams) -> (DoneTruth, bool) {
+    let port = world.tip_in_port();
+    let radial = (port.x * port.x + port.y * port.y).sqrt();
+    let axis = world.trocar_pose_true().rotation * Vector3::z();
+    let shaft = world.tip_pose().rotation * Vector3::z();
+    let truth = DoneTruth {
+        depth_error_m: (port.z - p.goal_depth_m).abs(),
+        radial_m: radial,
+        angle_deg: shaft.angle(&axis).to_degrees(),
+    };
+    let docked = truth.depth_error_m <= p.done_depth_tolerance_m
+        && radial < world.params().trocar.port_radius()
+        && truth.angle_deg <= p.done_angle_tolerance_deg;
+    (truth, docked)
+}
+
+/// Run the loop to its end; `end` gets the outcome, the reason is returned.
 fn drive(
     world: &mut SimWorld,
     policy: &mut dyn Policy,
     p: &TrialParams,
     samples: &mut Vec<Sample>,
-) -> Result<(Outcome, String), SimError> {
+    end: &mut RunEnd,
+) -> Result<String, SimError> {
     p.validate()?;
     let period = 1.0 / p.control_rate_hz;
     let physics_per_tick = (period * world.params().physics_rate_hz).round().max(1.0) as usize;
@@ -282,18 +398,44 @@ fn drive(
             phase: action.phase,
             hold: action.hold_code.unwrap_or(""),
         });
-        if world.docked(p.goal_depth_m, p.tolerance_m) {
-            return Ok((Outcome::Docked, String::new()));
+        if end.paper_time_s.is_none() && world.docked(p.goal_depth_m, p.tolerance_m) {
+            end.paper_time_s = Some(t);
+        }
+        if action.phase == "DONE" {
+            let (truth, docked) = judge_done(world, p);
+            end.done = Some(truth);
+            if docked {
+                end.outcome = Outcome::Docked;
+                return Ok(String::new());
+            }
+            end.outcome = Outcome::FalseDone;
+            return Ok(format!(
+                "DONE with the true tip {:.1} mm from the goal depth, {:.2} mm off the axis (port radius {:.2} mm), the shaft {:.2} deg off the axis",
+                truth.depth_error_m * 1e3,
+                truth.radial_m * 1e3,
+                world.params().trocar.port_radius() * 1e3,
+                truth.angle_deg
+            ));
         }
         if let Some(why) = action.aborted {
-            return Ok((Outcome::PolicyAbort, why));
+            end.outcome = Outcome::PolicyAbort;
+            return Ok(why);
+        }
+        if action.latched {
+            end.outcome = Outcome::Held;
+            return Ok(format!(
+                "held, latched ({}): only an operator resumes it",
+                action.hold_code.unwrap_or("no code")
+            ));
         }
         if t >= p.timeout_s - 1e-9 {
-            return Ok((Outcome::Timeout, format!("not docked after {:.1} s", p.timeout_s)));
+            end.outcome = Outcome::Timeout;
+            return Ok(format!("no DONE after {:.1} s", p.timeout_s));
         }
         if let Some(q) = action.command {
             if let Err(e) = world.set_command(&q) {
-                return Ok((Outcome::PolicyAbort, format!("bad command: {e}")));
+                end.outcome = Outcome::PolicyAbort;
+                return Ok(format!("bad command: {e}"));
             }
         }
         for _ in 0..physics_per_tick {
@@ -301,10 +443,8 @@ fn drive(
             tau_ext = torques.update(world.time(), &world.external_torques());
             let f = world.contact().force.norm();
             if f > p.abort_force_n {
-                return Ok((
-                    Outcome::ForceAbort,
-                    format!("contact force {f:.1} N > {} N", p.abort_force_n),
-                ));
+                end.outcome = Outcome::ForceAbort;
+                return Ok(format!("contact force {f:.1} N > {} N", p.abort_force_n));
             }
         }
     }
