@@ -1,10 +1,13 @@
 //! `trocar_docking soak`: the simulated pipeline through repeated docking cycles at the
 //! control rate (1 kHz by default) for a wall-clock duration, with ONE controller for the
-//! whole run (reset and started again every cycle, as the node would be), so that what a
-//! long run accumulates shows: the longest controller step, the resident memory (RSS)
-//! growth per hour, and every cycle's end (each must be DONE). Not part of CI: a 60-minute
-//! run is `trocar_docking soak --minutes 60 --json`.
+//! whole run (reset and started again every cycle, as the node would be), every cycle a
+//! fresh draw of the world (seed, seed + 1, ...), so that what a long run accumulates
+//! shows: every cycle's outcome, judged at DONE by the trials' rule, the time of every
+//! controller step (percentiles and the worst, wall clock and the thread's CPU clock), and
+//! the resident memory (RSS) growth per hour. Not part of CI: a 60-minute run is
+//! `trocar_docking soak --minutes 60 --json`.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -18,6 +21,7 @@ use crate::realtime::thread_cpu_time;
 use crate::signal::StreamLowPass;
 use crate::sim::SimWorld;
 use crate::trials::config::{load_controller, Protocol, SimConfig};
+use crate::trials::run::{docked_at_done, TrialParams};
 
 /// Arguments of `soak`.
 #[derive(Debug, clap::Args)]
@@ -29,28 +33,17 @@ pub struct SoakArgs {
     #[arg(long, default_value_t = 1000.0)]
     pub rate: f64,
     /// World protocol of `config/sim.yaml`.
-    #[arg(long, value_enum, default_value_t = Protocol::Paper)]
+    #[arg(long, value_enum, default_value_t = Protocol::Realistic)]
     pub protocol: Protocol,
-    /// First seed (cycle k runs seed + k % seed_count).
+    /// First seed: cycle k runs the world drawn with seed + k (every cycle a new draw).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// How many seeds the cycles go through (seeds 1-4 dock; seed 5 is a start pose where
-    /// a joint limit prevents the alignment, see the README).
-    #[arg(long, default_value_t = 4)]
-    pub seed_count: u64,
     /// Simulated time a cycle may take to reach DONE, s.
     #[arg(long, default_value_t = 30.0)]
     pub cycle_timeout: f64,
     /// Controller configuration (default: config/controller.yaml).
     #[arg(long)]
     pub controller_config: Option<std::path::PathBuf>,
-    /// Times each step over 1 ms of CPU is replayed (its cycle run again with a new
-    /// controller and world) to measure its own cost.
-    #[arg(long, default_value_t = 5)]
-    pub replays: usize,
-    /// At most this many steps over 1 ms of CPU are replayed (the longest).
-    #[arg(long, default_value_t = 300)]
-    pub max_replayed: usize,
     /// Seconds of the fixed reference workload timed before the run (0: none).
     #[arg(long, default_value_t = 60.0)]
     pub reference_seconds: f64,
@@ -59,20 +52,39 @@ pub struct SoakArgs {
     pub json: bool,
 }
 
-/// A cycle that did not end in DONE.
+/// A cycle that did not dock: its seed and how it ended.
 #[derive(Debug, Clone, Serialize)]
 pub struct Failure {
     /// Its seed.
     pub seed: u64,
+    /// How it ended (the trials' outcome names: `false_done`, `held`, `timeout`, `aborted`).
+    pub outcome: &'static str,
     /// Its final phase.
     pub phase: &'static str,
     /// Its final hold code ('' = none).
     pub hold_code: &'static str,
 }
 
+/// Percentiles of a time over every step (nearest rank on 1 µs bins; the maximum exact), µs.
+#[derive(Debug, Clone, Copy, Default, Serialize)]
+pub struct StepTimes {
+    /// Median.
+    pub p50_us: f64,
+    /// 99th percentile.
+    pub p99_us: f64,
+    /// 99.9th percentile.
+    pub p999_us: f64,
+    /// The longest step.
+    pub max_us: f64,
+}
+
 /// What a soak run reports.
 #[derive(Debug, Clone, Serialize)]
 pub struct SoakReport {
+    /// World protocol.
+    pub protocol: &'static str,
+    /// Seeds of the first and the last cycle.
+    pub seeds: [u64; 2],
     /// Wall time run, s.
     pub wall_s: f64,
     /// Simulated time run, s.
@@ -81,28 +93,31 @@ pub struct SoakReport {
     pub rate_hz: f64,
     /// Docking cycles run.
     pub cycles: usize,
-    /// Cycles that ended DONE.
-    pub done: usize,
-    /// Whether every cycle ended DONE.
-    pub every_cycle_done: bool,
-    /// The cycles that did not, with how they ended.
+    /// Cycles that ended DONE with the truth agreeing (the trials' `docked`).
+    pub docked: usize,
+    /// Cycles that ended DONE with the truth disagreeing.
+    pub false_done: usize,
+    /// Whether every cycle docked.
+    pub every_cycle_docked: bool,
+    /// Every cycle by outcome, e.g. `docked`, `held (FORCE_LIMIT)`.
+    pub outcomes: BTreeMap<String, usize>,
+    /// The cycles that did not dock, with how they ended.
     pub failures: Vec<Failure>,
-    /// Controller steps.
+    /// Controller steps, every one of them timed.
     pub steps: u64,
-    /// Longest controller step (wall clock, preemption included), µs.
-    pub max_step_us: f64,
+    /// Every step's wall time (preemption included).
+    pub step_wall: StepTimes,
+    /// Every step's time on the thread's CPU clock (its own work, and on a virtual machine
+    /// the time the hypervisor took from it).
+    pub step_cpu: StepTimes,
     /// Controller steps over 1 ms (wall clock).
     pub steps_over_1ms: u64,
-    /// Longest controller step on the thread's CPU clock (its own work), µs.
-    pub max_step_cpu_us: f64,
     /// Controller steps over 1 ms on the thread's CPU clock.
     pub steps_over_1ms_cpu: u64,
     /// Of those, the steps in which Clarabel solved a QP.
     pub steps_over_1ms_cpu_clarabel: u64,
     /// The controller steps' CPU time in all, s (to compare with the reference's rate).
     pub steps_cpu_s: f64,
-    /// The steps over 1 ms of CPU replayed: their own cost.
-    pub replay: Replay,
     /// The machine's share: a fixed workload timed the same way, before the run.
     pub reference: Reference,
     /// Largest lead of a command over the measured joints, deg (bound:
@@ -118,6 +133,65 @@ pub struct SoakReport {
     pub rss_growth_mb_per_h: f64,
 }
 
+/// Durations in 1 µs bins up to 20 ms (longer ones in the last bin), with the exact maximum:
+/// percentiles over millions of steps without keeping them.
+#[derive(Debug, Clone)]
+struct Histogram {
+    bins: Vec<u64>,
+    count: u64,
+    max: Duration,
+}
+
+impl Histogram {
+    const BINS: usize = 20_001;
+
+    fn new() -> Self {
+        Self {
+            bins: vec![0; Self::BINS],
+            count: 0,
+            max: Duration::ZERO,
+        }
+    }
+
+    fn add(&mut self, d: Duration) {
+        self.bins[(d.as_micros() as usize).min(Self::BINS - 1)] += 1;
+        self.count += 1;
+        self.max = self.max.max(d);
+    }
+
+    /// The `q` quantile by the nearest rank (the smallest bin holding at least q of the
+    /// values), µs; the exact maximum for the last bin.
+    fn quantile_us(&self, q: f64) -> f64 {
+        if self.count == 0 {
+            return 0.0;
+        }
+        let rank = ((q * self.count as f64).ceil() as u64).clamp(1, self.count);
+        let mut seen = 0;
+        let bin = self
+            .bins
+            .iter()
+            .position(|&n| {
+                seen += n;
+                seen >= rank
+            })
+            .unwrap_or(Self::BINS - 1);
+        if bin == Self::BINS - 1 {
+            self.max.as_secs_f64() * 1e6
+        } else {
+            bin as f64
+        }
+    }
+
+    fn times(&self) -> StepTimes {
+        StepTimes {
+            p50_us: self.quantile_us(0.5),
+            p99_us: self.quantile_us(0.99),
+            p999_us: self.quantile_us(0.999),
+            max_us: self.max.as_secs_f64() * 1e6,
+        }
+    }
+}
+
 /// The resident set size of this process, kB (0 where /proc is not readable).
 fn rss_kb() -> u64 {
     std::fs::read_to_string("/proc/self/status")
@@ -131,74 +205,77 @@ fn rss_kb() -> u64 {
         .unwrap_or(0)
 }
 
-/// One docking cycle in a fresh world with `ctrl` reset and started: its final phase and
-/// hold code, the simulated time it took, and a checksum of its commands (a
-/// replay that commands the same bit for bit computed the same steps).
+/// One docking cycle in a fresh world with `ctrl` reset and started: how it ended, the
+/// simulated time it took, and a checksum of its commands (a cycle that commands the same
+/// bit for bit computed the same steps).
 struct Cycle {
     phase: Phase,
     hold_code: &'static str,
+    /// It ended in a latched hold (only an operator resumes it).
+    latched: bool,
+    /// It ended DONE and the truth agreed.
+    docked: bool,
     sim_s: f64,
+    /// Read by the tests: a reset controller must command what a new one does.
+    #[cfg_attr(not(test), allow(dead_code))]
     checksum: u64,
+}
+
+impl Cycle {
+    /// Its outcome by the trials' names.
+    fn outcome(&self) -> &'static str {
+        match self.phase {
+            Phase::Done if self.docked => "docked",
+            Phase::Done => "false_done",
+            Phase::Aborted | Phase::Idle => "aborted",
+            _ if self.latched => "held",
+            _ => "timeout",
+        }
+    }
 }
 
 /// One controller step as the soak saw it.
 struct Sample {
-    /// Its index in the cycle.
-    index: u64,
     wall: Duration,
     cpu: Option<Duration>,
     /// Whether Clarabel solved a QP in it.
     clarabel: bool,
 }
 
-/// A step over 1 ms of thread CPU: where it was, to replay it.
-#[derive(Debug, Clone, Copy)]
-struct SlowStep {
-    /// The cycle's number in the run.
-    cycle: usize,
-    /// Its thread CPU time in the run.
-    cpu: Duration,
-    /// The cycle's seed.
-    seed: u64,
-    /// The step's index in its cycle.
-    index: u64,
-    /// The cycle's command checksum.
-    checksum: u64,
-}
-
-/// At most this many slow steps are kept for the replay.
-const MAX_SLOW: usize = 10_000;
-
 /// Per-step timing (and the command's lead over the arm) over the whole run.
-#[derive(Default)]
 struct Timing {
-    steps: u64,
-    max: Duration,
+    wall: Histogram,
+    cpu: Histogram,
     over_1ms: u64,
-    max_cpu: Duration,
     cpu_total: Duration,
     over_1ms_cpu: u64,
     /// Of those, the steps in which Clarabel solved a QP (the active set did not settle it).
     over_1ms_cpu_clarabel: u64,
     max_lead: f64,
-    /// This cycle's steps over 1 ms of CPU (their indices and CPU times).
-    slow_in_cycle: Vec<(u64, Duration)>,
 }
 
 impl Timing {
+    fn new() -> Self {
+        Self {
+            wall: Histogram::new(),
+            cpu: Histogram::new(),
+            over_1ms: 0,
+            cpu_total: Duration::ZERO,
+            over_1ms_cpu: 0,
+            over_1ms_cpu_clarabel: 0,
+            max_lead: 0.0,
+        }
+    }
+
     fn add(&mut self, s: &Sample) {
         let ms = Duration::from_millis(1);
-        self.steps += 1;
-        self.max = self.max.max(s.wall);
+        self.wall.add(s.wall);
         self.over_1ms += u64::from(s.wall > ms);
         if let Some(c) = s.cpu {
-            self.max_cpu = self.max_cpu.max(c);
+            self.cpu.add(c);
             self.cpu_total += c;
             self.over_1ms_cpu += u64::from(c > ms);
             self.over_1ms_cpu_clarabel += u64::from(c > ms && s.clarabel);
-            if c > ms && self.slow_in_cycle.len() < MAX_SLOW {
-                self.slow_in_cycle.push((s.index, c));
-            }
         }
     }
 }
@@ -210,22 +287,23 @@ fn fold(sum: u64, q: &crate::kinematics::JointVector) -> u64 {
     })
 }
 
-/// Run one cycle; `on_step` sees every step (its index, its wall and CPU time) and the
-/// command's lead over the arm.
+/// Run one cycle to DONE, an abort, a latched hold or the timeout, as a trial ends; `on_step`
+/// sees every step (its wall and CPU time) and the command's lead over the arm.
 fn run_cycle(
     world: &mut SimWorld,
     ctrl: &mut Controller,
-    kin: &dyn Kinematics,
+    setup: &Setup,
     a: &SoakArgs,
     on_step: &mut dyn FnMut(&Sample, f64),
 ) -> Result<Cycle, String> {
     ctrl.reset();
     ctrl.start()?;
+    let kin = &setup.kin;
     let period = 1.0 / a.rate;
     let physics = (period * world.params().physics_rate_hz).round().max(1.0) as usize;
     let mut out_phase = ctrl.phase();
-    let mut hold_code = "";
-    let (mut index, mut checksum) = (0u64, 0u64);
+    let (mut hold_code, mut latched) = ("", false);
+    let mut checksum = 0u64;
     let mut torques = StreamLowPass::new(ctrl.params().torque_filter_time_constant);
     let mut tau_ext = torques.update(world.time(), &world.external_torques());
     while world.time() < a.cycle_timeout {
@@ -245,17 +323,16 @@ fn run_cycle(
         let out = ctrl.step(kin, &input);
         let cpu = thread_cpu_time().zip(cpu0).map(|(b, a)| b.saturating_sub(a));
         let sample = Sample {
-            index,
             wall: started.elapsed(),
             cpu,
             clarabel: out.solve.as_ref().is_some_and(|r| r.clarabel_qps > 0),
         };
-        index += 1;
         let lead = out.command.map_or(0.0, |q| (q - world.joint_positions()).amax());
         on_step(&sample, lead);
         out_phase = out.phase;
         hold_code = out.hold.as_ref().map_or("", |h| h.code());
-        if matches!(out.phase, Phase::Done | Phase::Aborted | Phase::Idle) {
+        latched = ctrl.hold_latched();
+        if latched || matches!(out.phase, Phase::Done | Phase::Aborted | Phase::Idle) {
             break;
         }
         if let Some(q) = out.command {
@@ -270,33 +347,17 @@ fn run_cycle(
     Ok(Cycle {
         phase: out_phase,
         hold_code,
+        latched,
+        docked: out_phase == Phase::Done && docked_at_done(world, &setup.trial),
         sim_s: world.time(),
         checksum,
     })
 }
 
-/// What the replay of the slow steps found.
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct Replay {
-    /// Times each slow step's cycle was replayed (a new controller and world each time).
-    pub replays_per_step: usize,
-    /// Slow steps replayed: all of them, or the `--max-replayed` longest.
-    pub steps: usize,
-    /// Of those, the steps whose replays commanded the same as the run, bit for bit (the
-    /// same computation; a replay that differs is not a measure of the step).
-    pub identical: usize,
-    /// The largest own cost of a slow step: over the slow steps, the maximum of the
-    /// fastest of its replays, µs of thread CPU.
-    pub max_own_cpu_us: f64,
-    /// Slow steps whose fastest replay also took over 1 ms of CPU: the steps whose own
-    /// cost is over 1 ms.
-    pub own_cost_over_1ms: usize,
-}
-
 /// The machine's own share of the timing: a fixed arithmetic workload timed in chunks on
-/// the thread's CPU clock, as the controller steps are. On a VM whose hypervisor runs
-/// other guests, stolen time shows up in the thread's CPU clock; the chunks over 1 ms
-/// are that, since the workload never changes.
+/// the thread's CPU clock, as the controller steps are. On a virtual machine whose
+/// hypervisor runs other guests, stolen time shows up in the thread's CPU clock; the
+/// chunks over 1 ms are that, since the workload never changes.
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct Reference {
     /// Seconds run.
@@ -320,10 +381,9 @@ fn reference(seconds: f64) -> Reference {
         seconds,
         ..Reference::default()
     };
-    // A histogram in 1 µs bins up to 10 ms, for the median.
-    let mut bins = vec![0u64; 10_001];
+    let mut h = Histogram::new();
     let mut x = 1.0f64;
-    let (mut max, mut total) = (Duration::ZERO, Duration::ZERO);
+    let mut total = Duration::ZERO;
     while t0.elapsed().as_secs_f64() < seconds {
         let Some(c0) = thread_cpu_time() else {
             return r;
@@ -333,28 +393,21 @@ fn reference(seconds: f64) -> Reference {
         }
         std::hint::black_box(x);
         let c = thread_cpu_time().map_or(Duration::ZERO, |c1| c1.saturating_sub(c0));
-        r.chunks += 1;
         r.over_1ms += u64::from(c > Duration::from_millis(1));
-        max = max.max(c);
         total += c;
-        bins[(c.as_micros() as usize).min(10_000)] += 1;
+        h.add(c);
     }
-    let mut seen = 0;
-    r.median_us = bins
-        .iter()
-        .position(|&n| {
-            seen += n;
-            2 * seen >= r.chunks
-        })
-        .unwrap_or(0) as f64;
-    r.max_us = max.as_secs_f64() * 1e6;
+    r.chunks = h.count;
+    r.median_us = h.quantile_us(0.5);
+    r.max_us = h.max.as_secs_f64() * 1e6;
     r.cpu_s = total.as_secs_f64();
     r
 }
 
-/// What a cycle starts from: the world's configuration and the controller's.
+/// What a cycle starts from: the world's configuration, the trial's rule, the controller's.
 struct Setup {
     sim: crate::sim::SimParams,
+    trial: TrialParams,
     kin: LbrKinematics,
     shared: Arc<dyn Kinematics>,
     params: crate::control::ControllerParams,
@@ -371,6 +424,7 @@ impl Setup {
         params.force_feedback = true;
         Ok(Self {
             sim: cfg.sim,
+            trial: cfg.trial,
             shared: Arc::new(kin.clone()),
             kin,
             params,
@@ -388,91 +442,59 @@ impl Setup {
     }
 }
 
-/// Replay every slow step's cycle `times` times with a new controller and world (the
-/// same seed), timing that step again: the fastest of the replays is its own cost.
-fn replay(slow: &[SlowStep], times: usize, setup: &Setup, a: &SoakArgs) -> Result<Replay, String> {
-    let mut r = Replay {
-        replays_per_step: times,
-        steps: slow.len(),
-        ..Replay::default()
-    };
-    let mut i = 0;
-    while i < slow.len() {
-        // The slow steps of one cycle sit together.
-        let n = slow[i..].iter().take_while(|s| s.cycle == slow[i].cycle).count();
-        let cycle = &slow[i..i + n];
-        let mut best = vec![Duration::MAX; n];
-        let mut identical = true;
-        for _ in 0..times {
-            let (mut world, mut ctrl) = (setup.world(cycle[0].seed)?, setup.controller()?);
-            let mut watch = |s: &Sample, _lead: f64| {
-                if let (Some(k), Some(c)) = (cycle.iter().position(|x| x.index == s.index), s.cpu) {
-                    best[k] = best[k].min(c);
-                }
-            };
-            let c = run_cycle(&mut world, &mut ctrl, &setup.kin, a, &mut watch)?;
-            identical &= c.checksum == cycle[0].checksum;
-        }
-        if identical {
-            r.identical += n;
-        }
-        for b in best.iter().filter(|b| **b < Duration::MAX) {
-            r.max_own_cpu_us = r.max_own_cpu_us.max(b.as_secs_f64() * 1e6);
-            r.own_cost_over_1ms += usize::from(*b > Duration::from_millis(1));
-        }
-        i += n;
-    }
-    Ok(r)
-}
-
 /// The cycles of a run: how they ended, and their timing.
-#[derive(Default)]
 struct Cycles {
     count: usize,
-    done: usize,
+    docked: usize,
+    false_done: usize,
     sim_s: f64,
+    outcomes: BTreeMap<String, usize>,
     failures: Vec<Failure>,
-    /// The steps over 1 ms of CPU, to replay.
-    slow: Vec<SlowStep>,
     timing: Timing,
     rss_start: u64,
     rss_max: u64,
 }
 
-/// Docking cycles until `deadline` of wall time (at least one), with one controller.
+/// Docking cycles until `deadline` of wall time (at least one), with one controller, each
+/// in a new world (seed, seed + 1, ...).
 fn run_cycles(a: &SoakArgs, setup: &Setup, deadline: Duration) -> Result<(Cycles, Instant), String> {
     let mut ctrl = setup.controller()?;
     let t0 = Instant::now();
     let mut baseline_at = t0;
-    let mut r = Cycles::default();
+    let mut r = Cycles {
+        count: 0,
+        docked: 0,
+        false_done: 0,
+        sim_s: 0.0,
+        outcomes: BTreeMap::new(),
+        failures: vec![],
+        timing: Timing::new(),
+        rss_start: 0,
+        rss_max: 0,
+    };
     while r.count == 0 || t0.elapsed() < deadline {
-        let seed = a.seed + r.count as u64 % a.seed_count.max(1);
+        let seed = a.seed.wrapping_add(r.count as u64);
         let mut world = setup.world(seed)?;
         let timing = &mut r.timing;
         let mut on_step = |s: &Sample, lead: f64| {
             timing.add(s);
             timing.max_lead = timing.max_lead.max(lead);
         };
-        let c = run_cycle(&mut world, &mut ctrl, &setup.kin, a, &mut on_step)?;
-        for &(index, cpu) in &r.timing.slow_in_cycle {
-            if r.slow.len() < MAX_SLOW {
-                r.slow.push(SlowStep {
-                    cycle: r.count,
-                    cpu,
-                    seed,
-                    index,
-                    checksum: c.checksum,
-                });
-            }
-        }
-        r.timing.slow_in_cycle.clear();
+        let c = run_cycle(&mut world, &mut ctrl, setup, a, &mut on_step)?;
         r.count += 1;
         r.sim_s += c.sim_s;
-        if c.phase == Phase::Done {
-            r.done += 1;
-        } else {
+        let outcome = c.outcome();
+        let key = match c.hold_code {
+            "" => outcome.to_string(),
+            code => format!("{outcome} ({code})"),
+        };
+        *r.outcomes.entry(key).or_insert(0) += 1;
+        r.docked += usize::from(c.docked);
+        r.false_done += usize::from(outcome == "false_done");
+        if !c.docked {
             r.failures.push(Failure {
                 seed,
+                outcome,
                 phase: c.phase.as_str(),
                 hold_code: c.hold_code,
             });
@@ -499,30 +521,26 @@ pub fn soak(a: &SoakArgs) -> Result<SoakReport, Box<dyn std::error::Error + Send
     let (c, baseline_at) = run_cycles(a, &setup, Duration::from_secs_f64(a.minutes * 60.0))?;
     let rss_end = rss_kb();
     let hours = baseline_at.elapsed().as_secs_f64() / 3600.0;
-    let wall_s = t0.elapsed().as_secs_f64();
-    // The longest `max_replayed` slow steps, in the order they came (a cycle's together).
-    let mut slow = c.slow;
-    slow.sort_by_key(|x| std::cmp::Reverse(x.cpu));
-    slow.truncate(a.max_replayed);
-    slow.sort_by_key(|x| (x.cycle, x.index));
-    let replay = replay(&slow, a.replays, &setup, a)?;
     let t = &c.timing;
     Ok(SoakReport {
-        wall_s,
+        protocol: a.protocol.name(),
+        seeds: [a.seed, a.seed.wrapping_add(c.count as u64 - 1)],
+        wall_s: t0.elapsed().as_secs_f64(),
         sim_s: c.sim_s,
         rate_hz: a.rate,
         cycles: c.count,
-        done: c.done,
-        every_cycle_done: c.done == c.count,
+        docked: c.docked,
+        false_done: c.false_done,
+        every_cycle_docked: c.docked == c.count,
+        outcomes: c.outcomes,
         failures: c.failures,
-        steps: t.steps,
-        max_step_us: t.max.as_secs_f64() * 1e6,
+        steps: t.wall.count,
+        step_wall: t.wall.times(),
+        step_cpu: t.cpu.times(),
         steps_over_1ms: t.over_1ms,
-        max_step_cpu_us: t.max_cpu.as_secs_f64() * 1e6,
         steps_cpu_s: t.cpu_total.as_secs_f64(),
         steps_over_1ms_cpu: t.over_1ms_cpu,
         steps_over_1ms_cpu_clarabel: t.over_1ms_cpu_clarabel,
-        replay,
         reference,
         max_command_lead_deg: t.max_lead.to_degrees(),
         rss_start_kb: c.rss_start,
@@ -536,35 +554,37 @@ pub fn soak(a: &SoakArgs) -> Result<SoakReport, Box<dyn std::error::Error + Send
     })
 }
 
-/// Run `soak` and print its report.
+/// Run `soak` and print its report. Exits with an error when a cycle did not dock.
 pub fn run(a: &SoakArgs) -> CliResult {
     let r = soak(a)?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {
+        let us = |s: &StepTimes| {
+            format!(
+                "p50 {:.0}, p99 {:.0}, p99.9 {:.0}, max {:.0} µs",
+                s.p50_us, s.p99_us, s.p999_us, s.max_us
+            )
+        };
         println!(
-            "soak: {} cycles in {:.0} s ({:.0} s simulated) at {} Hz, {} DONE; max step {:.0} µs wall ({} over 1 ms), {:.0} µs CPU ({} over 1 ms); command lead <= {:.2} deg; RSS {} -> {} kB ({:+.2} MB/h)",
-            r.cycles,
-            r.wall_s,
-            r.sim_s,
-            r.rate_hz,
-            r.done,
-            r.max_step_us,
-            r.steps_over_1ms,
-            r.max_step_cpu_us,
+            "soak ({} protocol, seeds {}-{}): {} cycles in {:.0} s ({:.0} s simulated) at {} Hz, {} docked, {} false DONE; outcomes {:?}",
+            r.protocol, r.seeds[0], r.seeds[1], r.cycles, r.wall_s, r.sim_s, r.rate_hz, r.docked, r.false_done, r.outcomes
+        );
+        println!(
+            "  every one of {} steps: CPU {} ({} over 1 ms, {} of them with a Clarabel solve); wall {} ({} over 1 ms)",
+            r.steps,
+            us(&r.step_cpu),
             r.steps_over_1ms_cpu,
+            r.steps_over_1ms_cpu_clarabel,
+            us(&r.step_wall),
+            r.steps_over_1ms
+        );
+        println!(
+            "  command lead <= {:.2} deg; RSS {} -> {} kB ({:+.2} MB/h); reference workload ({:.0} s, median {:.0} µs): {} of {} chunks over 1 ms, max {:.0} µs",
             r.max_command_lead_deg,
             r.rss_start_kb,
             r.rss_end_kb,
-            r.rss_growth_mb_per_h
-        );
-        println!(
-            "  replayed {} steps over 1 ms of CPU {} times each ({} identical): own cost <= {:.0} µs, {} over 1 ms; reference workload ({:.0} s, median {:.0} µs): {} of {} chunks over 1 ms, max {:.0} µs",
-            r.replay.steps,
-            r.replay.replays_per_step,
-            r.replay.identical,
-            r.replay.max_own_cpu_us,
-            r.replay.own_cost_over_1ms,
+            r.rss_growth_mb_per_h,
             r.reference.seconds,
             r.reference.median_us,
             r.reference.over_1ms,
@@ -572,13 +592,13 @@ pub fn run(a: &SoakArgs) -> CliResult {
             r.reference.max_us
         );
         for f in &r.failures {
-            println!("  seed {}: ended in {} ({})", f.seed, f.phase, f.hold_code);
+            println!("  seed {}: {} in {} ({})", f.seed, f.outcome, f.phase, f.hold_code);
         }
     }
-    if r.every_cycle_done {
+    if r.every_cycle_docked {
         Ok(())
     } else {
-        Err(format!("{} of {} cycles did not end DONE", r.cycles - r.done, r.cycles).into())
+        Err(format!("{} of {} cycles did not dock", r.cycles - r.docked, r.cycles).into())
     }
 }
 
@@ -588,15 +608,12 @@ mod tests {
 
     fn args() -> SoakArgs {
         SoakArgs {
-            minutes: 0.01,
+            minutes: 0.001,
             rate: 1000.0,
-            protocol: Protocol::Paper,
+            protocol: Protocol::Realistic,
             seed: 1,
-            seed_count: 4,
             cycle_timeout: 30.0,
             controller_config: None,
-            replays: 2,
-            max_replayed: 10,
             reference_seconds: 0.0,
             json: false,
         }
@@ -604,42 +621,48 @@ mod tests {
 
     #[test]
     fn a_reset_controller_commands_exactly_as_a_new_one() {
-        // The replay measures a step again only if a new controller repeats what the
-        // soak's one controller (reset every cycle) computed.
+        // One controller serves the whole soak: reset, it must compute what a new one does.
         let a = args();
         let s = Setup::new(&a).unwrap();
-        let cycle = |seed, ctrl: &mut Controller| {
-            run_cycle(&mut s.world(seed).unwrap(), ctrl, &s.kin, &a, &mut |_, _| {}).unwrap()
-        };
+        let cycle =
+            |seed, ctrl: &mut Controller| run_cycle(&mut s.world(seed).unwrap(), ctrl, &s, &a, &mut |_, _| {}).unwrap();
         let new = cycle(1, &mut s.controller().unwrap());
         let mut used = s.controller().unwrap();
         let other = cycle(2, &mut used);
         let again = cycle(1, &mut used);
-        assert_eq!(new.phase, Phase::Done);
+        assert_eq!((new.phase, new.outcome()), (Phase::Done, "docked"));
         assert_ne!(other.checksum, new.checksum, "seeds 1 and 2 command alike");
         assert_eq!(again.checksum, new.checksum, "the reset controller commanded otherwise");
     }
 
     #[test]
-    fn the_replay_times_the_same_step_and_tells_a_different_cycle() {
-        let a = args();
-        let s = Setup::new(&a).unwrap();
-        let mut ctrl = s.controller().unwrap();
-        let cycle = run_cycle(&mut s.world(1).unwrap(), &mut ctrl, &s.kin, &a, &mut |_, _| {}).unwrap();
-        let at = |index, checksum| SlowStep {
-            cycle: 0,
-            cpu: Duration::from_millis(2),
-            seed: 1,
-            index,
-            checksum,
-        };
-        let same = [at(3, cycle.checksum), at(40, cycle.checksum)];
-        let r = replay(&same, 2, &s, &a).unwrap();
-        assert_eq!((r.steps, r.identical, r.replays_per_step), (2, 2, 2));
-        assert!(r.max_own_cpu_us > 0.0);
-        assert_eq!(r.own_cost_over_1ms, 0, "a docking step's own cost over 1 ms: {r:?}");
-        let r = replay(&[at(3, cycle.checksum ^ 1)], 1, &s, &a).unwrap();
-        assert_eq!((r.steps, r.identical), (1, 0));
+    fn every_cycle_is_a_new_world_and_every_step_is_counted() {
+        let a = SoakArgs { rate: 100.0, ..args() };
+        let r = soak(&a).unwrap();
+        assert!(r.cycles >= 1 && r.seeds == [1, r.cycles as u64]);
+        assert_eq!(r.outcomes.values().sum::<usize>(), r.cycles);
+        assert_eq!(r.docked + r.failures.len(), r.cycles);
+        // At 100 Hz a docking of 3-5 s is 300-500 steps, each timed.
+        assert!(r.steps >= 300 * r.cycles as u64, "{} steps", r.steps);
+        let c = r.step_cpu;
+        assert!(
+            c.p50_us > 0.0 && c.p50_us <= c.p99_us && c.p99_us <= c.p999_us && c.p999_us <= c.max_us,
+            "{c:?}"
+        );
+    }
+
+    #[test]
+    fn the_histogram_quantile_is_the_nearest_rank() {
+        let mut h = Histogram::new();
+        for us in 1..=100u64 {
+            h.add(Duration::from_micros(us));
+        }
+        assert_eq!(h.quantile_us(0.5), 50.0);
+        assert_eq!(h.quantile_us(0.99), 99.0);
+        assert_eq!(h.quantile_us(1.0), 100.0);
+        h.add(Duration::from_millis(50));
+        assert_eq!(h.times().max_us, 50_000.0, "beyond the bins the maximum is exact");
+        assert_eq!(Histogram::new().quantile_us(0.5), 0.0);
     }
 
     #[test]

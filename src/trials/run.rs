@@ -326,6 +326,12 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
     }
 }
 
+/// Whether the truth agrees with a DONE in `world` now, by the trial's rule (see the
+/// module doc): the soak judges its cycles by it too.
+pub fn docked_at_done(world: &SimWorld, p: &TrialParams) -> bool {
+    judge_done(world, p).1
+}
+
 /// The truth at DONE, and whether it counts as docked.
 fn judge_done(world: &SimWorld, p: &TrialParams) -> (DoneTruth, bool) {
     let port = world.tip_in_port();
