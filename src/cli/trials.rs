@@ -316,6 +316,12 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
         "wall {wall:.2} s for {simulated:.0} s simulated ({:.0}x real time across cores)",
         simulated / wall.max(1e-9)
     );
+    print_trials(r);
+    println!("\noutputs in {}", out.display());
+}
+
+/// The per-trial table.
+fn print_trials(r: &[ArmReport]) {
     println!("\nper trial:");
     println!(
         "{:<6} {:>6} {:<12} {:>7} {:>8} {:>8} {:>8} {:>9} {:>6} {:>7} {:>7}  reason",
@@ -342,7 +348,6 @@ fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f6
             );
         }
     }
-    println!("\noutputs in {}", out.display());
 }
 
 fn write_table(path: &Path, r: &[ArmReport]) -> CliResult {

@@ -349,6 +349,46 @@ fn judge_done(world: &SimWorld, p: &TrialParams) -> (DoneTruth, bool) {
     (truth, docked)
 }
 
+/// Whether the run ends after this tick's `action` at time `t`: DONE (judged against the
+/// truth), an abort, a latched hold, the timeout. Records when the paper's test first holds.
+fn end_of_tick(world: &SimWorld, p: &TrialParams, action: &Action, t: f64, end: &mut RunEnd) -> Option<String> {
+    if end.paper_time_s.is_none() && world.docked(p.goal_depth_m, p.tolerance_m) {
+        end.paper_time_s = Some(t);
+    }
+    if action.phase == "DONE" {
+        let (truth, docked) = judge_done(world, p);
+        end.done = Some(truth);
+        if docked {
+            end.outcome = Outcome::Docked;
+            return Some(String::new());
+        }
+        end.outcome = Outcome::FalseDone;
+        return Some(format!(
+                "DONE with the true tip {:.1} mm from the goal depth, {:.2} mm off the axis (port radius {:.2} mm), the shaft {:.2} deg off the axis",
+                truth.depth_error_m * 1e3,
+                truth.radial_m * 1e3,
+                world.params().trocar.port_radius() * 1e3,
+                truth.angle_deg
+            ));
+    }
+    if let Some(why) = &action.aborted {
+        end.outcome = Outcome::PolicyAbort;
+        return Some(why.clone());
+    }
+    if action.latched {
+        end.outcome = Outcome::Held;
+        return Some(format!(
+            "held, latched ({}): only an operator resumes it",
+            action.hold_code.unwrap_or("no code")
+        ));
+    }
+    if t >= p.timeout_s - 1e-9 {
+        end.outcome = Outcome::Timeout;
+        return Some(format!("no DONE after {:.1} s", p.timeout_s));
+    }
+    None
+}
+
 /// Run the loop to its end; `end` gets the outcome, the reason is returned.
 fn drive(
     world: &mut SimWorld,
@@ -404,39 +444,8 @@ fn drive(
             phase: action.phase,
             hold: action.hold_code.unwrap_or(""),
         });
-        if end.paper_time_s.is_none() && world.docked(p.goal_depth_m, p.tolerance_m) {
-            end.paper_time_s = Some(t);
-        }
-        if action.phase == "DONE" {
-            let (truth, docked) = judge_done(world, p);
-            end.done = Some(truth);
-            if docked {
-                end.outcome = Outcome::Docked;
-                return Ok(String::new());
-            }
-            end.outcome = Outcome::FalseDone;
-            return Ok(format!(
-                "DONE with the true tip {:.1} mm from the goal depth, {:.2} mm off the axis (port radius {:.2} mm), the shaft {:.2} deg off the axis",
-                truth.depth_error_m * 1e3,
-                truth.radial_m * 1e3,
-                world.params().trocar.port_radius() * 1e3,
-                truth.angle_deg
-            ));
-        }
-        if let Some(why) = action.aborted {
-            end.outcome = Outcome::PolicyAbort;
+        if let Some(why) = end_of_tick(world, p, &action, t, end) {
             return Ok(why);
-        }
-        if action.latched {
-            end.outcome = Outcome::Held;
-            return Ok(format!(
-                "held, latched ({}): only an operator resumes it",
-                action.hold_code.unwrap_or("no code")
-            ));
-        }
-        if t >= p.timeout_s - 1e-9 {
-            end.outcome = Outcome::Timeout;
-            return Ok(format!("no DONE after {:.1} s", p.timeout_s));
         }
         if let Some(q) = action.command {
             if let Err(e) = world.set_command(&q) {
