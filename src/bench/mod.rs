@@ -121,8 +121,8 @@ mod tests {
     #[test]
     fn thread_cpu_time_counts_work_but_not_sleep() {
         // Sleeping costs wall time, not CPU time; spinning costs both.
-        // The least of three tries: this VM charges time it did not run to the running
-        // thread (README, Soak), now and then milliseconds of it.
+        // The least of three tries: on a virtual machine the hypervisor's stolen time is
+        // charged to the running thread (docs/simulation.md, Soak), now and then milliseconds.
         let mut cpu = f64::INFINITY;
         for _ in 0..3 {
             let ((), wall, c) = time_wall_and_cpu(|| std::thread::sleep(Duration::from_millis(20)));
@@ -137,9 +137,9 @@ mod tests {
             }
         });
         assert!(wall >= 5_000.0, "{wall}");
-        // The same unit as the wall time (a ns/µs mix-up is 1000x off). Not `<= wall`: on
-        // this project's Firecracker VMs the thread CPU clock counts time the vCPU did not
-        // run (README, the soak) and once read more than the wall time under a parallel
+        // The same unit as the wall time (a ns/µs mix-up is 1000x off). Not `<= wall`: on a
+        // virtual machine the thread CPU clock counts time the vCPU did not run
+        // (docs/simulation.md, Soak) and once read more than the wall time under a parallel
         // `cargo test` (2026-12-02).
         assert!(cpu > 0.0 && cpu <= 2.0 * wall, "cpu {cpu} wall {wall}");
     }

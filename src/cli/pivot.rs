@@ -1,7 +1,7 @@
 //! `trocar_docking pivot`: the pivoting benchmark. In N worlds of a protocol (the same
 //! seeds in each arm), dock with the shipped controller, then steer the scope through the
 //! port with a script of surgeon's commands (random pan/tilt and zoom segments at
-//! `--speed-deg` deg/s, then the same back; or issue 16's "Done when" sequence), with the
+//! `--speed-deg` deg/s, then the same back; or the "done-when" sequence of the pivot's targets), with the
 //! force-adapted fulcrum and with the fulcrum fixed where it starts. Prints per arm the
 //! statistics over the runs of each figure of [`PivotResult`] and every run (`--json`).
 
@@ -28,7 +28,7 @@ use super::CliResult;
 pub enum Script {
     /// Random pan/tilt/zoom segments, then the same back.
     Random,
-    /// Issue 16's "Done when": pan, tilt, back, in, out.
+    /// The pivot's acceptance sequence ("done when", docs/after-docking.md): pan, tilt, back, in, out.
     DoneWhen,
 }
 

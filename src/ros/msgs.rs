@@ -81,7 +81,7 @@ mod tests {
     #[test]
     fn no_test_bag_carries_a_docking_status_of_another_definition() {
         // A replayed bag holding /docking/status with an older md5 would not connect to the
-        // nodes (issue 16 added fields). The bags in tests/bags hold none; should one be
+        // nodes (the after-docking fields were added later). The bags in tests/bags hold none; should one be
         // recorded with it, its md5 must be the current message's.
         let md5 = super::trocar_docking::DockingStatus::md5sum();
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/bags");

@@ -47,7 +47,7 @@ fn seg(duration: f64, pan: f64, tilt: f64, zoom: f64) -> Segment {
     }
 }
 
-/// Issue 16's "Done when": 2 s of pan at 0.17 rad/s, 2 s of tilt, the same back, 1 s in
+/// The pivot's acceptance sequence ("done when", docs/after-docking.md): 2 s of pan at 0.17 rad/s, 2 s of tilt, the same back, 1 s in
 /// and 1 s out at 10 mm/s (then the run's silence).
 pub fn done_when_script() -> Vec<Segment> {
     let w = 0.17;
@@ -187,7 +187,7 @@ pub struct PivotResult {
     /// scope that follows the breathing port moves with it, and is still relative to it).
     pub still_motion_port_m: f64,
     /// The SQP's wall time in the commanded steps (`SolveReport::solve_time_us`): median,
-    /// p99 and max, µs (this machine, its load included).
+    /// p99 and max, µs (the host running it, its load included).
     pub solve_us_p50: f64,
     /// ...
     pub solve_us_p99: f64,
