@@ -1,5 +1,5 @@
 //! `trocar_docking soak`: the simulated pipeline through repeated docking cycles at the
-//! control rate (1 kHz by default) for a wall-clock duration, with ONE controller for the
+//! control rate (the shipped 100 Hz by default) for a wall-clock duration, with ONE controller for the
 //! whole run (reset and started again every cycle, as the node would be), every cycle a
 //! fresh draw of the world (seed, seed + 1, ...), so that what a long run accumulates
 //! shows: every cycle's outcome, judged at DONE by the trials' rule, the time of every
@@ -29,8 +29,9 @@ pub struct SoakArgs {
     /// Wall-clock duration of the run, minutes.
     #[arg(long, default_value_t = 60.0)]
     pub minutes: f64,
-    /// Control rate, Hz (the physics runs at its own rate, 1 kHz).
-    #[arg(long, default_value_t = 1000.0)]
+    /// Control rate, Hz (the physics runs at its own rate, 1 kHz). The default is the
+    /// shipped rate (`config/controller.yaml` dt 0.01, `robot.launch`'s `rate`).
+    #[arg(long, default_value_t = 100.0)]
     pub rate: f64,
     /// World protocol of `config/sim.yaml`.
     #[arg(long, value_enum, default_value_t = Protocol::Realistic)]
