@@ -24,6 +24,27 @@ impl ControllerPolicy {
     }
 }
 
+/// The controller's input from an observation: joints and torques stamped now, the trocar
+/// pose stamped at capture.
+fn control_input(obs: &Observation) -> ControlInput {
+    ControlInput {
+        scope: None,
+        now: obs.t,
+        joints: Some(Stamped {
+            stamp: obs.t,
+            value: obs.q,
+        }),
+        tau_ext: Some(Stamped {
+            stamp: obs.t,
+            value: obs.tau_ext,
+        }),
+        trocar: obs.trocar.map(|m| Stamped {
+            stamp: m.stamp,
+            value: m.pose,
+        }),
+    }
+}
+
 impl Policy for ControllerPolicy {
     fn torque_filter_time_constant(&self) -> f64 {
         self.torque_filter
@@ -36,22 +57,7 @@ impl Policy for ControllerPolicy {
     }
 
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
-        let input = ControlInput {
-            scope: None,
-            now: obs.t,
-            joints: Some(Stamped {
-                stamp: obs.t,
-                value: obs.q,
-            }),
-            tau_ext: Some(Stamped {
-                stamp: obs.t,
-                value: obs.tau_ext,
-            }),
-            trocar: obs.trocar.map(|m| Stamped {
-                stamp: m.stamp,
-                value: m.pose,
-            }),
-        };
+        let input = control_input(obs);
         let out = self.ctrl.step(kin, &input);
         Action {
             command: out.command,
@@ -139,29 +145,14 @@ mod tests {
         }
         fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
             self.steps += 1;
-            let poison = (self.poison_every > 0 && self.steps % self.poison_every == 0)
+            let poison = (self.poison_every > 0 && self.steps.is_multiple_of(self.poison_every))
                 .then_some(self.steps / self.poison_every % 2 == 1);
             let kin = Poisoned {
                 inner: kin,
                 calls: Cell::new(0),
                 poisoned: Cell::new(poison),
             };
-            let input = ControlInput {
-                scope: None,
-                now: obs.t,
-                joints: Some(Stamped {
-                    stamp: obs.t,
-                    value: obs.q,
-                }),
-                tau_ext: Some(Stamped {
-                    stamp: obs.t,
-                    value: obs.tau_ext,
-                }),
-                trocar: obs.trocar.map(|m| Stamped {
-                    stamp: m.stamp,
-                    value: m.pose,
-                }),
-            };
+            let input = control_input(obs);
             let before = allocations_on_this_thread();
             let out = self.inner.ctrl.step(&kin, &input);
             let allocated = allocations_on_this_thread() > before;

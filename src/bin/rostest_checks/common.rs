@@ -310,9 +310,19 @@ pub fn wait_for<T, F: FnMut() -> Option<T>>(timeout: f64, mut f: F) -> Option<T>
 
 /// Call a std_srvs/Trigger service, waiting for it to appear.
 pub fn trigger(service: &str, timeout: f64) -> Result<String, String> {
+    call_trigger(service, &trigger_client(service, timeout)?)
+}
+
+/// A client of the std_srvs/Trigger service `service`, once it has appeared (so that a
+/// later call is one round trip).
+pub fn trigger_client(service: &str, timeout: f64) -> Result<rosrust::Client<std_srvs::Trigger>, String> {
     rosrust::wait_for_service(service, Some(Duration::from_secs_f64(timeout)))
         .map_err(|e| format!("service {service} did not appear: {e}"))?;
-    let client = rosrust::client::<std_srvs::Trigger>(service).map_err(|e| format!("client {service}: {e}"))?;
+    rosrust::client::<std_srvs::Trigger>(service).map_err(|e| format!("client {service}: {e}"))
+}
+
+/// Call `client` (of `service`); its message, or why it failed or refused.
+pub fn call_trigger(service: &str, client: &rosrust::Client<std_srvs::Trigger>) -> Result<String, String> {
     let res = client
         .req(&std_srvs::TriggerReq {})
         .map_err(|e| format!("{service}: {e}"))?

@@ -69,6 +69,13 @@ fn joint_gap(a: Option<JointVector>, b: Option<JointVector>) -> f64 {
     }
 }
 
+/// The fake driver's thread, its command subscription, and the joints it reports.
+struct Driver {
+    thread: std::thread::JoinHandle<()>,
+    _commands: rosrust::Subscriber,
+    arm: Arc<Mutex<JointVector>>,
+}
+
 /// Publish the fake driver and camera until `stop`, applying the current fault; the arm
 /// follows the commands on `command_topic`.
 fn play_driver(
@@ -77,14 +84,7 @@ fn play_driver(
     command_topic: &str,
     fault: Arc<Mutex<Fault>>,
     stop: Arc<AtomicBool>,
-) -> Result<
-    (
-        std::thread::JoinHandle<()>,
-        rosrust::Subscriber,
-        Arc<Mutex<JointVector>>,
-    ),
-    String,
-> {
+) -> Result<Driver, String> {
     let js = rosrust::publish::<sensor_msgs::JointState>(topics::JOINT_STATES, 10).map_err(|e| e.to_string())?;
     let lbr = rosrust::publish::<lbr_msgs::LBRState>(topics::LBR_STATE, 10).map_err(|e| e.to_string())?;
     let pose = rosrust::publish::<geometry_msgs::PoseStamped>(topics::TROCAR_POSE, 10).map_err(|e| e.to_string())?;
@@ -130,7 +130,50 @@ fn play_driver(
             rate.sleep();
         }
     });
-    Ok((thread, sub, arm))
+    Ok(Driver {
+        thread,
+        _commands: sub,
+        arm,
+    })
+}
+
+/// The hold's text names the input that was wrong, and how.
+fn reason_names(f: Fault, reason: &str) -> Result<(), String> {
+    let missing: Vec<_> = f.named_in_reason().iter().filter(|w| !reason.contains(*w)).collect();
+    if missing.is_empty() {
+        Ok(())
+    } else {
+        Err(format!("{f:?}: the reason '{reason}' does not say {missing:?}"))
+    }
+}
+
+/// Over `hold_observe` after a hold for `f`, neither the arm (the joints the driver
+/// reports) nor the command moves more than `max_hold_motion_deg`: the largest motion, rad.
+fn held_still(
+    p: &CheckParams,
+    f: Fault,
+    arm: &Arc<Mutex<JointVector>>,
+    commanded: &dyn Fn() -> Option<JointVector>,
+) -> Result<f64, String> {
+    let (arm_at, cmd_at) = (*lock(arm), commanded());
+    let (mut arm_moved, mut cmd_moved) = (0.0_f64, 0.0_f64);
+    let t0 = std::time::Instant::now();
+    while t0.elapsed().as_secs_f64() < p.hold_observe {
+        std::thread::sleep(Duration::from_millis(10));
+        arm_moved = arm_moved.max((*lock(arm) - arm_at).amax());
+        cmd_moved = cmd_moved.max(joint_gap(commanded(), cmd_at));
+    }
+    let bound = p.max_hold_motion_deg.to_radians();
+    if arm_moved.is_nan() || arm_moved > bound || cmd_moved.is_nan() || cmd_moved > bound {
+        return Err(format!(
+            "{f:?}: held, but in {:.1} s the arm moved {:.4} deg and the command {:.4} deg (bound {} deg)",
+            p.hold_observe,
+            arm_moved.to_degrees(),
+            cmd_moved.to_degrees(),
+            p.max_hold_motion_deg
+        ));
+    }
+    Ok(arm_moved.max(cmd_moved))
 }
 
 /// Run the check; a summary on success.
@@ -153,7 +196,7 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
             .get()
             .and_then(|m| convert::trajectory_positions("", &m, &names).ok())
     };
-    let (driver, _commands, arm) = play_driver(q0, trocar, &p.command_topic, fault.clone(), stop.clone())?;
+    let driver = play_driver(q0, trocar, &p.command_topic, fault.clone(), stop.clone())?;
     let result = (|| {
         wait_for(p.startup_timeout, || status.get()).ok_or("no status from the controller")?;
         let mut seen = Vec::new();
@@ -200,40 +243,12 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
                     f.expected()
                 )
             })?;
-            let missing: Vec<_> = f
-                .named_in_reason()
-                .iter()
-                .filter(|w| !held.hold_reason.contains(*w))
-                .collect();
-            if !missing.is_empty() {
-                return Err(format!(
-                    "{f:?}: the reason '{}' does not say {missing:?}",
-                    held.hold_reason
-                ));
-            }
-            // Held: the arm and the command stay where they were when the hold came.
-            let (arm_at, cmd_at) = (*lock(&arm), commanded());
-            let (mut arm_moved, mut cmd_moved) = (0.0_f64, 0.0_f64);
-            let t0 = std::time::Instant::now();
-            while t0.elapsed().as_secs_f64() < p.hold_observe {
-                std::thread::sleep(Duration::from_millis(10));
-                arm_moved = arm_moved.max((*lock(&arm) - arm_at).amax());
-                cmd_moved = cmd_moved.max(joint_gap(commanded(), cmd_at));
-            }
-            let bound = p.max_hold_motion_deg.to_radians();
-            if arm_moved.is_nan() || arm_moved > bound || cmd_moved.is_nan() || cmd_moved > bound {
-                return Err(format!(
-                    "{f:?}: held, but in {:.1} s the arm moved {:.4} deg and the command {:.4} deg (bound {} deg)",
-                    p.hold_observe,
-                    arm_moved.to_degrees(),
-                    cmd_moved.to_degrees(),
-                    p.max_hold_motion_deg
-                ));
-            }
+            reason_names(f, &held.hold_reason)?;
+            let moved = held_still(p, f, &driver.arm, &commanded)?;
             if status.count() <= before {
                 return Err(format!("{f:?}: the controller stopped publishing its status"));
             }
-            worst = worst.max(arm_moved).max(cmd_moved);
+            worst = worst.max(moved);
             seen.push(format!("{f:?}: {}", held.hold_reason));
         }
         Ok(format!(
@@ -243,6 +258,6 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
         ))
     })();
     stop.store(true, Ordering::Relaxed);
-    let _ = driver.join();
+    let _ = driver.thread.join();
     result
 }

@@ -11,7 +11,7 @@ use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::msgs::{trajectory_msgs, trocar_docking};
 use ::trocar_docking::ros::params;
 
-use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use crate::common::{call_trigger, subscribe_latest, trigger_client, wait_for, CheckParams};
 
 /// Recorded topics are replayed into the nodes: the controller must publish status in the
 /// allowed phases, and the estimator a trocar pose within `max_position_error` of the
@@ -267,9 +267,18 @@ pub fn replay_controller(p: &CheckParams) -> Result<String, String> {
     let (recorded, _s2) = PhaseLog::subscribe(&p.recorded_status_topic)?;
     let (recorded_now, _s3) = subscribe_latest::<trocar_docking::DockingStatus>(&p.recorded_status_topic)?;
     let phase_of = |log: &Arc<Mutex<PhaseLog>>| log.lock().ok().and_then(|l| l.last_phase());
-    wait_for(p.startup_timeout, || recorded_now.get().filter(|s| s.phase == "TARE"))
-        .ok_or("the bag's controller never entered TARE (is the bag playing?)")?;
-    trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
+    // The client first, so that the start follows the recorded one by one round trip: the
+    // recorded arm moves 0.3 s after it, and a tare still running then is refused.
+    let service = format!("{}/start", p.controller);
+    let start = trigger_client(&service, p.startup_timeout)?;
+    let t0 = std::time::Instant::now();
+    while recorded_now.get().is_none_or(|s| s.phase != "TARE") {
+        if t0.elapsed().as_secs_f64() > p.startup_timeout || !rosrust::is_ok() {
+            return Err("the bag's controller never entered TARE (is the bag playing?)".into());
+        }
+        std::thread::sleep(std::time::Duration::from_millis(1));
+    }
+    call_trigger(&service, &start)?;
     // The live run ends where the recorded one does; past the recorded end, it has a
     // second to catch up.
     let ended = |s: Option<String>| matches!(s.as_deref(), Some("DONE" | "ABORTED" | "IDLE"));
