@@ -503,7 +503,7 @@ impl OptimalController {
                 .limit(&self.params.motion, &arm.jac, (&prev, &sol.q), left, ctx.dt, (&lo, &hi))
         } else {
             self.run.motion.rest();
-            let why = HoldReason::SolverFailed(sol.status.as_text().into());
+            let why = HoldReason::SolverFailed(sol.status.as_text());
             self.run.supervisor.hold(why, false);
             prev
         };
