@@ -175,6 +175,7 @@ mod tests {
                 phase: out.phase.as_str(),
                 hold_code: out.hold.as_ref().map(|h| h.code()),
                 aborted: None,
+                latched: self.inner.ctrl.hold_latched(),
             }
         }
     }
