@@ -24,8 +24,6 @@
 //! than `guard.max_tracking_error` from it (the arm stopped following); the hold clears
 //! once the arm has caught up.
 
-use std::sync::Arc;
-
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use super::admittance::Admittance;
@@ -38,7 +36,7 @@ use super::motion::MotionLimiter;
 pub use super::params::{ControllerParams, ParamError};
 use super::pivot::{live_command, Pivot};
 use super::scope::{PivotReport, ScopeCommand};
-use super::seated::{SeatedCheck, TipState};
+use super::seated::{Seated, SeatedCheck, TipState};
 use super::sqp::{CostTerms, CostWeights, LimitAvoidance, PivotCost, SqpSolver, SqpStatus, Targets};
 use super::supervisor::{Phase, Supervisor};
 use super::tare::{Tare, TareStep};
@@ -96,7 +94,7 @@ pub struct ControlOutput {
     /// Reason of the last hold or abort.
     pub hold: Option<HoldReason>,
     /// How DONE was reached, when not plainly at the goal.
-    pub note: Option<Arc<str>>,
+    pub note: Option<Seated>,
     /// The SQP's report, when it ran this step.
     pub solve: Option<SolveReport>,
     /// Filtered tip force estimate, base frame, N.
@@ -254,7 +252,7 @@ impl OptimalController {
             command,
             phase: s.phase(),
             hold: s.reason().cloned(),
-            note: s.note().cloned(),
+            note: s.note(),
             solve: None,
             f_ext: self.run.admittance.force(),
             reference: tip.map(|t| self.run.admittance.reference(&Point3::from(t.translation.vector))),
@@ -586,7 +584,7 @@ impl OptimalController {
                     };
                     let seated = r.seated.update(&p.seated, axis, p.insertion_depth, &state, dt);
                     if let Some(s) = seated {
-                        r.supervisor.goal_reached(Some(s.describe().into()));
+                        r.supervisor.goal_reached(Some(s));
                     }
                 }
             }

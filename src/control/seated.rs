@@ -120,10 +120,11 @@ pub struct Seated {
     pub lateral_force: f64,
 }
 
-impl Seated {
-    /// The DONE reason shown to the surgeon.
-    pub fn describe(&self) -> String {
-        format!(
+impl std::fmt::Display for Seated {
+    /// The DONE reason shown to the surgeon (formatted where it is shown, not in the loop).
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
             "docked {:.1} mm and {:.1} deg off the estimated axis, held there by the port ({:.1} N across the axis): the trocar estimate is biased; check the hand-eye calibration",
             self.offset * 1e3,
             self.angle_deg,
@@ -236,7 +237,7 @@ mod tests {
             (s.lateral_force - 1.0).abs() < 1e-12,
             "the axial component does not count"
         );
-        assert!(s.describe().contains("2.0 mm"), "{}", s.describe());
+        assert!(s.to_string().contains("2.0 mm"), "{s}");
     }
 
     #[test]

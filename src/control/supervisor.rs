@@ -7,9 +7,9 @@
 //! operator) needs an explicit `start` to resume.
 
 use std::fmt;
-use std::sync::Arc;
 
 use super::hold::HoldReason;
+use super::seated::Seated;
 
 /// The phase of a docking run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
@@ -68,7 +68,7 @@ pub struct Supervisor {
     resume: Phase,
     latched: bool,
     reason: Option<HoldReason>,
-    note: Option<Arc<str>>,
+    note: Option<Seated>,
 }
 
 impl Default for Supervisor {
@@ -101,8 +101,8 @@ impl Supervisor {
     }
 
     /// How DONE was reached, when not plainly at the goal (see [`Supervisor::goal_reached`]).
-    pub fn note(&self) -> Option<&Arc<str>> {
-        self.note.as_ref()
+    pub fn note(&self) -> Option<Seated> {
+        self.note
     }
 
     /// Start (from IDLE) or resume (from HOLD). Refused after DONE or ABORTED.
@@ -234,7 +234,7 @@ impl Supervisor {
 
     /// The goal is reached: INSERT -> DONE. `note` says how, when not plainly at the goal;
     /// the reason of any earlier hold is cleared.
-    pub fn goal_reached(&mut self, note: Option<Arc<str>>) {
+    pub fn goal_reached(&mut self, note: Option<Seated>) {
         if self.phase == Phase::Insert {
             self.phase = Phase::Done;
             self.reason = None;
@@ -266,9 +266,14 @@ mod tests {
         assert_eq!(s.phase(), Phase::Insert);
         s.hold(HoldReason::StaleTrocarPose { age: 1.0 }, false);
         s.clear_hold();
-        s.goal_reached(Some("seated".into()));
+        let seated = Seated {
+            offset: 0.002,
+            angle_deg: 0.1,
+            lateral_force: 0.2,
+        };
+        s.goal_reached(Some(seated));
         assert_eq!(s.phase(), Phase::Done);
-        assert_eq!(s.note().map(|n| &**n), Some("seated"));
+        assert_eq!(s.note(), Some(seated));
         assert_eq!(s.reason(), None, "DONE clears the old hold's reason");
         assert!(s.start().is_err());
         s.retract().unwrap();

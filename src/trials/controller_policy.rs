@@ -127,6 +127,9 @@ mod tests {
         }
     }
 
+    /// Steps in which the kinematics may be poisoned (3 s at 100 Hz).
+    const POISONED_STEPS: usize = 300;
+
     /// The controller as a policy, counting the allocations of each `Controller::step`.
     struct Counted {
         inner: ControllerPolicy,
@@ -146,8 +149,11 @@ mod tests {
         }
         fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
             self.steps += 1;
-            let poison = (self.poison_every > 0 && self.steps.is_multiple_of(self.poison_every))
-                .then_some(self.steps / self.poison_every % 2 == 1);
+            // Poisoned through APPROACH and INSERT (the first 3 s), then clean: DONE needs
+            // 0.3 s windows without a hold, which a failure every 70 ms never leaves.
+            let poison =
+                (self.poison_every > 0 && self.steps <= POISONED_STEPS && self.steps.is_multiple_of(self.poison_every))
+                    .then_some(self.steps / self.poison_every % 2 == 1);
             let kin = Poisoned {
                 inner: kin,
                 calls: Cell::new(0),
@@ -209,11 +215,13 @@ mod tests {
                 let mut world = SimWorld::new(&cfg.sim, kin.clone(), seed).unwrap();
                 let r = run_trial(&mut world, &mut policy, &cfg.trial, seed);
                 let what = format!(
-                    "seed {seed}, poison every {poison_every}, qp_max_iterations {}: {:?} ({}) after {} steps, {} \
-                     solver failures, {} steps allocated ({} in a successful Clarabel solve)",
+                    "seed {seed}, poison every {poison_every}, qp_max_iterations {}: {:?} ({}; in {} {}) after {} \
+                     steps, {} solver failures, {} steps allocated ({} in a successful Clarabel solve)",
                     p.sqp.qp_max_iterations,
                     r.outcome,
                     r.reason,
+                    r.final_phase,
+                    r.final_hold,
                     policy.steps,
                     policy.solver_failures,
                     policy.allocating_steps,
