@@ -77,7 +77,10 @@ pub struct TrocarPoseArgs {
 /// A pose from x,y,z,qx,qy,qz,qw.
 pub fn parse_pose(v: &[f64], what: &str) -> Result<Isometry3<f64>, String> {
     if v.len() != 7 {
-        return Err(format!("{what} takes 7 comma-separated numbers x,y,z,qx,qy,qz,qw, got {}", v.len()));
+        return Err(format!(
+            "{what} takes 7 comma-separated numbers x,y,z,qx,qy,qz,qw, got {}",
+            v.len()
+        ));
     }
     PoseYaml {
         translation: [v[0], v[1], v[2]],
@@ -194,7 +197,10 @@ fn image_files(dir: &Path) -> Result<Vec<PathBuf>, String> {
         .collect();
     v.sort();
     if v.is_empty() {
-        return Err(format!("{}: no image files (png, pgm, ppm, jpg, bmp, tif)", dir.display()));
+        return Err(format!(
+            "{}: no image files (png, pgm, ppm, jpg, bmp, tif)",
+            dir.display()
+        ));
     }
     Ok(v)
 }
@@ -204,14 +210,19 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
     let camera = CameraModel::from_yaml_file(&a.camera)?;
     let model = TrocarModel::from_yaml_file(&a.model)?;
     let prior: Option<Unit<Vector3<f64>>> = match &a.init_pose {
-        Some(v) => Some(Unit::new_normalize(parse_pose(v, "--init-pose")?.rotation * Vector3::z())),
+        Some(v) => Some(Unit::new_normalize(
+            parse_pose(v, "--init-pose")?.rotation * Vector3::z(),
+        )),
         None => None,
     };
     let files = image_files(&a.images)?;
     let mut est = MarkerlessEstimator::new(&camera, &model)?;
     let mut failures = 0usize;
     for f in &files {
-        let name = f.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let name = f
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
         let t0 = std::time::Instant::now();
         let result = GreyImage::read(f).and_then(|img| est.estimate(&img.view(), prior.as_ref()));
         let ms = t0.elapsed().as_secs_f64() * 1e3;

@@ -79,9 +79,15 @@ mod tests {
         refused(ffi::new_markerless_detector(&K, &[], 4, 48), "image size");
         let mut d = ffi::new_markerless_detector(&K, &[], 64, 48).unwrap();
         refused(ffi::markerless_ellipses(d.pin_mut(), 3.0, 10.0, 4), "no image loaded");
-        refused(ffi::markerless_search_edges(&d, &[0.0; 4], 2.0, 0, 1.0), "no image loaded");
+        refused(
+            ffi::markerless_search_edges(&d, &[0.0; 4], 2.0, 0, 1.0),
+            "no image loaded",
+        );
         let grey = vec![100u8; 64 * 48];
-        refused(ffi::markerless_load(d.pin_mut(), &grey[1..], 64, 48, 1, 1.0), "pixel buffer");
+        refused(
+            ffi::markerless_load(d.pin_mut(), &grey[1..], 64, 48, 1, 1.0),
+            "pixel buffer",
+        );
         refused(ffi::markerless_load(d.pin_mut(), &grey, 48, 64, 1, 1.0), "camera model");
         refused(ffi::markerless_load(d.pin_mut(), &grey, 64, 48, 2, 1.0), "channels");
         refused(ffi::markerless_load(d.pin_mut(), &grey, 64, 48, 1, f64::NAN), "sigma");

@@ -31,7 +31,11 @@ pub fn docking_approach(
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut out = Vec::with_capacity(n);
     for k in 0..n {
-        let d = if n == 1 { far } else { far + (near - far) * k as f64 / (n - 1) as f64 };
+        let d = if n == 1 {
+            far
+        } else {
+            far + (near - far) * k as f64 / (n - 1) as f64
+        };
         let scale = d / 0.4;
         let tilt = rng.random_range(0.0..8f64.to_radians()) * scale;
         let dir: f64 = rng.random_range(0.0..std::f64::consts::TAU);

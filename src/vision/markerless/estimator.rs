@@ -6,7 +6,9 @@
 
 use nalgebra::{Matrix5, Unit, Vector2, Vector3, Vector5};
 
-use super::geometry::{basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis};
+use super::geometry::{
+    basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
+};
 use super::model::TrocarModel;
 use crate::ffi::markerless::{ffi, EDGE_RECORD_LEN, ELLIPSE_RECORD_LEN};
 use crate::vision::{CameraModel, ImageView, VisionError};
@@ -45,7 +47,7 @@ pub struct MarkerlessEstimate {
     /// Fraction of the opening's samples found.
     pub opening_support: f64,
     /// How much better the chosen circle pose explains the image than the other (score
-    /// difference, 0-1), or 1 when both give the same axis within 3 deg.
+    /// difference / 0.25, clamped to 0-1), or 1 when the two were within 3 deg of each other.
     pub ambiguity_margin: f64,
 }
 
@@ -115,13 +117,17 @@ impl MarkerlessEstimator {
         for rec in cands.chunks_exact(ELLIPSE_RECORD_LEN) {
             let conic = ellipse_conic([rec[0], rec[1]], rec[2], rec[3], rec[4], self.camera.intrinsics());
             let Some(sols) = circle_poses(&conic, r) else { continue };
+            // Solutions within 3 deg of each other from the start: the ambiguity is harmless.
+            let harmless = sols[0].angle_to(&sols[1]) < 3f64.to_radians();
             let mut hyps: Vec<Hypothesis> = vec![];
             for s in sols {
                 if let Some(h) = self.refine(s)? {
                     hyps.push(h);
                 }
             }
-            let Some(e) = self.decide(&hyps, prior) else { continue };
+            let Some(e) = self.decide(&hyps, prior, harmless) else {
+                continue;
+            };
             if best.as_ref().is_none_or(|b| e.edge_support > b.edge_support) {
                 best = Some(e);
             }
@@ -130,24 +136,30 @@ impl MarkerlessEstimator {
     }
 
     /// Pick the better hypothesis (by the prior when given, else by score) and grade it.
-    fn decide(&self, hyps: &[Hypothesis], prior: Option<&Unit<Vector3<f64>>>) -> Option<MarkerlessEstimate> {
+    /// `harmless`: the two circle poses were within 3 deg of each other before refinement.
+    fn decide(
+        &self,
+        hyps: &[Hypothesis],
+        prior: Option<&Unit<Vector3<f64>>>,
+        harmless: bool,
+    ) -> Option<MarkerlessEstimate> {
         let mut sorted: Vec<Hypothesis> = hyps.to_vec();
         match prior {
-            Some(p) => sorted.sort_by(|a, b| {
-                a.axis.direction.dot(p).total_cmp(&b.axis.direction.dot(p)).reverse()
-            }),
+            Some(p) => sorted.sort_by(|a, b| a.axis.direction.dot(p).total_cmp(&b.axis.direction.dot(p)).reverse()),
             None => sorted.sort_by(|a, b| b.score.total_cmp(&a.score)),
         }
         let h = *sorted.first()?;
         let margin = match sorted.get(1) {
-            Some(o) if o.axis.angle_to(&h.axis) > 3f64.to_radians() => match prior {
+            _ if harmless => 1.0,
+            Some(o) => match prior {
                 Some(p) => {
                     let (ab, ao) = (h.axis.direction.angle(p), o.axis.direction.angle(p));
                     ((ao - ab) / 10f64.to_radians()).clamp(0.0, 1.0)
                 }
                 None => ((h.score - o.score) / 0.25).clamp(0.0, 1.0),
             },
-            _ => 1.0,
+            // The other pose found no opening on refinement: nothing to tell them apart by.
+            None => 0.5,
         };
         let fit = 1.0 / (1.0 + (h.rms_px / 0.6).powi(2));
         let confidence = (h.support * fit * margin).clamp(0.0, 1.0);
@@ -169,7 +181,9 @@ impl MarkerlessEstimator {
             (Part::Opening, self.model.opening.radius, OPENING_POINTS, 1),
             (Part::Rim, self.model.head.radius, RIM_POINTS, 0),
         ] {
-            let Some(c) = circle_conic(&axis.point, &axis.direction, radius) else { continue };
+            let Some(c) = circle_conic(&axis.point, &axis.direction, radius) else {
+                continue;
+            };
             for k in 0..n {
                 let phi = std::f64::consts::TAU * k as f64 / n as f64;
                 if let Some(p) = project(&(axis.point + radius * (phi.cos() * u + phi.sin() * v))) {
@@ -195,7 +209,9 @@ impl MarkerlessEstimator {
         }
         if let Some(limbs) = cylinder_limbs(axis, rh, 0.15 * h, 0.85 * h) {
             for (i, [a, b]) in limbs.iter().enumerate() {
-                let (Some(pa), Some(pb)) = (project(a), project(b)) else { continue };
+                let (Some(pa), Some(pb)) = (project(a), project(b)) else {
+                    continue;
+                };
                 let dir = pb - pa;
                 if dir.norm() < 1e-9 {
                     continue;
@@ -289,7 +305,11 @@ impl MarkerlessEstimator {
         }
         let frac = |k: usize| counts[k] as f64 / totals[k].max(1) as f64;
         let support = 0.4 * frac(0) + 0.2 * frac(1) + 0.2 * frac(2) + 0.2 * frac(3);
-        let rms = if n_open > 0 { (sq / n_open as f64).sqrt() } else { f64::INFINITY };
+        let rms = if n_open > 0 {
+            (sq / n_open as f64).sqrt()
+        } else {
+            f64::INFINITY
+        };
         let z = axis.point.z;
         if !(0.03..=2.0).contains(&z) {
             return Ok(None);
@@ -315,7 +335,11 @@ impl MarkerlessEstimator {
                 Some(conic_distance(&circle_conic(&axis.point, &axis.direction, r)?, p))
             }
             Part::Bottom => Some(conic_distance(
-                &circle_conic(&axis.at(self.model.head.height), &axis.direction, self.model.head.radius)?,
+                &circle_conic(
+                    &axis.at(self.model.head.height),
+                    &axis.direction,
+                    self.model.head.radius,
+                )?,
                 p,
             )),
             Part::Limb(i) => {

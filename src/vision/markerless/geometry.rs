@@ -138,7 +138,7 @@ fn section_circle(q: &Matrix3<f64>, n: Unit<Vector3<f64>>, r: f64) -> Option<Axi
     let k = r / r1sq.sqrt();
     // The plane n.X = 1 may lie behind the camera: the cone is symmetric, take -X.
     let (centre, normal) = if x0.z >= 0.0 { (k * x0, n) } else { (-k * x0, -n) };
-    if !(centre.z > 0.0) {
+    if centre.z.is_nan() || centre.z <= 0.0 {
         return None;
     }
     Some(Axis {
@@ -155,7 +155,7 @@ pub fn cylinder_limbs(axis: &Axis, radius: f64, t0: f64, t1: f64) -> Option<[[Ve
     let c = axis.point;
     let w0 = -c + c.dot(&n) * n;
     let rho = w0.norm();
-    if !(rho > radius * 1.0001) {
+    if rho.is_nan() || rho <= radius * 1.0001 {
         return None;
     }
     let w0 = w0 / rho;
@@ -229,7 +229,12 @@ mod tests {
             assert!(conic_distance(&c, &p).abs() * 700.0 < 1e-9);
         }
         assert!(circle_poses(&c, 0.008).is_some());
-        assert!(circle_poses(&Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0)), 0.01).is_some());
+        // A frontal circle: both solutions along the optical axis, at r / (r/d).
+        let frontal = circle_poses(&Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, -0.01)), 0.01).unwrap();
+        assert!((frontal[0].point - Vector3::new(0.0, 0.0, 0.1)).norm() < 1e-12);
+        assert!((frontal[1].direction.z - 1.0).abs() < 1e-12);
+        // A cone about the x axis images no circle in front of the camera.
+        assert!(circle_poses(&Matrix3::from_diagonal(&Vector3::new(1.0, -1.0, -1.0)), 0.01).is_none());
         assert!(circle_poses(&Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, 1.0)), 0.01).is_none());
     }
 

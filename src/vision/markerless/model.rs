@@ -92,7 +92,8 @@ impl TrocarModel {
 
     /// The shipped model (`config/trocar_model.yaml`).
     pub fn shipped() -> Self {
-        Self::from_yaml_str(SHIPPED).unwrap_or_else(|e| unreachable!("config/trocar_model.yaml is checked by a test: {e}"))
+        Self::from_yaml_str(SHIPPED)
+            .unwrap_or_else(|e| unreachable!("config/trocar_model.yaml is checked by a test: {e}"))
     }
 }
 
@@ -113,7 +114,8 @@ mod tests {
 
     #[test]
     fn missing_negative_and_inconsistent_values_are_clear_errors() {
-        let ok = "head: {radius: 0.0125, height: 0.025}\nopening: {radius: 0.008}\ncannula: {radius: 0.0035, length: 0.1}\n";
+        let ok =
+            "head: {radius: 0.0125, height: 0.025}\nopening: {radius: 0.008}\ncannula: {radius: 0.0035, length: 0.1}\n";
         assert!(TrocarModel::from_yaml_str(ok).is_ok());
         let e = TrocarModel::from_yaml_str(&ok.replace("height: 0.025", "height: -0.025"))
             .unwrap_err()

@@ -256,7 +256,9 @@ fn check_scene(s: &Scene) -> Result<(), VisionError> {
     if let Some(t) = &s.tool {
         crate::validate::positive_at_most("tool radius", t.radius, 0.1)?;
         if t.start.iter().chain(t.end.iter()).any(|v| !v.is_finite()) || t.start == t.end {
-            return Err(VisionError::InvalidInput("tool ends must be finite and distinct".into()));
+            return Err(VisionError::InvalidInput(
+                "tool ends must be finite and distinct".into(),
+            ));
         }
     }
     Ok(())
@@ -292,8 +294,12 @@ impl Caster {
         };
         let wall_normal = Vector3::new(0.0, scene.wall_tilt.sin(), -scene.wall_tilt.cos());
         let tool = scene.tool.map(|t| {
-            let a = port_t_camera.transform_point(&Point3::from(Vector3::from(t.start))).coords;
-            let b = port_t_camera.transform_point(&Point3::from(Vector3::from(t.end))).coords;
+            let a = port_t_camera
+                .transform_point(&Point3::from(Vector3::from(t.start)))
+                .coords;
+            let b = port_t_camera
+                .transform_point(&Point3::from(Vector3::from(t.end)))
+                .coords;
             (a, b, t.radius)
         });
         Self {
@@ -394,7 +400,8 @@ impl Caster {
     fn wall_texture(&self, p: &Vector3<f64>) -> f64 {
         let u = p.dot(&self.wall_u);
         let v = p.dot(&self.wall_normal.cross(&self.wall_u));
-        1.0 + 0.15 * value_noise(u / 0.015, v / 0.015, self.seed) + 0.1 * value_noise(u / 0.004, v / 0.004, self.seed ^ 7)
+        1.0 + 0.15 * value_noise(u / 0.015, v / 0.015, self.seed)
+            + 0.1 * value_noise(u / 0.004, v / 0.004, self.seed ^ 7)
     }
 }
 
@@ -495,7 +502,9 @@ fn undistort(c: &CameraModel, xd: f64, yd: f64) -> [f64; 2] {
 /// Separable Gaussian blur in place (edges clamped).
 fn gaussian_blur(img: &mut [f32], w: usize, h: usize, sigma: f64) {
     let r = (3.0 * sigma).ceil() as isize;
-    let k: Vec<f32> = (-r..=r).map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32).collect();
+    let k: Vec<f32> = (-r..=r)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        .collect();
     let sum: f32 = k.iter().sum();
     let k: Vec<f32> = k.iter().map(|v| v / sum).collect();
     let mut tmp = vec![0.0f32; w * h];
@@ -570,7 +579,8 @@ mod tests {
         assert!(at(80 + 14, 60) > at(80, 60) + 40);
         scene.noise_sigma = f64::NAN;
         assert!(r.render(&model, &pose, &scene).is_err());
-        let behind = Isometry3::translation(0.0, 0.0, 0.15) * nalgebra::UnitQuaternion::from_euler_angles(3.1, 0.0, 0.0);
+        let behind =
+            Isometry3::translation(0.0, 0.0, 0.15) * nalgebra::UnitQuaternion::from_euler_angles(3.1, 0.0, 0.0);
         assert!(r.render(&model, &behind, &Scene::random(3, 0.0)).is_err());
     }
 }
