@@ -7,6 +7,7 @@ use std::time::Instant;
 
 pub mod controller;
 pub mod kinematics;
+pub mod markerless;
 pub mod sim;
 pub mod vision;
 

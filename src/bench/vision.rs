@@ -201,6 +201,7 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
             extra: Default::default(),
         });
     }
+    out.extend(super::markerless::run(n)?);
     Ok(out)
 }
 

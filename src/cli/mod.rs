@@ -4,6 +4,7 @@ use clap::{Parser, Subcommand};
 
 pub mod bench;
 pub mod fk;
+pub mod markerless;
 pub mod pivot;
 pub mod soak;
 pub mod trials;
@@ -43,6 +44,10 @@ pub enum Command {
     Render(vision::RenderArgs),
     /// Hand-eye calibration (camera in the flange) from pose pairs.
     HandEye(vision::HandEyeArgs),
+    /// Render a synthetic markerless trocar image (or a docking-approach sequence with truth).
+    RenderTrocar(markerless::RenderTrocarArgs),
+    /// Estimate the trocar's axis without a marker in a folder of images.
+    TrocarPose(markerless::TrocarPoseArgs),
     /// Write the URDF of an LBR Med with an endoscope.
     Urdf(urdf::UrdfArgs),
     /// Print the versions of the C++ libraries linked.
@@ -61,6 +66,8 @@ pub fn run(cli: Cli) -> CliResult {
         Command::Detect(a) => vision::run_detect(&a),
         Command::Render(a) => vision::run_render(&a),
         Command::HandEye(a) => vision::run_hand_eye(&a),
+        Command::RenderTrocar(a) => markerless::run_render(&a),
+        Command::TrocarPose(a) => markerless::run_pose(&a),
         Command::Versions => {
             println!("{}", crate::vision::backend_versions());
             Ok(())

@@ -2,4 +2,5 @@
 //! modules above it wrap them in safe Rust with nalgebra types and typed errors.
 
 pub mod kdl;
+pub mod markerless;
 pub mod vision;

@@ -11,6 +11,7 @@ pub mod hand_eye;
 pub mod image;
 pub mod joint_history;
 pub mod marker;
+pub mod markerless;
 pub mod overlay;
 pub mod render;
 

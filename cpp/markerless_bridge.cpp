@@ -1,0 +1,290 @@
+#include "trocar_docking/cpp/markerless_bridge.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include <opencv2/calib3d.hpp>
+#include <opencv2/core.hpp>
+#include <opencv2/imgproc.hpp>
+
+namespace trocar_docking {
+
+struct MarkerlessDetectorCpp::Impl {
+  cv::Matx33d K;
+  cv::Mat dist;
+  int width = 0, height = 0;
+  cv::Mat grey8;   // the loaded image, grey
+  cv::Mat smooth;  // smoothed, CV_32F
+  cv::Mat smooth8; // smoothed, CV_8U (Canny)
+  bool loaded = false;
+};
+
+MarkerlessDetectorCpp::MarkerlessDetectorCpp(std::unique_ptr<Impl> i) : impl(std::move(i)) {}
+MarkerlessDetectorCpp::~MarkerlessDetectorCpp() = default;
+
+namespace {
+
+void require(bool ok, const std::string &what) {
+  if (!ok) throw std::invalid_argument(what);
+}
+
+bool all_finite(rust::Slice<const double> v) {
+  return std::all_of(v.begin(), v.end(), [](double x) { return std::isfinite(x); });
+}
+
+// Bilinear sample of a float image at (x, y), pixel centres at integers; false outside.
+inline bool bilinear(const cv::Mat &f, double x, double y, double &out) {
+  if (!(x >= 0.0 && y >= 0.0 && x < f.cols - 1.0 && y < f.rows - 1.0)) return false;
+  const int x0 = static_cast<int>(x), y0 = static_cast<int>(y);
+  const double ax = x - x0, ay = y - y0;
+  const float *r0 = f.ptr<float>(y0), *r1 = f.ptr<float>(y0 + 1);
+  out = (1 - ay) * ((1 - ax) * r0[x0] + ax * r0[x0 + 1]) + ay * ((1 - ax) * r1[x0] + ax * r1[x0 + 1]);
+  return true;
+}
+
+// Ellipse-frame coordinates of p: (x', y') along the axes of r (a = width / 2 axis).
+inline cv::Point2d ellipse_frame(const cv::RotatedRect &r, const cv::Point2f &p) {
+  const double t = r.angle * CV_PI / 180.0, c = std::cos(t), s = std::sin(t);
+  const double dx = p.x - r.center.x, dy = p.y - r.center.y;
+  return {c * dx + s * dy, -s * dx + c * dy};
+}
+
+// RMS first-order distance (px) of the points to the ellipse, and how many of 16 sectors
+// of the ellipse's parameter they cover.
+void ellipse_fit_quality(const cv::RotatedRect &r, const std::vector<cv::Point2f> &pts, double &rms, int &sectors) {
+  const double a = 0.5 * r.size.width, b = 0.5 * r.size.height;
+  double sum = 0;
+  unsigned hit = 0;
+  for (const auto &p : pts) {
+    const cv::Point2d q = ellipse_frame(r, p);
+    const double f = q.x * q.x / (a * a) + q.y * q.y / (b * b) - 1.0;
+    const double gx = 2 * q.x / (a * a), gy = 2 * q.y / (b * b);
+    const double d = f / std::max(1e-12, std::sqrt(gx * gx + gy * gy));
+    sum += d * d;
+    const double phi = std::atan2(q.y / b, q.x / a);
+    const int k = std::min(15, std::max(0, static_cast<int>((phi + CV_PI) / (2 * CV_PI) * 16)));
+    hit |= 1u << k;
+  }
+  rms = std::sqrt(sum / std::max<size_t>(1, pts.size()));
+  sectors = __builtin_popcount(hit);
+}
+
+// Mean grey on the ellipse scaled by `scale` about its centre (32 samples), NaN if outside.
+double mean_on_ellipse(const cv::Mat &f, const cv::RotatedRect &r, double scale) {
+  const double t = r.angle * CV_PI / 180.0, c = std::cos(t), s = std::sin(t);
+  const double a = 0.5 * r.size.width * scale, b = 0.5 * r.size.height * scale;
+  double sum = 0, v = 0;
+  int n = 0;
+  for (int k = 0; k < 32; ++k) {
+    const double phi = 2 * CV_PI * k / 32, x = a * std::cos(phi), y = b * std::sin(phi);
+    if (bilinear(f, r.center.x + c * x - s * y, r.center.y + s * x + c * y, v)) {
+      sum += v;
+      ++n;
+    }
+  }
+  return n >= 24 ? sum / n : std::nan("");
+}
+
+}  // namespace
+
+std::unique_ptr<MarkerlessDetectorCpp> new_markerless_detector(rust::Slice<const double> intrinsics,
+                                                               rust::Slice<const double> dist, int width,
+                                                               int height) {
+  require(intrinsics.size() == 4, "intrinsics must be fx, fy, cx, cy");
+  require(all_finite(intrinsics) && all_finite(dist), "intrinsics and distortion must be finite");
+  require(intrinsics[0] > 1.0 && intrinsics[1] > 1.0, "focal lengths must be > 1 px");
+  const size_t nd = dist.size();
+  require(nd == 0 || nd == 4 || nd == 5 || nd == 8 || nd == 12 || nd == 14,
+          "distortion must have 0, 4, 5, 8, 12 or 14 coefficients");
+  require(width >= 8 && height >= 8 && width <= 20000 && height <= 20000,
+          "image size " + std::to_string(width) + "x" + std::to_string(height) + " out of range (8..=20000 px)");
+  cv::setNumThreads(1);
+  auto impl = std::make_unique<MarkerlessDetectorCpp::Impl>();
+  impl->K = cv::Matx33d(intrinsics[0], 0, intrinsics[2], 0, intrinsics[1], intrinsics[3], 0, 0, 1);
+  impl->dist = cv::Mat(1, static_cast<int>(nd), CV_64F);
+  for (size_t i = 0; i < nd; ++i) impl->dist.at<double>(0, static_cast<int>(i)) = dist[i];
+  impl->width = width;
+  impl->height = height;
+  return std::make_unique<MarkerlessDetectorCpp>(std::move(impl));
+}
+
+void markerless_load(MarkerlessDetectorCpp &det, rust::Slice<const uint8_t> pixels, int width, int height,
+                     int channels, double smooth_sigma) {
+  auto &d = *det.impl;
+  require(width == d.width && height == d.height,
+          "image " + std::to_string(width) + "x" + std::to_string(height) + " does not match the camera model (" +
+              std::to_string(d.width) + "x" + std::to_string(d.height) + ")");
+  require(channels == 1 || channels == 3 || channels == 4, "channels must be 1, 3 or 4");
+  require(pixels.size() == static_cast<size_t>(width) * height * channels,
+          "pixel buffer has " + std::to_string(pixels.size()) + " bytes, expected " +
+              std::to_string(static_cast<size_t>(width) * height * channels));
+  require(std::isfinite(smooth_sigma) && smooth_sigma >= 0.0 && smooth_sigma <= 10.0,
+          "smoothing sigma must be in [0, 10] px");
+  cv::Mat m(height, width, CV_8UC(channels), const_cast<uint8_t *>(pixels.data()));
+  if (channels == 1)
+    m.copyTo(d.grey8);
+  else
+    cv::cvtColor(m, d.grey8, channels == 3 ? cv::COLOR_RGB2GRAY : cv::COLOR_RGBA2GRAY);
+  d.grey8.convertTo(d.smooth, CV_32F);
+  if (smooth_sigma > 0.0) cv::GaussianBlur(d.smooth, d.smooth, cv::Size(0, 0), smooth_sigma);
+  d.smooth.convertTo(d.smooth8, CV_8U);
+  d.loaded = true;
+}
+
+rust::Vec<double> markerless_ellipses(MarkerlessDetectorCpp &det, double min_axis_px, double max_axis_px,
+                                      int max_count) {
+  auto &d = *det.impl;
+  require(d.loaded, "no image loaded");
+  require(std::isfinite(min_axis_px) && std::isfinite(max_axis_px) && min_axis_px >= 2.0 &&
+              max_axis_px >= min_axis_px,
+          "semi-axis range must be finite, >= 2 px and ordered");
+  require(max_count >= 1 && max_count <= 100, "max_count must be in 1..=100");
+  cv::Mat edges;
+  cv::Canny(d.smooth8, edges, 20, 50, 3, true);
+  std::vector<std::vector<cv::Point>> contours;
+  cv::findContours(edges, contours, cv::RETR_LIST, cv::CHAIN_APPROX_NONE);
+  struct Cand {
+    cv::RotatedRect r;
+    double contrast;
+    size_t contour;
+  };
+  std::vector<Cand> cands;
+  std::vector<cv::Point2f> pts;
+  for (size_t ci = 0; ci < contours.size(); ++ci) {
+    const auto &c = contours[ci];
+    if (c.size() < 16 || c.size() > 20 * max_axis_px) continue;
+    pts.assign(c.begin(), c.end());
+    const cv::RotatedRect r = cv::fitEllipseAMS(pts);
+    const double a = 0.5 * std::max(r.size.width, r.size.height), b = 0.5 * std::min(r.size.width, r.size.height);
+    if (!(std::isfinite(a) && std::isfinite(b)) || a > max_axis_px || a < min_axis_px || b < 0.2 * a || b < 2.0)
+      continue;
+    double rms = 0;
+    int sectors = 0;
+    ellipse_fit_quality(r, pts, rms, sectors);
+    if (rms > 1.0 || sectors < 13) continue;
+    const double inside = mean_on_ellipse(d.smooth, r, 0.5), ring = mean_on_ellipse(d.smooth, r, 1.25);
+    if (!(ring - inside > 10.0)) continue;
+    cands.push_back({r, ring - inside, ci});
+  }
+  std::sort(cands.begin(), cands.end(), [](const Cand &x, const Cand &y) { return x.contrast > y.contrast; });
+  rust::Vec<double> out;
+  std::vector<cv::RotatedRect> kept;
+  std::vector<cv::Point2f> und;
+  for (const auto &c : cands) {
+    if (static_cast<int>(kept.size()) >= max_count) break;
+    // The two sides of one edge give near-identical ellipses: keep the first.
+    bool dup = false;
+    for (const auto &k : kept) {
+      const double s = std::min(k.size.width, k.size.height);
+      dup = dup || (cv::norm(k.center - c.r.center) < 0.2 * s &&
+                    std::abs(std::max(k.size.width, k.size.height) - std::max(c.r.size.width, c.r.size.height)) <
+                        0.15 * s);
+    }
+    if (dup) continue;
+    kept.push_back(c.r);
+    // The same fit in undistorted pixels.
+    pts.assign(contours[c.contour].begin(), contours[c.contour].end());
+    cv::undistortPoints(pts, und, d.K, d.dist, cv::noArray(), d.K,
+                        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-10));
+    const cv::RotatedRect u = cv::fitEllipseAMS(und);
+    double rms = 0;
+    int sectors = 0;
+    ellipse_fit_quality(u, und, rms, sectors);
+    double a = 0.5 * u.size.width, b = 0.5 * u.size.height, ang = u.angle * CV_PI / 180.0;
+    if (b > a) {
+      std::swap(a, b);
+      ang += 0.5 * CV_PI;
+    }
+    if (!(std::isfinite(a) && std::isfinite(b) && b > 0)) continue;
+    for (double v : {static_cast<double>(u.center.x), static_cast<double>(u.center.y), a, b, ang, c.contrast, rms})
+      out.push_back(v);
+  }
+  return out;
+}
+
+rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust::Slice<const double> points,
+                                          double range_px, int polarity, double min_strength) {
+  const auto &d = *det.impl;
+  require(d.loaded, "no image loaded");
+  require(points.size() % 4 == 0, "points must be 4 numbers each (x, y, nx, ny)");
+  require(points.size() <= 4 * 100000, "at most 100000 points");
+  require(all_finite(points), "points must be finite");
+  require(std::isfinite(range_px) && range_px >= 0.5 && range_px <= 50.0, "search range must be in [0.5, 50] px");
+  require(polarity >= -1 && polarity <= 1, "polarity must be -1, 0 or +1");
+  require(std::isfinite(min_strength) && min_strength >= 0.0, "minimum strength must be finite and >= 0");
+  const size_t n = points.size() / 4;
+  rust::Vec<double> out;
+  if (n == 0) return out;
+  // Each point and a step of about one pixel along its normal, through the distortion.
+  const double eps = 1.0 / d.K(0, 0);
+  std::vector<cv::Point3d> rays(2 * n);
+  for (size_t i = 0; i < n; ++i) {
+    const double x = points[4 * i], y = points[4 * i + 1], nx = points[4 * i + 2], ny = points[4 * i + 3];
+    const double nn = std::max(1e-12, std::hypot(nx, ny));
+    rays[2 * i] = {x, y, 1.0};
+    rays[2 * i + 1] = {x + eps * nx / nn, y + eps * ny / nn, 1.0};
+  }
+  std::vector<cv::Point2d> px;
+  cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), d.K, d.dist, px);
+  const double step = 0.5;
+  const int half = static_cast<int>(std::ceil(range_px / step)) + 1;
+  std::vector<double> g(2 * half + 1);
+  std::vector<cv::Point2d> found_px;
+  std::vector<size_t> found_idx;
+  std::vector<double> found_strength;
+  for (size_t i = 0; i < n; ++i) {
+    const cv::Point2d p = px[2 * i];
+    cv::Point2d u = px[2 * i + 1] - p;
+    const double len = cv::norm(u);
+    if (!(len > 1e-9)) continue;
+    u /= len;
+    bool inside = true;
+    for (int j = -half; j <= half && inside; ++j) {
+      const double s = j * step;
+      double lo = 0, hi = 0;
+      inside = bilinear(d.smooth, p.x + (s - 0.5) * u.x, p.y + (s - 0.5) * u.y, lo) &&
+               bilinear(d.smooth, p.x + (s + 0.5) * u.x, p.y + (s + 0.5) * u.y, hi);
+      g[j + half] = hi - lo;
+    }
+    if (!inside) continue;
+    int best = -1;
+    double best_v = min_strength;
+    for (int j = 1; j < 2 * half; ++j) {
+      const double v = polarity == 0 ? std::abs(g[j]) : polarity * g[j];
+      if (v > best_v) {
+        best_v = v;
+        best = j;
+      }
+    }
+    if (best < 0) continue;
+    const double gm = polarity == 0 ? std::abs(g[best - 1]) : polarity * g[best - 1];
+    const double g0 = best_v;
+    const double gp = polarity == 0 ? std::abs(g[best + 1]) : polarity * g[best + 1];
+    const double den = gm - 2 * g0 + gp;
+    const double delta = den < 0 ? std::max(-0.5, std::min(0.5, 0.5 * (gm - gp) / den)) : 0.0;
+    const double s = (best - half + delta) * step;
+    if (std::abs(s) > range_px) continue;
+    found_px.push_back(p + s * u);
+    found_idx.push_back(i);
+    found_strength.push_back(g[best]);
+  }
+  std::vector<cv::Point2d> norm;
+  if (!found_px.empty())
+    cv::undistortPoints(found_px, norm, d.K, d.dist, cv::noArray(), cv::noArray(),
+                        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-12));
+  out.reserve(4 * n);
+  for (size_t i = 0; i < 4 * n; ++i) out.push_back(0.0);
+  for (size_t k = 0; k < found_idx.size(); ++k) {
+    const size_t i = found_idx[k];
+    out[4 * i] = 1.0;
+    out[4 * i + 1] = norm[k].x;
+    out[4 * i + 2] = norm[k].y;
+    out[4 * i + 3] = found_strength[k];
+  }
+  return out;
+}
+
+}  // namespace trocar_docking

@@ -1,0 +1,65 @@
+//! The markerless case of the vision suite: the trocar's axis from 1280x720 frames rendered
+//! along the docking approach (camera_zedm, noise 2), timed per frame on one core, with the
+//! accuracy against the truth in `extra`.
+
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+use super::{time_each, LatencyStats, SuiteReport};
+use crate::vision::markerless::approach::docking_approach;
+use crate::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer};
+use crate::vision::{CameraModel, GreyImage, VisionError};
+
+/// Run the case: 12 frames from 0.4 to 0.1 m, `n` timed estimates (frames cycle).
+pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
+    let camera = CameraModel::from_yaml_str(include_str!("../../config/camera_zedm.yaml"))?;
+    let model = TrocarModel::shipped();
+    let renderer = TrocarRenderer::new(&camera)?;
+    // The mount of config/lbr_med_sim.yaml.
+    let mount = Isometry3::from_parts(
+        Translation3::new(0.001, 0.0695, 0.0405),
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 15.2f64.to_radians()),
+    );
+    let poses = docking_approach(&mount, 0.4, 0.1, 12, 17)?;
+    let frames: Vec<GreyImage> = poses
+        .iter()
+        .enumerate()
+        .map(|(k, p)| renderer.render(&model, p, &Scene::random(17_000 + k as u64, 2.0)))
+        .collect::<Result<_, _>>()?;
+    let mut est = MarkerlessEstimator::new(&camera, &model)?;
+    let (mut pos, mut ang, mut found) = (vec![], vec![], 0usize);
+    for (img, p) in frames.iter().zip(&poses) {
+        if let Some(e) = est.estimate(&img.view(), None)? {
+            found += 1;
+            pos.push((e.axis.point - p.translation.vector).norm() * 1e3);
+            ang.push(
+                e.axis
+                    .direction
+                    .dot(&(p.rotation * Vector3::z()))
+                    .clamp(-1.0, 1.0)
+                    .acos()
+                    .to_degrees(),
+            );
+        }
+    }
+    let idx: Vec<usize> = (0..n.clamp(1, 300)).map(|i| i % frames.len()).collect();
+    let t = time_each(&idx, 3, |&i| est.estimate(&frames[i].view(), None).map(|e| e.is_some()));
+    let Some(latency) = LatencyStats::from_samples(&t) else {
+        return Ok(vec![]);
+    };
+    pos.sort_by(f64::total_cmp);
+    ang.sort_by(f64::total_cmp);
+    let mut extra = serde_json::Map::new();
+    extra.insert("frames".into(), frames.len().into());
+    extra.insert("found".into(), found.into());
+    if !pos.is_empty() {
+        extra.insert("port_error_median_mm".into(), super::percentile(&pos, 0.5).into());
+        extra.insert("port_error_max_mm".into(), super::percentile(&pos, 1.0).into());
+        extra.insert("axis_error_median_deg".into(), super::percentile(&ang, 0.5).into());
+        extra.insert("axis_error_max_deg".into(), super::percentile(&ang, 1.0).into());
+    }
+    Ok(vec![SuiteReport {
+        name: "markerless_axis_zedm_1280x720".into(),
+        latency,
+        extra,
+    }])
+}

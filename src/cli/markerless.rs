@@ -1,0 +1,269 @@
+//! `trocar_docking render-trocar` and `trocar-pose`: the markerless synthetic camera (one
+//! image, or a sequence along a docking approach with its ground truth) and the markerless
+//! axis estimate on a folder of images.
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::{Isometry3, Unit, Vector3};
+
+use crate::vision::estimator::PoseYaml;
+use crate::vision::markerless::approach::docking_approach;
+use crate::vision::markerless::render::ToolCylinder;
+use crate::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer};
+use crate::vision::{CameraModel, GreyImage};
+
+/// Arguments of `render-trocar`.
+#[derive(Debug, clap::Args)]
+pub struct RenderTrocarArgs {
+    /// Camera calibration YAML (ROS camera_info_manager format).
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// Trocar model YAML.
+    #[arg(long, default_value = "config/trocar_model.yaml")]
+    pub model: PathBuf,
+    /// Port pose in the camera frame: x,y,z,qx,qy,qz,qw (z axis along the trocar, into the body).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub pose: Option<Vec<f64>>,
+    /// Output image; with --sequence, the output folder.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Seed of the lighting, the wall and the noise.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Gaussian pixel noise, grey levels.
+    #[arg(long, default_value_t = 2.0)]
+    pub noise: f64,
+    /// Motion blur: length px, direction deg.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub motion_blur: Option<Vec<f64>>,
+    /// A tool shaft in view: x0,y0,z0,x1,y1,z1,radius (camera frame, m).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub tool: Option<Vec<f64>>,
+    /// Leave the trocar out (wall, and the tool if any).
+    #[arg(long)]
+    pub no_trocar: bool,
+    /// Render this many frames along a docking approach into the folder --out, with truth.json.
+    #[arg(long)]
+    pub sequence: Option<usize>,
+    /// The camera mount (a lbr_med_sim parameter file: camera.flange_t_camera), for --sequence.
+    #[arg(long, default_value = "config/lbr_med_sim.yaml")]
+    pub mount: PathBuf,
+    /// Camera-to-port distances of the sequence, far,near (m).
+    #[arg(long, value_delimiter = ',', default_value = "0.4,0.1")]
+    pub range: Vec<f64>,
+}
+
+/// Arguments of `trocar-pose`.
+#[derive(Debug, clap::Args)]
+pub struct TrocarPoseArgs {
+    /// Camera calibration YAML (as `detect`).
+    #[arg(long)]
+    pub camera: PathBuf,
+    /// Trocar model YAML.
+    #[arg(long, default_value = "config/trocar_model.yaml")]
+    pub model: PathBuf,
+    /// Folder of images, taken in name order.
+    #[arg(long)]
+    pub images: PathBuf,
+    /// A prior port pose in the camera frame (x,y,z,qx,qy,qz,qw): its z axis picks between
+    /// the two poses an ellipse admits.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub init_pose: Option<Vec<f64>>,
+    /// One JSON object per image and line (else text).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// A pose from x,y,z,qx,qy,qz,qw.
+pub fn parse_pose(v: &[f64], what: &str) -> Result<Isometry3<f64>, String> {
+    if v.len() != 7 {
+        return Err(format!(
+            "{what} takes 7 comma-separated numbers x,y,z,qx,qy,qz,qw, got {}",
+            v.len()
+        ));
+    }
+    PoseYaml {
+        translation: [v[0], v[1], v[2]],
+        quaternion_xyzw: [v[3], v[4], v[5], v[6]],
+    }
+    .to_isometry()
+    .map_err(|e| format!("{what}: {e}"))
+}
+
+/// The camera mount `camera.flange_t_camera` of a lbr_med_sim parameter file.
+pub fn read_mount(path: &Path) -> Result<Isometry3<f64>, String> {
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
+    let v: serde_yaml::Value = serde_yaml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    let m = v
+        .get("camera")
+        .and_then(|c| c.get("flange_t_camera"))
+        .ok_or_else(|| format!("{}: no camera.flange_t_camera", path.display()))?;
+    let p: PoseYaml = serde_yaml::from_value(m.clone()).map_err(|e| format!("{}: {e}", path.display()))?;
+    p.to_isometry().map_err(|e| format!("{}: {e}", path.display()))
+}
+
+fn scene_of(a: &RenderTrocarArgs, seed: u64) -> Result<Scene, String> {
+    let mut s = Scene::random(seed, a.noise);
+    s.show_trocar = !a.no_trocar;
+    if let Some(mb) = &a.motion_blur {
+        if mb.len() != 2 {
+            return Err("--motion-blur takes length_px,angle_deg".into());
+        }
+        s.motion_blur_px = mb[0];
+        s.motion_blur_angle = mb[1].to_radians();
+    }
+    if let Some(t) = &a.tool {
+        if t.len() != 7 {
+            return Err("--tool takes x0,y0,z0,x1,y1,z1,radius".into());
+        }
+        s.tool = Some(ToolCylinder {
+            start: [t[0], t[1], t[2]],
+            end: [t[3], t[4], t[5]],
+            radius: t[6],
+        });
+    }
+    Ok(s)
+}
+
+/// The truth of one port pose: axis point and direction in the camera frame.
+fn truth_json(p: &Isometry3<f64>) -> serde_json::Value {
+    let y = PoseYaml::from_isometry(p);
+    let dir = p.rotation * Vector3::z();
+    serde_json::json!({
+        "camera_t_port": {"translation": y.translation, "quaternion_xyzw": y.quaternion_xyzw},
+        "axis_point": y.translation,
+        "axis_direction": [dir.x, dir.y, dir.z],
+    })
+}
+
+/// Run `render-trocar`.
+pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
+    let camera = CameraModel::from_yaml_file(&a.camera)?;
+    let model = TrocarModel::from_yaml_file(&a.model)?;
+    let renderer = TrocarRenderer::new(&camera)?;
+    if let Some(n) = a.sequence {
+        if a.range.len() != 2 {
+            return Err("--range takes far,near".into());
+        }
+        let mount = read_mount(&a.mount)?;
+        let poses = docking_approach(&mount, a.range[0], a.range[1], n, a.seed)?;
+        std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: {e}", a.out.display()))?;
+        let mut frames = vec![];
+        for (k, p) in poses.iter().enumerate() {
+            let seed = a.seed.wrapping_mul(1_000_003).wrapping_add(k as u64);
+            let scene = scene_of(a, seed)?;
+            let img = renderer.render(&model, p, &scene)?;
+            let name = format!("frame_{k:04}.png");
+            img.write(&a.out.join(&name))?;
+            let mut t = truth_json(p);
+            t["image"] = name.into();
+            t["distance_m"] = p.translation.vector.norm().into();
+            t["scene"] = serde_json::to_value(&scene)?;
+            frames.push(t);
+        }
+        let truth = serde_json::json!({"camera": a.camera, "model": model_json(&model), "frames": frames});
+        std::fs::write(a.out.join("truth.json"), serde_json::to_string_pretty(&truth)?)?;
+        println!("wrote {} frames and truth.json to {}", poses.len(), a.out.display());
+        return Ok(());
+    }
+    let pose = parse_pose(a.pose.as_deref().ok_or("--pose (or --sequence) is required")?, "--pose")?;
+    let scene = scene_of(a, a.seed)?;
+    let img = renderer.render(&model, &pose, &scene)?;
+    img.write(&a.out)?;
+    let mut t = truth_json(&pose);
+    t["image"] = a.out.display().to_string().into();
+    println!("{}", serde_json::to_string(&t)?);
+    Ok(())
+}
+
+fn model_json(m: &TrocarModel) -> serde_json::Value {
+    serde_json::to_value(m).unwrap_or_default()
+}
+
+/// Image files of a folder in name order.
+fn image_files(dir: &Path) -> Result<Vec<PathBuf>, String> {
+    let rd = std::fs::read_dir(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let mut v: Vec<PathBuf> = rd
+        .flatten()
+        .map(|e| e.path())
+        .filter(|p| {
+            p.extension().and_then(|x| x.to_str()).is_some_and(|x| {
+                matches!(
+                    x.to_ascii_lowercase().as_str(),
+                    "png" | "pgm" | "ppm" | "jpg" | "jpeg" | "bmp" | "tif" | "tiff"
+                )
+            })
+        })
+        .collect();
+    v.sort();
+    if v.is_empty() {
+        return Err(format!(
+            "{}: no image files (png, pgm, ppm, jpg, bmp, tif)",
+            dir.display()
+        ));
+    }
+    Ok(v)
+}
+
+/// Run `trocar-pose`.
+pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
+    let camera = CameraModel::from_yaml_file(&a.camera)?;
+    let model = TrocarModel::from_yaml_file(&a.model)?;
+    let prior: Option<Unit<Vector3<f64>>> = match &a.init_pose {
+        Some(v) => Some(Unit::new_normalize(
+            parse_pose(v, "--init-pose")?.rotation * Vector3::z(),
+        )),
+        None => None,
+    };
+    let files = image_files(&a.images)?;
+    let mut est = MarkerlessEstimator::new(&camera, &model)?;
+    let mut failures = 0usize;
+    for f in &files {
+        let name = f
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let t0 = std::time::Instant::now();
+        let result = GreyImage::read(f).and_then(|img| est.estimate(&img.view(), prior.as_ref()));
+        let ms = t0.elapsed().as_secs_f64() * 1e3;
+        let v = match result {
+            Ok(Some(e)) => serde_json::json!({
+                "image": name, "found": true,
+                "axis_point": [e.axis.point.x, e.axis.point.y, e.axis.point.z],
+                "axis_direction": [e.axis.direction.x, e.axis.direction.y, e.axis.direction.z],
+                "confidence": e.confidence, "ms": ms,
+                "fit_rms_px": e.fit_rms_px, "edge_support": e.edge_support,
+                "opening_support": e.opening_support, "ambiguity_margin": e.ambiguity_margin,
+            }),
+            Ok(None) => serde_json::json!({"image": name, "found": false, "confidence": 0.0, "ms": ms}),
+            Err(err) => {
+                failures += 1;
+                serde_json::json!({"image": name, "found": false, "error": err.to_string(), "ms": ms})
+            }
+        };
+        if a.json {
+            println!("{}", serde_json::to_string(&v)?);
+        } else if let Some(err) = v.get("error") {
+            println!("{name}: error: {}", err.as_str().unwrap_or_default());
+        } else if v["found"] == true {
+            let p = &v["axis_point"];
+            let d = &v["axis_direction"];
+            println!(
+                "{name}: port [m] {:+.4} {:+.4} {:+.4}  axis {:+.4} {:+.4} {:+.4}  confidence {:.2}  {ms:.1} ms",
+                p[0].as_f64().unwrap_or(f64::NAN),
+                p[1].as_f64().unwrap_or(f64::NAN),
+                p[2].as_f64().unwrap_or(f64::NAN),
+                d[0].as_f64().unwrap_or(f64::NAN),
+                d[1].as_f64().unwrap_or(f64::NAN),
+                d[2].as_f64().unwrap_or(f64::NAN),
+                v["confidence"].as_f64().unwrap_or(0.0)
+            );
+        } else {
+            println!("{name}: not found  {ms:.1} ms");
+        }
+    }
+    if failures > 0 {
+        return Err(format!("{failures} of {} images could not be read or used", files.len()).into());
+    }
+    Ok(())
+}

@@ -1,0 +1,426 @@
+//! The markerless estimator: the opening's ellipse (OpenCV, through the bridge), the two
+//! circle poses it admits, each refined on the image's edges (moving edges along the
+//! opening, the face's rim and the head's outline; robust Levenberg-Marquardt over the 5
+//! DOF), the better explained kept, and a confidence from the fit, the edge support and
+//! the ambiguity margin.
+
+use nalgebra::{Matrix5, Unit, Vector2, Vector3, Vector5};
+
+use super::geometry::{
+    basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
+};
+use super::model::TrocarModel;
+use crate::ffi::markerless::{ffi, EDGE_RECORD_LEN, ELLIPSE_RECORD_LEN};
+use crate::vision::{CameraModel, ImageView, VisionError};
+
+/// Confidence at or above which an estimate counts as "high confidence".
+pub const HIGH_CONFIDENCE: f64 = 0.5;
+
+/// Points sampled on the opening, the rim, and each head limb.
+const OPENING_POINTS: usize = 64;
+const RIM_POINTS: usize = 96;
+const LIMB_POINTS: usize = 10;
+const BOTTOM_POINTS: usize = 64;
+
+/// The parts of the model an edge point belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Part {
+    Opening,
+    Rim,
+    Limb(usize),
+    /// The visible half of the head's bottom rim (the outline's near side).
+    Bottom,
+}
+
+/// One estimate of the trocar's axis.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct MarkerlessEstimate {
+    /// The axis (port centre and direction into the body), camera frame.
+    #[serde(skip)]
+    pub axis: Axis,
+    /// Confidence in [0, 1]: edge support x fit quality x ambiguity.
+    pub confidence: f64,
+    /// RMS distance of the opening's edge points to the fitted model, px.
+    pub fit_rms_px: f64,
+    /// Fraction of the model's edge samples (opening, rim, head outline) found on the image.
+    pub edge_support: f64,
+    /// Fraction of the opening's samples found.
+    pub opening_support: f64,
+    /// How much better the chosen circle pose explains the image than the other (score
+    /// difference / 0.25, clamped to 0-1), or 1 when the two were within 3 deg of each other.
+    pub ambiguity_margin: f64,
+}
+
+/// The estimator for one camera and one trocar model.
+pub struct MarkerlessEstimator {
+    det: cxx::UniquePtr<ffi::MarkerlessDetectorCpp>,
+    camera: CameraModel,
+    model: TrocarModel,
+}
+
+/// One pose hypothesis and how well the image supports it.
+#[derive(Debug, Clone, Copy)]
+struct Hypothesis {
+    axis: Axis,
+    score: f64,
+    rms_px: f64,
+    support: f64,
+    opening_support: f64,
+}
+
+impl MarkerlessEstimator {
+    /// An estimator for `camera` and `model`.
+    pub fn new(camera: &CameraModel, model: &TrocarModel) -> Result<Self, VisionError> {
+        camera.validate()?;
+        model.validate()?;
+        let det = ffi::new_markerless_detector(
+            &camera.intrinsics(),
+            &camera.distortion,
+            camera.width as i32,
+            camera.height as i32,
+        )?;
+        Ok(Self {
+            det,
+            camera: camera.clone(),
+            model: *model,
+        })
+    }
+
+    /// The axis of the trocar in `image`, or `None` when no opening is found well enough.
+    /// `prior`: an axis direction the estimate should be near (resolves the ambiguity).
+    pub fn estimate(
+        &mut self,
+        image: &ImageView,
+        prior: Option<&Unit<Vector3<f64>>>,
+    ) -> Result<Option<MarkerlessEstimate>, VisionError> {
+        image.validate()?;
+        if image.width != self.camera.width || image.height != self.camera.height {
+            return Err(VisionError::InvalidInput(format!(
+                "image {}x{} does not match the camera ({}x{})",
+                image.width, image.height, self.camera.width, self.camera.height
+            )));
+        }
+        ffi::markerless_load(
+            self.det.pin_mut(),
+            image.data,
+            image.width as i32,
+            image.height as i32,
+            image.channels as i32,
+            1.0,
+        )?;
+        // The opening's semi-axis between 0.05 and 1.5 m away.
+        let f = self.camera.fx.max(self.camera.fy);
+        let r = self.model.opening.radius;
+        let (lo, hi) = ((self.camera.fx.min(self.camera.fy) * r / 1.5).max(3.0), f * r / 0.05);
+        let cands = ffi::markerless_ellipses(self.det.pin_mut(), lo, hi.max(lo), 6)?;
+        let mut best: Option<MarkerlessEstimate> = None;
+        for rec in cands.chunks_exact(ELLIPSE_RECORD_LEN) {
+            let conic = ellipse_conic([rec[0], rec[1]], rec[2], rec[3], rec[4], self.camera.intrinsics());
+            let Some(sols) = circle_poses(&conic, r) else { continue };
+            // Solutions within 3 deg of each other from the start: the ambiguity is harmless.
+            let harmless = sols[0].angle_to(&sols[1]) < 3f64.to_radians();
+            let mut hyps: Vec<Hypothesis> = vec![];
+            for s in sols {
+                if let Some(h) = self.refine(s)? {
+                    hyps.push(h);
+                }
+            }
+            let Some(e) = self.decide(&hyps, prior, harmless) else {
+                continue;
+            };
+            if best.as_ref().is_none_or(|b| e.edge_support > b.edge_support) {
+                best = Some(e);
+            }
+        }
+        Ok(best)
+    }
+
+    /// Pick the better hypothesis (by the prior when given, else by score) and grade it.
+    /// `harmless`: the two circle poses were within 3 deg of each other before refinement.
+    fn decide(
+        &self,
+        hyps: &[Hypothesis],
+        prior: Option<&Unit<Vector3<f64>>>,
+        harmless: bool,
+    ) -> Option<MarkerlessEstimate> {
+        let mut sorted: Vec<Hypothesis> = hyps.to_vec();
+        match prior {
+            Some(p) => sorted.sort_by(|a, b| a.axis.direction.dot(p).total_cmp(&b.axis.direction.dot(p)).reverse()),
+            None => sorted.sort_by(|a, b| b.score.total_cmp(&a.score)),
+        }
+        let h = *sorted.first()?;
+        let margin = match sorted.get(1) {
+            _ if harmless => 1.0,
+            Some(o) => match prior {
+                Some(p) => {
+                    let (ab, ao) = (h.axis.direction.angle(p), o.axis.direction.angle(p));
+                    ((ao - ab) / 10f64.to_radians()).clamp(0.0, 1.0)
+                }
+                None => ((h.score - o.score) / 0.25).clamp(0.0, 1.0),
+            },
+            // The other pose found no opening on refinement: nothing to tell them apart by.
+            None => 0.5,
+        };
+        let fit = 1.0 / (1.0 + (h.rms_px / 0.6).powi(2));
+        let confidence = (h.support * fit * margin).clamp(0.0, 1.0);
+        Some(MarkerlessEstimate {
+            axis: h.axis,
+            confidence,
+            fit_rms_px: h.rms_px,
+            edge_support: h.support,
+            opening_support: h.opening_support,
+            ambiguity_margin: margin,
+        })
+    }
+
+    /// Model edge samples of `axis`: point, normal (normalised coordinates), part, polarity.
+    fn samples(&self, axis: &Axis) -> Vec<(Vector2<f64>, Vector2<f64>, Part, i32)> {
+        let mut out = Vec::with_capacity(OPENING_POINTS + RIM_POINTS + 2 * LIMB_POINTS);
+        let (u, v) = basis(&axis.direction);
+        for (part, radius, n, pol) in [
+            (Part::Opening, self.model.opening.radius, OPENING_POINTS, 1),
+            (Part::Rim, self.model.head.radius, RIM_POINTS, 0),
+        ] {
+            let Some(c) = circle_conic(&axis.point, &axis.direction, radius) else {
+                continue;
+            };
+            for k in 0..n {
+                let phi = std::f64::consts::TAU * k as f64 / n as f64;
+                if let Some(p) = project(&(axis.point + radius * (phi.cos() * u + phi.sin() * v))) {
+                    out.push((p, conic_normal(&c, &p), part, pol));
+                }
+            }
+        }
+        let h = self.model.head.height;
+        let rh = self.model.head.radius;
+        let bottom_centre = axis.at(h);
+        if let Some(c) = circle_conic(&bottom_centre, &axis.direction, rh) {
+            for k in 0..BOTTOM_POINTS {
+                let phi = std::f64::consts::TAU * k as f64 / BOTTOM_POINTS as f64;
+                let w = phi.cos() * u + phi.sin() * v;
+                let q = bottom_centre + rh * w;
+                // Visible where the side faces the camera, away from the tangent points.
+                if w.dot(&(-q)) > 0.2 * q.norm() * (1.0 - axis.direction.dot(&q.normalize()).powi(2)).sqrt() {
+                    if let Some(p) = project(&q) {
+                        out.push((p, conic_normal(&c, &p), Part::Bottom, 0));
+                    }
+                }
+            }
+        }
+        if let Some(limbs) = cylinder_limbs(axis, rh, 0.15 * h, 0.85 * h) {
+            for (i, [a, b]) in limbs.iter().enumerate() {
+                let (Some(pa), Some(pb)) = (project(a), project(b)) else {
+                    continue;
+                };
+                let dir = pb - pa;
+                if dir.norm() < 1e-9 {
+                    continue;
+                }
+                let n = Vector2::new(-dir.y, dir.x).normalize();
+                for k in 0..LIMB_POINTS {
+                    let t = (k as f64 + 0.5) / LIMB_POINTS as f64;
+                    out.push((pa + t * dir, n, Part::Limb(i), 0));
+                }
+            }
+        }
+        out
+    }
+
+    /// Search the image for the edges of `samples` (within `range_px`).
+    fn search(
+        &self,
+        samples: &[(Vector2<f64>, Vector2<f64>, Part, i32)],
+        range_px: f64,
+    ) -> Result<Vec<Option<Vector2<f64>>>, VisionError> {
+        let mut found = vec![None; samples.len()];
+        for pol in [-1, 0, 1] {
+            let idx: Vec<usize> = (0..samples.len()).filter(|&i| samples[i].3 == pol).collect();
+            if idx.is_empty() {
+                continue;
+            }
+            let pts: Vec<f64> = idx
+                .iter()
+                .flat_map(|&i| {
+                    let (p, n, _, _) = samples[i];
+                    [p.x, p.y, n.x, n.y]
+                })
+                .collect();
+            let out = ffi::markerless_search_edges(&self.det, &pts, range_px, pol, 4.0)?;
+            for (k, rec) in out.chunks_exact(EDGE_RECORD_LEN).enumerate() {
+                if rec[0] > 0.5 {
+                    found[idx[k]] = Some(Vector2::new(rec[1], rec[2]));
+                }
+            }
+        }
+        Ok(found)
+    }
+
+    /// Refine one circle pose on the image's edges; `None` when the opening is not there.
+    fn refine(&self, start: Axis) -> Result<Option<Hypothesis>, VisionError> {
+        let mut axis = start;
+        let mut matched: Vec<(Vector2<f64>, Part)> = vec![];
+        for range in [3.0, 2.0, 1.5] {
+            let samples = self.samples(&axis);
+            let found = self.search(&samples, range)?;
+            matched = samples
+                .iter()
+                .zip(&found)
+                .filter_map(|(s, f)| f.map(|p| (p, s.2)))
+                // The outline's edges decide between the hypotheses; near the rim's tangent
+                // points they lie within a few pixels of the face's edge, so the fit leaves them out.
+                .filter(|(_, part)| matches!(part, Part::Opening | Part::Rim))
+                .collect();
+            let n_open = matched.iter().filter(|m| m.1 == Part::Opening).count();
+            if n_open < OPENING_POINTS / 3 {
+                return Ok(None);
+            }
+            axis = self.fit(axis, &matched);
+        }
+        // Grade: the samples of the final pose, found within 1 px of the model.
+        let samples = self.samples(&axis);
+        let found = self.search(&samples, 1.0)?;
+        let f = self.camera.fx;
+        let mut counts = [0usize; 4];
+        let mut totals = [0usize; 4];
+        let mut sq = 0.0;
+        let mut n_open = 0;
+        for (s, p) in samples.iter().zip(&found) {
+            let k = match s.2 {
+                Part::Opening => 0,
+                Part::Rim => 1,
+                Part::Limb(_) => 2,
+                Part::Bottom => 3,
+            };
+            totals[k] += 1;
+            if let Some(p) = p {
+                let res = self.residual(&axis, p, s.2).unwrap_or(f64::INFINITY) * f;
+                if res.abs() <= 1.0 {
+                    counts[k] += 1;
+                }
+                if k == 0 && res.is_finite() {
+                    sq += res * res;
+                    n_open += 1;
+                }
+            }
+        }
+        let frac = |k: usize| counts[k] as f64 / totals[k].max(1) as f64;
+        let support = 0.4 * frac(0) + 0.2 * frac(1) + 0.2 * frac(2) + 0.2 * frac(3);
+        let rms = if n_open > 0 {
+            (sq / n_open as f64).sqrt()
+        } else {
+            f64::INFINITY
+        };
+        let z = axis.point.z;
+        if !(0.03..=2.0).contains(&z) {
+            return Ok(None);
+        }
+        Ok(Some(Hypothesis {
+            axis,
+            score: support,
+            rms_px: rms,
+            support,
+            opening_support: frac(0),
+        }))
+    }
+
+    /// Distance (normalised units) of an edge point to its model part at `axis`.
+    fn residual(&self, axis: &Axis, p: &Vector2<f64>, part: Part) -> Option<f64> {
+        match part {
+            Part::Opening | Part::Rim => {
+                let r = if part == Part::Opening {
+                    self.model.opening.radius
+                } else {
+                    self.model.head.radius
+                };
+                Some(conic_distance(&circle_conic(&axis.point, &axis.direction, r)?, p))
+            }
+            Part::Bottom => Some(conic_distance(
+                &circle_conic(
+                    &axis.at(self.model.head.height),
+                    &axis.direction,
+                    self.model.head.radius,
+                )?,
+                p,
+            )),
+            Part::Limb(i) => {
+                let h = self.model.head.height;
+                let limbs = cylinder_limbs(axis, self.model.head.radius, 0.0, h)?;
+                let [a, b] = limbs[i];
+                let (pa, pb) = (project(&a)?, project(&b)?);
+                let l = Vector3::new(pa.x, pa.y, 1.0).cross(&Vector3::new(pb.x, pb.y, 1.0));
+                let norm = (l.x * l.x + l.y * l.y).sqrt();
+                (norm > 1e-15).then(|| l.dot(&Vector3::new(p.x, p.y, 1.0)) / norm)
+            }
+        }
+    }
+
+    /// The axis moved by the 5 parameters: centre offset (3) and a tilt of the direction (2).
+    fn perturb(axis: &Axis, d: &Vector5<f64>) -> Axis {
+        let (u, v) = basis(&axis.direction);
+        Axis {
+            point: axis.point + Vector3::new(d[0], d[1], d[2]),
+            direction: Unit::new_normalize(axis.direction.into_inner() + d[3] * u + d[4] * v),
+        }
+    }
+
+    /// Robust Levenberg-Marquardt (Cauchy weights, 1 px scale) of the axis on the matched
+    /// edge points.
+    fn fit(&self, start: Axis, matched: &[(Vector2<f64>, Part)]) -> Axis {
+        let f = self.camera.fx;
+        let residuals = |a: &Axis| -> Vec<f64> {
+            matched
+                .iter()
+                .map(|(p, part)| self.residual(a, p, *part).map_or(0.0, |r| r * f))
+                .collect()
+        };
+        let cost = |r: &[f64]| r.iter().map(|x| (1.0 + x * x).ln()).sum::<f64>();
+        let mut axis = start;
+        let mut r = residuals(&axis);
+        let mut c = cost(&r);
+        let mut lambda = 1e-3;
+        let steps = [1e-6, 1e-6, 1e-6, 1e-6, 1e-6];
+        for _ in 0..10 {
+            let cols: Vec<Vec<f64>> = (0..5)
+                .map(|j| {
+                    let mut d = Vector5::zeros();
+                    d[j] = steps[j];
+                    let rj = residuals(&Self::perturb(&axis, &d));
+                    rj.iter().zip(&r).map(|(a, b)| (a - b) / steps[j]).collect()
+                })
+                .collect();
+            let mut jtj = Matrix5::zeros();
+            let mut jtr = Vector5::zeros();
+            for (i, ri) in r.iter().enumerate() {
+                let w = 1.0 / (1.0 + ri * ri);
+                let row = Vector5::from_fn(|j, _| cols[j][i]);
+                jtj += w * row * row.transpose();
+                jtr += w * *ri * row;
+            }
+            let mut improved = false;
+            for _ in 0..6 {
+                let mut a = jtj;
+                for j in 0..5 {
+                    a[(j, j)] *= 1.0 + lambda;
+                    a[(j, j)] += 1e-12;
+                }
+                let Some(delta) = a.lu().solve(&(-jtr)) else { break };
+                let cand = Self::perturb(&axis, &delta);
+                let rc = residuals(&cand);
+                let cc = cost(&rc);
+                if cc < c {
+                    axis = cand;
+                    r = rc;
+                    c = cc;
+                    lambda = (lambda * 0.3).max(1e-9);
+                    improved = true;
+                    break;
+                }
+                lambda *= 10.0;
+            }
+            if !improved {
+                break;
+            }
+        }
+        axis
+    }
+}

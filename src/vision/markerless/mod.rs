@@ -1,0 +1,14 @@
+//! Markerless trocar pose: the trocar's axis (5 DOF: the port centre and the axis
+//! direction; roll does not matter) from one image, from the shape in
+//! `config/trocar_model.yaml` alone. See docs/markerless.md.
+
+pub mod approach;
+pub mod estimator;
+pub mod geometry;
+pub mod model;
+pub mod render;
+
+pub use estimator::{MarkerlessEstimate, MarkerlessEstimator, HIGH_CONFIDENCE};
+pub use geometry::Axis;
+pub use model::TrocarModel;
+pub use render::{Scene, TrocarRenderer};

@@ -1,0 +1,586 @@
+//! The markerless synthetic camera: a small ray caster of the trocar (shaded head and
+//! cannula, the dark opening) in front of an abdominal wall, through the pinhole model and
+//! distortion of a [`CameraModel`], with per-image lighting, blur, motion blur and pixel
+//! noise; optionally a second cylinder (a tool) and no trocar at all. Edge pixels are
+//! supersampled 4 x 4 (area coverage), so edges carry sub-pixel information.
+
+use nalgebra::{Isometry3, Point3, Vector3};
+use rand::{RngExt, SeedableRng};
+use rayon::prelude::*;
+
+use super::model::TrocarModel;
+use crate::vision::render::add_gaussian_noise;
+use crate::vision::{CameraModel, GreyImage, VisionError};
+
+/// Lighting of one image: a point light (camera frame) plus ambient light.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Lighting {
+    /// Ambient term.
+    pub ambient: f64,
+    /// Diffuse gain of the point light.
+    pub diffuse: f64,
+    /// Specular gain.
+    pub specular: f64,
+    /// Point light position in the camera frame, m.
+    pub light_position: [f64; 3],
+    /// Exposure: grey level = 255 x exposure x radiance.
+    pub exposure: f64,
+}
+
+/// A second cylinder in view (a tool shaft), camera frame.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ToolCylinder {
+    /// One end, m.
+    pub start: [f64; 3],
+    /// The other end, m.
+    pub end: [f64; 3],
+    /// Radius, m.
+    pub radius: f64,
+}
+
+/// What one image shows besides the trocar's pose.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Scene {
+    /// Draw the trocar (false: wall only, and the tool if any).
+    pub show_trocar: bool,
+    /// Lighting.
+    pub lighting: Lighting,
+    /// Albedo of the head and the cannula.
+    pub trocar_albedo: f64,
+    /// Albedo of the opening (the funnel and the seal seen through it).
+    pub opening_albedo: f64,
+    /// Albedo of the abdominal wall (textured).
+    pub wall_albedo: f64,
+    /// Depth of the wall surface below the top face along the axis, m.
+    pub wall_depth: f64,
+    /// Tilt of the wall's normal from the trocar axis, rad (about the port frame's x axis).
+    pub wall_tilt: f64,
+    /// Gaussian blur (optics), px.
+    pub blur_sigma: f64,
+    /// Motion blur: length, px.
+    pub motion_blur_px: f64,
+    /// Motion blur: direction, rad.
+    pub motion_blur_angle: f64,
+    /// Gaussian pixel noise, grey levels.
+    pub noise_sigma: f64,
+    /// A tool in view.
+    pub tool: Option<ToolCylinder>,
+    /// Seed of the wall texture and the noise.
+    pub seed: u64,
+}
+
+impl Scene {
+    /// A scene with lighting, materials and wall drawn at random from `seed` (the lighting
+    /// varies per image: ambient 0.1-0.4, light 0.2-0.5 m from the camera, exposure
+    /// 0.7-1.3), noise `noise_sigma` grey levels, blur 0.6 px.
+    pub fn random(seed: u64, noise_sigma: f64) -> Self {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed.wrapping_mul(0x2545_f491_4f6c_dd1d));
+        let lr = rng.random_range(0.2..0.5);
+        let la: f64 = rng.random_range(0.0..std::f64::consts::TAU);
+        Self {
+            show_trocar: true,
+            lighting: Lighting {
+                ambient: rng.random_range(0.1..0.4),
+                diffuse: rng.random_range(0.5..0.9),
+                specular: rng.random_range(0.0..0.25),
+                light_position: [lr * la.cos(), lr * la.sin(), rng.random_range(-0.1..0.1)],
+                exposure: rng.random_range(0.7..1.3),
+            },
+            trocar_albedo: rng.random_range(0.5..0.85),
+            opening_albedo: rng.random_range(0.03..0.12),
+            wall_albedo: rng.random_range(0.3..0.6),
+            wall_depth: 0.0,
+            wall_tilt: rng.random_range(-0.35..0.35),
+            blur_sigma: 0.6,
+            motion_blur_px: 0.0,
+            motion_blur_angle: 0.0,
+            noise_sigma,
+            tool: None,
+            seed,
+        }
+    }
+}
+
+/// Surfaces a ray can hit (the renderer supersamples where neighbours differ).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Surface {
+    Nothing,
+    Face,
+    Opening,
+    HeadSide,
+    HeadBottom,
+    Cannula,
+    Wall,
+    Tool,
+}
+
+/// The ray caster for one camera: the viewing ray of every pixel corner, computed once.
+#[derive(Debug, Clone)]
+pub struct TrocarRenderer {
+    camera: CameraModel,
+    /// Normalised (undistorted) coordinates of the pixel corners, (width+1) x (height+1).
+    corners: Vec<[f64; 2]>,
+}
+
+impl TrocarRenderer {
+    /// A renderer for `camera` (distortion: 0, 4, 5 or 8 coefficients).
+    pub fn new(camera: &CameraModel) -> Result<Self, VisionError> {
+        camera.validate()?;
+        if !matches!(camera.distortion.len(), 0 | 4 | 5 | 8) {
+            return Err(VisionError::InvalidInput(
+                "the markerless renderer supports 0, 4, 5 or 8 distortion coefficients".into(),
+            ));
+        }
+        let (w, h) = (camera.width as usize + 1, camera.height as usize + 1);
+        let corners = (0..w * h)
+            .into_par_iter()
+            .map(|i| {
+                let (u, v) = ((i % w) as f64 - 0.5, (i / w) as f64 - 0.5);
+                undistort(camera, (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy)
+            })
+            .collect();
+        Ok(Self {
+            camera: camera.clone(),
+            corners,
+        })
+    }
+
+    /// The camera.
+    pub fn camera(&self) -> &CameraModel {
+        &self.camera
+    }
+
+    /// Render the trocar of `model` at `camera_t_port` (port frame: origin at the opening's
+    /// centre, z along the axis into the body) in `scene`.
+    pub fn render(
+        &self,
+        model: &TrocarModel,
+        camera_t_port: &Isometry3<f64>,
+        scene: &Scene,
+    ) -> Result<GreyImage, VisionError> {
+        model.validate()?;
+        check_scene(scene)?;
+        let t = camera_t_port.translation.vector;
+        if !(t.iter().all(|v| v.is_finite()) && camera_t_port.rotation.coords.iter().all(|v| v.is_finite())) {
+            return Err(VisionError::InvalidInput("pose must be finite".into()));
+        }
+        let port_in_front = camera_t_port.inverse().transform_point(&Point3::origin()).z < -1e-3;
+        if scene.show_trocar && !port_in_front {
+            return Err(VisionError::InvalidInput(
+                "the camera must be above the trocar's top face (port frame z < 0)".into(),
+            ));
+        }
+        let caster = Caster::new(model, camera_t_port, scene);
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let mut radiance: Vec<f32> = vec![0.0; w * h];
+        radiance.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+            for (x, out) in row.iter_mut().enumerate() {
+                *out = self.pixel(&caster, x, y) as f32;
+            }
+        });
+        if scene.blur_sigma > 0.0 {
+            gaussian_blur(&mut radiance, w, h, scene.blur_sigma);
+        }
+        if scene.motion_blur_px > 0.0 {
+            radiance = motion_blur(&radiance, w, h, scene.motion_blur_px, scene.motion_blur_angle);
+        }
+        let gain = 255.0 * scene.lighting.exposure;
+        let mut data: Vec<u8> = radiance
+            .iter()
+            .map(|r| (f64::from(*r) * gain).round().clamp(0.0, 255.0) as u8)
+            .collect();
+        if scene.noise_sigma > 0.0 {
+            add_gaussian_noise(&mut data, scene.noise_sigma, scene.seed);
+        }
+        Ok(GreyImage {
+            data,
+            width: self.camera.width,
+            height: self.camera.height,
+        })
+    }
+
+    /// Radiance of pixel (x, y): one ray when its four corners hit the same surface, else
+    /// the mean of 4 x 4.
+    fn pixel(&self, caster: &Caster, x: usize, y: usize) -> f64 {
+        let w = self.camera.width as usize + 1;
+        let c = [
+            self.corners[y * w + x],
+            self.corners[y * w + x + 1],
+            self.corners[(y + 1) * w + x],
+            self.corners[(y + 1) * w + x + 1],
+        ];
+        let at = |fx: f64, fy: f64| {
+            let top = [c[0][0] + fx * (c[1][0] - c[0][0]), c[0][1] + fx * (c[1][1] - c[0][1])];
+            let bot = [c[2][0] + fx * (c[3][0] - c[2][0]), c[2][1] + fx * (c[3][1] - c[2][1])];
+            Vector3::new(top[0] + fy * (bot[0] - top[0]), top[1] + fy * (bot[1] - top[1]), 1.0)
+        };
+        let ids = [at(0.0, 0.0), at(1.0, 0.0), at(0.0, 1.0), at(1.0, 1.0)].map(|d| caster.trace(&d).0);
+        if ids.iter().all(|s| *s == ids[0]) {
+            return caster.trace(&at(0.5, 0.5)).1;
+        }
+        let mut sum = 0.0;
+        for j in 0..4 {
+            for i in 0..4 {
+                sum += caster.trace(&at((i as f64 + 0.5) / 4.0, (j as f64 + 0.5) / 4.0)).1;
+            }
+        }
+        sum / 16.0
+    }
+}
+
+fn check_scene(s: &Scene) -> Result<(), VisionError> {
+    use crate::validate::{in_range, non_negative};
+    let l = &s.lighting;
+    for (k, v) in [("ambient", l.ambient), ("diffuse", l.diffuse), ("specular", l.specular)] {
+        in_range(k, v, 0.0, 10.0)?;
+    }
+    in_range("exposure", l.exposure, 0.0, 100.0)?;
+    if l.light_position.iter().any(|v| !v.is_finite()) {
+        return Err(VisionError::InvalidInput("light position must be finite".into()));
+    }
+    for (k, v) in [
+        ("trocar_albedo", s.trocar_albedo),
+        ("opening_albedo", s.opening_albedo),
+        ("wall_albedo", s.wall_albedo),
+    ] {
+        in_range(k, v, 0.0, 1.0)?;
+    }
+    non_negative("wall_depth", s.wall_depth)?;
+    in_range("wall_tilt", s.wall_tilt, -1.4, 1.4)?;
+    in_range("blur_sigma", s.blur_sigma, 0.0, 20.0)?;
+    in_range("motion_blur_px", s.motion_blur_px, 0.0, 100.0)?;
+    in_range("noise_sigma", s.noise_sigma, 0.0, 100.0)?;
+    if !s.motion_blur_angle.is_finite() {
+        return Err(VisionError::InvalidInput("motion_blur_angle must be finite".into()));
+    }
+    if let Some(t) = &s.tool {
+        crate::validate::positive_at_most("tool radius", t.radius, 0.1)?;
+        if t.start.iter().chain(t.end.iter()).any(|v| !v.is_finite()) || t.start == t.end {
+            return Err(VisionError::InvalidInput(
+                "tool ends must be finite and distinct".into(),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The scene in the port frame, ready to trace camera rays.
+struct Caster {
+    /// Camera centre in the port frame.
+    origin: Vector3<f64>,
+    /// Port-from-camera rotation.
+    rot: nalgebra::Rotation3<f64>,
+    model: TrocarModel,
+    show_trocar: bool,
+    light: Vector3<f64>,
+    lighting: Lighting,
+    albedo: [f64; 3],
+    wall_point: Vector3<f64>,
+    wall_normal: Vector3<f64>,
+    wall_u: Vector3<f64>,
+    tool: Option<(Vector3<f64>, Vector3<f64>, f64)>,
+    seed: u64,
+}
+
+impl Caster {
+    fn new(model: &TrocarModel, camera_t_port: &Isometry3<f64>, scene: &Scene) -> Self {
+        let port_t_camera = camera_t_port.inverse();
+        let rot = port_t_camera.rotation.to_rotation_matrix();
+        let lp = scene.lighting.light_position;
+        let wall_depth = if scene.wall_depth > 0.0 {
+            scene.wall_depth
+        } else {
+            model.head.height + 0.015
+        };
+        let wall_normal = Vector3::new(0.0, scene.wall_tilt.sin(), -scene.wall_tilt.cos());
+        let tool = scene.tool.map(|t| {
+            let a = port_t_camera
+                .transform_point(&Point3::from(Vector3::from(t.start)))
+                .coords;
+            let b = port_t_camera
+                .transform_point(&Point3::from(Vector3::from(t.end)))
+                .coords;
+            (a, b, t.radius)
+        });
+        Self {
+            origin: port_t_camera.translation.vector,
+            rot,
+            model: *model,
+            show_trocar: scene.show_trocar,
+            light: port_t_camera.transform_point(&Point3::from(Vector3::from(lp))).coords,
+            lighting: scene.lighting,
+            albedo: [scene.trocar_albedo, scene.opening_albedo, scene.wall_albedo],
+            wall_point: Vector3::new(0.0, 0.0, wall_depth),
+            wall_normal,
+            wall_u: Vector3::x(),
+            tool,
+            seed: scene.seed,
+        }
+    }
+
+    /// The surface hit by the camera ray `dir` (camera frame) and its radiance.
+    fn trace(&self, dir: &Vector3<f64>) -> (Surface, f64) {
+        let d = self.rot * dir.normalize();
+        let o = self.origin;
+        let mut best = (f64::INFINITY, Surface::Nothing, Vector3::zeros());
+        let mut consider = |t: f64, s: Surface, n: Vector3<f64>| {
+            if t > 1e-6 && t < best.0 {
+                best = (t, s, n);
+            }
+        };
+        if self.show_trocar {
+            let m = &self.model;
+            if d.z.abs() > 1e-12 {
+                let t = -o.z / d.z;
+                let p = o + t * d;
+                let r2 = p.x * p.x + p.y * p.y;
+                if r2 <= m.head.radius * m.head.radius {
+                    let s = if r2 < m.opening.radius * m.opening.radius {
+                        Surface::Opening
+                    } else {
+                        Surface::Face
+                    };
+                    consider(t, s, -Vector3::z());
+                }
+                let t = (m.head.height - o.z) / d.z;
+                let p = o + t * d;
+                let r2 = p.x * p.x + p.y * p.y;
+                if r2 <= m.head.radius * m.head.radius && r2 >= m.cannula.radius * m.cannula.radius {
+                    consider(t, Surface::HeadBottom, Vector3::z());
+                }
+            }
+            if let Some((t, n)) = z_cylinder(&o, &d, m.head.radius, 0.0, m.head.height) {
+                consider(t, Surface::HeadSide, n);
+            }
+            let end = m.head.height + m.cannula.length;
+            if let Some((t, n)) = z_cylinder(&o, &d, m.cannula.radius, m.head.height, end) {
+                consider(t, Surface::Cannula, n);
+            }
+        }
+        let den = self.wall_normal.dot(&d);
+        if den.abs() > 1e-12 {
+            consider(
+                self.wall_normal.dot(&(self.wall_point - o)) / den,
+                Surface::Wall,
+                self.wall_normal,
+            );
+        }
+        if let Some((a, b, r)) = &self.tool {
+            if let Some((t, n)) = cylinder(&o, &d, a, b, *r) {
+                consider(t, Surface::Tool, n);
+            }
+        }
+        let (t, s, n) = best;
+        if s == Surface::Nothing {
+            return (s, 0.0);
+        }
+        let p = o + t * d;
+        let (albedo, shiny) = match s {
+            Surface::Opening => (self.albedo[1], false),
+            Surface::Wall => (self.albedo[2] * self.wall_texture(&p), false),
+            Surface::Tool => (0.55, true),
+            _ => (self.albedo[0], true),
+        };
+        (s, self.shade(&p, &n, &d, albedo, shiny))
+    }
+
+    fn shade(&self, p: &Vector3<f64>, n: &Vector3<f64>, d: &Vector3<f64>, albedo: f64, shiny: bool) -> f64 {
+        let n = if n.dot(d) > 0.0 { -n } else { *n };
+        let to_light = (self.light - p).normalize();
+        let lambert = n.dot(&to_light).max(0.0);
+        let mut v = albedo * (self.lighting.ambient + self.lighting.diffuse * lambert);
+        if shiny && self.lighting.specular > 0.0 {
+            let half = (to_light - d).normalize();
+            v += self.lighting.specular * n.dot(&half).max(0.0).powi(30);
+        }
+        v
+    }
+
+    /// A smooth texture of the wall, 0.75-1.25, from value noise at 4 and 15 mm.
+    fn wall_texture(&self, p: &Vector3<f64>) -> f64 {
+        let u = p.dot(&self.wall_u);
+        let v = p.dot(&self.wall_normal.cross(&self.wall_u));
+        1.0 + 0.15 * value_noise(u / 0.015, v / 0.015, self.seed)
+            + 0.1 * value_noise(u / 0.004, v / 0.004, self.seed ^ 7)
+    }
+}
+
+/// Nearest hit of the ray with the side of the z-axis cylinder of `radius` between z0 and
+/// z1, from outside: distance and outward normal.
+fn z_cylinder(o: &Vector3<f64>, d: &Vector3<f64>, radius: f64, z0: f64, z1: f64) -> Option<(f64, Vector3<f64>)> {
+    let a = d.x * d.x + d.y * d.y;
+    if a < 1e-15 {
+        return None;
+    }
+    let b = 2.0 * (o.x * d.x + o.y * d.y);
+    let c = o.x * o.x + o.y * o.y - radius * radius;
+    let disc = b * b - 4.0 * a * c;
+    if disc < 0.0 {
+        return None;
+    }
+    let t = (-b - disc.sqrt()) / (2.0 * a);
+    let p = o + t * d;
+    (t > 0.0 && p.z >= z0 && p.z <= z1).then(|| (t, Vector3::new(p.x, p.y, 0.0) / radius))
+}
+
+/// Nearest hit of the ray with the closed cylinder from `a` to `b` of `radius`.
+fn cylinder(
+    o: &Vector3<f64>,
+    d: &Vector3<f64>,
+    a: &Vector3<f64>,
+    b: &Vector3<f64>,
+    radius: f64,
+) -> Option<(f64, Vector3<f64>)> {
+    let len = (b - a).norm();
+    let ax = (b - a) / len;
+    let (u, v) = super::geometry::basis(&nalgebra::Unit::new_unchecked(ax));
+    // In the cylinder's frame the axis is z.
+    let to = |w: &Vector3<f64>| Vector3::new(w.dot(&u), w.dot(&v), w.dot(&ax));
+    let (ol, dl) = (to(&(o - a)), to(d));
+    let mut best: Option<(f64, Vector3<f64>)> = z_cylinder(&ol, &dl, radius, 0.0, len);
+    for (z, nz) in [(0.0, -1.0), (len, 1.0)] {
+        if dl.z.abs() > 1e-12 {
+            let t = (z - ol.z) / dl.z;
+            let p = ol + t * dl;
+            if t > 0.0 && p.x * p.x + p.y * p.y <= radius * radius && best.is_none_or(|(bt, _)| t < bt) {
+                best = Some((t, Vector3::new(0.0, 0.0, nz)));
+            }
+        }
+    }
+    best.map(|(t, n)| (t, n.x * u + n.y * v + n.z * ax))
+}
+
+/// Smooth value noise in [-1, 1] on the unit lattice.
+fn value_noise(x: f64, y: f64, seed: u64) -> f64 {
+    let (xi, yi) = (x.floor(), y.floor());
+    let (fx, fy) = (x - xi, y - yi);
+    let h = |i: f64, j: f64| {
+        let mut k = (i as i64 as u64).wrapping_mul(0x9e37_79b9_7f4a_7c15)
+            ^ (j as i64 as u64).wrapping_mul(0xc2b2_ae3d_27d4_eb4f)
+            ^ seed;
+        k ^= k >> 31;
+        k = k.wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        k ^= k >> 29;
+        (k >> 11) as f64 / (1u64 << 53) as f64 * 2.0 - 1.0
+    };
+    let s = |t: f64| t * t * (3.0 - 2.0 * t);
+    let (sx, sy) = (s(fx), s(fy));
+    let top = h(xi, yi) + sx * (h(xi + 1.0, yi) - h(xi, yi));
+    let bot = h(xi, yi + 1.0) + sx * (h(xi + 1.0, yi + 1.0) - h(xi, yi + 1.0));
+    top + sy * (bot - top)
+}
+
+/// Distort normalised coordinates (OpenCV's model, k1 k2 p1 p2 [k3 [k4 k5 k6]]).
+fn distort(c: &CameraModel, x: f64, y: f64) -> (f64, f64) {
+    let k = |i: usize| c.distortion.get(i).copied().unwrap_or(0.0);
+    let r2 = x * x + y * y;
+    let radial = (1.0 + r2 * (k(0) + r2 * (k(1) + r2 * k(4)))) / (1.0 + r2 * (k(5) + r2 * (k(6) + r2 * k(7))));
+    (
+        x * radial + 2.0 * k(2) * x * y + k(3) * (r2 + 2.0 * x * x),
+        y * radial + k(2) * (r2 + 2.0 * y * y) + 2.0 * k(3) * x * y,
+    )
+}
+
+/// Undistort normalised coordinates by fixed-point iteration (to 1e-12).
+fn undistort(c: &CameraModel, xd: f64, yd: f64) -> [f64; 2] {
+    if c.distortion.iter().all(|v| *v == 0.0) {
+        return [xd, yd];
+    }
+    let (mut x, mut y) = (xd, yd);
+    for _ in 0..50 {
+        let (dx, dy) = distort(c, x, y);
+        let (ex, ey) = (dx - xd, dy - yd);
+        x -= ex;
+        y -= ey;
+        if ex.abs() + ey.abs() < 1e-13 {
+            break;
+        }
+    }
+    [x, y]
+}
+
+/// Separable Gaussian blur in place (edges clamped).
+fn gaussian_blur(img: &mut [f32], w: usize, h: usize, sigma: f64) {
+    let r = (3.0 * sigma).ceil() as isize;
+    let k: Vec<f32> = (-r..=r)
+        .map(|i| (-(i * i) as f64 / (2.0 * sigma * sigma)).exp() as f32)
+        .collect();
+    let sum: f32 = k.iter().sum();
+    let k: Vec<f32> = k.iter().map(|v| v / sum).collect();
+    let mut tmp = vec![0.0f32; w * h];
+    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, out) in row.iter_mut().enumerate() {
+            *out = k
+                .iter()
+                .enumerate()
+                .map(|(i, kv)| kv * img[y * w + (x as isize + i as isize - r).clamp(0, w as isize - 1) as usize])
+                .sum();
+        }
+    });
+    img.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, out) in row.iter_mut().enumerate() {
+            *out = k
+                .iter()
+                .enumerate()
+                .map(|(i, kv)| kv * tmp[(y as isize + i as isize - r).clamp(0, h as isize - 1) as usize * w + x])
+                .sum();
+        }
+    });
+}
+
+/// Linear motion blur: the mean along a segment of `length` px at `angle`.
+fn motion_blur(img: &[f32], w: usize, h: usize, length: f64, angle: f64) -> Vec<f32> {
+    let n = length.ceil() as usize + 1;
+    let (dx, dy) = (angle.cos(), angle.sin());
+    let mut out = vec![0.0f32; w * h];
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
+            let mut s = 0.0;
+            for i in 0..n {
+                let t = length * (i as f64 / (n - 1) as f64 - 0.5);
+                let xs = (x as f64 + t * dx).round().clamp(0.0, w as f64 - 1.0) as usize;
+                let ys = (y as f64 + t * dy).round().clamp(0.0, h as f64 - 1.0) as usize;
+                s += img[ys * w + xs];
+            }
+            *o = s / n as f32;
+        }
+    });
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn undistortion_inverts_the_distortion() {
+        let mut c = CameraModel::pinhole(1280, 720, 700.8, 700.8, 642.3, 356.9).unwrap();
+        c.distortion = vec![-0.1721, 0.0254, 0.0003, -0.0002, 0.0];
+        for (x, y) in [(0.0, 0.0), (0.5, -0.3), (-0.9, 0.5)] {
+            let (xd, yd) = distort(&c, x, y);
+            let [ux, uy] = undistort(&c, xd, yd);
+            assert!((ux - x).abs() < 1e-10 && (uy - y).abs() < 1e-10);
+        }
+    }
+
+    #[test]
+    fn the_opening_is_dark_the_face_light_and_bad_scenes_are_refused() {
+        let cam = CameraModel::pinhole(160, 120, 200.0, 200.0, 80.0, 60.0).unwrap();
+        let r = TrocarRenderer::new(&cam).unwrap();
+        let model = TrocarModel::shipped();
+        let pose = Isometry3::translation(0.0, 0.0, 0.15);
+        let mut scene = Scene::random(3, 0.0);
+        scene.opening_albedo = 0.05;
+        scene.trocar_albedo = 0.8;
+        let img = r.render(&model, &pose, &scene).unwrap();
+        let at = |x: usize, y: usize| img.data[y * 160 + x];
+        // Opening radius 8 mm at 0.15 m: 10.7 px; the face spans 10.7-16.7 px.
+        assert!(at(80, 60) < 30, "{}", at(80, 60));
+        assert!(at(80 + 14, 60) > at(80, 60) + 40);
+        scene.noise_sigma = f64::NAN;
+        assert!(r.render(&model, &pose, &scene).is_err());
+        let behind =
+            Isometry3::translation(0.0, 0.0, 0.15) * nalgebra::UnitQuaternion::from_euler_angles(3.1, 0.0, 0.0);
+        assert!(r.render(&model, &behind, &Scene::random(3, 0.0)).is_err());
+    }
+}
