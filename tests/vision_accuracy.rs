@@ -31,31 +31,37 @@ fn report(r: SweepResult) -> SweepResult {
 
 #[test]
 fn aruco_clean_frames_meet_the_accuracy_target() {
+    // Measured (fixed seeds, Debian's OpenCV 4.6 and ViSP 3.5): median 0.0059 mm / 0.0060 deg,
+    // max 0.116 mm / 0.083 deg. The bounds are 4-8x that: a detector or pose regression
+    // of a tenth of a millimetre fails.
     let r = sweep("DICT_4X4_50", 12, 0.0, 3);
     assert_eq!(r.detected, r.frames, "every marker in view must be found");
-    let (tm, _) = r.translation_median_max();
+    let (tm, tx) = r.translation_median_max();
     let (rm, _) = r.rotation_median_max();
-    assert!(tm <= 1e-3, "median translation error {tm} m");
-    assert!(rm.to_degrees() <= 0.2, "median rotation error {} deg", rm.to_degrees());
+    assert!(tm <= 0.05e-3, "median translation error {tm} m");
+    assert!(tx <= 0.5e-3, "max translation error {tx} m");
+    assert!(rm.to_degrees() <= 0.05, "median rotation error {} deg", rm.to_degrees());
 }
 
 #[test]
-fn aruco_noisy_frames_stay_within_3mm() {
+fn aruco_noisy_frames_stay_within_1_5mm() {
+    // Measured: median 0.0375 mm, max 0.531 mm (pixel noise sigma 3).
     let r = sweep("DICT_ARUCO_ORIGINAL", 8, 3.0, 5);
     assert_eq!(r.detected, r.frames);
     let (tm, tx) = r.translation_median_max();
-    assert!(tm <= 1e-3, "median translation error {tm} m");
-    assert!(tx <= 3e-3, "max translation error {tx} m");
+    assert!(tm <= 0.15e-3, "median translation error {tm} m");
+    assert!(tx <= 1.5e-3, "max translation error {tx} m");
 }
 
 #[test]
 fn apriltag_frames_are_accurate() {
+    // Measured: median 0.0154 mm / 0.0085 deg, max 0.039 mm / 0.0125 deg.
     let r = sweep("tag36h11", 6, 3.0, 9);
     assert_eq!(r.detected, r.frames);
     let (tm, _) = r.translation_median_max();
     let (rm, _) = r.rotation_median_max();
-    assert!(tm <= 1e-3, "median translation error {tm} m");
-    assert!(rm.to_degrees() <= 0.2, "median rotation error {} deg", rm.to_degrees());
+    assert!(tm <= 0.06e-3, "median translation error {tm} m");
+    assert!(rm.to_degrees() <= 0.04, "median rotation error {} deg", rm.to_degrees());
 }
 
 #[test]
@@ -67,8 +73,9 @@ fn blurred_noisy_frames_stay_accurate() {
         blur_sigma: 1.0,
         seed: 21,
     };
+    // Measured: median 0.285 mm, max 0.344 mm (blur sigma 1 and noise sigma 2 bias the corners).
     let r = report(evaluate(&synthetic_frames(&cfg).unwrap()).unwrap());
     assert_eq!(r.detected, r.frames);
     let (tm, tx) = r.translation_median_max();
-    assert!(tm <= 1e-3 && tx <= 3e-3, "median {tm} m, max {tx} m");
+    assert!(tm <= 0.6e-3 && tx <= 1.0e-3, "median {tm} m, max {tx} m");
 }
