@@ -336,21 +336,24 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
 }
 
 /// The `preflight` node: read the controller's parameters from the server (the defaults,
-/// said so, when it does not run), run the checks, print the report; exit 1 when a check
+/// said so, when it does not run), run the checks with its own private parameters or, when
+/// it has none, the controller's `preflight` section; print the report; exit 1 when a check
 /// failed.
 pub fn run_node() -> Result<(), NodeError> {
-    let p: PreflightParams = params::load_private()?;
-    p.validate()?;
-    let node: ControllerNodeParams = match rosrust::param(&p.controller_node).map(|r| r.get::<serde_json::Value>()) {
-        Some(Ok(v)) => params::from_value(&p.controller_node, v)?,
+    let own: PreflightParams = params::load_private()?;
+    let has_own = rosrust::param(&rosrust::name()).is_some_and(|r| r.exists().unwrap_or(false));
+    let node: ControllerNodeParams = match rosrust::param(&own.controller_node).map(|r| r.get::<serde_json::Value>()) {
+        Some(Ok(v)) => params::from_value(&own.controller_node, v)?,
         _ => {
             println!(
                 "note: no parameters of {}: its defaults (config/docking_controller.yaml's topics, the built-in Med 7)",
-                p.controller_node
+                own.controller_node
             );
             ControllerNodeParams::default()
         }
     };
+    let p = if has_own { own } else { node.preflight.clone() };
+    p.validate()?;
     let kin = crate::kinematics::LbrKinematics::from_model_or_file(node.model, &node.urdf_file, crate::kinematics::TIP_LINK)?;
     let report = run(&p, &node, &kin)?;
     println!("{report}");
