@@ -429,8 +429,17 @@ fn torques_at_rest(obs: &Observations, tare: &TareParams) -> Check {
         return check("TORQUES_AT_REST", false, "no external torques".into(), fix);
     };
     let n = s.tau_ext[0].len();
-    if n == 0 || s.tau_ext.iter().any(|t| t.len() != n || t.iter().any(|v| !v.is_finite())) {
-        return check("TORQUES_AT_REST", false, "external torques malformed (count or NaN)".into(), fix);
+    if n == 0
+        || s.tau_ext
+            .iter()
+            .any(|t| t.len() != n || t.iter().any(|v| !v.is_finite()))
+    {
+        return check(
+            "TORQUES_AT_REST",
+            false,
+            "external torques malformed (count or NaN)".into(),
+            fix,
+        );
     }
     let m = s.tau_ext.len() as f64;
     let (mut worst_mean, mut worst_sd) = (0.0f64, 0.0f64);
@@ -456,7 +465,10 @@ fn torques_at_rest(obs: &Observations, tare: &TareParams) -> Check {
 fn camera(obs: &Observations, lim: &Limits) -> Vec<Check> {
     let Some(c) = &obs.camera else {
         let why = "no camera: the simulator publishes the trocar pose directly (trocar_source direct)";
-        return vec![not_checked("CAMERA_INFO", why.into()), not_checked("IMAGE_RATE", why.into())];
+        return vec![
+            not_checked("CAMERA_INFO", why.into()),
+            not_checked("IMAGE_RATE", why.into()),
+        ];
     };
     let info = match c.info {
         None => check(

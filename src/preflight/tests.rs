@@ -19,20 +19,31 @@ fn good(kin: &dyn Kinematics) -> Observations {
         simulator: Some(Simulator { camera: true }),
         use_sim_time: true,
         joint_states: Some(JointStates {
-            stream: Stream { count: 501, span_s: 1.0 },
+            stream: Stream {
+                count: 501,
+                span_s: 1.0,
+            },
             names,
             positions: s.q0.to_vec(),
             motion_rad: 1e-5,
         }),
         lbr_state: Some(LbrState {
-            stream: Stream { count: 501, span_s: 1.0 },
+            stream: Stream {
+                count: 501,
+                span_s: 1.0,
+            },
             sample_time: 0.002,
             tau_ext: (0..100)
                 .map(|i| (0..7).map(|k| 0.3 + 0.1 * f64::from((i + k) % 3)).collect())
                 .collect(),
         }),
         camera: Some(Camera {
-            info: Some(CameraInfo { fx: 700.0, fy: 700.0, width: 1280, height: 720 }),
+            info: Some(CameraInfo {
+                fx: 700.0,
+                fy: 700.0,
+                width: 1280,
+                height: 720,
+            }),
             images: Stream { count: 16, span_s: 1.0 },
             image_size: Some((1280, 720)),
         }),
@@ -74,13 +85,25 @@ fn each_fault_fails_its_own_check_only() {
     let k = kin();
     type Fault = fn(&mut Observations);
     let faults: [(&str, Fault); 14] = [
-        ("JOINT_STATES", |o| o.joint_states.as_mut().unwrap().stream.span_s = 10.0),
+        ("JOINT_STATES", |o| {
+            o.joint_states.as_mut().unwrap().stream.span_s = 10.0
+        }),
         ("LBR_STATE", |o| o.lbr_state.as_mut().unwrap().sample_time = 0.001),
-        ("JOINT_NAMES", |o| o.joint_states.as_mut().unwrap().names[6] = "a7".into()),
-        ("TORQUES_AT_REST", |o| o.lbr_state.as_mut().unwrap().tau_ext[5][2] = 400.0),
-        ("TORQUES_AT_REST", |o| o.joint_states.as_mut().unwrap().motion_rad = 0.01),
-        ("CAMERA_INFO", |o| o.camera.as_mut().unwrap().info.as_mut().unwrap().fx = f64::NAN),
-        ("CAMERA_INFO", |o| o.camera.as_mut().unwrap().image_size = Some((640, 360))),
+        ("JOINT_NAMES", |o| {
+            o.joint_states.as_mut().unwrap().names[6] = "a7".into()
+        }),
+        ("TORQUES_AT_REST", |o| {
+            o.lbr_state.as_mut().unwrap().tau_ext[5][2] = 400.0
+        }),
+        ("TORQUES_AT_REST", |o| {
+            o.joint_states.as_mut().unwrap().motion_rad = 0.01
+        }),
+        ("CAMERA_INFO", |o| {
+            o.camera.as_mut().unwrap().info.as_mut().unwrap().fx = f64::NAN
+        }),
+        ("CAMERA_INFO", |o| {
+            o.camera.as_mut().unwrap().image_size = Some((640, 360))
+        }),
         ("IMAGE_RATE", |o| o.camera.as_mut().unwrap().images.count = 5),
         ("MARKER", |o| o.marker.simulated_size_m = Some(0.05)),
         ("MARKER", |o| o.marker.stream.count = 2),
@@ -101,7 +124,11 @@ fn each_fault_fails_its_own_check_only() {
         let mut o = good(&k);
         fault(&mut o);
         // Without the URDF's joints the reach cannot be tested: it fails too.
-        let want = if code == "JOINT_NAMES" { vec![code, "REACH"] } else { vec![code] };
+        let want = if code == "JOINT_NAMES" {
+            vec![code, "REACH"]
+        } else {
+            vec![code]
+        };
         assert_eq!(failed(&o), want, "fault for {code}");
     }
 }
@@ -172,12 +199,15 @@ fn hand_eye_files_age_by_their_date_else_their_modification_time() {
     let h = hand_eye_file("f", pose, now - 2.0 * 86_400.0, now).unwrap();
     assert!((h.age_days - 2.0).abs() < 1e-9);
     assert_eq!(h.residual_max_m, None);
-    let dated = format!("{pose}calibrated: 2026-01-30\nresidual_translation_max_m: 0.0011\nresidual_rotation_max_rad: 0.002\n");
+    let dated =
+        format!("{pose}calibrated: 2026-01-30\nresidual_translation_max_m: 0.0011\nresidual_rotation_max_rad: 0.002\n");
     let h = hand_eye_file("f", &dated, now, now).unwrap();
     assert!((h.age_days - 30.0).abs() < 1e-9, "{}", h.age_days);
     assert_eq!(h.age_source, "calibrated date");
     assert_eq!(h.residual_max_m, Some(0.0011));
-    assert!(hand_eye_file("f", "a: 1\n", now, now).unwrap_err().contains("flange_t_camera"));
+    assert!(hand_eye_file("f", "a: 1\n", now, now)
+        .unwrap_err()
+        .contains("flange_t_camera"));
     assert!(hand_eye_file("f", &format!("{pose}calibrated: March\n"), now, now).is_err());
     assert!(hand_eye_file("f", &format!("{pose}residual_rotation_max_rad: .nan\n"), now, now).is_err());
     // Leap years and the epoch.

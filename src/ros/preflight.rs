@@ -126,12 +126,7 @@ impl Seen {
             stream: self.joints.stream(),
             names: self.names.clone(),
             positions: self.positions.clone(),
-            motion_rad: self
-                .low
-                .iter()
-                .zip(&self.high)
-                .map(|(l, h)| h - l)
-                .fold(0.0, f64::max),
+            motion_rad: self.low.iter().zip(&self.high).map(|(l, h)| h - l).fold(0.0, f64::max),
         });
         let lbr = (self.lbr.count > 0).then(|| LbrState {
             stream: self.lbr.stream(),
@@ -162,8 +157,10 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
     let mut subs = Vec::new();
     let s = seen.clone();
     subs.push(
-        rosrust::subscribe(&t.joint_states, 50, move |m: sensor_msgs::JointState| lock(&s).joint_states(&m))
-            .map_err(ros_err)?,
+        rosrust::subscribe(&t.joint_states, 50, move |m: sensor_msgs::JointState| {
+            lock(&s).joint_states(&m)
+        })
+        .map_err(ros_err)?,
     );
     let s = seen.clone();
     subs.push(
@@ -222,7 +219,11 @@ fn param<T: serde::de::DeserializeOwned>(name: &str) -> Option<T> {
 
 /// The nodes publishing and subscribing `topic`.
 fn nodes_on(state: &rosrust::api::SystemState, topic: &str, publishers: bool) -> Vec<String> {
-    let list = if publishers { &state.publishers } else { &state.subscribers };
+    let list = if publishers {
+        &state.publishers
+    } else {
+        &state.subscribers
+    };
     list.iter()
         .find(|t| t.name == topic)
         .map(|t| t.connections.clone())
@@ -261,7 +262,10 @@ fn hand_eye(p: &PreflightParams, estimator: bool, camera: bool) -> Option<Result
 }
 
 /// Who runs: the simulator (with its camera or not) and the estimator.
-fn who_runs(p: &PreflightParams, node: &ControllerNodeParams) -> Result<(Option<preflight::Simulator>, bool), NodeError> {
+fn who_runs(
+    p: &PreflightParams,
+    node: &ControllerNodeParams,
+) -> Result<(Option<preflight::Simulator>, bool), NodeError> {
     let state = rosrust::state().map_err(ros_err)?;
     let simulator = nodes_on(&state, &node.joint_states_topic, true)
         .contains(&p.simulator_node)
@@ -293,7 +297,10 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         let camera = simulator.is_none_or(|s| s.camera);
         let all_there = {
             let s = lock(&seen);
-            s.joints.count > 0 && s.lbr.count > 0 && s.poses.count > 0 && (!camera || (s.images.count > 0 && s.info.is_some()))
+            s.joints.count > 0
+                && s.lbr.count > 0
+                && s.poses.count > 0
+                && (!camera || (s.images.count > 0 && s.info.is_some()))
         };
         if all_there || t0.elapsed().as_secs_f64() >= p.wait_s || !rosrust::is_ok() {
             break;
@@ -354,12 +361,16 @@ pub fn run_node() -> Result<(), NodeError> {
     };
     let p = if has_own { own } else { node.preflight.clone() };
     p.validate()?;
-    let kin = crate::kinematics::LbrKinematics::from_model_or_file(node.model, &node.urdf_file, crate::kinematics::TIP_LINK)?;
+    let kin =
+        crate::kinematics::LbrKinematics::from_model_or_file(node.model, &node.urdf_file, crate::kinematics::TIP_LINK)?;
     let report = run(&p, &node, &kin)?;
     println!("{report}");
     if report.passed() {
         Ok(())
     } else {
-        Err(NodeError::Invalid(format!("preflight failed: {}", report.failed_codes().join(", "))))
+        Err(NodeError::Invalid(format!(
+            "preflight failed: {}",
+            report.failed_codes().join(", ")
+        )))
     }
 }

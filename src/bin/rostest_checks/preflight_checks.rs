@@ -1,7 +1,8 @@
 //! `preflight`: run the `preflight` binary (the one `rosrun trocar_docking preflight` runs)
-//! against the graph and judge its exit code and lines; then call the controller's `~start`
-//! (with `call_start`): it must start when every check passes, and otherwise refuse, naming
-//! the failed check, and the controller stay IDLE with nothing on the command topic.
+//! against the graph and judge its exit code and lines; then (with `call_start`) call the
+//! controller's `~preflight`, which must agree, and its `~start`: it must start when every
+//! check passes, and otherwise refuse, naming the failed check, and the controller stay IDLE
+//! with nothing on the command topic.
 
 use std::process::Command;
 use std::time::Duration;
@@ -48,7 +49,9 @@ pub fn preflight(p: &CheckParams) -> Result<String, String> {
     } else {
         let line = format!("FAIL {expect} ");
         if code != Some(1) || !text.lines().any(|l| l.starts_with(&line)) {
-            return Err(format!("preflight did not fail {expect} with exit code 1 (exit {code:?}):\n{text}"));
+            return Err(format!(
+                "preflight did not fail {expect} with exit code 1 (exit {code:?}):\n{text}"
+            ));
         }
     }
     let summary = text
@@ -58,6 +61,13 @@ pub fn preflight(p: &CheckParams) -> Result<String, String> {
         .join(" | ");
     if !p.call_start {
         return Ok(format!("binary exit {code:?}: {summary}"));
+    }
+    let service = format!("{}/preflight", p.controller);
+    match (expect.is_empty(), trigger(&service, p.startup_timeout)) {
+        (true, Ok(m)) if m.ends_with("preflight passed") => {}
+        (false, Err(e)) if e.contains(&format!("preflight failed: {expect}")) || e.contains(&format!(", {expect}")) => {
+        }
+        (_, r) => return Err(format!("{service} disagrees with the binary: {r:?}")),
     }
     let (status, _s) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
     let (command, _c) = subscribe_latest::<trajectory_msgs::JointTrajectory>(&p.command_topic)?;
