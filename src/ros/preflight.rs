@@ -152,64 +152,54 @@ struct Topics {
     camera_info: String,
 }
 
+/// Subscribe `topic`, handing each message to `f` with the collection.
+fn watch<T: rosrust::Message>(
+    topic: &str,
+    queue: usize,
+    seen: &Arc<Mutex<Seen>>,
+    f: impl Fn(&mut Seen, T) + Send + Sync + 'static,
+) -> Result<rosrust::Subscriber, NodeError> {
+    let s = seen.clone();
+    rosrust::subscribe(topic, queue, move |m: T| f(&mut lock(&s), m)).map_err(ros_err)
+}
+
 /// Subscribe the topics; the subscribers live as long as the returned handles.
 fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
-    let mut subs = Vec::new();
-    let s = seen.clone();
-    subs.push(
-        rosrust::subscribe(&t.joint_states, 50, move |m: sensor_msgs::JointState| {
-            lock(&s).joint_states(&m)
-        })
-        .map_err(ros_err)?,
-    );
-    let s = seen.clone();
-    subs.push(
-        rosrust::subscribe(&t.lbr_state, 50, move |m: lbr_msgs::LBRState| {
-            let mut s = lock(&s);
+    let (topic, frame) = (t.trocar_pose.clone(), t.base_frame.clone());
+    Ok(vec![
+        watch(&t.joint_states, 50, seen, |s, m: sensor_msgs::JointState| {
+            s.joint_states(&m)
+        })?,
+        watch(&t.lbr_state, 50, seen, |s, m: lbr_msgs::LBRState| {
             s.lbr.add(convert::seconds(m.stamp.data));
             s.sample_time = m.sample_time;
             s.tau_ext.push(m.external_torque);
-        })
-        .map_err(ros_err)?,
-    );
-    let (s, topic, frame) = (seen.clone(), t.trocar_pose.clone(), t.base_frame.clone());
-    subs.push(
-        rosrust::subscribe(&t.trocar_pose, 10, move |m: geometry_msgs::PoseStamped| {
-            let mut s = lock(&s);
-            match convert::pose_in_frame(&topic, &m, &frame) {
+        })?,
+        watch(
+            &t.trocar_pose,
+            10,
+            seen,
+            move |s, m: geometry_msgs::PoseStamped| match convert::pose_in_frame(&topic, &m, &frame) {
                 Ok(p) => {
                     s.poses.add(convert::seconds(m.header.stamp));
                     s.pose = Some(p);
                 }
                 Err(e) => s.pose_error = Some(e.to_string()),
-            }
-        })
-        .map_err(ros_err)?,
-    );
-    {
-        let s = seen.clone();
-        subs.push(
-            rosrust::subscribe(&t.image, 2, move |m: sensor_msgs::Image| {
-                let mut s = lock(&s);
-                s.images.add(convert::seconds(m.header.stamp));
-                s.image_size = Some((m.width, m.height));
-            })
-            .map_err(ros_err)?,
-        );
-        let s = seen.clone();
-        subs.push(
-            rosrust::subscribe(&t.camera_info, 2, move |m: sensor_msgs::CameraInfo| {
-                lock(&s).info = Some(CameraInfo {
-                    fx: m.K[0],
-                    fy: m.K[4],
-                    width: m.width,
-                    height: m.height,
-                });
-            })
-            .map_err(ros_err)?,
-        );
-    }
-    Ok(subs)
+            },
+        )?,
+        watch(&t.image, 2, seen, |s, m: sensor_msgs::Image| {
+            s.images.add(convert::seconds(m.header.stamp));
+            s.image_size = Some((m.width, m.height));
+        })?,
+        watch(&t.camera_info, 2, seen, |s, m: sensor_msgs::CameraInfo| {
+            s.info = Some(CameraInfo {
+                fx: m.K[0],
+                fy: m.K[4],
+                width: m.width,
+                height: m.height,
+            });
+        })?,
+    ])
 }
 
 /// A parameter's value, if it is set.

@@ -189,18 +189,15 @@ type Reply = Result<String, String>;
 /// How long a service waits for the loop to take its request.
 const SERVICE_TIMEOUT: Duration = Duration::from_secs(1);
 
-/// A `std_srvs/Trigger` service that sends `request` to the loop and returns its reply.
-fn trigger_service(
-    name: &str,
-    client: &RequestClient<Request, Reply>,
-    request: Request,
-) -> Result<rosrust::Service, NodeError> {
-    let client = client.clone();
+/// A `std_srvs/Trigger` service answering with `handler`'s reply (logged; `Err` is a
+/// refusal).
+fn reply_service<F>(name: &str, handler: F) -> Result<rosrust::Service, NodeError>
+where
+    F: Fn() -> Reply + Send + Sync + 'static,
+{
     let label = name.to_string();
     rosrust::service::<std_srvs::Trigger, _>(name, move |_req| {
-        let r = client
-            .call(request, SERVICE_TIMEOUT)
-            .unwrap_or_else(|e| Err(e.to_string()));
+        let r = handler();
         match &r {
             Ok(m) => {
                 rosrust::ros_info!("{label}: {m}");
@@ -216,6 +213,20 @@ fn trigger_service(
         Ok(std_srvs::TriggerRes { success, message })
     })
     .map_err(ros_err)
+}
+
+/// A `std_srvs/Trigger` service that sends `request` to the loop and returns its reply.
+fn trigger_service(
+    name: &str,
+    client: &RequestClient<Request, Reply>,
+    request: Request,
+) -> Result<rosrust::Service, NodeError> {
+    let client = client.clone();
+    reply_service(name, move || {
+        client
+            .call(request, SERVICE_TIMEOUT)
+            .unwrap_or_else(|e| Err(e.to_string()))
+    })
 }
 
 /// The preflight's outcome as a Trigger reply: `Ok(report)` when every check passed, else
@@ -242,53 +253,17 @@ fn preflight_services(
     kin: &Arc<LbrKinematics>,
     client: &RequestClient<Request, Reply>,
 ) -> Result<[rosrust::Service; 2], NodeError> {
-    let reply = |r: Reply| match r {
-        Ok(m) => std_srvs::TriggerRes {
-            success: true,
-            message: m,
-        },
-        Err(m) => std_srvs::TriggerRes {
-            success: false,
-            message: m,
-        },
-    };
     let (pc, kc) = (p.clone(), kin.clone());
-    let check = rosrust::service::<std_srvs::Trigger, _>("~preflight", move |_req| {
-        let r = preflight_reply(&pc, kc.as_ref());
-        match &r {
-            Ok(m) => {
-                rosrust::ros_info!("~preflight: {m}");
-            }
-            Err(m) => {
-                rosrust::ros_warn!("~preflight: {m}");
-            }
-        }
-        Ok(reply(r))
-    })
-    .map_err(ros_err)?;
+    let check = reply_service("~preflight", move || preflight_reply(&pc, kc.as_ref()))?;
     let (ps, ks, client) = (p.clone(), kin.clone(), client.clone());
-    let start = rosrust::service::<std_srvs::Trigger, _>("~start", move |_req| {
-        let r = if ps.preflight_on_start {
-            preflight_reply(&ps, ks.as_ref())
-        } else {
-            Ok(String::new())
-        };
-        let r = r.and_then(|_| {
-            client
-                .call(Request::Start, SERVICE_TIMEOUT)
-                .unwrap_or_else(|e| Err(e.to_string()))
-        });
-        match &r {
-            Ok(m) => {
-                rosrust::ros_info!("~start: {m}");
-            }
-            Err(m) => {
-                rosrust::ros_warn!("~start refused: {m}");
-            }
+    let start = reply_service("~start", move || {
+        if ps.preflight_on_start {
+            preflight_reply(&ps, ks.as_ref())?;
         }
-        Ok(reply(r))
-    })
-    .map_err(ros_err)?;
+        client
+            .call(Request::Start, SERVICE_TIMEOUT)
+            .unwrap_or_else(|e| Err(e.to_string()))
+    })?;
     Ok([check, start])
 }
 
