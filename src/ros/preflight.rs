@@ -364,3 +364,54 @@ pub fn run_node() -> Result<(), NodeError> {
         )))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_shipped_settings_are_the_defaults_and_valid() {
+        let text = include_str!("../../config/docking_controller.yaml");
+        let node: ControllerNodeParams = params::from_yaml_str("docking_controller.yaml", text).unwrap();
+        node.validate().unwrap();
+        assert!(node.preflight_on_start);
+        let (shipped, default) = (&node.preflight, PreflightParams::default());
+        assert_eq!(shipped.limits, default.limits);
+        assert_eq!(
+            (shipped.window_s, shipped.wait_s, &shipped.simulator_node),
+            (default.window_s, default.wait_s, &default.simulator_node)
+        );
+        let bad = PreflightParams {
+            window_s: 0.0,
+            ..PreflightParams::default()
+        };
+        assert!(bad.validate().unwrap_err().to_string().contains("window_s"));
+    }
+
+    #[test]
+    fn joint_states_give_the_rate_of_their_stamps_and_the_motion() {
+        let mut s = Seen::default();
+        let msg = |t: f64, q: f64| sensor_msgs::JointState {
+            header: convert::header(convert::ros_time(t), ""),
+            name: vec!["a".into(), "b".into()],
+            position: vec![q, 1.0],
+            ..Default::default()
+        };
+        // Out of order, as a queue may deliver them: the span is first to last stamp.
+        for (t, q) in [(10.0, 0.0), (10.02, 0.003), (10.01, -0.001)] {
+            s.joint_states(&msg(t, q));
+        }
+        let (j, lbr, cam) = s.observations(false);
+        let j = j.unwrap();
+        assert!((j.stream.rate_hz() - 100.0).abs() < 1e-6, "{}", j.stream.rate_hz());
+        assert!((j.motion_rad - 0.004).abs() < 1e-12);
+        assert_eq!(j.positions, vec![-0.001, 1.0]);
+        assert!(lbr.is_none() && cam.is_none());
+        // Renamed joints restart the motion's range.
+        let mut m = msg(10.03, 5.0);
+        m.name = vec!["x".into(), "y".into()];
+        s.joint_states(&m);
+        assert_eq!(s.observations(true).0.unwrap().motion_rad, 0.0);
+        assert!(s.observations(true).2.is_some());
+    }
+}
