@@ -601,6 +601,21 @@ fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
     era * 146_097 + doe - 719_468
 }
 
+/// The `YYYY-MM-DD` date (UTC) of `unix_s` seconds since the epoch (H. Hinnant's
+/// `civil_from_days`): what `trocar_docking hand-eye --out` writes as `calibrated`.
+pub fn date_of(unix_s: f64) -> String {
+    let z = (unix_s / 86_400.0).floor() as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("{y:04}-{m:02}-{d:02}")
+}
+
 /// A `YYYY-MM-DD` date as seconds since the Unix epoch (midnight UTC).
 fn parse_date(s: &str) -> Option<f64> {
     let mut it = s.trim().splitn(3, '-');

@@ -210,6 +210,12 @@ fn hand_eye_files_age_by_their_date_else_their_modification_time() {
         .contains("flange_t_camera"));
     assert!(hand_eye_file("f", &format!("{pose}calibrated: March\n"), now, now).is_err());
     assert!(hand_eye_file("f", &format!("{pose}residual_rotation_max_rad: .nan\n"), now, now).is_err());
+    for day in [0, 59, 11_016, 19_782, 20_513] {
+        let t = f64::from(day) * 86_400.0 + 3600.0;
+        assert_eq!(parse_date(&date_of(t)), Some(f64::from(day) * 86_400.0), "day {day}");
+    }
+    assert_eq!(date_of(0.0), "1970-01-01");
+    assert_eq!(date_of(951_782_400.0), "2000-02-29");
     // Leap years and the epoch.
     assert_eq!(days_from_civil(1970, 1, 1), 0);
     assert_eq!(days_from_civil(2000, 3, 1) - days_from_civil(2000, 2, 28), 2);
