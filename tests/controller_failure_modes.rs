@@ -3,8 +3,8 @@
 //! leads the arm by more than `guard.max_command_lead`; a blocked arm holds
 //! (`ARM_NOT_FOLLOWING`) within 0.2 s of the lead reaching its bound, where the arm is; the
 //! clock going back or jumping forward holds with its reason; an input restart
-//! (`Controller::interrupt`) holds; every such hold is latched, and the new start begins from
-//! the measured joints.
+//! (`Controller::interrupt`) holds; every such hold is latched, walks to where it stands
+//! within the speed limits, and the new start begins from the last published command.
 
 use nalgebra::Isometry3;
 use trocar_docking::control::guard::LEAD_WATCH_FRACTION;
@@ -94,7 +94,10 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
     r.start_moving(20);
     r.blocked = true;
     let frozen = r.q;
+    let vmax = r.kin.limits().velocity * r.c.params().guard.velocity_scale;
+    let within_a_step = |a: &JointVector, b: &JointVector| (0..7).all(|i| (a[i] - b[i]).abs() <= vmax[i] * DT + 1e-9);
     let (mut saturated_at, mut held_at, mut max_lead) = (None, None, 0.0f64);
+    let mut last = frozen;
     for _ in 0..300 {
         let out = r.step();
         let cmd = out.command.expect("a command every step");
@@ -102,13 +105,24 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
         if lead(&cmd, &frozen) >= LEAD_WATCH_FRACTION * bound && saturated_at.is_none() {
             saturated_at = Some(r.t);
         }
+        assert!(within_a_step(&cmd, &last), "no command step over the speed limit");
+        last = cmd;
         if out.phase == Phase::Hold {
             assert_eq!(out.reason_code(), "ARM_NOT_FOLLOWING", "{:?}", out.hold);
-            assert_eq!(cmd, frozen, "held where the arm is, not ahead of it");
             held_at = Some(r.t);
             break;
         }
     }
+    // The hold walks the command back to where the arm is within the speed limits (a jump
+    // there stepped by the whole lead, twice the limit), and stands there.
+    for _ in 0..10 {
+        let out = r.step();
+        assert_eq!(out.phase, Phase::Hold);
+        let cmd = out.command.unwrap();
+        assert!(within_a_step(&cmd, &last), "the hold's walk within the speed limit");
+        last = cmd;
+    }
+    assert_eq!(last, frozen, "held where the arm is, not ahead of it");
     assert!(
         max_lead <= bound + 1e-9,
         "the command led by {:.3} deg",
@@ -137,8 +151,8 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
     assert_eq!(r.step().command, Some(frozen), "held");
     r.blocked = false;
     r.c.start().unwrap();
-    let vmax = r.kin.limits().velocity * r.c.params().guard.velocity_scale;
-    let mut prev = moved;
+    // From the last published command (where the hold stood), within the speed limit.
+    let mut prev = frozen;
     for k in 0..30 {
         let out = r.step();
         assert!(out.phase.is_moving(), "{:?}", out.hold);
@@ -227,16 +241,31 @@ fn an_input_restart_holds_until_a_new_start_in_every_phase() {
         stamp_jump_s: -3.0,
         names_reordered: true,
     };
-    // Moving: held at the last command, latched; fresh inputs do not resume it.
+    // Moving: held, latched, walking from the last command to the newest measured joints
+    // (where the restarted driver holds the arm) within the speed limits; fresh inputs do
+    // not resume it.
     let mut r = Rig::new();
     r.start_moving(20);
-    let last = r.q;
+    let mut last = r.q;
     r.c.interrupt(restart.clone());
+    let vmax = r.kin.limits().velocity * r.c.params().guard.velocity_scale;
+    let mut commands = Vec::new();
     for _ in 0..50 {
         let out = r.step();
-        assert_eq!((out.phase, out.command), (Phase::Hold, Some(last)));
+        assert_eq!(out.phase, Phase::Hold);
         assert_eq!(out.reason_code(), "DRIVER_RESTART");
+        let cmd = out.command.unwrap();
+        assert!(
+            (0..7).all(|i| (cmd[i] - last[i]).abs() <= vmax[i] * DT + 1e-9),
+            "no jump"
+        );
+        last = cmd;
+        commands.push(cmd);
     }
+    assert!(
+        commands[10..].iter().all(|c| *c == last),
+        "standing still after the walk"
+    );
     r.c.start().unwrap();
     assert!(r.step().phase.is_moving());
     // Taring: back to IDLE with the reason, nothing commanded; a start tares again.

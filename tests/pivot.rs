@@ -178,8 +178,13 @@ fn a_wrong_prior_depth_is_corrected_while_pivoting() {
     }
 }
 
+/// A biased trocar estimate (up to 6 mm off, fixed in the port's frame) biases the fulcrum
+/// by at most half as much, over the fulcrum's own 1.5 mm (the bore's clearance and the
+/// breathing): within 1.5 mm at the start, under half the estimate's error at the start
+/// where that is over 3 mm, and at the end within 1.5 mm or half the estimate's error,
+/// whichever is more.
 #[test]
-fn a_biased_trocar_estimate_does_not_bias_the_fulcrum() {
+fn a_biased_trocar_estimate_biases_the_fulcrum_at_most_half_as_much() {
     let mut cfg = realistic();
     // Up to 6 mm off (uniform length, random direction), no rotation.
     cfg.sim.measurement.bias_position_m = 0.006;

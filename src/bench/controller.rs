@@ -76,11 +76,34 @@ pub struct ScenarioSamples {
     pub time_budget_steps: usize,
     /// Steps whose SQP stopped at its interior-point iteration budget.
     pub qp_iteration_budget_steps: usize,
+    /// Steps run but not sampled, by class (see [`Excluded`]).
+    pub excluded: Excluded,
+}
+
+/// The steps a scenario run steps the controller through but leaves out of its samples,
+/// each class counted: none is the loop under test (the SQP).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Excluded {
+    /// TARE steps: the arm held still while the torques are averaged, at every start.
+    pub tare: usize,
+    /// Moving steps without a solve (the step that ends the tare reports APPROACH).
+    pub moving_without_solve: usize,
+    /// Steps that ended a docking (DONE, or a hold), after which the run starts over.
+    pub ended: usize,
+}
+
+impl Excluded {
+    /// All excluded steps.
+    pub fn total(&self) -> usize {
+        self.tare + self.moving_without_solve + self.ended
+    }
 }
 
 /// Run `steps` closed-loop control steps of `scenario` and time each one (wall clock and
 /// thread CPU). The loop restarts the docking when it completes, so every sample is a
-/// moving step; none is left out, the first step after construction included.
+/// moving step with a solve, the first one after construction included; the steps left out
+/// (each start's tare, the step ending it, the step that ends a docking) are counted by
+/// class in [`ScenarioSamples::excluded`].
 pub fn run_scenario(
     kin: &LbrKinematics,
     params: &ControllerParams,
@@ -118,12 +141,18 @@ pub fn run_scenario(
             }),
         };
         let (out, wall, cpu) = time_wall_and_cpu(|| c.step(kin, &input));
-        if out.phase == Phase::Tare || (out.phase.is_moving() && out.solve.is_none()) {
-            // The torque tare at each start holds the arm still (its last step too, which
-            // ends in APPROACH): not the loop under test.
+        if out.phase == Phase::Tare {
+            // The torque tare at each start holds the arm still: not the loop under test.
+            s.excluded.tare += 1;
+            continue;
+        }
+        if out.phase.is_moving() && out.solve.is_none() {
+            // The tare's last step, which ends in APPROACH.
+            s.excluded.moving_without_solve += 1;
             continue;
         }
         if !out.phase.is_moving() {
+            s.excluded.ended += 1;
             // Docked (or held): start over from the initial configuration.
             restarts += 1;
             if restarts > steps {
@@ -229,7 +258,16 @@ pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Opt
             "clarabel_qps": s.clarabel_qps.get(worst),
         }),
     );
-    put("warmup_steps_excluded", serde_json::json!(0));
+    put(
+        "excluded_steps",
+        serde_json::json!({
+            "tare": s.excluded.tare,
+            "moving_without_solve": s.excluded.moving_without_solve,
+            "ended_docking": s.excluded.ended,
+            "total": s.excluded.total(),
+        }),
+    );
+    put("steps_run", serde_json::json!(s.wall_us.len() + s.excluded.total()));
     put("scheduler", serde_json::json!(scheduler_name()));
     put("dt_s", serde_json::json!(params.dt));
     put("sqp_time_budget_us", serde_json::json!(params.sqp.time_budget_us));
@@ -281,6 +319,15 @@ mod tests {
             assert!(clarabel < 0.5 * qps, "{clarabel} of {qps}");
             let n = r.extra["clarabel_steps"]["count"].as_u64().unwrap();
             assert!(n > 0 && n < 200, "{n}");
+            // Every step run is sampled or excluded in a counted class: 200 steps of an
+            // approach (no docking ends) after one tare of 0.3 s.
+            let ex = &r.extra["excluded_steps"];
+            let tare_steps = (params.tare.window_s / params.dt).round() as u64;
+            assert_eq!(ex["ended_docking"].as_u64(), Some(0), "{ex}");
+            assert_eq!(ex["moving_without_solve"].as_u64(), Some(1), "{ex}");
+            let tare = ex["tare"].as_u64().unwrap();
+            assert!((tare_steps - 1..=tare_steps).contains(&tare), "{ex}");
+            assert_eq!(r.extra["steps_run"].as_u64(), Some(200 + tare + 1), "{ex}");
         }
         // Without it Clarabel solves every QP, in every step.
         let mut cold = params.clone();

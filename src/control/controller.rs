@@ -182,6 +182,8 @@ struct RunState {
     retreat: Option<Option<Retreat>>,
     /// After DONE: the port held as the remote centre of motion.
     pivot: Option<Pivot>,
+    /// A start resumed DONE or RETRACT from a hold: the law re-anchors at the measured tip.
+    reanchor: bool,
 }
 
 /// An early end of a step: hold (or stay idle) for `reason`, commanding `hold_at`.
@@ -361,7 +363,8 @@ impl OptimalController {
             _ => {}
         }
         let f = self.run.admittance.force();
-        let moving = self.run.supervisor.phase().is_moving();
+        let phase = self.run.supervisor.phase();
+        let moving = phase.is_moving();
         if moving {
             self.run.metric.add(f.norm(), dt);
         }
@@ -371,9 +374,32 @@ impl OptimalController {
                 if self.params.retreat_distance > 0.0 {
                     self.run.retreat = Some(None); // begins from the tip depth
                 }
+                return Ok(());
             }
         }
+        self.pivot_force_stop(phase, f.norm());
         Ok(())
+    }
+
+    /// The force stop after docking: in DONE over the guard's `force_stop`, in RETRACT over
+    /// `scope.retract_force_stop` (lower: the withdrawal must brake before the stop), hold,
+    /// latched, `FORCE_LIMIT`; the law brakes its rates to rest within the motion limits and
+    /// then stands still ([`Pivot::hold`]): the scope stays where it stopped, neither
+    /// pulled out nor pushed in. Only the operator's start resumes (DONE re-anchored at the
+    /// measured tip, RETRACT going on).
+    fn pivot_force_stop(&mut self, phase: Phase, force: f64) {
+        let limit = match phase {
+            Phase::Done => self.params.guard.force_stop,
+            Phase::Retract => self.params.scope.retract_force_stop,
+            _ => return,
+        };
+        if force.is_finite() && force <= limit {
+            return;
+        }
+        self.run.supervisor.hold(HoldReason::ForceLimit { force, limit }, true);
+        if let Some(p) = self.run.pivot.as_mut() {
+            p.hold();
+        }
     }
 
     /// The trocar pose, checked and filtered.
@@ -503,7 +529,7 @@ impl OptimalController {
                 .limit(&self.params.motion, &arm.jac, (&prev, &sol.q), left, ctx.dt, (&lo, &hi))
         } else {
             self.run.motion.rest();
-            let why = HoldReason::SolverFailed(sol.status.as_text().into());
+            let why = HoldReason::SolverFailed(sol.status.as_text());
             self.run.supervisor.hold(why, false);
             prev
         };
@@ -619,28 +645,43 @@ impl OptimalController {
         ctx: &StepContext<'_>,
         arm: &Arm,
     ) -> Option<ControlOutput> {
-        if !matches!(self.run.supervisor.phase(), Phase::Done | Phase::Retract) {
+        let s = &self.run.supervisor;
+        let held = s.phase() == Phase::Hold && matches!(s.resumes(), Phase::Done | Phase::Retract);
+        if !held && !matches!(s.phase(), Phase::Done | Phase::Retract) {
             return None;
         }
-        // Every input the law needs is good: a passed hold's reason goes.
-        self.run.supervisor.clear_hold();
         let sp = &self.params.scope;
+        if held {
+            // Braking to rest, then standing at the last command (the hold's reason stays:
+            // no input of this step clears a latched hold).
+            if self.run.pivot.as_ref().is_none_or(|p| !p.held() || p.at_rest()) {
+                self.run.last_command = Some(arm.prev);
+                let mut out = self.output(Some(arm.prev), Some(arm.tip), None);
+                out.pivot = self.run.pivot.as_ref().map(|p| p.report(sp, &arm.tip, &out.f_ext));
+                return Some(out);
+            }
+        } else {
+            // Every input the law needs is good: a passed hold's reason goes.
+            self.run.supervisor.clear_hold();
+        }
         if self.run.pivot.is_none() {
             let (t, stamp) = self.run.trocar_filtered?;
             let trocar = InsertionAxis::from_pose(&t);
             self.run.pivot = Some(Pivot::new(sp, &kin.fk(&arm.prev).ok()?, &trocar, stamp));
         }
-        let command = match ctx.guard.check_force(self.run.admittance.force().norm()) {
-            Ok(()) => live_command(sp, input.now, input.scope),
-            Err(_) => Err("force estimate over the force stop: scope commands ignored, holding still"),
-        };
+        if std::mem::take(&mut self.run.reanchor) {
+            // Resumed after a hold: from where the scope is (the measured tip).
+            let pivot = self.run.pivot.as_mut()?;
+            pivot.reanchor(&arm.tip);
+        }
+        let command = live_command(sp, input.now, input.scope);
         let pivot = self.run.pivot.as_mut()?;
         // The trocar estimate, where there is one, for the port's breathing; the law needs
         // none (the marker may leave the camera's view while the surgeon steers).
         if let Some(t) = input.trocar {
             pivot.observe_port(sp, &t.value, t.stamp, input.now);
         }
-        if self.run.supervisor.phase() == Phase::Retract && !pivot.retracting() {
+        if self.run.supervisor.phase() == Phase::Retract && !pivot.retracting() && !held {
             pivot.retract_to(-self.params.standoff);
         }
         // The torques less the tare's offset but not its per-joint dead-band (2 sigma of the
@@ -747,7 +788,19 @@ impl CommandSource for OptimalController {
 
     fn start(&mut self) -> Result<(), String> {
         let was = self.run.supervisor.phase();
+        if let (Phase::Hold, Some(HoldReason::ForceLimit { limit, .. })) = (was, self.run.supervisor.reason()) {
+            let force = self.run.admittance.force().norm();
+            if force.is_nan() || force > *limit {
+                return Err(format!(
+                    "the force estimate ({force:.1} N) is still over the {limit:.1} N stop: free the scope, then start"
+                ));
+            }
+        }
+        let resumes = self.run.supervisor.resumes();
         self.run.supervisor.start()?;
+        if was == Phase::Hold && matches!(resumes, Phase::Done | Phase::Retract) {
+            self.run.reanchor = true;
+        }
         if was == Phase::Idle {
             // A new run starts from where the arm is (it may have been moved by hand while
             // idle), not from the last command of the previous run.
@@ -791,6 +844,10 @@ impl CommandSource for OptimalController {
 
     fn reject(&mut self, reason: HoldReason, hold_at: JointVector) {
         self.run.supervisor.hold(reason, true);
+        if let Some(p) = self.run.pivot.as_mut() {
+            // The guard or its wrapper decides the command: the law stops at once.
+            p.stop();
+        }
         self.run.motion.rest();
         self.run.goal_window.reset();
         self.run.last_command = Some(hold_at);

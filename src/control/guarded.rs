@@ -18,6 +18,12 @@
 //! - **the clock jumps**: back (`CLOCK_BACK`), or forward by more than `max_clock_jump`
 //!   (`CLOCK_FORWARD`); never a silent freeze;
 //! - **an input restarts** (the node's call to [`Guarded::interrupt`], e.g. a driver restart).
+//!
+//! **Every published command within the speed limits, holds included.** The wrapper keeps
+//! the last command it published, and every command it publishes, the source's or a
+//! hold's, is at most one step of the guard's per-joint speed limit (`dt` times the usable
+//! velocity) from it: a hold never jumps to where it must stand, it walks there
+//! ([`Guarded::step`], [`HoldTarget`]); a start resumes from the last published command.
 
 use super::controller::{ControlInput, ControlOutput};
 use super::guard::{CommandGuard, HoldReason};
@@ -68,12 +74,33 @@ pub trait CommandSource {
 /// `follow_timeout`, as a fraction of `max_command_lead`, to count as following.
 pub const MIN_PROGRESS: f64 = 0.1;
 
+/// Where a hold of the wrapper's stands. Either way it gets there from the last published
+/// command within the guard's per-step speed limit on every joint (never a jump); only the
+/// place differs, by what the fault says about the arm.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum HoldTarget {
+    /// At the last published command: the arm was following it, and the fault says nothing
+    /// of where the arm is (a clock that jumped back or forward: the newest joint states
+    /// may be stamped on the broken clock). The arm settles on the command it already
+    /// tracks; walking anywhere else would move it on data the fault put in doubt.
+    Still,
+    /// Walk to these measured joints, within the speed limits, and stand there. For
+    /// `ARM_NOT_FOLLOWING` the arm is blocked behind the command: standing at the last
+    /// command would go on pushing it with the lead (up to `max_command_lead`), and jumping
+    /// to the measured joints (as a hold once did) stepped the command back by the whole
+    /// lead in one period, twice the speed limit; walking there releases the push without
+    /// a jump, and an arm that frees itself then has nothing ahead of it to leap to. For
+    /// `DRIVER_RESTART` the driver's new session holds the arm where it stands (the newest
+    /// joints): the last command, up to the lead away, would move it at the restart.
+    Arm(JointVector),
+}
+
 /// A hold the wrapper raised itself: its reason and where it holds (`None`: nothing is
 /// commanded, the run went back to IDLE from TARE).
 #[derive(Debug, Clone)]
 struct Latched {
     reason: HoldReason,
-    hold_at: Option<JointVector>,
+    hold_at: Option<HoldTarget>,
 }
 
 /// A command source behind the command guard.
@@ -91,6 +118,9 @@ pub struct Guarded<S> {
     latched: Option<Latched>,
     /// The reason of the last output, for a start that re-anchors a hold.
     last_reason: Option<HoldReason>,
+    /// The last command published (`None` while nothing is): every command after it, a
+    /// hold's included, is within one step of the speed limits of it.
+    sent: Option<JointVector>,
 }
 
 impl<S: CommandSource> Guarded<S> {
@@ -105,6 +135,7 @@ impl<S: CommandSource> Guarded<S> {
             behind_from: None,
             latched: None,
             last_reason: None,
+            sent: None,
         }
     }
 
@@ -129,16 +160,21 @@ impl<S: CommandSource> Guarded<S> {
         self.source.phase() == Phase::Hold && (self.latched.is_some() || self.source.hold_latched())
     }
 
-    /// Start docking (from IDLE) or resume after a hold. A resume begins from the measured
-    /// joints, not from the command held before (the arm may have been blocked behind it,
-    /// or moved while held): nothing jumps.
+    /// Start docking (from IDLE) or resume after a hold. A resume re-anchors the source at
+    /// the last published command (the measured joints when none was published), so that
+    /// its first command is one step of the speed limits from it: re-anchoring at the
+    /// measured joints stepped the command back by the whole lead (up to
+    /// `max_command_lead`) in one period. Where the arm was blocked behind the command or
+    /// the driver restarted, the hold has already walked the command to the arm
+    /// ([`HoldTarget::Arm`]); elsewhere the arm follows the command it tracks, and the
+    /// source's lead bound and tracking check keep its commands with the arm.
     pub fn start(&mut self) -> Result<(), String> {
         let phase = self.source.phase();
         if phase == Phase::Idle {
             // A new run times its steps afresh.
             self.last_now = None;
         } else if phase == Phase::Hold {
-            if let Some(q) = self.last_measured {
+            if let Some(q) = self.sent.or(self.last_measured) {
                 let why = self
                     .latched
                     .as_ref()
@@ -170,6 +206,7 @@ impl<S: CommandSource> Guarded<S> {
     /// Back to IDLE; forgets the run.
     pub fn reset(&mut self) {
         self.latched = None;
+        self.sent = None;
         self.behind_for = 0.0;
         self.behind_from = None;
         self.last_now = None;
@@ -177,16 +214,20 @@ impl<S: CommandSource> Guarded<S> {
     }
 
     /// An input restarted under the controller (a driver restart, seen by the node): hold,
-    /// latched, for `reason`, at the last command; a new start is needed. Nothing happens
-    /// in IDLE; from TARE the run goes back to IDLE.
+    /// latched, for `reason`, walking to the newest measured joints within the speed limits
+    /// ([`HoldTarget::Arm`]; at the last command when none is known); a new start is
+    /// needed. Nothing happens in IDLE; from TARE the run goes back to IDLE.
     pub fn interrupt(&mut self, reason: HoldReason) {
-        let hold_at = self.source.last_command().or(self.last_measured);
+        let hold_at = match self.last_measured {
+            Some(q) => Some(HoldTarget::Arm(q)),
+            None => self.sent.or(self.source.last_command()).map(|_| HoldTarget::Still),
+        };
         self.raise(reason, hold_at);
     }
 
     /// The wrapper's own hold for `reason` at `hold_at` (see [`Guarded::interrupt`]). A
     /// second one keeps the first reason: it is the cause.
-    fn raise(&mut self, reason: HoldReason, hold_at: Option<JointVector>) {
+    fn raise(&mut self, reason: HoldReason, hold_at: Option<HoldTarget>) {
         self.behind_for = 0.0;
         self.behind_from = None;
         if self.latched.is_some() {
@@ -199,11 +240,15 @@ impl<S: CommandSource> Guarded<S> {
                 self.source.reset();
                 self.latched = Some(Latched { reason, hold_at: None });
             }
-            (_, Some(q)) => {
-                self.source.reject(reason.clone(), q);
+            (_, Some(target)) => {
+                // The source holds at the last published command; [`Guarded::step`] walks it
+                // to the target from there.
+                if let Some(q) = self.sent.or(self.source.last_command()) {
+                    self.source.reject(reason.clone(), q);
+                }
                 self.latched = Some(Latched {
                     reason,
-                    hold_at: Some(q),
+                    hold_at: Some(target),
                 });
             }
         }
@@ -275,7 +320,9 @@ impl<S: CommandSource> Guarded<S> {
             self.last_measured = measured;
         }
         self.guard.set_measured(measured);
-        let prev = self.source.last_command().or(measured);
+        // Every command is checked against the last one published (the source's own last
+        // command is the same one, but for a hold's walk, which the source is told of).
+        let prev = self.sent.or(self.source.last_command()).or(measured);
         let ctx = StepContext { guard: &self.guard, dt };
         let mut out = self.source.step(kin, input, &ctx);
         match (out.command, prev) {
@@ -291,7 +338,7 @@ impl<S: CommandSource> Guarded<S> {
             (None, _) => {}
         }
         if let Some(why) = jump {
-            self.raise(why, out.command.or(prev));
+            self.raise(why, out.command.or(prev).map(|_| HoldTarget::Still));
         } else if self.latched.is_none() {
             // Judged on fresh joints only: with none (a silent driver) the arm's progress is
             // unknown, and the stale-data hold speaks for it.
@@ -300,18 +347,36 @@ impl<S: CommandSource> Guarded<S> {
                 .is_some_and(|j| CommandGuard::fresh(input.now - j.stamp, self.guard.params().joint_timeout));
             let command = out.command.as_ref().filter(|_| fresh && measured.is_some());
             if let Some(why) = self.watch_lead(command, dt) {
-                // Hold where the arm is: when it frees itself, nothing jumps.
-                self.raise(why, measured.or(out.command));
+                // Hold where the arm is (walking there): when it frees itself, nothing jumps.
+                let at = measured.map(HoldTarget::Arm).or(out.command.map(|_| HoldTarget::Still));
+                self.raise(why, at);
             }
         }
         if let Some(l) = &self.latched {
-            out.command = out.command.and(l.hold_at);
+            let held = match (out.command, l.hold_at) {
+                (Some(_), Some(HoldTarget::Arm(q))) => Some(prev.map_or(q, |from| self.toward(&from, &q, dt))),
+                (Some(_), Some(HoldTarget::Still)) => prev,
+                _ => None,
+            };
+            if let Some(q) = held {
+                // The source holds where the walk is, so that a start resumes from there.
+                self.source.reject(l.reason.clone(), q);
+            }
+            out.command = held;
             out.phase = self.source.phase();
             out.hold = Some(l.reason.clone());
             out.solve = None;
         }
         self.last_reason.clone_from(&out.hold);
+        self.sent = out.command;
         out
+    }
+
+    /// One step from `from` towards `to`, inside the guard's step box of `dt` (the speed
+    /// limit on every joint, the position limits, the lead bound): at `to` once within it.
+    fn toward(&self, from: &JointVector, to: &JointVector, dt: f64) -> JointVector {
+        let (lo, hi) = self.guard.step_box(from, dt);
+        to.zip_zip_map(&lo, &hi, |q, l, h| q.clamp(l, h))
     }
 }
 
@@ -468,5 +533,237 @@ mod tests {
         // Stale joints say nothing of the arm's progress: the stale-data hold (the source's)
         // speaks for them, not ARM_NOT_FOLLOWING.
         assert_eq!(lead_for_half_a_second(false), None);
+    }
+}
+
+#[cfg(test)]
+mod walk_tests {
+    //! Every published command within the guard's per-step speed limit, through each of
+    //! the wrapper's latched holds and the start that resumes it.
+    use super::*;
+    use crate::control::guard::GuardParams;
+    use crate::control::Stamped;
+    use crate::kinematics::lbr::{LbrModel, ToolParams};
+    use crate::kinematics::{JointLimits, LbrKinematics};
+    use proptest::prelude::*;
+
+    const PERIOD: f64 = 0.01;
+
+    /// A source that walks its command towards `goal` at `rate` of the guard's usable
+    /// velocity (a law whose commands lead a blocked arm), and stands while held.
+    struct Chaser {
+        goal: JointVector,
+        vmax: JointVector,
+        rate: f64,
+        last: Option<JointVector>,
+        phase: Phase,
+    }
+
+    impl CommandSource for Chaser {
+        fn period(&self) -> f64 {
+            PERIOD
+        }
+        fn phase(&self) -> Phase {
+            self.phase
+        }
+        fn start(&mut self) -> Result<(), String> {
+            self.phase = Phase::Approach;
+            Ok(())
+        }
+        fn abort(&mut self, _why: &str) {
+            self.phase = Phase::Aborted;
+        }
+        fn reset(&mut self) {
+            self.phase = Phase::Idle;
+            self.last = None;
+        }
+        fn last_command(&self) -> Option<JointVector> {
+            self.last
+        }
+        fn step(&mut self, _kin: &dyn Kinematics, input: &ControlInput, ctx: &StepContext<'_>) -> ControlOutput {
+            let from = self.last.or(input.joints.map(|j| j.value)).unwrap_or(self.goal);
+            let cmd = if self.phase == Phase::Approach {
+                let step = self.vmax * (self.rate * ctx.dt);
+                from.zip_zip_map(&self.goal, &step, |f, g, s| f + (g - f).clamp(-s, s))
+            } else {
+                from
+            };
+            self.last = Some(cmd);
+            ControlOutput {
+                command: Some(cmd),
+                ..ControlOutput::empty(self.phase)
+            }
+        }
+        fn reject(&mut self, _reason: HoldReason, hold_at: JointVector) {
+            self.phase = Phase::Hold;
+            self.last = Some(hold_at);
+        }
+    }
+
+    #[derive(Debug, Clone, Copy)]
+    enum Fault {
+        Blocked,
+        ClockBack,
+        ClockForward,
+        DriverRestart,
+    }
+
+    /// The arm stands blocked at `q` while the source leads it by `lead` (rad per joint);
+    /// `fault` strikes once the command has reached its lead; after 30 steps held, a start
+    /// and 40 more steps (the source leading again). Returns the published commands with
+    /// the wrapper's `dt` of each step, the hold's code, and the last command before the
+    /// hold.
+    fn play(fault: Fault, lead: &JointVector) -> (Vec<(JointVector, f64)>, String, JointVector) {
+        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
+        let limits = JointLimits::of_model(LbrModel::Med7);
+        let guard = CommandGuard::new(GuardParams::default(), &limits);
+        let q = JointVector::from_column_slice(&[0.1, 0.5, -0.2, -1.2, 0.3, 1.0, -0.4]);
+        let source = Chaser {
+            goal: q + lead,
+            vmax: *guard.max_velocity(),
+            rate: 0.9,
+            last: None,
+            phase: Phase::Approach,
+        };
+        let max_jump = guard.params().max_clock_jump;
+        let mut g = Guarded::wrap(source, guard);
+        let mut now = 10.0;
+        let mut last_now: Option<f64> = None;
+        let mut sent = Vec::new();
+        let (mut code, mut before) = (String::new(), q);
+        let mut struck = None;
+        for k in 0..200 {
+            // Joint states stamped on the clock they came with (the arm's own, for a clock
+            // fault), always fresh.
+            let input = ControlInput {
+                now,
+                joints: Some(Stamped { stamp: now, value: q }),
+                ..ControlInput::default()
+            };
+            let out = g.step(&kin, &input);
+            let dt = last_now.map_or(PERIOD, |t| {
+                let d = now - t;
+                if !(0.0..=max_jump).contains(&d) {
+                    0.0
+                } else {
+                    d.min(PERIOD)
+                }
+            });
+            last_now = Some(now);
+            if let Some(c) = out.command {
+                sent.push((c, dt));
+            }
+            if out.phase == Phase::Hold && code.is_empty() {
+                code = out.reason_code().to_string();
+            }
+            let reached = (g.source().goal - out.command.unwrap_or(q)).amax() < 1e-12;
+            now += PERIOD;
+            if struck.is_none() && (reached || k == 60) {
+                struck = Some(k);
+                before = out.command.unwrap_or(q);
+                match fault {
+                    Fault::Blocked => {} // the watch sees the still arm
+                    Fault::ClockBack => now -= 5.0,
+                    Fault::ClockForward => now += 5.0,
+                    Fault::DriverRestart => g.interrupt(HoldReason::DriverRestart {
+                        stamp_jump_s: -0.05,
+                        names_reordered: false,
+                    }),
+                }
+            }
+            if struck.is_some_and(|s| k == s + 40) {
+                assert_eq!(g.phase(), Phase::Hold, "{fault:?}: held until the start");
+                g.start().unwrap();
+            }
+        }
+        (sent, code, before)
+    }
+
+    /// The largest step of `sent` as a share of the guard's per-step limit (`dt` times the
+    /// usable velocity), over every joint and step; a step in a `dt` of 0 counts as
+    /// infinite unless it is none.
+    fn worst_share(sent: &[(JointVector, f64)], vmax: &JointVector) -> f64 {
+        sent.windows(2)
+            .flat_map(|w| {
+                let (a, (b, dt)) = (w[0].0, w[1]);
+                (0..7).map(move |i| {
+                    let step = (b[i] - a[i]).abs();
+                    if step <= 1e-12 {
+                        0.0
+                    } else {
+                        step / (vmax[i] * dt)
+                    }
+                })
+            })
+            .fold(0.0, f64::max)
+    }
+
+    fn vmax() -> JointVector {
+        let limits = JointLimits::of_model(LbrModel::Med7);
+        *CommandGuard::new(GuardParams::default(), &limits).max_velocity()
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(48))]
+        #[test]
+        fn no_command_step_exceeds_the_speed_limit_through_any_hold_or_restart(
+            lead in proptest::collection::vec(-1.0f64..1.0, 7),
+            which in 0usize..4,
+        ) {
+            let bound = GuardParams::default().max_command_lead;
+            let mut lead = JointVector::from_column_slice(&lead) * bound;
+            // Leading by a quarter of the bound or more on one joint, so that the arm's
+            // not-following watch runs.
+            let sign = if lead[1] >= 0.0 { 1.0 } else { -1.0 };
+            lead[1] = sign * lead[1].abs().max(0.5 * bound);
+            let fault = [Fault::Blocked, Fault::ClockBack, Fault::ClockForward, Fault::DriverRestart][which];
+            let (sent, code, before) = play(fault, &lead);
+            let want = match fault {
+                Fault::Blocked => "ARM_NOT_FOLLOWING",
+                Fault::ClockBack => "CLOCK_BACK",
+                Fault::ClockForward => "CLOCK_FORWARD",
+                Fault::DriverRestart => "DRIVER_RESTART",
+            };
+            prop_assert_eq!(code.as_str(), want);
+            let share = worst_share(&sent, &vmax());
+            prop_assert!(share <= 1.0 + 1e-9, "{:?}: a step of {:.3} x the limit", fault, share);
+            // Where the hold stands: at the arm (walked there), or at the last command.
+            let q = JointVector::from_column_slice(&[0.1, 0.5, -0.2, -1.2, 0.3, 1.0, -0.4]);
+            let held_at = sent.iter().map(|(c, _)| *c).rev().find(|c| (c - q).amax() < 1e-12 || (c - before).amax() < 1e-12);
+            match fault {
+                Fault::Blocked | Fault::DriverRestart => {
+                    prop_assert!(sent.iter().any(|(c, _)| (c - q).amax() < 1e-12), "{:?}: never reached the arm", fault);
+                }
+                Fault::ClockBack | Fault::ClockForward => {
+                    prop_assert!(held_at.is_some(), "{:?}: did not stand at the last command", fault);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_blocked_arms_hold_walks_to_it_and_a_clock_jumps_hold_stands() {
+        let bound = GuardParams::default().max_command_lead;
+        let lead = JointVector::from_column_slice(&[0.0, bound, 0.0, -0.6 * bound, 0.0, 0.0, 0.0]);
+        let q = JointVector::from_column_slice(&[0.1, 0.5, -0.2, -1.2, 0.3, 1.0, -0.4]);
+        let (sent, code, before) = play(Fault::Blocked, &lead);
+        assert_eq!(code, "ARM_NOT_FOLLOWING");
+        let vmax = vmax();
+        // From the command's lead back to the arm in ceil(lead / (vmax dt)) steps, each a
+        // full step of the limit: no jump, no dawdling.
+        let reached = sent.iter().position(|(c, _)| (c - q).amax() < 1e-12).unwrap();
+        let at = sent[..reached]
+            .iter()
+            .rposition(|(c, _)| (c - before).amax() < 1e-12)
+            .unwrap();
+        let reached = reached - at;
+        let steps = (bound / (vmax[1] * PERIOD)).ceil() as usize;
+        assert!(reached <= steps + 1, "{reached} steps to the arm, {steps} expected");
+        assert!(worst_share(&sent, &vmax) <= 1.0 + 1e-9);
+        let (sent, code, before) = play(Fault::ClockForward, &lead);
+        assert_eq!(code, "CLOCK_FORWARD");
+        let at = sent.iter().position(|(c, _)| (c - before).amax() < 1e-12).unwrap();
+        // Held at the last command until the start (40 steps after the fault).
+        assert!(sent[at..at + 40].iter().all(|(c, _)| (c - before).amax() < 1e-12));
     }
 }

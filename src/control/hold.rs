@@ -38,8 +38,9 @@ pub enum HoldReason {
         /// Threshold, N.
         limit: f64,
     },
-    /// The optimiser failed; its solution is not used.
-    SolverFailed(Arc<str>),
+    /// The optimiser failed; its solution is not used. The text is the solve's status
+    /// ([`super::sqp::SqpStatus::as_text`]), static so that the hold allocates nothing.
+    SolverFailed(&'static str),
     /// The command was not finite.
     NonFiniteCommand,
     /// The command would leave the joint limits.
@@ -261,7 +262,7 @@ mod tests {
                 force: 30.0,
                 limit: 20.0,
             },
-            HoldReason::SolverFailed("x".into()),
+            HoldReason::SolverFailed("x"),
             HoldReason::NonFiniteCommand,
             HoldReason::PositionLimit { joint: 0 },
             HoldReason::VelocityLimit { joint: 0 },

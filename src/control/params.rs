@@ -192,6 +192,12 @@ impl ControllerParams {
         self.guard.validate()?;
         self.motion.validate()?;
         self.scope.validate()?;
+        if self.scope.retract_force_stop > self.guard.force_stop {
+            return Err(format!(
+                "scope.retract_force_stop ({} N) must not be above guard.force_stop ({} N)",
+                self.scope.retract_force_stop, self.guard.force_stop
+            ));
+        }
         self.sqp.validate()
     }
 }

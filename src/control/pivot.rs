@@ -26,6 +26,14 @@
 //! **Retract** (`~retract`): the commands are ignored and s_t falls at `retract_speed` to
 //! the stand-off point before the port (`-standoff`); then the run ends (IDLE).
 //!
+//! **Held** ([`Pivot::hold`], the force stop while steering or withdrawing): the commands
+//! are ignored, the shaped rates brake to rest within the `motion:` limits (a pan or a
+//! withdrawal slows to a stop, never jumps), and nothing else moves the targets: no
+//! breathing follow, no fulcrum adaptation, no axial yield (each moves the scope, which a
+//! surgeon expects to stay where it stopped: neither pulled out nor pushed in). Once at
+//! rest ([`Pivot::at_rest`]) the controller stands at its last command. A resume
+//! re-anchors the law at the measured tip ([`Pivot::reanchor`]).
+//!
 //! Nothing here allocates.
 
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
@@ -91,6 +99,8 @@ pub struct Pivot {
     zoom_rate: RateShaper,
     /// The port's breathing along the docking axis, from the trocar estimate.
     follow: PortFollow,
+    /// Held by the force stop: braking to rest, then still (module doc).
+    held: bool,
 }
 
 impl Pivot {
@@ -116,7 +126,50 @@ impl Pivot {
             turn_rate: RateShaper::default(),
             zoom_rate: RateShaper::default(),
             follow: PortFollow::new(&p.breathing, trocar.direction, trocar.port, stamp),
+            held: false,
         }
+    }
+
+    /// Hold (the force stop): the commands are ignored, the rates brake to rest, nothing
+    /// else moves the targets (module doc), until [`Pivot::reanchor`].
+    pub fn hold(&mut self) {
+        self.held = true;
+    }
+
+    /// Held at once, the rates at rest (the command is decided elsewhere: a guard's hold).
+    pub fn stop(&mut self) {
+        self.held = true;
+        self.turn_rate.stop();
+        self.zoom_rate.stop();
+    }
+
+    /// Whether the law is held.
+    pub fn held(&self) -> bool {
+        self.held
+    }
+
+    /// Whether the shaped rates are at rest (a held law has stopped braking).
+    pub fn at_rest(&self) -> bool {
+        self.turn_rate.velocity() == Vector3::zeros() && self.zoom_rate.velocity() == Vector3::zeros()
+    }
+
+    /// Resume after a hold from the tip pose `tip` (the measured one: where the scope
+    /// stopped): the target orientation and depth are the tip's, the port is the old port
+    /// projected on the new shaft line, the fulcrum lies at its adapted depth on that line
+    /// (its lateral displacement spent), the rates start from rest. A withdrawal goes on
+    /// to its end depth; the breathing follow and the cone keep their state.
+    pub fn reanchor(&mut self, tip: &Isometry3<f64>) {
+        let d = tip.rotation * Vector3::z();
+        let e = Point3::from(tip.translation.vector);
+        let tip_depth = -d.dot(&(self.port() - e));
+        let port = e - d * tip_depth;
+        self.rot = tip.rotation;
+        self.tip_depth = tip_depth;
+        self.fulcrum.lateral = Vector3::zeros();
+        self.fulcrum_base = port + d * self.fulcrum.depth;
+        self.turn_rate.stop();
+        self.zoom_rate.stop();
+        self.held = false;
     }
 
     /// Feed a trocar estimate `trocar` (its port and axis), stamped `stamp`, at time `now`
@@ -276,9 +329,12 @@ impl Pivot {
     ) -> PivotTargets {
         self.limit = None;
         self.ignored = command.err();
-        let steering = matches!(command, Ok(Some(_))) || self.retract_to.is_some();
+        let steering = !self.held && (matches!(command, Ok(Some(_))) || self.retract_to.is_some());
         // The wanted rates (pan, tilt, roll; zoom), and how far the zoom may go.
         let (turn, zoom, zoom_room) = match (self.retract_to, command) {
+            // Held: braking to rest.
+            (Some(end), _) if self.held => (Vector3::zeros(), 0.0, self.tip_depth - end),
+            (None, _) if self.held => (Vector3::zeros(), 0.0, f64::INFINITY),
             (Some(end), _) => (Vector3::zeros(), -p.retract_speed, self.tip_depth - end),
             (None, Ok(Some(c))) => {
                 let c = self.capped(p, c);
@@ -312,6 +368,8 @@ impl Pivot {
             self.zoom(p, c.zoom, dt);
         }
         let d = self.direction();
+        // Held, nothing but the braking rates moves the targets.
+        let adapt = adapt && !self.held;
         if adapt && self.retract_to.is_none() {
             self.yield_along(p, force.dot(&d), steering, dt);
         }
@@ -602,5 +660,75 @@ mod tests {
         assert_eq!(pv.target_depth(), -0.02);
         assert!((steps as f64 - 0.05 / p.retract_speed / 0.01).abs() <= 1.0);
         assert!(pv.direction().angle(&-Vector3::z()) < 1e-12);
+    }
+
+    #[test]
+    fn a_held_law_brakes_within_the_motion_limits_then_nothing_moves_it() {
+        let lim = MotionLimits::default();
+        // Panning at full speed, then held with a force across the shaft and along it that
+        // would move the fulcrum and the depth, and a breathing port.
+        for retract in [false, true] {
+            let (p, mut pv) = setup();
+            if retract {
+                pv.retract_to(-0.02);
+            }
+            let mut prev = None;
+            for _ in 0..50 {
+                prev = Some(go(&mut pv, &p, cmd(p.max_angular_speed, 0.0, 0.0, 0.0)));
+            }
+            let mut prev = prev.unwrap();
+            let v0 = pv.turn_rate.velocity().norm() + pv.zoom_rate.velocity().norm();
+            assert!(v0 > 0.01, "moving before the hold");
+            pv.hold();
+            assert!(pv.held());
+            let push = Vector3::new(8.0, 0.0, 9.0);
+            let (mut rate, mut steps) = (if retract { p.retract_speed } else { p.max_angular_speed }, 0);
+            while !pv.at_rest() {
+                let t = pv.step((&p, &lim), cmd(0.3, 0.0, 0.0, 0.02), &push, true, 0.01);
+                // The rates only slow, within the acceleration limits: no jump.
+                let (v, a_max) = if retract {
+                    (pv.zoom_rate.velocity().norm(), lim.max_accel)
+                } else {
+                    (pv.turn_rate.velocity().norm(), lim.max_angular_accel)
+                };
+                assert!(v <= rate + 1e-12, "speeding up while held: {v} after {rate}");
+                assert!(rate - v <= a_max * 0.01 + 1e-9, "braking faster than the limit");
+                rate = v;
+                prev = t;
+                steps += 1;
+                assert!(steps < 100, "never at rest");
+            }
+            // At rest: the targets stay, whatever the force and the commands.
+            for _ in 0..200 {
+                let t = pv.step((&p, &lim), cmd(0.3, 0.0, 0.0, 0.02), &push, true, 0.01);
+                assert_eq!(
+                    t.point, prev.point,
+                    "retract {retract}: the tip's target moved while held"
+                );
+                assert_eq!(t.cost.fulcrum, prev.cost.fulcrum, "the fulcrum moved while held");
+                assert_eq!(t.axis.direction, prev.axis.direction);
+            }
+            // Resumed at a tip 1 mm deeper along the shaft and turned 0.5 deg: the targets are
+            // that tip, the port on its line; a withdrawal goes on.
+            let d = pv.direction().into_inner();
+            let turn = UnitQuaternion::from_axis_angle(&Vector3::y_axis(), 0.5f64.to_radians());
+            let tip = Isometry3::from_parts((prev.point + d * 0.001).into(), turn * pv.rot);
+            pv.reanchor(&tip);
+            assert!(!pv.held());
+            let t = go(&mut pv, &p, Ok(None));
+            let e = Point3::from(tip.translation.vector);
+            if retract {
+                assert!(pv.retracting() && t.point != e, "the withdrawal goes on");
+            } else {
+                assert!((t.point - e).norm() < 1e-12, "re-anchored at the tip");
+            }
+            let shaft = tip.rotation * Vector3::z();
+            assert!((t.axis.direction.into_inner() - shaft).norm() < 1e-12);
+            let port = t.axis.port - e;
+            assert!(
+                (port - shaft * shaft.dot(&port)).norm() < 1e-12,
+                "the port on the new shaft line"
+            );
+        }
     }
 }

@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use super::fulcrum::FulcrumParams;
 use super::port_follow::PortFollowParams;
 use super::sqp::CostWeights;
+use crate::validate::in_range;
 
 /// A surgeon's scope command, in the `endoscope_tip` frame (a `TwistStamped` on
 /// `/docking/scope_command`).
@@ -100,6 +101,10 @@ pub struct ScopeParams {
     pub roll_weight: f64,
     /// Speed of the withdrawal along the shaft (`~retract`), m/s.
     pub retract_speed: f64,
+    /// Force estimate at which a withdrawal brakes to a stop (within the `motion:` limits)
+    /// and holds, `FORCE_LIMIT`, N: below the guard's `force_stop`, by what the force grows
+    /// while the estimate lags and the withdrawal brakes against a stiff obstacle.
+    pub retract_force_stop: f64,
     /// The fulcrum's adaptation from the force across the shaft.
     pub fulcrum: FulcrumParams,
     /// The port's breathing along the docking axis, followed from the trocar estimate.
@@ -126,6 +131,7 @@ impl Default for ScopeParams {
             rcm_weight: 3000.0,
             roll_weight: 5.0,
             retract_speed: 0.02,
+            retract_force_stop: 12.0,
             fulcrum: FulcrumParams::default(),
             breathing: PortFollowParams::default(),
         }
@@ -147,6 +153,7 @@ impl ScopeParams {
         pos("max_roll_speed", self.max_roll_speed)?;
         pos("max_zoom_speed", self.max_zoom_speed)?;
         pos("retract_speed", self.retract_speed)?;
+        in_range("scope.retract_force_stop", self.retract_force_stop, 1.0, 200.0).map_err(|e| e.to_string())?;
         self.weights.validate("scope.weights")?;
         for (n, w) in [("rcm_weight", self.rcm_weight), ("roll_weight", self.roll_weight)] {
             if !(w.is_finite() && w >= 0.0) {

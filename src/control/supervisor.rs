@@ -141,10 +141,18 @@ impl Supervisor {
         *self = Self::new();
     }
 
-    /// Hold for `reason`. A latched hold needs `start` to resume. Outside APPROACH and
-    /// INSERT the phase does not change (nothing moves there anyway) but the reason is kept.
+    /// Hold for `reason`. A latched hold needs `start` to resume. In DONE and RETRACT (the
+    /// surgeon steering, the withdrawal) a latched hold (the force stop, a rejected command)
+    /// holds too, and `start` resumes DONE or RETRACT; an unlatched one (stale data) keeps
+    /// the phase, which holds still without its inputs anyway, with the reason. Elsewhere
+    /// the phase does not change (nothing moves there) but the reason is kept.
     pub fn hold(&mut self, reason: HoldReason, latched: bool) {
         match self.phase {
+            Phase::Done | Phase::Retract if latched => {
+                self.resume = self.phase;
+                self.phase = Phase::Hold;
+                self.latched = true;
+            }
             Phase::Approach | Phase::Insert => {
                 self.resume = self.phase;
                 self.phase = Phase::Hold;
@@ -171,6 +179,11 @@ impl Supervisor {
             Phase::Tare | Phase::Approach | Phase::Insert | Phase::Done | Phase::Retract => self.reason = None,
             _ => {}
         }
+    }
+
+    /// The phase a hold resumes (meaningful in HOLD).
+    pub fn resumes(&self) -> Phase {
+        self.resume
     }
 
     /// Whether the current hold is latched.
@@ -260,6 +273,17 @@ mod tests {
         assert!(s.start().is_err());
         s.retract().unwrap();
         assert_eq!(s.phase(), Phase::Retract);
+        let stop = HoldReason::ForceLimit {
+            force: 16.0,
+            limit: 15.0,
+        };
+        s.hold(stop, true);
+        assert_eq!(s.phase(), Phase::Hold, "the force stop holds the withdrawal");
+        assert_eq!(s.resumes(), Phase::Retract);
+        s.clear_hold();
+        assert_eq!(s.phase(), Phase::Hold, "latched: only a start resumes");
+        s.start().unwrap();
+        assert_eq!(s.phase(), Phase::Retract, "the start continues the withdrawal");
         s.hold(HoldReason::NoJointState, false);
         assert_eq!(s.phase(), Phase::Retract, "a hold keeps the phase, as in DONE");
         assert_eq!(s.reason().map(HoldReason::code), Some("NO_JOINT_STATE"));

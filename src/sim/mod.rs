@@ -2,6 +2,7 @@
 //! endoscope whose shaft touches ([`contact`]) a compliantly mounted, breathing trocar
 //! ([`trocar`]) and slides through its seal ([`seal`]), measured by a noisy pose sensor
 //! ([`noise`]) and the arm's joint torque sensors with the LBR's model error ([`torque`]),
+//! and, as an injected fault, a stiff obstacle that catches the tip ([`jam`]),
 //! from randomised starts ([`scenario`]). [`world::SimWorld`] steps it all at 1 kHz. The experiment that closes
 //! the loop around it (policies, trials, statistics) is [`crate::trials`].
 //!
@@ -11,6 +12,7 @@
 
 pub mod arm;
 pub mod contact;
+pub mod jam;
 pub mod noise;
 pub mod scenario;
 pub mod seal;
@@ -22,6 +24,7 @@ use serde::{Deserialize, Serialize};
 
 pub use arm::ArmParams;
 pub use contact::ContactParams;
+pub use jam::Jam;
 pub use noise::MeasurementParams;
 pub use scenario::{Scenario, ScenarioParams};
 pub use seal::SealParams;

@@ -16,6 +16,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::arm::Arm;
 use super::contact::{ContactModel, ContactWrench, ShaftMotion};
+use super::jam::Jam;
 use super::noise::{TrocarMeasurement, TrocarSensor};
 use super::scenario::Scenario;
 use super::seal::Seal;
@@ -50,6 +51,8 @@ pub struct SimWorld {
     jac: Jacobian,
     wrench: ContactWrench,
     tau_meas: JointVector,
+    /// A stiff obstacle holding the tip, when one is injected.
+    jam: Option<Jam>,
 }
 
 impl std::fmt::Debug for SimWorld {
@@ -109,6 +112,7 @@ impl SimWorld {
             jac,
             wrench: ContactWrench::default(),
             tau_meas: JointVector::zeros(),
+            jam: None,
         }
         .primed())
     }
@@ -156,6 +160,16 @@ impl SimWorld {
     /// previous command kept.
     pub fn set_command(&mut self, q_cmd: &JointVector) -> Result<(), SimError> {
         self.arm.set_command(q_cmd)
+    }
+
+    /// Catch the tip with a stiff obstacle (`None`: free it); see [`super::jam`].
+    pub fn set_jam(&mut self, jam: Option<Jam>) {
+        self.jam = jam;
+    }
+
+    /// The injected jam, if any.
+    pub fn jam(&self) -> Option<&Jam> {
+        self.jam.as_ref()
     }
 
     /// Advance by `dt` seconds in whole physics steps (a remainder carries over to the next
@@ -231,11 +245,15 @@ impl SimWorld {
     fn substep(&mut self, m: &ShaftMotion, jac: &Jacobian, h: f64, t: f64) -> ContactWrench {
         self.trocar.set_anchor_offset(&self.breathing.offset(t));
         let mut w = self.contact.evaluate(m, &self.trocar);
+        let tip = Point3::from(m.tip.translation.vector);
         if let Some((f, q)) = self.seal.evaluate(m, &self.trocar, h) {
-            let tip = Point3::from(m.tip.translation.vector);
             w.add_point_force(&f, &q, &tip, &self.trocar.pivot());
         }
+        // The jam acts on the arm alone: the trocar's own wrench is taken before it.
         self.trocar.step(h, &w.trocar_force, &w.trocar_torque);
+        if let Some(jam) = &self.jam {
+            jam.add_to(&mut w, &tip, &m.v);
+        }
         let wrench = Vector6::new(w.force.x, w.force.y, w.force.z, w.moment.x, w.moment.y, w.moment.z);
         let kq = jac.transpose() * w.stiffness * jac;
         self.arm.relax(&(jac.transpose() * wrench), &kq, h);

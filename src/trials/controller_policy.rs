@@ -24,6 +24,27 @@ impl ControllerPolicy {
     }
 }
 
+/// The controller's input from an observation: joints and torques stamped now, the trocar
+/// pose stamped at capture.
+fn control_input(obs: &Observation) -> ControlInput {
+    ControlInput {
+        scope: None,
+        now: obs.t,
+        joints: Some(Stamped {
+            stamp: obs.t,
+            value: obs.q,
+        }),
+        tau_ext: Some(Stamped {
+            stamp: obs.t,
+            value: obs.tau_ext,
+        }),
+        trocar: obs.trocar.map(|m| Stamped {
+            stamp: m.stamp,
+            value: m.pose,
+        }),
+    }
+}
+
 impl Policy for ControllerPolicy {
     fn torque_filter_time_constant(&self) -> f64 {
         self.torque_filter
@@ -36,22 +57,7 @@ impl Policy for ControllerPolicy {
     }
 
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
-        let input = ControlInput {
-            scope: None,
-            now: obs.t,
-            joints: Some(Stamped {
-                stamp: obs.t,
-                value: obs.q,
-            }),
-            tau_ext: Some(Stamped {
-                stamp: obs.t,
-                value: obs.tau_ext,
-            }),
-            trocar: obs.trocar.map(|m| Stamped {
-                stamp: m.stamp,
-                value: m.pose,
-            }),
-        };
+        let input = control_input(obs);
         let out = self.ctrl.step(kin, &input);
         Action {
             command: out.command,
@@ -60,6 +66,164 @@ impl Policy for ControllerPolicy {
             hold_code: out.hold.as_ref().map(|h| h.code()),
             aborted: (out.phase == Phase::Aborted).then(|| out.reason_text().unwrap_or_else(|| "aborted".into())),
             latched: self.ctrl.hold_latched(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::cell::Cell;
+    use std::sync::Arc;
+
+    use nalgebra::Isometry3;
+
+    use super::*;
+    use crate::kinematics::lbr::{LbrModel, ToolParams};
+    use crate::kinematics::{Jacobian, JointVector, KinematicsError, LbrKinematics};
+    use crate::sim::SimWorld;
+    use crate::test_alloc::allocations_on_this_thread;
+    use crate::trials::config::{load_controller, SimConfig};
+    use crate::trials::run::{run_trial, Outcome};
+
+    /// The arm's kinematics, with every call after the first of a poisoned step failing:
+    /// the step's own measured pose is right, the SQP's iterations get a NaN Jacobian
+    /// (odd poisoned steps) or an error (even ones).
+    struct Poisoned<'a> {
+        inner: &'a dyn Kinematics,
+        calls: Cell<usize>,
+        poisoned: Cell<Option<bool>>,
+    }
+
+    // SAFETY-free: the cells are only touched from the one test thread.
+    unsafe impl Sync for Poisoned<'_> {}
+
+    impl Kinematics for Poisoned<'_> {
+        fn joint_names(&self) -> &[String] {
+            self.inner.joint_names()
+        }
+        fn limits(&self) -> &crate::kinematics::JointLimits {
+            self.inner.limits()
+        }
+        fn fk(&self, q: &JointVector) -> Result<Isometry3<f64>, KinematicsError> {
+            self.inner.fk(q)
+        }
+        fn fk_jacobian(&self, q: &JointVector) -> Result<(Isometry3<f64>, Jacobian), KinematicsError> {
+            let call = self.calls.get();
+            self.calls.set(call + 1);
+            match self.poisoned.get() {
+                Some(nan) if call > 0 => {
+                    if nan {
+                        let (pose, _) = self.inner.fk_jacobian(q)?;
+                        Ok((pose, Jacobian::repeat(f64::NAN)))
+                    } else {
+                        Err(KinematicsError::NonFinite {
+                            index: 0,
+                            value: f64::NAN,
+                        })
+                    }
+                }
+                _ => self.inner.fk_jacobian(q),
+            }
+        }
+    }
+
+    /// The controller as a policy, counting the allocations of each `Controller::step`.
+    struct Counted {
+        inner: ControllerPolicy,
+        poison_every: usize,
+        steps: usize,
+        allocating_steps: usize,
+        clarabel_allocations: usize,
+        solver_failures: usize,
+    }
+
+    impl Policy for Counted {
+        fn torque_filter_time_constant(&self) -> f64 {
+            self.inner.torque_filter_time_constant()
+        }
+        fn start(&mut self, kin: &dyn Kinematics) {
+            self.inner.start(kin);
+        }
+        fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
+            self.steps += 1;
+            let poison = (self.poison_every > 0 && self.steps.is_multiple_of(self.poison_every))
+                .then_some(self.steps / self.poison_every % 2 == 1);
+            let kin = Poisoned {
+                inner: kin,
+                calls: Cell::new(0),
+                poisoned: Cell::new(poison),
+            };
+            let input = control_input(obs);
+            let before = allocations_on_this_thread();
+            let out = self.inner.ctrl.step(&kin, &input);
+            let allocated = allocations_on_this_thread() > before;
+            let failed = out.reason_code() == "SOLVER_FAILED";
+            self.solver_failures += usize::from(failed);
+            // Clarabel's own timer map grows in a first solve of some of its paths (a
+            // successful one): counted apart, and the only allocation allowed.
+            let in_clarabel = out
+                .solve
+                .as_ref()
+                .is_some_and(|r| r.clarabel_qps > 0 && r.status.is_usable());
+            if allocated && (failed || !in_clarabel) {
+                self.allocating_steps += 1;
+            }
+            self.clarabel_allocations += usize::from(allocated && !failed && in_clarabel);
+            Action {
+                command: out.command,
+                f_ext: Some(out.f_ext),
+                phase: out.phase.as_str(),
+                hold_code: out.hold.as_ref().map(|h| h.code()),
+                aborted: None,
+                latched: self.inner.ctrl.hold_latched(),
+            }
+        }
+    }
+
+    /// A whole docking in the simulator (realistic world), with the SQP failing in some
+    /// steps: its kinematics poisoned every 7th step (NaN Jacobian: a QP failure; an
+    /// error: a kinematics failure). The failures hold for a step and the docking goes on; no step of the
+    /// controller allocates, failed ones included, except in a successful Clarabel solve:
+    /// Clarabel's timer map grows there (two steps per docking, measured), which is
+    /// counted apart and not yet removed.
+    #[test]
+    fn a_docking_with_solver_failures_allocates_nothing_per_step() {
+        let cfg = SimConfig::load_default().unwrap().with_protocol("realistic").unwrap();
+        let kin: Arc<dyn Kinematics> =
+            Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap());
+        let shipped = load_controller(None).unwrap();
+        for (params, poison_every) in [(&shipped, 7)] {
+            let mut p = params.clone();
+            p.dt = 1.0 / cfg.trial.control_rate_hz;
+            let mut policy = Counted {
+                inner: ControllerPolicy::new(&p, kin.limits()).unwrap(),
+                poison_every,
+                steps: 0,
+                allocating_steps: 0,
+                clarabel_allocations: 0,
+                solver_failures: 0,
+            };
+            for seed in [1, 2] {
+                policy.steps = 0;
+                policy.solver_failures = 0;
+                let mut world = SimWorld::new(&cfg.sim, kin.clone(), seed).unwrap();
+                let r = run_trial(&mut world, &mut policy, &cfg.trial, seed);
+                let what = format!(
+                    "seed {seed}, poison every {poison_every}, qp_max_iterations {}: {:?} ({}) after {} steps, {} \
+                     solver failures, {} steps allocated ({} in a successful Clarabel solve)",
+                    p.sqp.qp_max_iterations,
+                    r.outcome,
+                    r.reason,
+                    policy.steps,
+                    policy.solver_failures,
+                    policy.allocating_steps,
+                    policy.clarabel_allocations
+                );
+                eprintln!("{what}");
+                assert_eq!(r.outcome, Outcome::Docked, "{what}");
+                assert!(policy.solver_failures >= 10, "{what}");
+                assert_eq!(policy.allocating_steps, 0, "{what}");
+            }
         }
     }
 }

@@ -379,6 +379,11 @@ impl PivotSession {
         &self.world
     }
 
+    /// The simulated world, to inject a fault ([`SimWorld::set_jam`]).
+    pub fn world_mut(&mut self) -> &mut SimWorld {
+        &mut self.world
+    }
+
     /// The controller (for `retract`, `abort`, ...).
     pub fn controller(&mut self) -> &mut Controller {
         &mut self.ctrl

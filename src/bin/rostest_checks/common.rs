@@ -36,12 +36,21 @@ pub struct CheckParams {
     /// For `docking`: the status `hold_code` at DONE must be this ('' = anything, e.g.
     /// `SEATED`).
     pub done_code: String,
-    /// For `stale_hold`: how long the command must stay still once held, s.
+    /// `stale_hold`, `bad_input`: how long the command must stay still once held, s.
     pub hold_observe: f64,
+    /// `bad_input`: the largest accepted motion of a joint (the arm's, the command's) once
+    /// held, deg.
+    pub max_hold_motion_deg: f64,
     /// For `replay`: the minimum number of status messages expected.
     pub min_status: usize,
     /// For `replay`: the phases the controller may report.
     pub allowed_phases: Vec<String>,
+    /// `replay_controller`: the recorded controller's status (the bag's, remapped).
+    pub recorded_status_topic: String,
+    /// `replay_controller`: the recorded controller's commands (the bag's, remapped).
+    pub recorded_command_topic: String,
+    /// `replay_controller`: the fewest commands the live controller must publish.
+    pub min_commands: usize,
     /// For `replay`: the estimated trocar pose topic.
     pub pose_topic: String,
     /// For `replay`: the recorded true trocar pose topic.
@@ -141,8 +150,12 @@ impl Default for CheckParams {
             hold_code: "STALE_TROCAR_POSE".into(),
             done_code: String::new(),
             hold_observe: 1.0,
+            max_hold_motion_deg: 0.01,
             min_status: 10,
             allowed_phases: vec!["HOLD".into(), "APPROACH".into(), "INSERT".into(), "DONE".into()],
+            recorded_status_topic: "/recorded/docking/status".into(),
+            recorded_command_topic: "/recorded/command".into(),
+            min_commands: 1,
             pose_topic: topics::TROCAR_POSE.into(),
             true_pose_topic: topics::TROCAR_POSE_TRUE.into(),
             true_fulcrum_topic: topics::TROCAR_FULCRUM_TRUE.into(),
@@ -194,6 +207,7 @@ impl CheckParams {
         validate::duration("startup_timeout", self.startup_timeout)?;
         validate::non_negative("hold_observe", self.hold_observe)?;
         validate::positive("max_metric_m", self.max_metric_m)?;
+        validate::positive("max_hold_motion_deg", self.max_hold_motion_deg)?;
         validate::non_negative("max_tip_rms_speed", self.max_tip_rms_speed)?;
         validate::positive("max_force", self.max_force)?;
         validate::positive("max_position_error", self.max_position_error)?;
@@ -299,9 +313,19 @@ pub fn wait_for<T, F: FnMut() -> Option<T>>(timeout: f64, mut f: F) -> Option<T>
 
 /// Call a std_srvs/Trigger service, waiting for it to appear.
 pub fn trigger(service: &str, timeout: f64) -> Result<String, String> {
+    call_trigger(service, &trigger_client(service, timeout)?)
+}
+
+/// A client of the std_srvs/Trigger service `service`, once it has appeared (so that a
+/// later call is one round trip).
+pub fn trigger_client(service: &str, timeout: f64) -> Result<rosrust::Client<std_srvs::Trigger>, String> {
     rosrust::wait_for_service(service, Some(Duration::from_secs_f64(timeout)))
         .map_err(|e| format!("service {service} did not appear: {e}"))?;
-    let client = rosrust::client::<std_srvs::Trigger>(service).map_err(|e| format!("client {service}: {e}"))?;
+    rosrust::client::<std_srvs::Trigger>(service).map_err(|e| format!("client {service}: {e}"))
+}
+
+/// Call `client` (of `service`); its message, or why it failed or refused.
+pub fn call_trigger(service: &str, client: &rosrust::Client<std_srvs::Trigger>) -> Result<String, String> {
     let res = client
         .req(&std_srvs::TriggerReq {})
         .map_err(|e| format!("{service}: {e}"))?

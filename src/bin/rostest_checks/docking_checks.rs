@@ -1,5 +1,5 @@
 //! Checks on the docking controller as the live graph runs it: the message round trip
-//! through rospy, a whole docking trial, the stale-pose hold, and the bag replay.
+//! through rospy, a whole docking trial, the stale-pose hold.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -272,67 +272,4 @@ pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
         return Err(format!("left HOLD on its own: phase {}", s.phase));
     }
     Ok(format!("HOLD: {}", held.hold_reason))
-}
-
-/// Recorded topics are replayed into the nodes: the controller must publish status in the
-/// allowed phases, and the estimator a trocar pose within `max_position_error` of the
-/// recorded truth.
-pub fn replay(p: &CheckParams) -> Result<String, String> {
-    use ::trocar_docking::ros::msgs::geometry_msgs::PoseStamped;
-    let (status, _s1) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
-    let (truth, _s3) = subscribe_latest::<PoseStamped>(&p.true_pose_topic)?;
-    // Every estimate is compared with the newest true pose when it arrives; the worst counts.
-    let (pose, _s2) = subscribe_latest::<PoseStamped>(&p.pose_topic)?;
-    let worst = Arc::new(Mutex::new((0.0_f64, 0_usize)));
-    let _s4 = {
-        let (truth, worst) = (truth.clone(), worst.clone());
-        rosrust::subscribe(&p.pose_topic, 100, move |m: PoseStamped| {
-            let Some(t) = truth.get() else { return };
-            let err = match (convert::pose("estimate", &m.pose), convert::pose("truth", &t.pose)) {
-                (Ok(e), Ok(t)) => (e.translation.vector - t.translation.vector).norm(),
-                _ => f64::INFINITY,
-            };
-            if let Ok(mut w) = worst.lock() {
-                w.0 = if err.is_nan() { f64::INFINITY } else { w.0.max(err) };
-                w.1 += 1;
-            }
-        })
-        .map_err(|e| e.to_string())?
-    };
-    wait_for(p.time_limit, || {
-        (status.count() >= p.min_status && pose.count() >= p.min_poses.max(1) && truth.count() > 0).then_some(())
-    })
-    .ok_or_else(|| {
-        format!(
-            "got {} status, {} estimated and {} true poses",
-            status.count(),
-            pose.count(),
-            truth.count()
-        )
-    })?;
-    let s = status.get().unwrap_or_default();
-    let allowed_hold = !p.allowed_hold_code.is_empty() && s.phase == "HOLD" && s.hold_code == p.allowed_hold_code;
-    if !(p.allowed_phases.contains(&s.phase) || allowed_hold) {
-        return Err(format!(
-            "phase {} ({}) not among {:?}",
-            s.phase, s.hold_reason, p.allowed_phases
-        ));
-    }
-    let (err, compared) = worst.lock().map(|w| *w).map_err(|e| e.to_string())?;
-    if compared == 0 {
-        return Err("no estimate arrived after a true pose: nothing compared".into());
-    }
-    if err.is_nan() || err > p.max_position_error {
-        return Err(format!(
-            "a trocar estimate {:.1} mm from the truth (worst of {compared})",
-            err * 1e3
-        ));
-    }
-    Ok(format!(
-        "{} status (phase {}), {} trocar estimates, every one of {compared} compared within {:.2} mm of the truth",
-        status.count(),
-        s.phase,
-        pose.count(),
-        err * 1e3
-    ))
 }

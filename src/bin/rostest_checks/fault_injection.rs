@@ -3,7 +3,10 @@
 //! last commanded, so that no fault but the injected one holds), starts the controller, then breaks
 //! one input at a time (wrong joint names, NaN, a short torque vector, a wrong frame, a
 //! stamp that goes back, a driver that stops) and asserts that the controller holds with a
-//! reason naming the fault, keeps publishing its status (it did not crash) and does not move.
+//! reason naming the fault (its `hold_code`, and the text naming what was wrong), keeps
+//! publishing its status (it did not crash) and does not move: over `hold_observe` after the
+//! hold, neither the arm (the joints the driver reports) nor the command moves more than
+//! `max_hold_motion_deg` on any joint.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -42,6 +45,35 @@ impl Fault {
             Fault::None => "",
         }
     }
+
+    /// What the hold's text must say: the input that was wrong, and how.
+    fn named_in_reason(self) -> &'static [&'static str] {
+        match self {
+            Fault::WrongJointNames => &["/lbr/joint_states", "missing"],
+            Fault::NanJoint => &["/lbr/joint_states", "not finite"],
+            Fault::ShortTorques => &["/lbr/states", "external_torque has 6 values"],
+            Fault::WrongFrame => &["/trocar/pose", "frame 'world'"],
+            Fault::StampBack => &["/trocar/pose", "is not after the previous"],
+            Fault::DriverStops => &["joint state stale"],
+            Fault::None => &[],
+        }
+    }
+}
+
+/// The largest joint difference, rad, of two optional joint vectors (infinite when one is
+/// missing).
+fn joint_gap(a: Option<JointVector>, b: Option<JointVector>) -> f64 {
+    match (a, b) {
+        (Some(a), Some(b)) => (a - b).amax(),
+        _ => f64::INFINITY,
+    }
+}
+
+/// The fake driver's thread, its command subscription, and the joints it reports.
+struct Driver {
+    thread: std::thread::JoinHandle<()>,
+    _commands: rosrust::Subscriber,
+    arm: Arc<Mutex<JointVector>>,
 }
 
 /// Publish the fake driver and camera until `stop`, applying the current fault; the arm
@@ -52,12 +84,13 @@ fn play_driver(
     command_topic: &str,
     fault: Arc<Mutex<Fault>>,
     stop: Arc<AtomicBool>,
-) -> Result<(std::thread::JoinHandle<()>, rosrust::Subscriber), String> {
+) -> Result<Driver, String> {
     let js = rosrust::publish::<sensor_msgs::JointState>(topics::JOINT_STATES, 10).map_err(|e| e.to_string())?;
     let lbr = rosrust::publish::<lbr_msgs::LBRState>(topics::LBR_STATE, 10).map_err(|e| e.to_string())?;
     let pose = rosrust::publish::<geometry_msgs::PoseStamped>(topics::TROCAR_POSE, 10).map_err(|e| e.to_string())?;
     let names: Vec<String> = ::trocar_docking::kinematics::joint_names();
     let q = Arc::new(Mutex::new(q0));
+    let arm = q.clone();
     let sub = {
         let (q, names, topic) = (q.clone(), names.clone(), command_topic.to_string());
         rosrust::subscribe(command_topic, 10, move |m: trajectory_msgs::JointTrajectory| {
@@ -97,7 +130,50 @@ fn play_driver(
             rate.sleep();
         }
     });
-    Ok((thread, sub))
+    Ok(Driver {
+        thread,
+        _commands: sub,
+        arm,
+    })
+}
+
+/// The hold's text names the input that was wrong, and how.
+fn reason_names(f: Fault, reason: &str) -> Result<(), String> {
+    let missing: Vec<_> = f.named_in_reason().iter().filter(|w| !reason.contains(*w)).collect();
+    if missing.is_empty() {
+        Ok(())
+    } else {
+        Err(format!("{f:?}: the reason '{reason}' does not say {missing:?}"))
+    }
+}
+
+/// Over `hold_observe` after a hold for `f`, neither the arm (the joints the driver
+/// reports) nor the command moves more than `max_hold_motion_deg`: the largest motion, rad.
+fn held_still(
+    p: &CheckParams,
+    f: Fault,
+    arm: &Arc<Mutex<JointVector>>,
+    commanded: &dyn Fn() -> Option<JointVector>,
+) -> Result<f64, String> {
+    let (arm_at, cmd_at) = (*lock(arm), commanded());
+    let (mut arm_moved, mut cmd_moved) = (0.0_f64, 0.0_f64);
+    let t0 = std::time::Instant::now();
+    while t0.elapsed().as_secs_f64() < p.hold_observe {
+        std::thread::sleep(Duration::from_millis(10));
+        arm_moved = arm_moved.max((*lock(arm) - arm_at).amax());
+        cmd_moved = cmd_moved.max(joint_gap(commanded(), cmd_at));
+    }
+    let bound = p.max_hold_motion_deg.to_radians();
+    if arm_moved.is_nan() || arm_moved > bound || cmd_moved.is_nan() || cmd_moved > bound {
+        return Err(format!(
+            "{f:?}: held, but in {:.1} s the arm moved {:.4} deg and the command {:.4} deg (bound {} deg)",
+            p.hold_observe,
+            arm_moved.to_degrees(),
+            cmd_moved.to_degrees(),
+            p.max_hold_motion_deg
+        ));
+    }
+    Ok(arm_moved.max(cmd_moved))
 }
 
 /// Run the check; a summary on success.
@@ -113,10 +189,18 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
     let fault = Arc::new(Mutex::new(Fault::None));
     let stop = Arc::new(AtomicBool::new(false));
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
-    let (driver, _commands) = play_driver(q0, trocar, &p.command_topic, fault.clone(), stop.clone())?;
+    let (command, _sub_command) = subscribe_latest::<trajectory_msgs::JointTrajectory>(&p.command_topic)?;
+    let names = ::trocar_docking::kinematics::joint_names();
+    let commanded = || {
+        command
+            .get()
+            .and_then(|m| convert::trajectory_positions("", &m, &names).ok())
+    };
+    let driver = play_driver(q0, trocar, &p.command_topic, fault.clone(), stop.clone())?;
     let result = (|| {
         wait_for(p.startup_timeout, || status.get()).ok_or("no status from the controller")?;
         let mut seen = Vec::new();
+        let mut worst = 0.0_f64;
         for f in [
             Fault::WrongJointNames,
             Fault::NanJoint,
@@ -159,15 +243,21 @@ pub fn bad_input(p: &CheckParams) -> Result<String, String> {
                     f.expected()
                 )
             })?;
-            std::thread::sleep(Duration::from_millis(300));
+            reason_names(f, &held.hold_reason)?;
+            let moved = held_still(p, f, &driver.arm, &commanded)?;
             if status.count() <= before {
                 return Err(format!("{f:?}: the controller stopped publishing its status"));
             }
+            worst = worst.max(moved);
             seen.push(format!("{f:?}: {}", held.hold_reason));
         }
-        Ok(seen.join(" | "))
+        Ok(format!(
+            "{}; held still: arm and command moved at most {:.2e} deg",
+            seen.join(" | "),
+            worst.to_degrees()
+        ))
     })();
     stop.store(true, Ordering::Relaxed);
-    let _ = driver.join();
+    let _ = driver.thread.join();
     result
 }

@@ -1,7 +1,7 @@
 //! rostest test node: `rostest_checks <check>` runs one check against the running graph
 //! and writes the JUnit XML to the path rostest passes as `--gtest_output=xml:PATH`; exit
-//! code 0 when it passed. The checks: `roundtrip`, `docking`, `stale_hold`, `replay`
-//! ([`docking_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
+//! code 0 when it passed. The checks: `roundtrip`, `docking`, `stale_hold`
+//! ([`docking_checks`]), `replay` and `replay_controller` ([`replay_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
 //! ([`camera_checks`]), `blocked_arm`, `clock_back`, `clock_forward`, `driver_restart` and
 //! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]), `preflight`
 //! ([`preflight_checks`]).
@@ -13,6 +13,7 @@ mod failure_modes;
 mod fault_injection;
 mod junit;
 mod preflight_checks;
+mod replay_checks;
 mod scope_checks;
 
 use ::trocar_docking::ros::params;
@@ -43,7 +44,8 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "roundtrip" => docking_checks::roundtrip(&p).map(|()| "round trip ok".to_string()),
             "docking" => docking_checks::docking(&p),
             "stale_hold" => docking_checks::stale_hold(&p),
-            "replay" => docking_checks::replay(&p),
+            "replay" => replay_checks::replay(&p),
+            "replay_controller" => replay_checks::replay_controller(&p),
             "bad_input" => fault_injection::bad_input(&p),
             "latency" => camera_checks::latency(&p),
             "bad_images" => camera_checks::bad_images(&p),

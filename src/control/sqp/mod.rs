@@ -8,4 +8,4 @@ pub mod costs;
 pub mod solver;
 
 pub use costs::{CostTerms, CostWeights, LimitAvoidance, PivotCost, Targets};
-pub use solver::{SqpSettings, SqpSolution, SqpSolver, SqpStatus};
+pub use solver::{QpFailure, SqpSettings, SqpSolution, SqpSolver, SqpStatus};

@@ -131,7 +131,7 @@ impl SqpSettings {
 }
 
 /// How a solve ended.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum SqpStatus {
     /// The step fell below the tolerance.
     Converged,
@@ -143,9 +143,9 @@ pub enum SqpStatus {
     /// The interior-point iteration budget ran out; as [`SqpStatus::TimeBudget`].
     QpIterationBudget,
     /// A QP failed; the solution must not be commanded.
-    QpFailed(String),
+    QpFailed(QpFailure),
     /// The kinematics failed; the solution must not be commanded.
-    Kinematics(String),
+    Kinematics,
 }
 
 impl SqpStatus {
@@ -157,15 +157,55 @@ impl SqpStatus {
         )
     }
 
-    /// Short text for status messages.
-    pub fn as_text(&self) -> String {
+    /// Short text for status messages (static: a failure in the control loop allocates
+    /// nothing).
+    pub fn as_text(&self) -> &'static str {
         match self {
-            SqpStatus::Converged => "converged".into(),
-            SqpStatus::IterationLimit => "iteration_limit".into(),
-            SqpStatus::TimeBudget => "time_budget".into(),
-            SqpStatus::QpIterationBudget => "qp_iteration_budget".into(),
-            SqpStatus::QpFailed(s) => format!("qp_failed: {s}"),
-            SqpStatus::Kinematics(s) => format!("kinematics: {s}"),
+            SqpStatus::Converged => "converged",
+            SqpStatus::IterationLimit => "iteration_limit",
+            SqpStatus::TimeBudget => "time_budget",
+            SqpStatus::QpIterationBudget => "qp_iteration_budget",
+            SqpStatus::QpFailed(f) => f.as_text(),
+            SqpStatus::Kinematics => "kinematics failed",
+        }
+    }
+}
+
+/// Why a QP gave no step: a closed set, each with a static text, so that the failure path
+/// of the control loop allocates nothing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum QpFailure {
+    /// The Hessian, gradient or box had a NaN or infinite value.
+    NonFiniteData,
+    /// Clarabel refused the new data.
+    DataUpdate,
+    /// Clarabel ended with this status, which is not a solution.
+    Solver(SolverStatus),
+    /// The solution had a NaN or infinite value.
+    NonFiniteSolution,
+}
+
+impl QpFailure {
+    /// Short text for status messages.
+    pub fn as_text(&self) -> &'static str {
+        match self {
+            QpFailure::NonFiniteData => "qp_failed: non-finite QP data",
+            QpFailure::DataUpdate => "qp_failed: QP data update refused",
+            QpFailure::NonFiniteSolution => "qp_failed: non-finite QP solution",
+            QpFailure::Solver(s) => match s {
+                SolverStatus::Unsolved => "qp_failed: unsolved",
+                SolverStatus::Solved => "qp_failed: solved",
+                SolverStatus::AlmostSolved => "qp_failed: almost solved",
+                SolverStatus::PrimalInfeasible => "qp_failed: primal infeasible",
+                SolverStatus::DualInfeasible => "qp_failed: dual infeasible",
+                SolverStatus::AlmostPrimalInfeasible => "qp_failed: almost primal infeasible",
+                SolverStatus::AlmostDualInfeasible => "qp_failed: almost dual infeasible",
+                SolverStatus::MaxIterations => "qp_failed: interior-point iteration cap",
+                SolverStatus::MaxTime => "qp_failed: time limit",
+                SolverStatus::NumericalError => "qp_failed: numerical error",
+                SolverStatus::InsufficientProgress => "qp_failed: insufficient progress",
+                SolverStatus::CallbackTerminated => "qp_failed: stopped by its budget",
+            },
         }
     }
 }
@@ -206,7 +246,7 @@ enum QpError {
     /// Stopped by a budget after this many interior-point iterations.
     OutOfBudget(u32),
     /// Anything else (bad data, solver status, non-finite result).
-    Failed(String),
+    Failed(QpFailure),
 }
 
 /// The budgets of the running solve, shared with Clarabel's termination callback (which
@@ -358,7 +398,7 @@ impl SqpSolver {
             .chain(hi.iter())
             .all(|x| x.is_finite()))
         {
-            return Err(QpError::Failed("non-finite QP data".into()));
+            return Err(QpError::Failed(QpFailure::NonFiniteData));
         }
         let clamp = |x: &JointVector| x.zip_zip_map(lo, hi, |v, l, u| v.clamp(l, u));
         if self.settings.active_set_warm_start {
@@ -383,7 +423,7 @@ impl SqpSolver {
             self.b_values[i] = hi[i];
             self.b_values[n + i] = -lo[i];
         }
-        let failed = |e: clarabel::solver::DataUpdateError| QpError::Failed(e.to_string());
+        let failed = |_: clarabel::solver::DataUpdateError| QpError::Failed(QpFailure::DataUpdate);
         self.qp.update_P(&self.p_values).map_err(failed)?;
         self.qp.update_q(&self.q_values).map_err(failed)?;
         self.qp.update_b(&self.b_values).map_err(failed)?;
@@ -392,7 +432,7 @@ impl SqpSolver {
         match sol.status {
             SolverStatus::Solved | SolverStatus::AlmostSolved => {}
             SolverStatus::CallbackTerminated => return Err(QpError::OutOfBudget(sol.iterations)),
-            s => return Err(QpError::Failed(format!("{s:?}"))),
+            s => return Err(QpError::Failed(QpFailure::Solver(s))),
         }
         let dq = clamp(&JointVector::from_fn(|i, _| sol.x[i]));
         if dq.iter().all(|x| x.is_finite()) {
@@ -403,7 +443,7 @@ impl SqpSolver {
                 clarabel: true,
             })
         } else {
-            Err(QpError::Failed("non-finite QP solution".into()))
+            Err(QpError::Failed(QpFailure::NonFiniteSolution))
         }
     }
 
@@ -442,8 +482,8 @@ impl SqpSolver {
             self.budget.set_qp_iterations(qp_iterations_left);
             let (pose, jac) = match kin.fk_jacobian(&q) {
                 Ok(x) => x,
-                Err(e) => {
-                    status = SqpStatus::Kinematics(e.to_string());
+                Err(_) => {
+                    status = SqpStatus::Kinematics;
                     break;
                 }
             };
@@ -880,7 +920,7 @@ mod tests {
         let mut bad_q = q;
         bad_q[0] = f64::INFINITY;
         let sol = s.solve(&kin, &bad_q, &q, &q, &t, &w);
-        assert!(matches!(sol.status, SqpStatus::Kinematics(_)));
+        assert!(matches!(sol.status, SqpStatus::Kinematics));
         assert!(SqpSolver::new(SqpSettings {
             max_iterations: 0,
             ..Default::default()

@@ -184,10 +184,7 @@ fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::
             .as_ref()
             .map_or(0, |s| u32::try_from(s.iterations).unwrap_or(u32::MAX)),
         solve_time_us: out.solve.as_ref().map_or(0.0, |s| s.solve_time_us),
-        solver_status: out
-            .solve
-            .as_ref()
-            .map_or_else(|| "not_run".to_string(), |s| s.status.as_text()),
+        solver_status: out.solve.as_ref().map_or("not_run", |s| s.status.as_text()).to_string(),
         f_ext: convert::vector_msg(&out.f_ext),
         f_ext_norm: out.f_ext.norm(),
         metric_m: out.metric_m,
