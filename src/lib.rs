@@ -11,6 +11,7 @@
 //! - [`sim`]: the simulated plant (pure Rust); [`trials`]: the paper's experiment on it.
 //! - [`ros`]: the ROS 1 nodes (rosrust): parameters, message conversions, wiring.
 //! - [`cli`], [`bench`](mod@bench): the offline `trocar_docking` command and its benchmark suites.
+//! - [`preflight`]: the checks of a set-up before the arm moves (pure), on what the ROS side observed.
 //! - [`signal`]: the dead-band shared by the controller and the simulated sensors.
 //! - [`realtime`]: the SCHED_FIFO class and the thread CPU clock for the real-time loops.
 //! - [`validate`]: range checks of configuration values, one style for nodes and CLI.
@@ -22,6 +23,7 @@ pub mod cli;
 pub mod control;
 mod ffi;
 pub mod kinematics;
+pub mod preflight;
 pub mod realtime;
 pub mod ros;
 pub mod signal;

@@ -97,7 +97,19 @@ fn cli_writes_yaml_the_estimator_reads() {
         .output()
         .unwrap();
     assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
-    let r: HandEyeResult = serde_yaml::from_str(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let text = std::fs::read_to_string(&out).unwrap();
+    let r: HandEyeResult = serde_yaml::from_str(&text).unwrap();
     assert!(error(&r).0 < 1e-4);
+    // Dated today, with its residuals: the preflight's HAND_EYE check reads both (its age by
+    // the date, not by the file's modification time, 10 days later here).
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .unwrap()
+        .as_secs_f64();
+    let h = trocar_docking::preflight::hand_eye_file("hand_eye.yaml", &text, now + 10.0 * 86_400.0, now).unwrap();
+    assert_eq!(h.age_source, "calibrated date");
+    assert!((0.0..1.0).contains(&h.age_days), "{}", h.age_days);
+    assert_eq!(h.residual_max_m, Some(r.residual_translation_max_m));
+    assert_eq!(h.residual_max_rad, Some(r.residual_rotation_max_rad));
     let _ = std::fs::remove_dir_all(&dir);
 }

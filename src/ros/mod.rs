@@ -6,6 +6,8 @@
 //!   [`crate::control::Controller`]), [`estimator_node`] (`trocar_estimator`), [`sim_node`]
 //!   (`lbr_med_sim`), [`joy_node`] (`scope_joy`: a joystick -> scope commands, mapped by
 //!   [`joy`]).
+//! - [`preflight`]: the preflight on the graph (the `preflight` binary, the controller's
+//!   `~preflight` and `~start`), over the pure checks of [`crate::preflight`].
 //! - Shared: [`node`] (start-up errors, `main`, throttled logs), [`params`] (parameters from
 //!   the server, checked with [`crate::validate`]), [`topics`] (default topic names),
 //!   [`msgs`] (the generated message types), [`convert`] (messages <-> core types, input
@@ -27,6 +29,7 @@ pub mod msgs;
 pub mod node;
 pub mod pacer;
 pub mod params;
+pub mod preflight;
 pub mod sim_node;
 pub mod stats;
 pub mod topics;

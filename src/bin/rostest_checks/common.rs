@@ -131,6 +131,8 @@ pub struct CheckParams {
     pub retract_timeout: f64,
     /// `scope_joy`: the joystick node's YAML (its mapping, rate, topics).
     pub joy_config: String,
+    /// `preflight`: the check that must fail ('' = every check must pass).
+    pub preflight_failure: String,
 }
 
 impl Default for CheckParams {
@@ -192,6 +194,7 @@ impl Default for CheckParams {
             still_window_s: 2.0,
             retract_timeout: 30.0,
             joy_config: String::new(),
+            preflight_failure: String::new(),
         }
     }
 }

@@ -3,7 +3,8 @@
 //! code 0 when it passed. The checks: `roundtrip`, `docking`, `stale_hold`
 //! ([`docking_checks`]), `replay` and `replay_controller` ([`replay_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
 //! ([`camera_checks`]), `blocked_arm`, `clock_back`, `clock_forward`, `driver_restart` and
-//! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]).
+//! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]), `preflight`
+//! ([`preflight_checks`]).
 
 mod camera_checks;
 mod common;
@@ -11,6 +12,7 @@ mod docking_checks;
 mod failure_modes;
 mod fault_injection;
 mod junit;
+mod preflight_checks;
 mod replay_checks;
 mod scope_checks;
 
@@ -54,6 +56,7 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "flood" => failure_modes::flood(&p),
             "scope_pivot" => scope_checks::scope_pivot(&p),
             "scope_joy" => scope_checks::scope_joy(&p),
+            "preflight" => preflight_checks::preflight(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

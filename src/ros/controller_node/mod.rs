@@ -1,7 +1,10 @@
 //! The `docking_controller` node: subscribes the joint states, the driver's LBRState
 //! (external torques) and the trocar pose; runs the guarded [`Controller`] at a fixed rate;
 //! publishes the joint command, `/docking/status`, `/docking/f_ext`, `/docking/markers` and
-//! tf frames of the trocar and the goal; serves `~start`, `~abort`, `~reset` and `~retract`.
+//! tf frames of the trocar and the goal; serves `~preflight`, `~start`, `~abort`, `~reset` and
+//! `~retract`. `~start` runs the preflight first ([`crate::ros::preflight`], on the service's
+//! thread, never the loop's) and refuses, naming the failed check, when a check fails; the
+//! loop then never hears of the start.
 //! After DONE it takes the surgeon's scope commands (`/docking/scope_command`) and
 //! reports the pivot (fulcrum, shaft distance, lateral force, limit) in the status and
 //! the markers. Every topic and frame name is a parameter (see [`ControllerNodeParams`]).
@@ -21,6 +24,7 @@
 mod inputs;
 mod outputs;
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::control::{Controller, ControllerParams, HoldReason};
@@ -33,6 +37,7 @@ use crate::ros::msgs::std_srvs;
 use crate::ros::node::{ros_err, CommandType, NodeError};
 use crate::ros::pacer::Pacer;
 use crate::ros::params;
+use crate::ros::preflight::{self, PreflightParams};
 use crate::ros::stats::LoopStats;
 use crate::ros::topics;
 use crate::validate;
@@ -100,6 +105,11 @@ pub struct ControllerNodeParams {
     pub realtime_priority: i32,
     /// Marker sizes.
     pub markers: MarkerStyle,
+    /// Run the preflight on `~start` and refuse the start when a check fails (`autostart`
+    /// does not run it).
+    pub preflight_on_start: bool,
+    /// The preflight's settings (`~preflight`).
+    pub preflight: PreflightParams,
     /// Parameters of the optimal controller (`config/controller.yaml`, loaded under
     /// `~controller`); its `dt` is set from `rate_hz` and `force_feedback` from the node's.
     pub controller: ControllerParams,
@@ -134,6 +144,8 @@ impl Default for ControllerNodeParams {
             latency_samples: 5000,
             realtime_priority: 0,
             markers: MarkerStyle::default(),
+            preflight_on_start: true,
+            preflight: PreflightParams::default(),
             controller: ControllerParams::default(),
         }
     }
@@ -148,6 +160,7 @@ impl ControllerNodeParams {
         validate::positive_at_most("command_lookahead_periods", self.command_lookahead_periods, 100.0)?;
         validate::positive_at_most("driver_restart_gap_s", self.driver_restart_gap_s, 60.0)?;
         validate::integer_in_range("realtime_priority", i64::from(self.realtime_priority), 0, 99)?;
+        self.preflight.validate()?;
         if self.latency_samples == 0 {
             return Err(NodeError::Invalid("latency_samples must be >= 1".into()));
         }
@@ -176,18 +189,15 @@ type Reply = Result<String, String>;
 /// How long a service waits for the loop to take its request.
 const SERVICE_TIMEOUT: Duration = Duration::from_secs(1);
 
-/// A `std_srvs/Trigger` service that sends `request` to the loop and returns its reply.
-fn trigger_service(
-    name: &str,
-    client: &RequestClient<Request, Reply>,
-    request: Request,
-) -> Result<rosrust::Service, NodeError> {
-    let client = client.clone();
+/// A `std_srvs/Trigger` service answering with `handler`'s reply (logged; `Err` is a
+/// refusal).
+fn reply_service<F>(name: &str, handler: F) -> Result<rosrust::Service, NodeError>
+where
+    F: Fn() -> Reply + Send + Sync + 'static,
+{
     let label = name.to_string();
     rosrust::service::<std_srvs::Trigger, _>(name, move |_req| {
-        let r = client
-            .call(request, SERVICE_TIMEOUT)
-            .unwrap_or_else(|e| Err(e.to_string()));
+        let r = handler();
         match &r {
             Ok(m) => {
                 rosrust::ros_info!("{label}: {m}");
@@ -203,6 +213,58 @@ fn trigger_service(
         Ok(std_srvs::TriggerRes { success, message })
     })
     .map_err(ros_err)
+}
+
+/// A `std_srvs/Trigger` service that sends `request` to the loop and returns its reply.
+fn trigger_service(
+    name: &str,
+    client: &RequestClient<Request, Reply>,
+    request: Request,
+) -> Result<rosrust::Service, NodeError> {
+    let client = client.clone();
+    reply_service(name, move || {
+        client
+            .call(request, SERVICE_TIMEOUT)
+            .unwrap_or_else(|e| Err(e.to_string()))
+    })
+}
+
+/// The preflight's outcome as a Trigger reply: `Ok(report)` when every check passed, else
+/// `Err` naming the first failed check, its finding and the fix, then every failed code.
+fn preflight_reply(p: &ControllerNodeParams, kin: &dyn Kinematics) -> Reply {
+    let report = preflight::run(&p.preflight, p, kin).map_err(|e| format!("preflight could not run: {e}"))?;
+    match report.first_failure() {
+        None => Ok(report.to_string()),
+        Some(c) => Err(format!(
+            "preflight failed: {}: {} (fix: {}); failed: {}",
+            c.code,
+            c.detail,
+            c.fix,
+            report.failed_codes().join(", ")
+        )),
+    }
+}
+
+/// `~preflight` (the checks, their report) and `~start` (the checks first, unless
+/// `preflight_on_start` is false, then the start request to the loop). Both block their
+/// own service thread for the preflight's window, never the loop.
+fn preflight_services(
+    p: &ControllerNodeParams,
+    kin: &Arc<LbrKinematics>,
+    client: &RequestClient<Request, Reply>,
+) -> Result<[rosrust::Service; 2], NodeError> {
+    let (pc, kc) = (p.clone(), kin.clone());
+    let check = reply_service("~preflight", move || preflight_reply(&pc, kc.as_ref()))?;
+    let (ps, ks, client) = (p.clone(), kin.clone(), client.clone());
+    let start = reply_service("~start", move || {
+        if ps.preflight_on_start {
+            preflight_reply(&ps, ks.as_ref())?;
+        }
+        client
+            .call(Request::Start, SERVICE_TIMEOUT)
+            .unwrap_or_else(|e| Err(e.to_string()))
+    })?;
+    Ok([check, start])
 }
 
 /// The loop's own state besides the controller.
@@ -335,7 +397,7 @@ fn control_loop(
 pub fn run() -> Result<(), NodeError> {
     let p: ControllerNodeParams = params::load_private()?;
     p.validate()?;
-    let kin = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, TIP_LINK)?;
+    let kin = Arc::new(LbrKinematics::from_model_or_file(p.model, &p.urdf_file, TIP_LINK)?);
     let mut cp = p.controller.clone();
     cp.dt = 1.0 / p.rate_hz;
     cp.force_feedback = p.force_feedback;
@@ -343,8 +405,8 @@ pub fn run() -> Result<(), NodeError> {
         Controller::new(cp, kin.limits().clone()).map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
     let (inputs, _subs) = inputs::subscribe(&p)?;
     let (client, server) = handover::requests::<Request, Reply>(8);
+    let _preflight = preflight_services(&p, &kin, &client)?;
     let _services = [
-        trigger_service("~start", &client, Request::Start)?,
         trigger_service("~abort", &client, Request::Abort)?,
         trigger_service("~reset", &client, Request::Reset)?,
         trigger_service("~retract", &client, Request::Retract)?,
@@ -373,7 +435,7 @@ pub fn run() -> Result<(), NodeError> {
         }
     }
     let started_at = p.autostart.then(|| convert::seconds(rosrust::now()));
-    control_loop(&p, &kin, controller, inputs, &server, &records, started_at);
+    control_loop(&p, kin.as_ref(), controller, inputs, &server, &records, started_at);
     drop(records);
     let _ = publisher.join();
     Ok(())

@@ -1,0 +1,663 @@
+//! The preflight: the checks of a set-up before the arm moves, on what was observed of it
+//! (pure: the ROS side, [`crate::ros::preflight`], gathers the [`Observations`] and prints the
+//! [`Report`]). Each check gives one line: its code, pass, fail or not checked, what was seen
+//! and, on a failure, what to do.
+//!
+//! The checks: the driver's streams and their rates (joint states at 100 Hz or more, the
+//! LBRState once per FRI cycle, its `sample_time`), the joint names against the controller's
+//! URDF, the external torques at rest (the tare's limits, [`crate::control::TareParams`]), the
+//! camera's calibration and image rate, the trocar pose (the marker seen) and the marker's
+//! size, the hand-eye file (age, residuals), the trocar within reach (the scenario's
+//! inverse kinematics, [`Scenario::reachable`], from the current joints), the clock, and a
+//! subscriber on the command topic. The FRI session state and control mode are reported as
+//! not checked: the driver's LBRState carries neither.
+
+use nalgebra::Isometry3;
+
+use crate::control::tare::TareParams;
+use crate::kinematics::{Kinematics, N_JOINTS};
+use crate::sim::scenario::Scenario;
+
+/// The outcome of one check.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    /// Passed.
+    Pass,
+    /// Failed: nothing may move.
+    Fail,
+    /// Not applicable to this set-up, or not observable (the detail says why).
+    NotChecked,
+}
+
+/// One check's line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Check {
+    /// Stable code (`JOINT_NAMES`, `MARKER`, ...).
+    pub code: &'static str,
+    /// Outcome.
+    pub verdict: Verdict,
+    /// What was seen.
+    pub detail: String,
+    /// What to do when it fails.
+    pub fix: &'static str,
+}
+
+impl std::fmt::Display for Check {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let tag = match self.verdict {
+            Verdict::Pass => "PASS",
+            Verdict::Fail => "FAIL",
+            Verdict::NotChecked => "SKIP",
+        };
+        write!(f, "{tag} {:<18} {}", self.code, self.detail)?;
+        if self.verdict == Verdict::Fail {
+            write!(f, "\n     fix: {}", self.fix)?;
+        }
+        Ok(())
+    }
+}
+
+/// Every check's line, in order.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Report {
+    /// The checks.
+    pub checks: Vec<Check>,
+}
+
+impl Report {
+    /// True when no check failed.
+    pub fn passed(&self) -> bool {
+        self.first_failure().is_none()
+    }
+
+    /// The first failed check.
+    pub fn first_failure(&self) -> Option<&Check> {
+        self.checks.iter().find(|c| c.verdict == Verdict::Fail)
+    }
+
+    /// The codes of the failed checks.
+    pub fn failed_codes(&self) -> Vec<&'static str> {
+        self.checks
+            .iter()
+            .filter(|c| c.verdict == Verdict::Fail)
+            .map(|c| c.code)
+            .collect()
+    }
+}
+
+impl std::fmt::Display for Report {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        for c in &self.checks {
+            writeln!(f, "{c}")?;
+        }
+        match self.failed_codes().as_slice() {
+            [] => write!(f, "preflight passed"),
+            codes => write!(f, "preflight FAILED: {}", codes.join(", ")),
+        }
+    }
+}
+
+/// The bounds of the checks.
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Limits {
+    /// Lowest joint-state rate, Hz (the driver publishes them at 100 Hz or more).
+    pub min_joint_states_hz: f64,
+    /// Accepted shortfall of a rate below its nominal value (measurement over a short window).
+    pub rate_tolerance: f64,
+    /// Lowest camera image rate, Hz.
+    pub min_image_hz: f64,
+    /// Lowest trocar pose rate, Hz.
+    pub min_marker_hz: f64,
+    /// Oldest accepted hand-eye calibration, days: the camera mount drifts and is knocked
+    /// (a ZED mini on a 3D-printed bracket), and a lab recalibrates at least monthly.
+    pub hand_eye_max_age_days: f64,
+    /// Largest accepted hand-eye translation residual (the file's max), m.
+    pub hand_eye_max_residual_m: f64,
+    /// Largest accepted hand-eye rotation residual (the file's max), rad.
+    pub hand_eye_max_residual_rad: f64,
+    /// The trocar must be reachable with every joint this far inside its limits, deg (the
+    /// guard's margin, `guard.position_margin` of config/controller.yaml).
+    pub reach_margin_deg: f64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            min_joint_states_hz: 100.0,
+            rate_tolerance: 0.1,
+            min_image_hz: 10.0,
+            min_marker_hz: 5.0,
+            hand_eye_max_age_days: 30.0,
+            hand_eye_max_residual_m: 0.002,
+            hand_eye_max_residual_rad: 0.5f64.to_radians(),
+            reach_margin_deg: 5.0,
+        }
+    }
+}
+
+impl Limits {
+    /// Check every value; the error names the key.
+    pub fn validate(&self) -> Result<(), crate::validate::RangeError> {
+        use crate::validate::{positive, positive_at_most};
+        positive("limits.min_joint_states_hz", self.min_joint_states_hz)?;
+        positive_at_most("limits.rate_tolerance", self.rate_tolerance, 0.9)?;
+        positive("limits.min_image_hz", self.min_image_hz)?;
+        positive("limits.min_marker_hz", self.min_marker_hz)?;
+        positive("limits.hand_eye_max_age_days", self.hand_eye_max_age_days)?;
+        positive("limits.hand_eye_max_residual_m", self.hand_eye_max_residual_m)?;
+        positive("limits.hand_eye_max_residual_rad", self.hand_eye_max_residual_rad)?;
+        positive_at_most("limits.reach_margin_deg", self.reach_margin_deg, 30.0)?;
+        Ok(())
+    }
+}
+
+/// Stamps of a stream over the window.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Stream {
+    /// Messages received.
+    pub count: usize,
+    /// First to last stamp, s.
+    pub span_s: f64,
+}
+
+impl Stream {
+    /// Messages per second of their stamps (NaN with fewer than two, or no span).
+    pub fn rate_hz(&self) -> f64 {
+        if self.count < 2 || self.span_s <= 0.0 || !self.span_s.is_finite() {
+            return f64::NAN;
+        }
+        (self.count - 1) as f64 / self.span_s
+    }
+}
+
+/// The joint states seen.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct JointStates {
+    /// Their stamps.
+    pub stream: Stream,
+    /// Names of the last message.
+    pub names: Vec<String>,
+    /// Positions of the last message, in its name order.
+    pub positions: Vec<f64>,
+    /// Largest range of a joint's position over the window, rad.
+    pub motion_rad: f64,
+}
+
+/// The LBRState seen.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct LbrState {
+    /// Their stamps.
+    pub stream: Stream,
+    /// The FRI cycle of the last message (`sample_time`), s.
+    pub sample_time: f64,
+    /// The external torques of every message, Nm.
+    pub tau_ext: Vec<Vec<f64>>,
+}
+
+/// The camera's calibration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CameraInfo {
+    /// Focal lengths, px.
+    pub fx: f64,
+    /// See `fx`.
+    pub fy: f64,
+    /// Image size, px.
+    pub width: u32,
+    /// See `width`.
+    pub height: u32,
+}
+
+/// The camera seen.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Camera {
+    /// The last camera_info, if any.
+    pub info: Option<CameraInfo>,
+    /// The images' stamps.
+    pub images: Stream,
+    /// Size of the last image, px.
+    pub image_size: Option<(u32, u32)>,
+}
+
+/// The trocar pose (the marker) seen.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Marker {
+    /// Stamps of the trocar poses.
+    pub stream: Stream,
+    /// The last pose (base frame).
+    pub last: Option<Isometry3<f64>>,
+    /// The estimator's marker size, m (None: no estimator, the pose comes directly).
+    pub configured_size_m: Option<f64>,
+    /// The simulated marker's size, m (the simulator's camera), to compare with.
+    pub simulated_size_m: Option<f64>,
+}
+
+/// What the hand-eye file says.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HandEye {
+    /// The file.
+    pub path: String,
+    /// Its age, days.
+    pub age_days: f64,
+    /// Where the age comes from (its `calibrated` date, or the file's modification time).
+    pub age_source: &'static str,
+    /// The largest translation residual it carries, m.
+    pub residual_max_m: Option<f64>,
+    /// The largest rotation residual it carries, rad.
+    pub residual_max_rad: Option<f64>,
+}
+
+/// The simulator, when it is the set-up.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Simulator {
+    /// Whether it renders the camera (else it publishes the trocar pose directly).
+    pub camera: bool,
+}
+
+/// Everything the checks look at.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Observations {
+    /// The simulator, if it is running (recognised by its node's parameters and `/clock`).
+    pub simulator: Option<Simulator>,
+    /// `/use_sim_time`.
+    pub use_sim_time: bool,
+    /// Joint states (None: none arrived).
+    pub joint_states: Option<JointStates>,
+    /// LBRState (None: none arrived).
+    pub lbr_state: Option<LbrState>,
+    /// The camera (None: the set-up has none, the simulator's direct pose).
+    pub camera: Option<Camera>,
+    /// The trocar pose.
+    pub marker: Marker,
+    /// The hand-eye file (None: no estimator in the set-up; Err: why it cannot be used).
+    pub hand_eye: Option<Result<HandEye, String>>,
+    /// Nodes subscribed to the command topic.
+    pub command_subscribers: Vec<String>,
+    /// The command topic.
+    pub command_topic: String,
+}
+
+fn check(code: &'static str, ok: bool, detail: String, fix: &'static str) -> Check {
+    let verdict = if ok { Verdict::Pass } else { Verdict::Fail };
+    Check {
+        code,
+        verdict,
+        detail,
+        fix,
+    }
+}
+
+fn not_checked(code: &'static str, detail: String) -> Check {
+    Check {
+        code,
+        verdict: Verdict::NotChecked,
+        detail,
+        fix: "",
+    }
+}
+
+/// Run every check. `kin` is the controller's chain (its URDF's joint names and limits).
+pub fn evaluate(obs: &Observations, lim: &Limits, tare: &TareParams, kin: &dyn Kinematics) -> Report {
+    let mut checks = vec![clock(obs)];
+    checks.extend(driver(obs, lim));
+    checks.push(joint_names(obs, kin));
+    checks.push(torques_at_rest(obs, tare));
+    checks.extend(camera(obs, lim));
+    checks.push(marker(obs, lim));
+    checks.push(hand_eye(obs, lim));
+    checks.push(reach(obs, lim, kin));
+    checks.push(check(
+        "COMMAND_SUBSCRIBER",
+        !obs.command_subscribers.is_empty(),
+        if obs.command_subscribers.is_empty() {
+            format!("nothing subscribes to {}", obs.command_topic)
+        } else {
+            format!("{} <- {}", obs.command_topic, obs.command_subscribers.join(", "))
+        },
+        "start the driver's position controller, or set command_topic to the topic it takes",
+    ));
+    Report { checks }
+}
+
+fn clock(obs: &Observations) -> Check {
+    let detail = match (obs.use_sim_time, obs.simulator) {
+        (true, Some(_)) => "simulated clock (/use_sim_time) from lbr_med_sim: the simulator is the set-up".into(),
+        (true, None) => "/use_sim_time is true but no simulator runs: a real robot on a simulated clock".into(),
+        (false, Some(_)) => "wall clock; the simulator is the set-up".into(),
+        (false, None) => "wall clock (a real robot)".into(),
+    };
+    check(
+        "CLOCK",
+        !(obs.use_sim_time && obs.simulator.is_none()),
+        detail,
+        "rosparam set /use_sim_time false (robot.launch sets it) and restart the nodes",
+    )
+}
+
+fn driver(obs: &Observations, lim: &Limits) -> Vec<Check> {
+    let js = match &obs.joint_states {
+        None => check(
+            "JOINT_STATES",
+            false,
+            "no joint states".into(),
+            "start the driver (lbr_fri_ros) and the FRI application on the robot; check the topic name",
+        ),
+        Some(j) => {
+            let r = j.stream.rate_hz();
+            check(
+                "JOINT_STATES",
+                r >= lim.min_joint_states_hz * (1.0 - lim.rate_tolerance),
+                format!("{r:.0} Hz (>= {:.0})", lim.min_joint_states_hz),
+                "the driver publishes the joint states at the FRI rate: check the FRI send period and the network",
+            )
+        }
+    };
+    let lbr = match &obs.lbr_state {
+        None => check(
+            "LBR_STATE",
+            false,
+            "no LBRState".into(),
+            "start the driver (lbr_fri_ros) with its state publisher; check the topic name",
+        ),
+        Some(s) => {
+            let r = s.stream.rate_hz();
+            let fri = 1.0 / s.sample_time;
+            check(
+                "LBR_STATE",
+                s.sample_time > 0.0 && r >= fri * (1.0 - lim.rate_tolerance),
+                format!("{r:.0} Hz, FRI cycle {:.1} ms ({fri:.0} Hz)", s.sample_time * 1e3),
+                "the LBRState must come once per FRI cycle: check the FRI send period and the network",
+            )
+        }
+    };
+    let fri = not_checked(
+        "FRI_STATE",
+        "session state (COMMANDING) and control mode (position) not checked: the driver's LBRState \
+         carries neither; see them on the smartPAD"
+            .into(),
+    );
+    vec![js, lbr, fri]
+}
+
+fn joint_names(obs: &Observations, kin: &dyn Kinematics) -> Check {
+    let fix = "make the driver's joint names those of the controller's URDF (urdf_file, model)";
+    let Some(j) = &obs.joint_states else {
+        return check("JOINT_NAMES", false, "no joint states to compare".into(), fix);
+    };
+    let want = kin.joint_names();
+    let missing: Vec<&str> = want
+        .iter()
+        .filter(|n| !j.names.contains(n))
+        .map(String::as_str)
+        .collect();
+    let ok = missing.is_empty() && j.names.len() == want.len() && j.positions.len() == j.names.len();
+    let detail = if ok {
+        format!("{} joints, as the URDF", want.len())
+    } else {
+        format!(
+            "{} names ({}), the URDF has {}; missing: {}",
+            j.names.len(),
+            j.names.join(" "),
+            want.len(),
+            if missing.is_empty() {
+                "none".into()
+            } else {
+                missing.join(" ")
+            }
+        )
+    };
+    check("JOINT_NAMES", ok, detail, fix)
+}
+
+/// The joints of the last joint state in the chain's order, if every name is there.
+fn joints_in_chain_order(j: &JointStates, kin: &dyn Kinematics) -> Option<[f64; N_JOINTS]> {
+    let mut q = [0.0; N_JOINTS];
+    if kin.joint_names().len() != N_JOINTS {
+        return None;
+    }
+    for (qi, name) in q.iter_mut().zip(kin.joint_names()) {
+        let k = j.names.iter().position(|n| n == name)?;
+        *qi = *j.positions.get(k)?;
+    }
+    q.iter().all(|v| v.is_finite()).then_some(q)
+}
+
+fn torques_at_rest(obs: &Observations, tare: &TareParams) -> Check {
+    let fix = "nothing may touch the arm or the scope; check the tool's load data (mass, centre of \
+               mass) on the robot and redo the driver's torque calibration";
+    let Some(s) = obs.lbr_state.as_ref().filter(|s| !s.tau_ext.is_empty()) else {
+        return check("TORQUES_AT_REST", false, "no external torques".into(), fix);
+    };
+    let n = s.tau_ext[0].len();
+    if n == 0
+        || s.tau_ext
+            .iter()
+            .any(|t| t.len() != n || t.iter().any(|v| !v.is_finite()))
+    {
+        return check(
+            "TORQUES_AT_REST",
+            false,
+            "external torques malformed (count or NaN)".into(),
+            fix,
+        );
+    }
+    let m = s.tau_ext.len() as f64;
+    let (mut worst_mean, mut worst_sd) = (0.0f64, 0.0f64);
+    for k in 0..n {
+        let mean = s.tau_ext.iter().map(|t| t[k]).sum::<f64>() / m;
+        let var = s.tau_ext.iter().map(|t| (t[k] - mean).powi(2)).sum::<f64>() / m;
+        worst_mean = worst_mean.max(mean.abs());
+        worst_sd = worst_sd.max(var.sqrt());
+    }
+    let motion = obs.joint_states.as_ref().map_or(0.0, |j| j.motion_rad);
+    check(
+        "TORQUES_AT_REST",
+        worst_mean <= tare.max_offset_nm && worst_sd <= tare.max_noise_nm && motion <= tare.max_motion_rad,
+        format!(
+            "largest mean {worst_mean:.2} Nm (<= {:.1}), sd {worst_sd:.2} Nm (<= {:.1}), joint motion {:.4} rad \
+             (<= {:.3})",
+            tare.max_offset_nm, tare.max_noise_nm, motion, tare.max_motion_rad
+        ),
+        fix,
+    )
+}
+
+fn camera(obs: &Observations, lim: &Limits) -> Vec<Check> {
+    let Some(c) = &obs.camera else {
+        let why = "no camera: the simulator publishes the trocar pose directly (trocar_source direct)";
+        return vec![
+            not_checked("CAMERA_INFO", why.into()),
+            not_checked("IMAGE_RATE", why.into()),
+        ];
+    };
+    let info = match c.info {
+        None => check(
+            "CAMERA_INFO",
+            false,
+            "no camera_info".into(),
+            "start the camera driver; check camera_info_topic",
+        ),
+        Some(i) => {
+            let focal = i.fx.is_finite() && i.fy.is_finite() && i.fx > 0.0 && i.fy > 0.0;
+            let size = c.image_size.is_some_and(|s| s == (i.width, i.height)) && i.width > 0 && i.height > 0;
+            let img = c
+                .image_size
+                .map_or("no image".to_string(), |(w, h)| format!("images {w}x{h}"));
+            check(
+                "CAMERA_INFO",
+                focal && size,
+                format!("fx {:.1} fy {:.1} px, {}x{}; {img}", i.fx, i.fy, i.width, i.height),
+                "calibrate the camera (camera_info with finite, positive focal lengths) at the resolution it streams",
+            )
+        }
+    };
+    let r = c.images.rate_hz();
+    let rate = check(
+        "IMAGE_RATE",
+        r >= lim.min_image_hz,
+        format!("{r:.1} Hz (>= {:.0})", lim.min_image_hz),
+        "check the camera's frame rate, its USB link and the image topic",
+    );
+    vec![info, rate]
+}
+
+fn marker(obs: &Observations, lim: &Limits) -> Check {
+    let m = &obs.marker;
+    let fix = "put the marker in the camera's view, lit, uncovered; its size (marker.size) must be the printed one";
+    let r = m.stream.rate_hz();
+    if m.last.is_none() {
+        return check("MARKER", false, "no trocar pose (marker not seen)".into(), fix);
+    }
+    let size = match (m.configured_size_m, m.simulated_size_m) {
+        (None, _) => (true, "size not checked (the pose comes directly)".to_string()),
+        (Some(s), None) => (
+            s.is_finite() && s > 0.0,
+            format!("estimator's marker {:.1} mm", s * 1e3),
+        ),
+        (Some(s), Some(t)) => (
+            (s - t).abs() <= 1e-6,
+            format!("estimator's marker {:.1} mm, simulated {:.1} mm", s * 1e3, t * 1e3),
+        ),
+    };
+    check(
+        "MARKER",
+        r >= lim.min_marker_hz && size.0,
+        format!("trocar pose at {r:.1} Hz (>= {:.0}); {}", lim.min_marker_hz, size.1),
+        fix,
+    )
+}
+
+fn hand_eye(obs: &Observations, lim: &Limits) -> Check {
+    let fix = "recalibrate: trocar_docking hand-eye --input SAMPLES --out FILE, and set the launch's hand_eye:=FILE";
+    match &obs.hand_eye {
+        None => not_checked(
+            "HAND_EYE",
+            "no estimator: the simulator publishes the trocar pose directly".into(),
+        ),
+        Some(Err(e)) => check("HAND_EYE", false, e.clone(), fix),
+        Some(Ok(h)) => {
+            let res_ok = h.residual_max_m.is_none_or(|r| r <= lim.hand_eye_max_residual_m)
+                && h.residual_max_rad.is_none_or(|r| r <= lim.hand_eye_max_residual_rad);
+            let res = match (h.residual_max_m, h.residual_max_rad) {
+                (Some(t), Some(r)) => format!(
+                    "residuals {:.2} mm (<= {:.1}), {:.2} deg (<= {:.1})",
+                    t * 1e3,
+                    lim.hand_eye_max_residual_m * 1e3,
+                    r.to_degrees(),
+                    lim.hand_eye_max_residual_rad.to_degrees()
+                ),
+                _ => "no residuals in the file".into(),
+            };
+            check(
+                "HAND_EYE",
+                h.age_days.is_finite() && h.age_days <= lim.hand_eye_max_age_days && res_ok,
+                format!(
+                    "{}: {:.0} days old by its {} (<= {:.0}); {res}",
+                    h.path, h.age_days, h.age_source, lim.hand_eye_max_age_days
+                ),
+                fix,
+            )
+        }
+    }
+}
+
+fn reach(obs: &Observations, lim: &Limits, kin: &dyn Kinematics) -> Check {
+    let fix = "move the arm (hand guiding) or the patient so that the trocar lies in the wrist's range, then rerun";
+    let (Some(j), Some(trocar)) = (&obs.joint_states, obs.marker.last) else {
+        return check("REACH", false, "no joints or no trocar estimate to test".into(), fix);
+    };
+    let Some(q0) = joints_in_chain_order(j, kin) else {
+        return check("REACH", false, "the joint states lack the URDF's joints".into(), fix);
+    };
+    let s = Scenario {
+        q0,
+        trocar_rest: trocar,
+    };
+    let p = trocar.translation.vector;
+    let at = format!("trocar at ({:.3}, {:.3}, {:.3}) m", p.x, p.y, p.z);
+    match s.reachable(kin, lim.reach_margin_deg.to_radians()) {
+        Ok(ok) => check(
+            "REACH",
+            ok,
+            format!(
+                "{at}: stand-off and goal {} with every joint {:.0} deg inside its limits",
+                if ok { "reached" } else { "NOT reached" },
+                lim.reach_margin_deg
+            ),
+            fix,
+        ),
+        Err(e) => check("REACH", false, format!("{at}: {e}"), fix),
+    }
+}
+
+/// Days since 1970-01-01 of a proleptic Gregorian date (H. Hinnant's `days_from_civil`).
+fn days_from_civil(y: i64, m: u32, d: u32) -> i64 {
+    let y = if m <= 2 { y - 1 } else { y };
+    let era = y.div_euclid(400);
+    let yoe = y - era * 400;
+    let mp = i64::from((m + 9) % 12);
+    let doy = (153 * mp + 2) / 5 + i64::from(d) - 1;
+    let doe = yoe * 365 + yoe / 4 - yoe / 100 + doy;
+    era * 146_097 + doe - 719_468
+}
+
+/// The `YYYY-MM-DD` date (UTC) of `unix_s` seconds since the epoch (H. Hinnant's
+/// `civil_from_days`): what `trocar_docking hand-eye --out` writes as `calibrated`.
+pub fn date_of(unix_s: f64) -> String {
+    let z = (unix_s / 86_400.0).floor() as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!("{y:04}-{m:02}-{d:02}")
+}
+
+/// A `YYYY-MM-DD` date as seconds since the Unix epoch (midnight UTC).
+fn parse_date(s: &str) -> Option<f64> {
+    let mut it = s.trim().splitn(3, '-');
+    let y: i64 = it.next()?.parse().ok()?;
+    let m: u32 = it.next()?.parse().ok()?;
+    let d: u32 = it.next()?.parse().ok()?;
+    ((1..=12).contains(&m) && (1..=31).contains(&d)).then(|| days_from_civil(y, m, d) as f64 * 86_400.0)
+}
+
+/// Read a hand-eye file's text (`trocar_docking hand-eye --out`: `flange_t_camera`, and the
+/// residuals `residual_translation_max_m`, `residual_rotation_max_rad` when it carries them;
+/// an optional `calibrated: YYYY-MM-DD`). Its age is from `calibrated` if present (a copied
+/// file's modification time says nothing), else from `modified_unix_s`.
+pub fn hand_eye_file(path: &str, text: &str, modified_unix_s: f64, now_unix_s: f64) -> Result<HandEye, String> {
+    let v: serde_json::Value = serde_yaml::from_str(text).map_err(|e| format!("{path}: not YAML: {e}"))?;
+    if v.get("flange_t_camera").is_none() {
+        return Err(format!("{path}: no flange_t_camera"));
+    }
+    let num = |k: &str| v.get(k).and_then(serde_json::Value::as_f64);
+    let (t, source) = match v.get("calibrated") {
+        Some(c) => {
+            let s = c.as_str().map(str::to_string).unwrap_or_else(|| c.to_string());
+            let t = parse_date(&s).ok_or_else(|| format!("{path}: calibrated '{s}' is not a YYYY-MM-DD date"))?;
+            (t, "calibrated date")
+        }
+        None => (modified_unix_s, "modification time"),
+    };
+    let res = |k: &str| match v.get(k) {
+        None => Ok(None),
+        Some(_) => num(k)
+            .filter(|x| x.is_finite() && *x >= 0.0)
+            .map(Some)
+            .ok_or_else(|| format!("{path}: {k} is not a non-negative number")),
+    };
+    Ok(HandEye {
+        path: path.into(),
+        age_days: (now_unix_s - t) / 86_400.0,
+        age_source: source,
+        residual_max_m: res("residual_translation_max_m")?,
+        residual_max_rad: res("residual_rotation_max_rad")?,
+    })
+}
+
+#[cfg(test)]
+mod tests;

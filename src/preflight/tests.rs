@@ -1,0 +1,232 @@
+use nalgebra::{Translation3, UnitQuaternion, Vector3};
+use rand::SeedableRng;
+
+use super::*;
+use crate::kinematics::lbr::LbrModel;
+use crate::kinematics::{LbrKinematics, TIP_LINK};
+use crate::sim::ScenarioParams;
+
+fn kin() -> LbrKinematics {
+    LbrKinematics::from_model_or_file(LbrModel::Med7, "", TIP_LINK).unwrap()
+}
+
+/// A set-up as the simulator in the camera mode presents it: every check passes.
+fn good(kin: &dyn Kinematics) -> Observations {
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+    let s = Scenario::sample(&ScenarioParams::default(), kin, &mut rng).unwrap();
+    let names = crate::kinematics::joint_names();
+    Observations {
+        simulator: Some(Simulator { camera: true }),
+        use_sim_time: true,
+        joint_states: Some(JointStates {
+            stream: Stream {
+                count: 501,
+                span_s: 1.0,
+            },
+            names,
+            positions: s.q0.to_vec(),
+            motion_rad: 1e-5,
+        }),
+        lbr_state: Some(LbrState {
+            stream: Stream {
+                count: 501,
+                span_s: 1.0,
+            },
+            sample_time: 0.002,
+            tau_ext: (0..100)
+                .map(|i| (0..7).map(|k| 0.3 + 0.1 * f64::from((i + k) % 3)).collect())
+                .collect(),
+        }),
+        camera: Some(Camera {
+            info: Some(CameraInfo {
+                fx: 700.0,
+                fy: 700.0,
+                width: 1280,
+                height: 720,
+            }),
+            images: Stream { count: 16, span_s: 1.0 },
+            image_size: Some((1280, 720)),
+        }),
+        marker: Marker {
+            stream: Stream { count: 15, span_s: 1.0 },
+            last: Some(s.trocar_rest),
+            configured_size_m: Some(0.04),
+            simulated_size_m: Some(0.04),
+        },
+        hand_eye: Some(Ok(HandEye {
+            path: "hand_eye.yaml".into(),
+            age_days: 3.0,
+            age_source: "modification time",
+            residual_max_m: Some(0.0008),
+            residual_max_rad: Some(0.003),
+        })),
+        command_subscribers: vec!["/lbr_med_sim".into()],
+        command_topic: "/cmd".into(),
+    }
+}
+
+fn failed(obs: &Observations) -> Vec<&'static str> {
+    evaluate(obs, &Limits::default(), &TareParams::default(), &kin()).failed_codes()
+}
+
+#[test]
+fn a_good_set_up_passes_and_says_what_it_does_not_check() {
+    let k = kin();
+    let r = evaluate(&good(&k), &Limits::default(), &TareParams::default(), &k);
+    assert!(r.passed(), "{r}");
+    let fri = r.checks.iter().find(|c| c.code == "FRI_STATE").unwrap();
+    assert_eq!(fri.verdict, Verdict::NotChecked);
+    assert!(r.to_string().ends_with("preflight passed"));
+    assert!(r.to_string().contains("lbr_med_sim"));
+}
+
+#[test]
+fn each_fault_fails_its_own_check_only() {
+    let k = kin();
+    type Fault = fn(&mut Observations);
+    let faults: [(&str, Fault); 14] = [
+        ("JOINT_STATES", |o| {
+            o.joint_states.as_mut().unwrap().stream.span_s = 10.0
+        }),
+        ("LBR_STATE", |o| o.lbr_state.as_mut().unwrap().sample_time = 0.001),
+        ("JOINT_NAMES", |o| {
+            o.joint_states.as_mut().unwrap().names[6] = "a7".into()
+        }),
+        ("TORQUES_AT_REST", |o| {
+            o.lbr_state.as_mut().unwrap().tau_ext[5][2] = 400.0
+        }),
+        ("TORQUES_AT_REST", |o| {
+            o.joint_states.as_mut().unwrap().motion_rad = 0.01
+        }),
+        ("CAMERA_INFO", |o| {
+            o.camera.as_mut().unwrap().info.as_mut().unwrap().fx = f64::NAN
+        }),
+        ("CAMERA_INFO", |o| {
+            o.camera.as_mut().unwrap().image_size = Some((640, 360))
+        }),
+        ("IMAGE_RATE", |o| o.camera.as_mut().unwrap().images.count = 5),
+        ("MARKER", |o| o.marker.simulated_size_m = Some(0.05)),
+        ("MARKER", |o| o.marker.stream.count = 2),
+        ("HAND_EYE", |o| {
+            if let Some(Ok(h)) = &mut o.hand_eye {
+                h.age_days = 31.0;
+            }
+        }),
+        ("HAND_EYE", |o| {
+            if let Some(Ok(h)) = &mut o.hand_eye {
+                h.residual_max_m = Some(0.003);
+            }
+        }),
+        ("CLOCK", |o| o.simulator = None),
+        ("COMMAND_SUBSCRIBER", |o| o.command_subscribers.clear()),
+    ];
+    for (code, fault) in faults {
+        let mut o = good(&k);
+        fault(&mut o);
+        // Without the URDF's joints the reach cannot be tested: it fails too.
+        let want = if code == "JOINT_NAMES" {
+            vec![code, "REACH"]
+        } else {
+            vec![code]
+        };
+        assert_eq!(failed(&o), want, "fault for {code}");
+    }
+}
+
+#[test]
+fn no_driver_fails_the_driver_checks_and_what_needs_the_joints() {
+    let k = kin();
+    let mut o = good(&k);
+    o.joint_states = None;
+    o.lbr_state = None;
+    assert_eq!(
+        failed(&o),
+        vec!["JOINT_STATES", "LBR_STATE", "JOINT_NAMES", "TORQUES_AT_REST", "REACH"]
+    );
+}
+
+#[test]
+fn no_marker_fails_the_marker_and_the_reach() {
+    let k = kin();
+    let mut o = good(&k);
+    o.marker.last = None;
+    o.marker.stream = Stream::default();
+    assert_eq!(failed(&o), vec!["MARKER", "REACH"]);
+}
+
+#[test]
+fn a_trocar_out_of_reach_or_at_the_wrist_limit_fails() {
+    let k = kin();
+    let mut o = good(&k);
+    let t = o.marker.last.unwrap();
+    // 1.2 m further down: farther from the shoulder than the arm and the scope reach.
+    o.marker.last = Some(Translation3::from(Vector3::new(0.0, 0.0, -1.2)) * t);
+    assert_eq!(failed(&o), vec!["REACH"]);
+    // 0.8 m further out in front: the same.
+    let mut o = good(&k);
+    o.marker.last = Some(Translation3::from(Vector3::new(0.8, 0.0, 0.0)) * t);
+    assert_eq!(failed(&o), vec!["REACH"]);
+    // Pointing up into the trocar from below, at the same place.
+    let mut o = good(&k);
+    let flip = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    o.marker.last = Some(Isometry3::from_parts(t.translation, flip * t.rotation));
+    assert_eq!(failed(&o), vec!["REACH"]);
+}
+
+#[test]
+fn a_simulated_clock_without_the_simulator_fails_and_the_direct_mode_skips_the_camera() {
+    let k = kin();
+    let mut o = good(&k);
+    o.simulator = Some(Simulator { camera: false });
+    o.camera = None;
+    o.hand_eye = None;
+    o.marker.configured_size_m = None;
+    let r = evaluate(&o, &Limits::default(), &TareParams::default(), &k);
+    assert!(r.passed(), "{r}");
+    let skipped: Vec<_> = r
+        .checks
+        .iter()
+        .filter(|c| c.verdict == Verdict::NotChecked)
+        .map(|c| c.code)
+        .collect();
+    assert_eq!(skipped, vec!["FRI_STATE", "CAMERA_INFO", "IMAGE_RATE", "HAND_EYE"]);
+}
+
+#[test]
+fn hand_eye_files_age_by_their_date_else_their_modification_time() {
+    let pose = "flange_t_camera: {translation: [0, 0.07, 0.04], quaternion_xyzw: [0, 0, 0, 1]}\n";
+    let now = days_from_civil(2026, 3, 1) as f64 * 86_400.0;
+    let h = hand_eye_file("f", pose, now - 2.0 * 86_400.0, now).unwrap();
+    assert!((h.age_days - 2.0).abs() < 1e-9);
+    assert_eq!(h.residual_max_m, None);
+    let dated =
+        format!("{pose}calibrated: 2026-01-30\nresidual_translation_max_m: 0.0011\nresidual_rotation_max_rad: 0.002\n");
+    let h = hand_eye_file("f", &dated, now, now).unwrap();
+    assert!((h.age_days - 30.0).abs() < 1e-9, "{}", h.age_days);
+    assert_eq!(h.age_source, "calibrated date");
+    assert_eq!(h.residual_max_m, Some(0.0011));
+    assert!(hand_eye_file("f", "a: 1\n", now, now)
+        .unwrap_err()
+        .contains("flange_t_camera"));
+    assert!(hand_eye_file("f", &format!("{pose}calibrated: March\n"), now, now).is_err());
+    assert!(hand_eye_file("f", &format!("{pose}residual_rotation_max_rad: .nan\n"), now, now).is_err());
+    for day in [0, 59, 11_016, 19_782, 20_513] {
+        let t = f64::from(day) * 86_400.0 + 3600.0;
+        assert_eq!(parse_date(&date_of(t)), Some(f64::from(day) * 86_400.0), "day {day}");
+    }
+    assert_eq!(date_of(0.0), "1970-01-01");
+    assert_eq!(date_of(951_782_400.0), "2000-02-29");
+    // Leap years and the epoch.
+    assert_eq!(days_from_civil(1970, 1, 1), 0);
+    assert_eq!(days_from_civil(2000, 3, 1) - days_from_civil(2000, 2, 28), 2);
+}
+
+#[test]
+fn default_limits_are_valid_and_a_bad_one_is_named() {
+    Limits::default().validate().unwrap();
+    let bad = Limits {
+        rate_tolerance: 1.5,
+        ..Limits::default()
+    };
+    assert_eq!(bad.validate().unwrap_err().key, "limits.rate_tolerance");
+}

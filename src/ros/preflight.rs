@@ -1,0 +1,417 @@
+//! The preflight on the ROS graph: subscribes the driver's, the camera's and the estimator's
+//! topics for a short window, asks the master who subscribes the command topic and which
+//! nodes run, reads the hand-eye file, and hands what it saw to the pure checks
+//! ([`crate::preflight`]). `rosrust::run` of the `preflight` binary ([`run_node`]) and the
+//! controller's `~preflight` and `~start` services ([`run`]) share it; neither runs on the
+//! control loop's thread.
+//!
+//! **The simulator is a valid set-up.** It is recognised by its node (`simulator_node`)
+//! publishing the joint states; then a simulated clock is right, and in its direct mode
+//! (`camera_enabled` false) there is no camera, estimator or hand-eye file to check.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use crate::kinematics::Kinematics;
+use crate::preflight::{self, Camera, CameraInfo, JointStates, LbrState, Limits, Observations, Report, Stream};
+use crate::ros::controller_node::ControllerNodeParams;
+use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs};
+use crate::ros::node::{lock, ros_err, NodeError};
+use crate::ros::{convert, params, topics};
+
+/// Settings of the preflight (the `preflight` node's private parameters; the controller's
+/// `~preflight`).
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PreflightParams {
+    /// How long the streams are watched, s (wall time).
+    pub window_s: f64,
+    /// How long to wait for the first message of every stream before the window, s.
+    pub wait_s: f64,
+    /// The docking controller (its parameters: topics, URDF, tare limits).
+    pub controller_node: String,
+    /// The trocar estimator (its image topics, marker size, hand-eye file).
+    pub estimator_node: String,
+    /// The simulator's node.
+    pub simulator_node: String,
+    /// The bounds of the checks.
+    pub limits: Limits,
+}
+
+impl Default for PreflightParams {
+    fn default() -> Self {
+        Self {
+            window_s: 1.0,
+            wait_s: 5.0,
+            controller_node: "/docking_controller".into(),
+            estimator_node: "/trocar_estimator".into(),
+            simulator_node: "/lbr_med_sim".into(),
+            limits: Limits::default(),
+        }
+    }
+}
+
+impl PreflightParams {
+    /// Check every value; the error names the key.
+    pub fn validate(&self) -> Result<(), NodeError> {
+        crate::validate::positive_at_most("window_s", self.window_s, 60.0)?;
+        crate::validate::positive_at_most("wait_s", self.wait_s, 600.0)?;
+        self.limits.validate()?;
+        Ok(())
+    }
+}
+
+/// The span of the stamps seen.
+#[derive(Debug, Clone, Copy, Default)]
+struct Stamps {
+    count: usize,
+    first: f64,
+    last: f64,
+}
+
+impl Stamps {
+    fn add(&mut self, t: f64) {
+        if self.count == 0 {
+            (self.first, self.last) = (t, t);
+        }
+        self.first = self.first.min(t);
+        self.last = self.last.max(t);
+        self.count += 1;
+    }
+
+    fn stream(&self) -> Stream {
+        Stream {
+            count: self.count,
+            span_s: self.last - self.first,
+        }
+    }
+}
+
+/// What the subscribers collected.
+#[derive(Debug, Default)]
+struct Seen {
+    joints: Stamps,
+    names: Vec<String>,
+    positions: Vec<f64>,
+    low: Vec<f64>,
+    high: Vec<f64>,
+    lbr: Stamps,
+    sample_time: f64,
+    tau_ext: Vec<Vec<f64>>,
+    images: Stamps,
+    image_size: Option<(u32, u32)>,
+    info: Option<CameraInfo>,
+    poses: Stamps,
+    pose: Option<nalgebra::Isometry3<f64>>,
+    pose_error: Option<String>,
+}
+
+impl Seen {
+    fn joint_states(&mut self, m: &sensor_msgs::JointState) {
+        self.joints.add(convert::seconds(m.header.stamp));
+        if m.name != self.names || m.position.len() != self.low.len() {
+            self.names.clone_from(&m.name);
+            self.low.clone_from(&m.position);
+            self.high.clone_from(&m.position);
+        }
+        for ((l, h), q) in self.low.iter_mut().zip(self.high.iter_mut()).zip(&m.position) {
+            *l = l.min(*q);
+            *h = h.max(*q);
+        }
+        self.positions.clone_from(&m.position);
+    }
+
+    fn observations(&self, camera: bool) -> (Option<JointStates>, Option<LbrState>, Option<Camera>) {
+        let joints = (self.joints.count > 0).then(|| JointStates {
+            stream: self.joints.stream(),
+            names: self.names.clone(),
+            positions: self.positions.clone(),
+            motion_rad: self.low.iter().zip(&self.high).map(|(l, h)| h - l).fold(0.0, f64::max),
+        });
+        let lbr = (self.lbr.count > 0).then(|| LbrState {
+            stream: self.lbr.stream(),
+            sample_time: self.sample_time,
+            tau_ext: self.tau_ext.clone(),
+        });
+        let cam = camera.then(|| Camera {
+            info: self.info,
+            images: self.images.stream(),
+            image_size: self.image_size,
+        });
+        (joints, lbr, cam)
+    }
+}
+
+/// The topics watched.
+struct Topics {
+    joint_states: String,
+    lbr_state: String,
+    trocar_pose: String,
+    base_frame: String,
+    image: String,
+    camera_info: String,
+}
+
+/// Subscribe `topic`, handing each message to `f` with the collection.
+fn watch<T: rosrust::Message>(
+    topic: &str,
+    queue: usize,
+    seen: &Arc<Mutex<Seen>>,
+    f: impl Fn(&mut Seen, T) + Send + Sync + 'static,
+) -> Result<rosrust::Subscriber, NodeError> {
+    let s = seen.clone();
+    rosrust::subscribe(topic, queue, move |m: T| f(&mut lock(&s), m)).map_err(ros_err)
+}
+
+/// Subscribe the topics; the subscribers live as long as the returned handles.
+fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
+    let (topic, frame) = (t.trocar_pose.clone(), t.base_frame.clone());
+    Ok(vec![
+        watch(&t.joint_states, 50, seen, |s, m: sensor_msgs::JointState| {
+            s.joint_states(&m)
+        })?,
+        watch(&t.lbr_state, 50, seen, |s, m: lbr_msgs::LBRState| {
+            s.lbr.add(convert::seconds(m.stamp.data));
+            s.sample_time = m.sample_time;
+            s.tau_ext.push(m.external_torque);
+        })?,
+        watch(
+            &t.trocar_pose,
+            10,
+            seen,
+            move |s, m: geometry_msgs::PoseStamped| match convert::pose_in_frame(&topic, &m, &frame) {
+                Ok(p) => {
+                    s.poses.add(convert::seconds(m.header.stamp));
+                    s.pose = Some(p);
+                }
+                Err(e) => s.pose_error = Some(e.to_string()),
+            },
+        )?,
+        watch(&t.image, 2, seen, |s, m: sensor_msgs::Image| {
+            s.images.add(convert::seconds(m.header.stamp));
+            s.image_size = Some((m.width, m.height));
+        })?,
+        watch(&t.camera_info, 2, seen, |s, m: sensor_msgs::CameraInfo| {
+            s.info = Some(CameraInfo {
+                fx: m.K[0],
+                fy: m.K[4],
+                width: m.width,
+                height: m.height,
+            });
+        })?,
+    ])
+}
+
+/// A parameter's value, if it is set.
+fn param<T: serde::de::DeserializeOwned>(name: &str) -> Option<T> {
+    rosrust::param(name)?.get().ok()
+}
+
+/// The nodes publishing and subscribing `topic`.
+fn nodes_on(state: &rosrust::api::SystemState, topic: &str, publishers: bool) -> Vec<String> {
+    let list = if publishers {
+        &state.publishers
+    } else {
+        &state.subscribers
+    };
+    list.iter()
+        .find(|t| t.name == topic)
+        .map(|t| t.connections.clone())
+        .unwrap_or_default()
+}
+
+/// The hand-eye file the estimator uses, read (None: no estimator and none needed).
+fn hand_eye(p: &PreflightParams, estimator: bool, camera: bool) -> Option<Result<preflight::HandEye, String>> {
+    if !estimator {
+        return camera.then(|| {
+            Err(format!(
+                "no {} running: the hand-eye file is its parameter hand_eye_file",
+                p.estimator_node
+            ))
+        });
+    }
+    let path: String = param(&format!("{}/hand_eye_file", p.estimator_node)).unwrap_or_default();
+    if path.is_empty() {
+        return Some(Err(format!(
+            "{} runs with no hand_eye_file: the mount's nominal value, uncalibrated",
+            p.estimator_node
+        )));
+    }
+    let read = || -> Result<preflight::HandEye, String> {
+        let text = std::fs::read_to_string(&path).map_err(|e| format!("{path}: {e}"))?;
+        let since = |t: std::time::SystemTime| {
+            t.duration_since(std::time::UNIX_EPOCH)
+                .map_or(f64::NAN, |d| d.as_secs_f64())
+        };
+        let modified = std::fs::metadata(&path)
+            .and_then(|m| m.modified())
+            .map_or(f64::NAN, since);
+        preflight::hand_eye_file(&path, &text, modified, since(std::time::SystemTime::now()))
+    };
+    Some(read())
+}
+
+/// Who runs: the simulator (with its camera or not) and the estimator.
+fn who_runs(
+    p: &PreflightParams,
+    node: &ControllerNodeParams,
+) -> Result<(Option<preflight::Simulator>, bool), NodeError> {
+    let state = rosrust::state().map_err(ros_err)?;
+    let simulator = nodes_on(&state, &node.joint_states_topic, true)
+        .contains(&p.simulator_node)
+        .then(|| preflight::Simulator {
+            camera: param(&format!("{}/camera_enabled", p.simulator_node)).unwrap_or(true),
+        });
+    let estimator = nodes_on(&state, &node.trocar_pose_topic, true).contains(&p.estimator_node);
+    Ok((simulator, estimator))
+}
+
+/// Watch the graph and run the checks, for the controller whose parameters are `node` and
+/// whose chain is `kin`. Blocks for up to `wait_s + window_s` (wall time).
+pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematics) -> Result<Report, NodeError> {
+    let est = |k: &str| format!("{}/{k}", p.estimator_node);
+    let topics = Topics {
+        joint_states: node.joint_states_topic.clone(),
+        lbr_state: node.lbr_state_topic.clone(),
+        trocar_pose: node.trocar_pose_topic.clone(),
+        base_frame: node.base_frame.clone(),
+        image: param(&est("image_topic")).unwrap_or_else(|| topics::CAMERA_IMAGE.into()),
+        camera_info: param(&est("camera_info_topic")).unwrap_or_else(|| topics::CAMERA_INFO.into()),
+    };
+    let seen = Arc::new(Mutex::new(Seen::default()));
+    let subs = subscribe(&topics, &seen)?;
+    let t0 = Instant::now();
+    // Until every stream has spoken (the camera's only where there is one), or `wait_s`.
+    loop {
+        let (simulator, _) = who_runs(p, node)?;
+        let camera = simulator.is_none_or(|s| s.camera);
+        let all_there = {
+            let s = lock(&seen);
+            s.joints.count > 0
+                && s.lbr.count > 0
+                && s.poses.count > 0
+                && (!camera || (s.images.count > 0 && s.info.is_some()))
+        };
+        if all_there || t0.elapsed().as_secs_f64() >= p.wait_s || !rosrust::is_ok() {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    std::thread::sleep(Duration::from_secs_f64(p.window_s));
+    drop(subs);
+    let (simulator, estimator) = who_runs(p, node)?;
+    let camera = simulator.is_none_or(|s| s.camera);
+    let s = lock(&seen);
+    if let Some(e) = &s.pose_error {
+        rosrust::ros_warn!("preflight: a trocar pose was rejected: {e}");
+    }
+    let (joint_states, lbr_state, camera_obs) = s.observations(camera);
+    let state = rosrust::state().map_err(ros_err)?;
+    let command_subscribers = nodes_on(&state, &node.command_topic, false)
+        .into_iter()
+        .filter(|n| *n != rosrust::name())
+        .collect();
+    let obs = Observations {
+        simulator,
+        use_sim_time: param("/use_sim_time").unwrap_or(false),
+        joint_states,
+        lbr_state,
+        camera: camera_obs,
+        marker: preflight::Marker {
+            stream: s.poses.stream(),
+            last: s.pose,
+            configured_size_m: if estimator { param(&est("marker/size")) } else { None },
+            simulated_size_m: simulator
+                .filter(|s| s.camera)
+                .and_then(|_| param(&format!("{}/camera/marker/size", p.simulator_node))),
+        },
+        hand_eye: hand_eye(p, estimator, camera),
+        command_subscribers,
+        command_topic: node.command_topic.clone(),
+    };
+    Ok(preflight::evaluate(&obs, &p.limits, &node.controller.tare, kin))
+}
+
+/// The `preflight` node: read the controller's parameters from the server (the defaults,
+/// said so, when it does not run), run the checks with its own private parameters or, when
+/// it has none, the controller's `preflight` section; print the report; exit 1 when a check
+/// failed.
+pub fn run_node() -> Result<(), NodeError> {
+    let own: PreflightParams = params::load_private()?;
+    let has_own = rosrust::param(&rosrust::name()).is_some_and(|r| r.exists().unwrap_or(false));
+    let node: ControllerNodeParams = match rosrust::param(&own.controller_node).map(|r| r.get::<serde_json::Value>()) {
+        Some(Ok(v)) => params::from_value(&own.controller_node, v)?,
+        _ => {
+            println!(
+                "note: no parameters of {}: its defaults (config/docking_controller.yaml's topics, the built-in Med 7)",
+                own.controller_node
+            );
+            ControllerNodeParams::default()
+        }
+    };
+    let p = if has_own { own } else { node.preflight.clone() };
+    p.validate()?;
+    let kin =
+        crate::kinematics::LbrKinematics::from_model_or_file(node.model, &node.urdf_file, crate::kinematics::TIP_LINK)?;
+    let report = run(&p, &node, &kin)?;
+    println!("{report}");
+    if report.passed() {
+        Ok(())
+    } else {
+        Err(NodeError::Invalid(format!(
+            "preflight failed: {}",
+            report.failed_codes().join(", ")
+        )))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_shipped_settings_are_the_defaults_and_valid() {
+        let text = include_str!("../../config/docking_controller.yaml");
+        let node: ControllerNodeParams = params::from_yaml_str("docking_controller.yaml", text).unwrap();
+        node.validate().unwrap();
+        assert!(node.preflight_on_start);
+        let (shipped, default) = (&node.preflight, PreflightParams::default());
+        assert_eq!(shipped.limits, default.limits);
+        assert_eq!(
+            (shipped.window_s, shipped.wait_s, &shipped.simulator_node),
+            (default.window_s, default.wait_s, &default.simulator_node)
+        );
+        let bad = PreflightParams {
+            window_s: 0.0,
+            ..PreflightParams::default()
+        };
+        assert!(bad.validate().unwrap_err().to_string().contains("window_s"));
+    }
+
+    #[test]
+    fn joint_states_give_the_rate_of_their_stamps_and_the_motion() {
+        let mut s = Seen::default();
+        let msg = |t: f64, q: f64| sensor_msgs::JointState {
+            header: convert::header(convert::ros_time(t), ""),
+            name: vec!["a".into(), "b".into()],
+            position: vec![q, 1.0],
+            ..Default::default()
+        };
+        // Out of order, as a queue may deliver them: the span is first to last stamp.
+        for (t, q) in [(10.0, 0.0), (10.02, 0.003), (10.01, -0.001)] {
+            s.joint_states(&msg(t, q));
+        }
+        let (j, lbr, cam) = s.observations(false);
+        let j = j.unwrap();
+        assert!((j.stream.rate_hz() - 100.0).abs() < 1e-6, "{}", j.stream.rate_hz());
+        assert!((j.motion_rad - 0.004).abs() < 1e-12);
+        assert_eq!(j.positions, vec![-0.001, 1.0]);
+        assert!(lbr.is_none() && cam.is_none());
+        // Renamed joints restart the motion's range.
+        let mut m = msg(10.03, 5.0);
+        m.name = vec!["x".into(), "y".into()];
+        s.joint_states(&m);
+        assert_eq!(s.observations(true).0.unwrap().motion_rad, 0.0);
+        assert!(s.observations(true).2.is_some());
+    }
+}
