@@ -105,9 +105,11 @@ pub struct Limits {
     pub min_joint_states_hz: f64,
     /// Accepted shortfall of a rate below its nominal value (measurement over a short window).
     pub rate_tolerance: f64,
-    /// Lowest camera image rate, Hz.
+    /// Lowest camera image rate, Hz: at 5 Hz a frame comes every 0.2 s, so with the
+    /// pipeline's ~40 ms and one frame lost the pose is still younger than the controller's
+    /// 0.5 s `trocar_timeout`; below it the docking would hold on stale poses.
     pub min_image_hz: f64,
-    /// Lowest trocar pose rate, Hz.
+    /// Lowest trocar pose rate, Hz (the same reasoning).
     pub min_marker_hz: f64,
     /// Oldest accepted hand-eye calibration, days: the camera mount drifts and is knocked
     /// (a ZED mini on a 3D-printed bracket), and a lab recalibrates at least monthly.
@@ -126,7 +128,7 @@ impl Default for Limits {
         Self {
             min_joint_states_hz: 100.0,
             rate_tolerance: 0.1,
-            min_image_hz: 10.0,
+            min_image_hz: 5.0,
             min_marker_hz: 5.0,
             hand_eye_max_age_days: 30.0,
             hand_eye_max_residual_m: 0.002,
