@@ -52,7 +52,7 @@ struct Jammed {
 
 /// Dock `seed`, settle, then (`retract`: begin a withdrawal and let it run 0.3 s) catch
 /// the tip with an obstacle of `stiffness` N/m and go on (panning at 0.17 rad/s, the
-/// issue's pan, or withdrawing) for `for_s`.
+/// the pivot targets' pan, or withdrawing) for `for_s`.
 fn jam(controller: &ControllerParams, seed: u64, retract: bool, stiffness: f64, for_s: f64) -> Jammed {
     let cfg = SimConfig::load_default().unwrap().with_protocol("realistic").unwrap();
     let mut s = PivotSession::dock(&cfg.sim, &cfg.trial, controller, kin(), seed, 20.0)
@@ -166,7 +166,7 @@ fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
     }
 }
 
-/// The pan (0.17 rad/s) with the tip caught by a stiff obstacle (8000 N/m): DONE
+/// The pivot targets' pan (0.17 rad/s) with the tip caught by a stiff obstacle (8000 N/m): DONE
 /// holds, `FORCE_LIMIT`, the scope stays where it stopped and stays held until a start;
 /// without the stop the force goes past 200 N. The true force's peak is 24.9-28.2 N
 /// (seeds 1-2), over the 20 N stop by 25-41 %: against a tip caught this stiffly the

@@ -1,11 +1,11 @@
 //! After docking, in closed loop on the realistic simulated plant (`config/sim.yaml`'s
 //! `realistic` protocol: breathing trocar on a compliant mount, seal, elastic joints, torque
 //! model error, a biased 15 Hz pose sensor) with the shipped `config/controller.yaml`:
-//! issue 16's "Done when" sequence, the fulcrum's adaptation against a fixed fulcrum and a
+//! the pivot's "done when" sequence, the fulcrum's adaptation against a fixed fulcrum and a
 //! wrong prior, a biased trocar estimate, the dead-man and bad commands, retract.
 //!
-//! The bounds are the measured figures (README, "After docking") with a margin; where they
-//! are wider than the issue's targets, the README says so and why.
+//! The bounds are the measured figures (docs/after-docking.md) with a margin; where they
+//! are wider than the pivot's targets, docs/after-docking.md says so and why.
 
 use std::sync::Arc;
 
@@ -98,14 +98,14 @@ fn the_done_when_sequence_pivots_about_the_port_without_a_hold() {
         // fulcrum (measured 0.2-0.5 mm; the soft penalty bore let it sink 0.8-3.1 mm); the
         // wall dragged by at most 1.2 mm (p95, measured 0.59-0.80; 0.8-1.1 before the
         // torques' low-pass and the payload fit); the shaft line within 1.6 mm of the port
-        // (measured 0.73-1.26 mm, not the issue's 1 mm on seed 3: README; 0.8-1.7 before the
+        // (measured 0.73-1.26 mm, not the target's 1 mm on seed 3: docs/after-docking.md; 0.8-1.7 before the
         // low-pass, 1.7-3.6 with the soft bore and the fulcrum's force through the tare's
         // dead-band).
         at_most("shaft from the trocar's fulcrum, p95, m", r.bore_distance_p95_m, 0.0008);
         at_most("wall dragged, p95, m", r.wall_displacement_p95_m, 0.0012);
         at_most("shaft from the true port, p95, m", r.distance_p95_m, 0.0016);
         // Once the commands stop the scope yields only to a wall pushing over 2 N: it moved
-        // 0.21-0.82 mm in these seeds (0.8-1.2 before the low-pass; README: the issue's
+        // 0.21-0.82 mm in these seeds (0.8-1.2 before the low-pass; docs/after-docking.md: the target's
         // 0.5 mm not met on seed 2), while the port goes on breathing.
         at_most("motion once silent, m", r.still_motion_m, 0.001);
         at_most(
@@ -362,7 +362,7 @@ fn the_fulcrum_follows_a_breathing_port() {
     assert!(wall_a < 0.15 * wall_f, "wall displacement sums: {wall_a} vs {wall_f}");
 }
 
-/// Issue 14's "bounded tip speed, acceleration and jerk in every phase", after docking:
+/// "Bounded tip speed, acceleration and jerk in every phase", after docking:
 /// the surgeon's commands start and stop at once (a button, the dead-man), zoom in and out,
 /// then retract. The commanded tip (forward kinematics of each command) keeps within the
 /// shipped `motion:` limits in DONE and RETRACT, at the shipped 100 Hz.
@@ -487,7 +487,7 @@ fn pivoting_to_the_cone_does_not_push_the_trocar_along_its_axis() {
 /// with pans at 10 deg/s): the shipped minimum depth (the docking's 30 mm) stops the zoom and
 /// the shaft stays on the wall's port; at the seal's 15 mm (the limit before) the tip left
 /// the part of the bore that guides it and the shaft's line passed 3.2 and 9 mm from the
-/// port (README, After docking).
+/// port (docs/after-docking.md).
 #[test]
 fn zooming_out_stops_at_the_docked_depth_and_keeps_the_port() {
     let cfg = realistic();
@@ -577,7 +577,7 @@ fn the_port_follows_the_breathing_along_the_docking_axis_while_steering() {
     );
     // Across the shaft (the axial breathing's part once the scope is panned) it does not
     // cost: the shaft from the true port, measured 2.33 against 2.57 mm (0.9 x; seeds 1-40
-    // of both benchmark scripts: README).
+    // of both benchmark scripts: docs/after-docking.md).
     assert!(
         dist <= dist_off,
         "shaft from the true port, p95 sums: {dist} vs {dist_off}"

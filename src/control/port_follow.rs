@@ -22,7 +22,7 @@
 //! low-passed at `cutoff_hz` on each fresh estimate and cut to ±`max_offset`. While the
 //! surgeon steers (a command, even a zero one: the dead-man pressed), the law's port and
 //! fulcrum move with a part of it, a g o (`gain` g), at most `max_speed`; while no command
-//! comes they stay (the scope holds still, the stillness), and when commands resume
+//! comes they stay (the scope holds still: the pivot's stillness target), and when commands resume
 //! they catch up at `max_speed`. A missing, stale, non-finite or old-stamped estimate
 //! changes nothing: the offset holds; one more than `max_jump` from the followed offset (a
 //! misdetected marker) is used only when the next one agrees with it.

@@ -1,4 +1,4 @@
-//! The rostest check of steering after docking (issue 16), against `sim.launch`:
+//! The rostest check of steering after docking, against `sim.launch`:
 //! `scope_pivot` docks, then drives `/docking/scope_command` as a surgeon would (pan, tilt,
 //! the same back, in and out, then silence) and judges the pivot from outside the
 //! controller: the shaft from the measured joints through the URDF's KDL chain, the true
@@ -28,7 +28,7 @@
 //! "Still" and the dead-man's travel are judged beyond the true port's motion across the
 //! shaft ([`beyond_port`]):
 //! the port breathes (config/sim.yaml: 1 mm across the axis, 4 mm along it) and the
-//! controller's fulcrum follows it, as the issue asks, which carries the scope across its
+//! controller's fulcrum follows it, as the pivot's targets ask, which carries the scope across its
 //! shaft by up to the port's excursion; a scope that drifts, or keeps moving after its
 //! commands stop, moves beyond that. The tip's motion in the base frame is reported beside.
 //!
@@ -681,7 +681,7 @@ mod tests {
     }
 
     #[test]
-    fn the_sequence_is_the_issues() {
+    fn the_sequence_is_the_done_when_script() {
         let s = sequence(&CheckParams::default());
         assert_eq!(s.len(), 6);
         assert!((s.iter().map(|x| x.1).sum::<f64>() - 10.0).abs() < 1e-12);
