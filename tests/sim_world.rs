@@ -37,15 +37,21 @@ fn starts_are_where_the_experiment_wants_them() {
     }
 }
 
-#[test]
-fn baseline_docks_without_noise_and_runs_are_reproducible() {
-    let kin = kin();
+/// The base world without pose noise, and a trial of 15 s.
+fn noiseless() -> (SimParams, TrialParams) {
     let mut p = SimParams::default();
     p.measurement.model = NoiseModel::None;
     let tp = TrialParams {
         timeout_s: 15.0,
         ..Default::default()
     };
+    (p, tp)
+}
+
+#[test]
+fn baseline_docks_without_noise_and_runs_are_reproducible() {
+    let kin = kin();
+    let (p, tp) = noiseless();
     let run = |seed| {
         let mut w = SimWorld::new(&p, kin.clone(), seed).unwrap();
         let mut b = Baseline::new(&Default::default(), tp.goal_depth_m, 1.0 / tp.control_rate_hz, false);
@@ -72,12 +78,7 @@ fn baseline_docks_without_noise_and_runs_are_reproducible() {
 #[test]
 fn a_done_short_of_the_goal_is_a_false_done() {
     let kin = kin();
-    let mut p = SimParams::default();
-    p.measurement.model = NoiseModel::None;
-    let tp = TrialParams {
-        timeout_s: 15.0,
-        ..Default::default()
-    };
+    let (p, tp) = noiseless();
     let mut w = SimWorld::new(&p, kin, 3).unwrap();
     let mut short = Baseline::new(
         &Default::default(),
