@@ -89,6 +89,32 @@ struct Seen {
     last_stamp: Option<f64>,
 }
 
+impl Seen {
+    /// Record a command `cmd` stamped `stamp` (s) against the `measured` joints, the lead
+    /// bound (rad) and the joints' speed limits (rad/s).
+    fn record(&mut self, cmd: &JointVector, measured: &JointVector, stamp: f64, lead_bound: f64, speed: &JointVector) {
+        let lead = (cmd - measured).amax();
+        self.max_lead = self.max_lead.max(lead);
+        // The guard's not-following watch runs from a quarter of the bound.
+        if lead >= LEAD_WATCH_FRACTION * lead_bound && self.saturated_at.is_none() {
+            self.saturated_at = Some(Instant::now());
+        }
+        if let Some(prev) = self.last {
+            self.max_step = self.max_step.max((cmd - prev).amax());
+            let dt = self.last_stamp.map_or(f64::NAN, |t| stamp - t);
+            if let Some(r) = speed_ratio(&prev, cmd, dt, speed) {
+                self.max_speed_ratio = self.max_speed_ratio.max(r);
+            }
+        }
+        self.last_stamp = Some(stamp);
+        if self.first_lead.is_none() {
+            self.first_lead = Some(lead);
+        }
+        self.last = Some(*cmd);
+        self.commands += 1;
+    }
+}
+
 /// Largest `|b - a| / (limit * dt)` over the joints; none for a stamp step outside
 /// (0, 1 s]: a clock that stalls or jumps is the fault some tests inject, not a speed.
 fn speed_ratio(a: &JointVector, b: &JointVector, dt: f64, limit: &JointVector) -> Option<f64> {
@@ -233,27 +259,7 @@ impl Plant {
                     return;
                 };
                 let measured = *lock(&q);
-                let mut s = lock(&seen);
-                let lead = (cmd - measured).amax();
-                s.max_lead = s.max_lead.max(lead);
-                // The guard's not-following watch runs from a quarter of the bound.
-                if lead >= LEAD_WATCH_FRACTION * lead_bound && s.saturated_at.is_none() {
-                    s.saturated_at = Some(Instant::now());
-                }
-                let stamp = m.header.stamp.seconds();
-                if let Some(prev) = s.last {
-                    s.max_step = s.max_step.max((cmd - prev).amax());
-                    let dt = s.last_stamp.map_or(f64::NAN, |t| stamp - t);
-                    if let Some(r) = speed_ratio(&prev, &cmd, dt, &speed) {
-                        s.max_speed_ratio = s.max_speed_ratio.max(r);
-                    }
-                }
-                s.last_stamp = Some(stamp);
-                if s.first_lead.is_none() {
-                    s.first_lead = Some(lead);
-                }
-                s.last = Some(cmd);
-                s.commands += 1;
+                lock(&seen).record(&cmd, &measured, m.header.stamp.seconds(), lead_bound, &speed);
                 if !lock(&mode).blocked {
                     // An ideal position-controlled arm: it is where it was commanded.
                     *lock(&q) = cmd;
