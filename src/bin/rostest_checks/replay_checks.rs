@@ -218,6 +218,34 @@ fn largest_gap(live: &[(f64, JointVector)], recorded: &[(f64, JointVector)]) -> 
         .fold(0.0, f64::max)
 }
 
+/// The one way an open-loop replay may end otherwise than the recording: the recorded arm
+/// stops at the recording's DONE while the live controller, a few steps behind, still
+/// inserts; its command then leads an arm that no longer moves, and the guard rightly holds
+/// (`ARM_NOT_FOLLOWING`). Every phase before the last must be the recording's.
+fn stopped_by_the_recording(got: &[String], want: &[String], live_hold: &str) -> bool {
+    got.len() == want.len()
+        && got.len() >= 2
+        && got[..got.len() - 1] == want[..want.len() - 1]
+        && want.last().is_some_and(|p| p == "DONE")
+        && got.last().is_some_and(|p| p == "HOLD")
+        && got[got.len() - 2] == "INSERT"
+        && live_hold == "ARM_NOT_FOLLOWING"
+}
+
+/// How the live phases `got` end against the recorded `want`: as recorded (""), or stopped
+/// by the recording (a note), or an error.
+fn phase_end(got: &[String], want: &[String], live_hold: &str, commands: usize) -> Result<String, String> {
+    if got == want {
+        Ok(String::new())
+    } else if stopped_by_the_recording(got, want, live_hold) {
+        Ok("; ended holding ARM_NOT_FOLLOWING: the recorded arm stopped at its DONE while the live controller still inserted (an open-loop replay)".to_string())
+    } else {
+        Err(format!(
+            "phases {got:?}, recorded {want:?} ({commands} commands; live hold '{live_hold}')"
+        ))
+    }
+}
+
 /// A recorded docking (its joints, torques and noisy trocar pose, with its clock) replayed
 /// into a fresh controller, started when the recording's controller entered TARE: the
 /// live controller's own commands must be finite, inside the joint limits and within the
@@ -266,6 +294,7 @@ pub fn replay_controller(p: &CheckParams) -> Result<String, String> {
     let (live, _s1) = PhaseLog::subscribe(&p.status_topic)?;
     let (recorded, _s2) = PhaseLog::subscribe(&p.recorded_status_topic)?;
     let (recorded_now, _s3) = subscribe_latest::<trocar_docking::DockingStatus>(&p.recorded_status_topic)?;
+    let (live_now, _s4) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
     let phase_of = |log: &Arc<Mutex<PhaseLog>>| log.lock().ok().and_then(|l| l.last_phase());
     // The client first, so that the start follows the recorded one by one round trip: the
     // recorded arm moves 0.3 s after it, and a tare still running then is refused.
@@ -294,15 +323,14 @@ pub fn replay_controller(p: &CheckParams) -> Result<String, String> {
             a.count
         ));
     }
-    if got != want {
-        return Err(format!("phases {got:?}, recorded {want:?} ({} commands)", a.count));
-    }
+    let live_hold = live_now.get().map(|s| s.hold_code).unwrap_or_default();
+    let end = phase_end(&got, &want, &live_hold, a.count)?;
     if a.count < p.min_commands {
         return Err(format!("{} commands, fewer than {}", a.count, p.min_commands));
     }
     let gap = largest_gap(&a.commands, &recorded_commands.lock().map_err(|e| e.to_string())?);
     Ok(format!(
-        "phases {} as recorded ({skipped_live} live and {skipped_rec} recorded stale-data holds resumed); \
+        "phases {} as recorded{end} ({skipped_live} live and {skipped_rec} recorded stale-data holds resumed); \
          {} commands, every one finite and inside the limits, steps at most {:.0} % of the guard's; \
          largest difference from the recorded command {:.3} deg",
         got.join(" -> "),
@@ -310,4 +338,31 @@ pub fn replay_controller(p: &CheckParams) -> Result<String, String> {
         a.worst_step_ratio * 100.0,
         gap.to_degrees()
     ))
+}
+
+#[cfg(test)]
+mod replay_end_tests {
+    use super::stopped_by_the_recording;
+
+    fn v(p: &[&str]) -> Vec<String> {
+        p.iter().map(|s| (*s).to_string()).collect()
+    }
+
+    #[test]
+    fn only_a_final_arm_not_following_after_insert_is_the_recordings_stop() {
+        let want = v(&["TARE", "APPROACH", "INSERT", "DONE"]);
+        let held = v(&["TARE", "APPROACH", "INSERT", "HOLD"]);
+        assert!(stopped_by_the_recording(&held, &want, "ARM_NOT_FOLLOWING"));
+        assert!(!stopped_by_the_recording(&held, &want, "FORCE_LIMIT"));
+        assert!(!stopped_by_the_recording(
+            &v(&["TARE", "APPROACH", "HOLD"]),
+            &want,
+            "ARM_NOT_FOLLOWING"
+        ));
+        assert!(!stopped_by_the_recording(
+            &v(&["TARE", "HOLD", "INSERT", "HOLD"]),
+            &want,
+            "ARM_NOT_FOLLOWING"
+        ));
+    }
 }
