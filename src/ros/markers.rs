@@ -78,6 +78,7 @@ enum Id {
     ForceLabel = 8,
     Fulcrum = 9,
     Cone = 10,
+    TipPath = 11,
 }
 
 /// Points on each rim of the drawn cone; every `CONE_RIM / CONE_GENERATORS`-th one is
@@ -88,6 +89,8 @@ const CONE_GENERATORS: usize = 8;
 const NS: &str = "docking";
 /// The namespace of the fulcrum and the cone (RViz shows or hides them together).
 const PIVOT_NS: &str = "pivot";
+/// The namespace of the dry run's tip path.
+const DRY_RUN_NS: &str = "dry_run";
 
 fn color(r: f32, g: f32, b: f32) -> std_msgs::ColorRGBA {
     std_msgs::ColorRGBA { r, g, b, a: 1.0 }
@@ -291,6 +294,26 @@ fn trocar_markers(
     markers.push(body);
 }
 
+/// The dry run's tip path: a line through `points` (base frame), in its own namespace
+/// `dry_run`; fewer than two points draw nothing (the marker is deleted).
+pub fn tip_path<'a>(
+    stamp: rosrust::Time,
+    frame: &str,
+    points: impl Iterator<Item = &'a Point3<f64>>,
+    style: &MarkerStyle,
+) -> visualization_msgs::Marker {
+    let mut m = base(stamp, frame, Id::TipPath, visualization_msgs::Marker::LINE_STRIP as i32);
+    m.ns = DRY_RUN_NS.into();
+    m.points = points.map(point_msg).collect();
+    if m.points.len() < 2 {
+        m.points.clear();
+        m.action = visualization_msgs::Marker::DELETE as i32;
+    }
+    m.scale.x = style.sphere / 6.0;
+    m.color = color(0.2, 0.8, 1.0);
+    m
+}
+
 /// The tip, its optical axis, and the force arrow with its label (deleted when the force
 /// is too small to draw).
 fn tip_markers(
@@ -391,6 +414,32 @@ mod tests {
             reference: None,
             pivot: None,
         }
+    }
+
+    #[test]
+    fn the_tip_path_is_a_line_through_its_points_and_nothing_before_two() {
+        let style = MarkerStyle::default();
+        let pts = [
+            Point3::new(0.5, 0.0, 0.3),
+            Point3::new(0.52, 0.01, 0.28),
+            Point3::new(0.55, 0.0, 0.25),
+        ];
+        let m = tip_path(crate::ros::convert::ros_time(1.0), "lbr_link_0", pts.iter(), &style);
+        assert_eq!(m.type_, visualization_msgs::Marker::LINE_STRIP as i32);
+        assert_eq!(
+            (m.ns.as_str(), m.action),
+            ("dry_run", visualization_msgs::Marker::ADD as i32)
+        );
+        assert_eq!(m.points.len(), 3);
+        assert_eq!((m.points[2].x, m.points[2].z), (0.55, 0.25));
+        let one = tip_path(
+            crate::ros::convert::ros_time(1.0),
+            "lbr_link_0",
+            pts[..1].iter(),
+            &style,
+        );
+        assert_eq!(one.action, visualization_msgs::Marker::DELETE as i32);
+        assert!(one.points.is_empty());
     }
 
     #[test]

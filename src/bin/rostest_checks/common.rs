@@ -133,6 +133,10 @@ pub struct CheckParams {
     pub joy_config: String,
     /// `preflight`: the check that must fail ('' = every check must pass).
     pub preflight_failure: String,
+    /// `dry_run`: the controller's commands in a dry run (JointTrajectory).
+    pub preview_topic: String,
+    /// `dry_run`: the ghost arm's joints.
+    pub preview_joint_states_topic: String,
 }
 
 impl Default for CheckParams {
@@ -195,6 +199,8 @@ impl Default for CheckParams {
             retract_timeout: 30.0,
             joy_config: String::new(),
             preflight_failure: String::new(),
+            preview_topic: "/docking_controller/preview".into(),
+            preview_joint_states_topic: "/docking_controller/preview_joint_states".into(),
         }
     }
 }

@@ -10,7 +10,7 @@ use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::msgs::{lbr_msgs, sensor_msgs, trajectory_msgs, trocar_docking};
 use ::trocar_docking::ros::topics;
 
-use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
 
 /// Publish a DockingStatus and an LBRState on `/rostest/{status,lbr}_out` and read them
 /// back from `/rostest/{status,lbr}_back`, where a rospy relay (tests/nodes/genpy_relay)
@@ -147,6 +147,26 @@ fn subscribe_max_force(topic: &str) -> Result<(Arc<Mutex<f64>>, rosrust::Subscri
     Ok((max_force, sub))
 }
 
+/// Wait up to `time_limit` for DONE or ABORTED on `status`; that status, or why not.
+pub fn wait_for_end(
+    p: &CheckParams,
+    status: &Latest<trocar_docking::DockingStatus>,
+) -> Result<trocar_docking::DockingStatus, String> {
+    wait_for(p.time_limit, || {
+        status.get().filter(|s| s.phase == "DONE" || s.phase == "ABORTED")
+    })
+    .ok_or_else(|| {
+        let s = status.get().unwrap_or_default();
+        format!(
+            "not DONE after {:.0} s: phase {} ({}), tip {:.1} mm from the goal",
+            p.time_limit,
+            s.phase,
+            s.hold_reason,
+            s.tip_to_goal * 1e3
+        )
+    })
+}
+
 /// Start the controller (unless the launch does) and wait for DONE within the time limit;
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
@@ -162,19 +182,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
     }
     let t0 = Instant::now();
-    let done = wait_for(p.time_limit, || {
-        status.get().filter(|s| s.phase == "DONE" || s.phase == "ABORTED")
-    })
-    .ok_or_else(|| {
-        let s = status.get().unwrap_or_default();
-        format!(
-            "not DONE after {:.0} s: phase {} ({}), tip {:.1} mm from the goal",
-            p.time_limit,
-            s.phase,
-            s.hold_reason,
-            s.tip_to_goal * 1e3
-        )
-    })?;
+    let done = wait_for_end(p, &status)?;
     if done.phase != "DONE" {
         let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
         return Err(format!(

@@ -4,11 +4,12 @@
 //! ([`docking_checks`]), `replay` and `replay_controller` ([`replay_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
 //! ([`camera_checks`]), `blocked_arm`, `clock_back`, `clock_forward`, `driver_restart` and
 //! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]), `preflight`
-//! ([`preflight_checks`]).
+//! ([`preflight_checks`]), `dry_run` ([`dry_run_checks`]).
 
 mod camera_checks;
 mod common;
 mod docking_checks;
+mod dry_run_checks;
 mod failure_modes;
 mod fault_injection;
 mod junit;
@@ -57,6 +58,7 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "scope_pivot" => scope_checks::scope_pivot(&p),
             "scope_joy" => scope_checks::scope_joy(&p),
             "preflight" => preflight_checks::preflight(&p),
+            "dry_run" => dry_run_checks::dry_run(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

@@ -21,6 +21,7 @@
 //! is itself a mutex shared with the `/clock` subscriber: that is the simulator's, not the
 //! robot's, where the loop reads the wall clock.)
 
+mod ghost;
 mod inputs;
 mod outputs;
 
@@ -72,8 +73,16 @@ pub struct ControllerNodeParams {
     pub scope_command_topic: String,
     /// The frame scope commands are in (a command in another, non-empty frame is rejected).
     pub tip_frame: String,
-    /// Joint command out.
+    /// Joint command out (to the driver; never published in a dry run).
     pub command_topic: String,
+    /// Dry run: the commands go to `preview_topic` (same type) instead of `command_topic`,
+    /// the controller steers a ghost arm at its own commands ([`ghost`]), and the ghost's
+    /// joints go out on `preview_joint_states_topic` (for a second robot_state_publisher).
+    pub dry_run: bool,
+    /// The dry run's commands out.
+    pub preview_topic: String,
+    /// The dry run's ghost joints out (`sensor_msgs/JointState`).
+    pub preview_joint_states_topic: String,
     /// Message type of the command.
     pub command_type: CommandType,
     /// `time_from_start` of the trajectory point, in control periods.
@@ -132,6 +141,9 @@ impl Default for ControllerNodeParams {
             tip_frame: TIP_LINK.into(),
             command_topic: topics::COMMAND.into(),
             command_type: CommandType::Trajectory,
+            dry_run: false,
+            preview_topic: "~preview".into(),
+            preview_joint_states_topic: "~preview_joint_states".into(),
             command_lookahead_periods: 2.0,
             driver_restart_gap_s: 0.5,
             status_topic: topics::DOCKING_STATUS.into(),
@@ -163,6 +175,12 @@ impl ControllerNodeParams {
         self.preflight.validate()?;
         if self.latency_samples == 0 {
             return Err(NodeError::Invalid("latency_samples must be >= 1".into()));
+        }
+        if self.dry_run && (self.preview_topic.is_empty() || self.preview_topic == self.command_topic) {
+            return Err(NodeError::Invalid(format!(
+                "preview_topic '{}' must be set and differ from command_topic '{}': a dry run never commands the driver",
+                self.preview_topic, self.command_topic
+            )));
         }
         if self.joint_names.len() != crate::kinematics::N_JOINTS {
             return Err(NodeError::Invalid(format!(
@@ -277,6 +295,8 @@ struct LoopState {
     last_markers: f64,
     status_period: f64,
     markers_period: f64,
+    /// The arm the controller steers in a dry run (`None`: the real one).
+    ghost: Option<ghost::Ghost>,
 }
 
 impl LoopState {
@@ -291,6 +311,7 @@ impl LoopState {
             last_markers: f64::NEG_INFINITY,
             status_period: period(p.status_rate_hz, 0.0),
             markers_period: period(p.markers_rate_hz, f64::INFINITY),
+            ghost: p.dry_run.then(ghost::Ghost::default),
         }
     }
 
@@ -310,6 +331,9 @@ impl LoopState {
             Request::Reset => {
                 controller.reset();
                 self.start_time = None;
+                if let Some(g) = self.ghost.as_mut() {
+                    g.clear();
+                }
                 Ok("reset to IDLE".into())
             }
             Request::Retract => {
@@ -348,8 +372,14 @@ fn control_loop(
             st.last_markers = f64::NEG_INFINITY;
         }
         st.last_now = now;
-        let (input, fault) = inputs.read(now);
+        let (mut input, fault) = inputs.read(now);
+        if let Some(g) = st.ghost.as_mut() {
+            g.substitute(&mut input);
+        }
         let out = controller.step(kin, &input);
+        if let Some(g) = st.ghost.as_mut() {
+            g.follow(out.command.as_ref());
+        }
         if let Some(r) = inputs.restart() {
             // After the step, so that a clock jump the step saw stays the named cause; the
             // next step's status carries the hold.
@@ -418,12 +448,24 @@ pub fn run() -> Result<(), NodeError> {
             .start()
             .map_err(|e| NodeError::Invalid(format!("autostart: {e}")))?;
     }
-    rosrust::ros_info!(
-        "docking_controller: {} Hz, command {:?} on {}, waiting for ~start",
-        p.rate_hz,
-        p.command_type,
-        p.command_topic
-    );
+    if p.dry_run {
+        rosrust::ros_warn!(
+            "docking_controller: DRY RUN at {} Hz: commands {:?} on {} (not {}), the controller steers a ghost arm \
+             (joints on {}); waiting for ~start",
+            p.rate_hz,
+            p.command_type,
+            p.preview_topic,
+            p.command_topic,
+            p.preview_joint_states_topic
+        );
+    } else {
+        rosrust::ros_info!(
+            "docking_controller: {} Hz, command {:?} on {}, waiting for ~start",
+            p.rate_hz,
+            p.command_type,
+            p.command_topic
+        );
+    }
     if p.realtime_priority != 0 {
         match crate::realtime::set_realtime_priority(p.realtime_priority) {
             Ok(()) => {
@@ -439,4 +481,34 @@ pub fn run() -> Result<(), NodeError> {
     drop(records);
     let _ = publisher.join();
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_dry_run_must_not_preview_on_the_command_topic() {
+        let text = include_str!("../../../config/docking_controller.yaml");
+        let shipped: ControllerNodeParams = params::from_yaml_str("docking_controller.yaml", text).unwrap();
+        assert!(
+            !shipped.dry_run,
+            "robot.launch commands the arm unless asked for a dry run"
+        );
+        let mut p = ControllerNodeParams {
+            dry_run: true,
+            ..shipped
+        };
+        assert!(p.validate().is_ok());
+        p.preview_topic = p.command_topic.clone();
+        let e = p.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("preview_topic") && e.contains("never commands the driver"),
+            "{e}"
+        );
+        p.preview_topic.clear();
+        assert!(p.validate().is_err());
+        p.dry_run = false;
+        assert!(p.validate().is_ok(), "the preview topic matters only in a dry run");
+    }
 }

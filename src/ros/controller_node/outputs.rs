@@ -3,8 +3,10 @@
 //! a publisher thread turns it into messages (rosrust's publish serialises and allocates):
 //! the joint command every step, `/docking/status` and `/docking/f_ext` at the status rate,
 //! markers and tf at the markers rate. A scope command the controller ignored (not finite,
-//! stamped in the future) is logged here, throttled.
+//! stamped in the future) is logged here, throttled. In a dry run the command goes to the
+//! preview topic instead, with the ghost's joints, the ghost's base frame and the tip's path.
 
+use std::collections::VecDeque;
 use std::time::Duration;
 
 use nalgebra::{Isometry3, Point3};
@@ -15,7 +17,9 @@ use crate::kinematics::JointVector;
 use crate::ros::convert;
 use crate::ros::handover::{FaultText, OutputReceiver, RecvError};
 use crate::ros::markers::{self, Scene};
-use crate::ros::msgs::{geometry_msgs, std_msgs, tf2_msgs, trajectory_msgs, trocar_docking, visualization_msgs};
+use crate::ros::msgs::{
+    geometry_msgs, sensor_msgs, std_msgs, tf2_msgs, trajectory_msgs, trocar_docking, visualization_msgs,
+};
 use crate::ros::node::{ros_err, CommandType, NodeError, Throttle};
 use crate::ros::stats::Percentiles;
 
@@ -60,13 +64,37 @@ struct Outputs {
     markers: rosrust::Publisher<visualization_msgs::MarkerArray>,
     tf: rosrust::Publisher<tf2_msgs::TFMessage>,
     ignored_log: Throttle,
+    /// Dry run only: the ghost's joints and the tip's path so far.
+    preview: Option<Preview>,
 }
+
+/// A dry run's extra outputs.
+struct Preview {
+    joints: rosrust::Publisher<sensor_msgs::JointState>,
+    /// The tip's positions at the markers rate, newest last, at most [`TIP_PATH_POINTS`].
+    tip_path: VecDeque<Point3<f64>>,
+    /// The ghost's base frame (`ghost/` + the base frame, robot_state_publisher's prefix).
+    base_frame: String,
+}
+
+/// Points of the drawn tip path: 60 s at the default 20 Hz markers rate.
+const TIP_PATH_POINTS: usize = 1200;
 
 impl Outputs {
     fn new(p: &ControllerNodeParams) -> Result<Self, NodeError> {
+        let topic = if p.dry_run { &p.preview_topic } else { &p.command_topic };
         let (trajectory, multiarray) = match p.command_type {
-            CommandType::Trajectory => (Some(rosrust::publish(&p.command_topic, 1).map_err(ros_err)?), None),
-            CommandType::Float64MultiArray => (None, Some(rosrust::publish(&p.command_topic, 1).map_err(ros_err)?)),
+            CommandType::Trajectory => (Some(rosrust::publish(topic, 1).map_err(ros_err)?), None),
+            CommandType::Float64MultiArray => (None, Some(rosrust::publish(topic, 1).map_err(ros_err)?)),
+        };
+        let preview = if p.dry_run {
+            Some(Preview {
+                joints: rosrust::publish(&p.preview_joint_states_topic, 10).map_err(ros_err)?,
+                tip_path: VecDeque::with_capacity(TIP_PATH_POINTS),
+                base_frame: ghost_frame(&p.base_frame),
+            })
+        } else {
+            None
         };
         Ok(Self {
             trajectory,
@@ -76,6 +104,7 @@ impl Outputs {
             markers: rosrust::publish(&p.markers_topic, 2).map_err(ros_err)?,
             tf: rosrust::publish(crate::ros::topics::TF, 10).map_err(ros_err)?,
             ignored_log: Throttle::new(Duration::from_secs(2)),
+            preview,
         })
     }
 
@@ -95,7 +124,7 @@ impl Outputs {
         }
     }
 
-    fn publish(&self, p: &ControllerNodeParams, r: &StepRecord) {
+    fn publish(&mut self, p: &ControllerNodeParams, r: &StepRecord) {
         if let Some(why) = r.out.pivot.and_then(|v| v.ignored) {
             if self.ignored_log.ready() {
                 rosrust::ros_warn!("{why}");
@@ -103,6 +132,11 @@ impl Outputs {
         }
         if let Some(q) = &r.out.command {
             self.command(p, r.stamp, q);
+            if let Some(v) = &self.preview {
+                let _ = v
+                    .joints
+                    .send(convert::joint_state(r.stamp, &p.joint_names, q, &JointVector::zeros()));
+            }
         }
         if let Some(snapshot) = &r.status {
             let _ = self.status.send(status_msg(&p.base_frame, r, snapshot));
@@ -119,7 +153,7 @@ impl Outputs {
         }
     }
 
-    fn scene(&self, p: &ControllerNodeParams, r: &StepRecord) {
+    fn scene(&mut self, p: &ControllerNodeParams, r: &StepRecord) {
         let out = &r.out;
         let scene = Scene {
             trocar: r.trocar,
@@ -129,19 +163,42 @@ impl Outputs {
             reference: out.reference,
             pivot: out.pivot,
         };
-        let _ = self
-            .markers
-            .send(markers::docking_markers(r.stamp, &p.base_frame, &scene, &p.markers));
+        let mut array = markers::docking_markers(r.stamp, &p.base_frame, &scene, &p.markers);
+        let mut transforms = Vec::new();
+        if let Some(v) = self.preview.as_mut() {
+            if out.phase == crate::control::Phase::Idle {
+                v.tip_path.clear();
+            } else if let Some(tip) = out.tip {
+                if v.tip_path.len() == TIP_PATH_POINTS {
+                    v.tip_path.pop_front();
+                }
+                v.tip_path.push_back(Point3::from(tip.translation.vector));
+            }
+            array
+                .markers
+                .push(markers::tip_path(r.stamp, &p.base_frame, v.tip_path.iter(), &p.markers));
+            transforms.push(convert::transform_stamped(
+                r.stamp,
+                &p.base_frame,
+                &v.base_frame,
+                &Isometry3::identity(),
+            ));
+        }
+        let _ = self.markers.send(array);
         if let (Some(t), Some(g)) = (&r.trocar, out.goal) {
             let goal = Isometry3::from_parts(g.coords.into(), t.rotation);
-            let _ = self.tf.send(tf2_msgs::TFMessage {
-                transforms: vec![
-                    convert::transform_stamped(r.stamp, &p.base_frame, &p.trocar_frame, t),
-                    convert::transform_stamped(r.stamp, &p.base_frame, &p.goal_frame, &goal),
-                ],
-            });
+            transforms.push(convert::transform_stamped(r.stamp, &p.base_frame, &p.trocar_frame, t));
+            transforms.push(convert::transform_stamped(r.stamp, &p.base_frame, &p.goal_frame, &goal));
+        }
+        if !transforms.is_empty() {
+            let _ = self.tf.send(tf2_msgs::TFMessage { transforms });
         }
     }
+}
+
+/// The dry run's ghost frame for `frame`: robot_state_publisher's `tf_prefix` `ghost`.
+fn ghost_frame(frame: &str) -> String {
+    format!("ghost/{}", frame.trim_start_matches('/'))
 }
 
 /// Tip distance to the insertion axis of `trocar` (m).
@@ -219,7 +276,7 @@ pub fn spawn_publisher(
     p: &ControllerNodeParams,
     records: OutputReceiver<StepRecord>,
 ) -> Result<std::thread::JoinHandle<()>, NodeError> {
-    let outputs = Outputs::new(p)?;
+    let mut outputs = Outputs::new(p)?;
     let p = p.clone();
     std::thread::Builder::new()
         .name("docking_publisher".into())
