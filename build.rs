@@ -26,7 +26,7 @@ fn pkg_config(lib: &str) -> (Vec<String>, Vec<String>, Vec<String>) {
 }
 
 /// ROS message packages (Debian, under /usr/share) the nodes use.
-const ROS_MSG_PACKAGES: [&str; 10] = [
+const ROS_MSG_PACKAGES: [&str; 11] = [
     "std_msgs",
     "std_srvs",
     "geometry_msgs",
@@ -37,6 +37,7 @@ const ROS_MSG_PACKAGES: [&str; 10] = [
     "rosgraph_msgs",
     "actionlib_msgs",
     "diagnostic_msgs",
+    "dynamic_reconfigure",
 ];
 
 /// rosrust's `rosmsg_include!` names a package after the folder holding its `msg/`, and the

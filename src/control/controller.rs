@@ -31,6 +31,7 @@ use super::geometry::{pose_is_finite, InsertionAxis};
 use super::goal_window::GoalWindow;
 use super::guard::{CommandGuard, HoldReason};
 use super::guarded::{CommandSource, Guarded, StepContext};
+use super::live::{self, LiveValues};
 use super::metrics::ForceMetric;
 use super::motion::MotionLimiter;
 pub use super::params::{ControllerParams, ParamError};
@@ -227,6 +228,20 @@ pub struct OptimalController {
     params: ControllerParams,
     sqp: SqpSolver,
     run: RunState,
+}
+
+impl Controller {
+    /// Apply live-tuned values between two steps ([`crate::control::live`]): refused, with
+    /// the reason, where the phase does not allow a change; otherwise the law and the guard
+    /// use them from the next step. Allocates only to refuse.
+    pub fn set_live(&mut self, values: &LiveValues) -> Result<(), String> {
+        let phase = self.phase();
+        let (law, guard) = self.parts_mut();
+        live::check_phase(phase, &LiveValues::of(&law.params), values)?;
+        values.write_to(&mut law.params);
+        guard.set_force_stop(law.params.guard.force_stop);
+        Ok(())
+    }
 }
 
 impl OptimalController {

@@ -221,6 +221,11 @@ impl CommandGuard {
         Ok(())
     }
 
+    /// A new force stop (live tuning, [`crate::control::live`]; checked there), N.
+    pub fn set_force_stop(&mut self, force_stop: f64) {
+        self.params.force_stop = force_stop;
+    }
+
     /// Hold if the force norm is over the stop threshold.
     pub fn check_force(&self, force: f64) -> Result<(), HoldReason> {
         if force.is_finite() && force <= self.params.force_stop {

@@ -149,6 +149,11 @@ impl<S: CommandSource> Guarded<S> {
         &self.guard
     }
 
+    /// The wrapped source and the guard, to change their parameters between two steps.
+    pub fn parts_mut(&mut self) -> (&mut S, &mut CommandGuard) {
+        (&mut self.source, &mut self.guard)
+    }
+
     /// The current phase.
     pub fn phase(&self) -> Phase {
         self.source.phase()

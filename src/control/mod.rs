@@ -2,7 +2,7 @@
 //! law ([`sqp`]: costs, Gauss–Newton SQP on Clarabel, active-set warm start), the force
 //! estimate and admittance law ([`admittance`]), the command guard ([`guard`]), the phase
 //! state machine ([`supervisor`]), seated completion ([`seated`]), the metric M
-//! ([`metrics`]), the insertion-axis geometry ([`geometry`]), and after docking the port
+//! ([`metrics`]), live tuning ([`live`]), the insertion-axis geometry ([`geometry`]), and after docking the port
 //! held as a remote centre of motion ([`pivot`], [`fulcrum`], [`port_follow`], [`scope`]); [`controller`]
 //! runs them in one step per control period.
 
@@ -14,6 +14,7 @@ pub mod goal_window;
 pub mod guard;
 pub mod guarded;
 pub mod hold;
+pub mod live;
 pub mod metrics;
 pub mod motion;
 pub mod params;

@@ -30,6 +30,7 @@ pub mod node;
 pub mod pacer;
 pub mod params;
 pub mod preflight;
+pub mod reconfigure;
 pub mod sim_node;
 pub mod stats;
 pub mod topics;

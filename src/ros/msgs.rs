@@ -22,7 +22,10 @@ rosrust::rosmsg_include!(
     trajectory_msgs / JointTrajectory,
     visualization_msgs / MarkerArray,
     tf2_msgs / TFMessage,
-    rosgraph_msgs / Clock
+    rosgraph_msgs / Clock,
+    dynamic_reconfigure / Config,
+    dynamic_reconfigure / ConfigDescription,
+    dynamic_reconfigure / Reconfigure
 );
 
 #[cfg(test)]

@@ -133,6 +133,8 @@ pub struct CheckParams {
     pub joy_config: String,
     /// `preflight`: the check that must fail ('' = every check must pass).
     pub preflight_failure: String,
+    /// `reconfigure`: the force stop set through dynparam, N.
+    pub reconfigure_force_stop: f64,
     /// `dry_run`: the controller's commands in a dry run (JointTrajectory).
     pub preview_topic: String,
     /// `dry_run`: the ghost arm's joints.
@@ -199,6 +201,7 @@ impl Default for CheckParams {
             retract_timeout: 30.0,
             joy_config: String::new(),
             preflight_failure: String::new(),
+            reconfigure_force_stop: 1.0,
             preview_topic: "/docking_controller/preview".into(),
             preview_joint_states_topic: "/docking_controller/preview_joint_states".into(),
         }
@@ -242,6 +245,7 @@ impl CheckParams {
         validate::positive("max_bad_turn_deg", self.max_bad_turn_deg)?;
         validate::duration("still_window_s", self.still_window_s)?;
         validate::duration("retract_timeout", self.retract_timeout)?;
+        validate::positive("reconfigure_force_stop", self.reconfigure_force_stop)?;
         Ok(())
     }
 }

@@ -4,7 +4,7 @@
 //! ([`docking_checks`]), `replay` and `replay_controller` ([`replay_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
 //! ([`camera_checks`]), `blocked_arm`, `clock_back`, `clock_forward`, `driver_restart` and
 //! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]), `preflight`
-//! ([`preflight_checks`]), `dry_run` ([`dry_run_checks`]).
+//! ([`preflight_checks`]), `dry_run` ([`dry_run_checks`]), `reconfigure` ([`reconfigure_checks`]).
 
 mod camera_checks;
 mod common;
@@ -14,6 +14,7 @@ mod failure_modes;
 mod fault_injection;
 mod junit;
 mod preflight_checks;
+mod reconfigure_checks;
 mod replay_checks;
 mod scope_checks;
 
@@ -59,6 +60,7 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "scope_joy" => scope_checks::scope_joy(&p),
             "preflight" => preflight_checks::preflight(&p),
             "dry_run" => dry_run_checks::dry_run(&p),
+            "reconfigure" => reconfigure_checks::reconfigure(&p),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

@@ -2,7 +2,8 @@
 //! (external torques) and the trocar pose; runs the guarded [`Controller`] at a fixed rate;
 //! publishes the joint command, `/docking/status`, `/docking/f_ext`, `/docking/markers` and
 //! tf frames of the trocar and the goal; serves `~preflight`, `~start`, `~abort`, `~reset` and
-//! `~retract`. `~start` runs the preflight first ([`crate::ros::preflight`], on the service's
+//! `~retract`, and the live parameters through `dynamic_reconfigure`
+//! ([`crate::ros::reconfigure`]: `~set_parameters`, applied between two steps). `~start` runs the preflight first ([`crate::ros::preflight`], on the service's
 //! thread, never the loop's) and refuses, naming the failed check, when a check fails; the
 //! loop then never hears of the start.
 //! After DONE it takes the surgeon's scope commands (`/docking/scope_command`) and
@@ -28,6 +29,7 @@ mod outputs;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use crate::control::live::LiveValues;
 use crate::control::{Controller, ControllerParams, HoldReason};
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{Kinematics, LbrKinematics, TIP_LINK};
@@ -39,6 +41,7 @@ use crate::ros::node::{ros_err, CommandType, NodeError};
 use crate::ros::pacer::Pacer;
 use crate::ros::params;
 use crate::ros::preflight::{self, PreflightParams};
+use crate::ros::reconfigure;
 use crate::ros::stats::LoopStats;
 use crate::ros::topics;
 use crate::validate;
@@ -194,12 +197,14 @@ impl ControllerNodeParams {
 }
 
 /// A supervision request from a service thread to the loop.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 enum Request {
     Start,
     Abort,
     Reset,
     Retract,
+    /// Live-tuned values ([`crate::ros::reconfigure`]), applied between two steps.
+    Reconfigure(LiveValues),
 }
 
 type Reply = Result<String, String>;
@@ -340,6 +345,10 @@ impl LoopState {
                 controller.retract()?;
                 Ok("retracting along the shaft to the stand-off point, then IDLE".into())
             }
+            Request::Reconfigure(values) => {
+                controller.set_live(&values)?;
+                Ok(format!("applied in {}", controller.phase()))
+            }
         }
     }
 }
@@ -431,8 +440,8 @@ pub fn run() -> Result<(), NodeError> {
     let mut cp = p.controller.clone();
     cp.dt = 1.0 / p.rate_hz;
     cp.force_feedback = p.force_feedback;
-    let mut controller =
-        Controller::new(cp, kin.limits().clone()).map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
+    let mut controller = Controller::new(cp.clone(), kin.limits().clone())
+        .map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
     let (inputs, _subs) = inputs::subscribe(&p)?;
     let (client, server) = handover::requests::<Request, Reply>(8);
     let _preflight = preflight_services(&p, &kin, &client)?;
@@ -441,6 +450,12 @@ pub fn run() -> Result<(), NodeError> {
         trigger_service("~reset", &client, Request::Reset)?,
         trigger_service("~retract", &client, Request::Retract)?,
     ];
+    let reconfigure_client = client.clone();
+    let _reconfigure = reconfigure::serve(&cp, move |values| {
+        reconfigure_client
+            .call(Request::Reconfigure(values), SERVICE_TIMEOUT)
+            .unwrap_or_else(|e| Err(e.to_string()))
+    })?;
     let (records, receiver) = handover::outputs::<StepRecord>(64);
     let publisher = outputs::spawn_publisher(&p, receiver)?;
     if p.autostart {
