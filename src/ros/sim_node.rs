@@ -262,12 +262,24 @@ impl SimCamera {
         let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(0);
         let (c, noise) = (c.clone(), c.noise_sigma);
         let mut render_ms = super::stats::LoopStats::new(1.0, 1000);
+        // The markerless renderer runs on rayon: one thread of its own, niced (as is this
+        // thread then), so the physics and the FRI topics keep their core (a real camera does
+        // not slow the arm down). The marker's renderer is one C++ call on this thread.
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .start_handler(|_| lower_priority())
+            .build()
+            .map_err(|e| NodeError::Invalid(format!("camera thread pool: {e}")))?;
+        let markerless = !c.show_marker;
         std::thread::spawn(move || {
+            if markerless {
+                lower_priority();
+            }
             for job in rx {
                 // Out of view or behind the camera: the camera still delivers a (blank) frame.
                 let t0 = Instant::now();
-                let mut grey = scene
-                    .render(&model, &job.camera_t_trocar)
+                let mut grey = pool
+                    .install(|| scene.render(&model, &job.camera_t_trocar))
                     .unwrap_or_else(|_| vec![128; model.width as usize * model.height as usize]);
                 render_ms.latency(t0.elapsed().as_secs_f64() * 1e3);
                 if job.seq % 150 == 0 {
@@ -324,6 +336,15 @@ impl SimCamera {
             camera_t_trocar,
             seq: self.seq,
         });
+    }
+}
+
+/// Nice the calling thread by 10 (the simulated camera's renderer: below the physics).
+fn lower_priority() {
+    // SAFETY: setpriority on the calling thread's id (gettid) only changes its nice value.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        libc::setpriority(libc::PRIO_PROCESS, tid, 10);
     }
 }
 
