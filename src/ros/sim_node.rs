@@ -164,6 +164,46 @@ enum SimScene {
 }
 
 impl SimScene {
+    /// The scene of the camera parameters `c` for a camera `model`: the marker, or the
+    /// trocar with lighting, materials and the wall drawn once per run from `seed`.
+    fn of(
+        c: &SimCameraParams,
+        seed: u64,
+        model: &CameraModel,
+        marker_t_trocar: Isometry3<f64>,
+    ) -> Result<Self, NodeError> {
+        let invalid = |what: &str, e: &dyn std::fmt::Display| NodeError::Invalid(format!("camera.{what}: {e}"));
+        if c.show_marker {
+            return Ok(Self::Marker {
+                spec: c.marker.clone(),
+                opts: RenderOptions {
+                    blur_sigma: c.blur_sigma,
+                    plane_scale: c.plane_scale,
+                    ..RenderOptions::default()
+                },
+                marker_t_trocar,
+            });
+        }
+        let trocar = if c.trocar_model_file.is_empty() {
+            TrocarModel::shipped()
+        } else {
+            TrocarModel::from_yaml_file(std::path::Path::new(&c.trocar_model_file))
+                .map_err(|e| invalid("trocar_model_file", &e))?
+        };
+        // Noise is added per frame by the camera thread.
+        let mut scene = Scene::random(seed, 0.0);
+        scene.blur_sigma = c.blur_sigma;
+        Ok(Self::Trocar {
+            renderer: Box::new(
+                TrocarRenderer::new(model)
+                    .map_err(|e| invalid("calibration_file", &e))?
+                    .with_wall_step(c.wall_step),
+            ),
+            model: trocar,
+            scene: Box::new(scene),
+        })
+    }
+
     /// A port pose in the camera that must render: the marker or the trocar 0.3 m ahead.
     fn check_pose(&self) -> Isometry3<f64> {
         match self {
@@ -201,6 +241,59 @@ struct SimCamera {
     seq: u64,
 }
 
+/// The camera thread's side: its publishers, parameters and model.
+struct CameraOutput {
+    image: rosrust::Publisher<sensor_msgs::Image>,
+    info: rosrust::Publisher<sensor_msgs::CameraInfo>,
+    params: SimCameraParams,
+    model: CameraModel,
+}
+
+impl CameraOutput {
+    /// Render and publish every job until the simulator drops its sender.
+    fn run(&self, jobs: &std::sync::mpsc::Receiver<CameraJob>, scene: &SimScene, pool: &rayon::ThreadPool, noise: f64) {
+        let (c, model) = (&self.params, &self.model);
+        if !c.show_marker {
+            lower_priority();
+        }
+        let mut render_ms = super::stats::LoopStats::new(1.0, 1000);
+        for job in jobs {
+            // Out of view or behind the camera: the camera still delivers a (blank) frame.
+            let t0 = Instant::now();
+            let mut grey = pool
+                .install(|| scene.render(model, &job.camera_t_trocar))
+                .unwrap_or_else(|_| vec![128; model.width as usize * model.height as usize]);
+            render_ms.latency(t0.elapsed().as_secs_f64() * 1e3);
+            if job.seq % 150 == 0 {
+                let l = render_ms.percentiles();
+                rosrust::ros_info!(
+                    "lbr_med_sim camera: render p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} frames)",
+                    l.p50,
+                    l.p99,
+                    l.max,
+                    job.seq
+                );
+            }
+            if noise > 0.0 {
+                add_gaussian_noise(&mut grey, noise, job.seq);
+            }
+            let Ok((data, channels)) = image_msgs::grey_as(&c.encoding, grey) else {
+                continue;
+            };
+            let _ = self.info.send(image_msgs::camera_info(job.stamp, &c.frame, model));
+            let _ = self.image.send(image_msgs::image(
+                job.stamp,
+                &c.frame,
+                model.width,
+                model.height,
+                &c.encoding,
+                channels,
+                data,
+            ));
+        }
+    }
+}
+
 impl SimCamera {
     fn start(p: &SimNodeParams) -> Result<Self, NodeError> {
         let c = &p.camera;
@@ -222,36 +315,7 @@ impl SimCamera {
             .marker_t_trocar
             .to_isometry()
             .map_err(|e| invalid("marker_t_trocar", &e))?;
-        let scene = if c.show_marker {
-            SimScene::Marker {
-                spec: c.marker.clone(),
-                opts: RenderOptions {
-                    blur_sigma: c.blur_sigma,
-                    plane_scale: c.plane_scale,
-                    ..RenderOptions::default()
-                },
-                marker_t_trocar,
-            }
-        } else {
-            let trocar = if c.trocar_model_file.is_empty() {
-                TrocarModel::shipped()
-            } else {
-                TrocarModel::from_yaml_file(std::path::Path::new(&c.trocar_model_file))
-                    .map_err(|e| invalid("trocar_model_file", &e))?
-            };
-            // Lighting, materials and the wall drawn once per run (the seed); noise per frame.
-            let mut scene = Scene::random(p.seed, 0.0);
-            scene.blur_sigma = c.blur_sigma;
-            SimScene::Trocar {
-                renderer: Box::new(
-                    TrocarRenderer::new(&model)
-                        .map_err(|e| invalid("calibration_file", &e))?
-                        .with_wall_step(c.wall_step),
-                ),
-                model: trocar,
-                scene: Box::new(scene),
-            }
-        };
+        let scene = SimScene::of(c, p.seed, &model, marker_t_trocar)?;
         // Check the options once here, so the thread cannot fail on them later.
         scene
             .render(&model, &scene.check_pose())
@@ -261,55 +325,21 @@ impl SimCamera {
         // A rendezvous channel: a frame is only taken when the renderer is free.
         let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(0);
         let (c, noise) = (c.clone(), c.noise_sigma);
-        let mut render_ms = super::stats::LoopStats::new(1.0, 1000);
-        // The markerless renderer runs on rayon: one thread of its own, niced (as is this
-        // thread then), so the physics and the FRI topics keep their core (a real camera does
-        // not slow the arm down). The marker's renderer is one C++ call on this thread.
+        // The markerless renderer runs on rayon: one thread of its own, niced (as is the
+        // camera thread then), so the physics and the FRI topics keep their core (a real
+        // camera does not slow the arm down). The marker's renderer is one C++ call.
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(1)
             .start_handler(|_| lower_priority())
             .build()
             .map_err(|e| NodeError::Invalid(format!("camera thread pool: {e}")))?;
-        let markerless = !c.show_marker;
-        std::thread::spawn(move || {
-            if markerless {
-                lower_priority();
-            }
-            for job in rx {
-                // Out of view or behind the camera: the camera still delivers a (blank) frame.
-                let t0 = Instant::now();
-                let mut grey = pool
-                    .install(|| scene.render(&model, &job.camera_t_trocar))
-                    .unwrap_or_else(|_| vec![128; model.width as usize * model.height as usize]);
-                render_ms.latency(t0.elapsed().as_secs_f64() * 1e3);
-                if job.seq % 150 == 0 {
-                    let l = render_ms.percentiles();
-                    rosrust::ros_info!(
-                        "lbr_med_sim camera: render p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} frames)",
-                        l.p50,
-                        l.p99,
-                        l.max,
-                        job.seq
-                    );
-                }
-                if noise > 0.0 {
-                    add_gaussian_noise(&mut grey, noise, job.seq);
-                }
-                let Ok((data, channels)) = image_msgs::grey_as(&c.encoding, grey) else {
-                    continue;
-                };
-                let _ = pub_info.send(image_msgs::camera_info(job.stamp, &c.frame, &model));
-                let _ = pub_img.send(image_msgs::image(
-                    job.stamp,
-                    &c.frame,
-                    model.width,
-                    model.height,
-                    &c.encoding,
-                    channels,
-                    data,
-                ));
-            }
-        });
+        let out = CameraOutput {
+            image: pub_img,
+            info: pub_info,
+            params: c,
+            model,
+        };
+        std::thread::spawn(move || out.run(&rx, &scene, &pool, noise));
         Ok(Self {
             jobs: tx,
             flange_kin: LbrKinematics::from_model_or_file(p.model, "", FLANGE_LINK)?,
@@ -694,18 +724,23 @@ mod tests {
         assert!(p.camera.show_marker);
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml");
         let cam = CameraModel::from_yaml_file(&dir).unwrap();
-        let mut scene = Scene::random(1, 0.0);
-        scene.blur_sigma = p.camera.blur_sigma;
-        let trocar = SimScene::Trocar {
-            renderer: Box::new(TrocarRenderer::new(&cam).unwrap().with_wall_step(p.camera.wall_step)),
-            model: TrocarModel::shipped(),
-            scene: Box::new(scene),
+        let marker_t_trocar = p.camera.marker_t_trocar.to_isometry().unwrap();
+        let marker = SimScene::of(&p.camera, 1, &cam, marker_t_trocar).unwrap();
+        let without = SimCameraParams {
+            show_marker: false,
+            ..p.camera.clone()
         };
-        let marker = SimScene::Marker {
-            spec: p.camera.marker.clone(),
-            opts: RenderOptions::default(),
-            marker_t_trocar: p.camera.marker_t_trocar.to_isometry().unwrap(),
+        let trocar = SimScene::of(&without, 1, &cam, marker_t_trocar).unwrap();
+        assert!(matches!(marker, SimScene::Marker { .. }) && matches!(trocar, SimScene::Trocar { .. }));
+        let bad_model = SimCameraParams {
+            trocar_model_file: "/nonexistent/trocar.yaml".into(),
+            ..without
         };
+        let e = SimScene::of(&bad_model, 1, &cam, marker_t_trocar)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("camera.trocar_model_file"), "{e}");
         let (w, cx, cy) = (cam.width as usize, cam.cx.round() as usize, cam.cy.round() as usize);
         let (t, m) = (
             trocar.render(&cam, &trocar.check_pose()).unwrap(),
