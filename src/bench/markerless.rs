@@ -1,6 +1,7 @@
-//! The markerless case of the vision suite: the trocar's axis from 1280x720 frames rendered
+//! The markerless cases of the vision suite: the trocar's axis from 1280x720 frames rendered
 //! along the docking approach (camera_zedm, noise 2), timed per frame on one core, with the
-//! accuracy against the truth in `extra`.
+//! accuracy against the truth in `extra`; and the render itself (what the simulated camera
+//! spends per frame without the marker, on rayon's threads).
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -25,6 +26,15 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
         .enumerate()
         .map(|(k, p)| renderer.render(&model, p, &Scene::random(17_000 + k as u64, 2.0)))
         .collect::<Result<_, _>>()?;
+    let render_idx: Vec<usize> = (0..n.clamp(1, 24)).map(|i| i % poses.len()).collect();
+    // Per pixel (the offline tools), and with the wall every 4 px (the simulated camera).
+    let render_t = [1, 4].map(|step| {
+        let r = renderer.clone().with_wall_step(step);
+        time_each(&render_idx, 1, |&i| {
+            r.render(&model, &poses[i], &Scene::random(18_000 + i as u64, 2.0))
+                .map(|_| true)
+        })
+    });
     let mut est = MarkerlessEstimator::new(&camera, &model)?;
     let (mut pos, mut ang, mut found) = (vec![], vec![], 0usize);
     for (img, p) in frames.iter().zip(&poses) {
@@ -57,9 +67,24 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
         extra.insert("axis_error_median_deg".into(), super::percentile(&ang, 0.5).into());
         extra.insert("axis_error_max_deg".into(), super::percentile(&ang, 1.0).into());
     }
-    Ok(vec![SuiteReport {
+    let mut out = vec![SuiteReport {
         name: "markerless_axis_zedm_1280x720".into(),
         latency,
         extra,
-    }])
+    }];
+    for (t, name) in render_t.iter().zip([
+        "markerless_render_zedm_1280x720",
+        "markerless_render_wall4_zedm_1280x720",
+    ]) {
+        if let Some(latency) = LatencyStats::from_samples(t) {
+            let mut extra = serde_json::Map::new();
+            extra.insert("threads".into(), rayon::current_num_threads().into());
+            out.push(SuiteReport {
+                name: name.into(),
+                latency,
+                extra,
+            });
+        }
+    }
+    Ok(out)
 }

@@ -1,16 +1,23 @@
 //! The `trocar_estimator` node: camera image + camera_info in, the trocar pose in the robot
-//! base frame out (`/trocar/pose`), with the marker pose in the camera (`~marker_pose`) and
-//! a debug image with the detected marker drawn (`~debug_image`, only built while someone
-//! subscribes). The maths is the vision module's: [`MarkerDetector`] finds the marker,
-//! [`TrocarEstimator`] carries it into the base frame through the flange pose and the
-//! hand-eye transform, gates outliers and filters.
+//! base frame out (`/trocar/pose`), with the marker pose in the camera (`~marker_pose`), a
+//! debug image with the detected marker drawn (`~debug_image`, only built while someone
+//! subscribes), and one line per frame on `~status` (what it published, or why nothing).
+//! The maths is the vision module's: `method` (`marker | markerless | fused`) picks the
+//! measurement: [`MarkerDetector`] finds the marker, [`MarkerlessEstimator`] the trocar's
+//! axis from its shape (the previous estimate, carried into the camera through the arm's
+//! motion, resolves the ellipse's two-fold ambiguity; `fused`: the marker when seen, else
+//! markerless); [`TrocarEstimator`] carries it into the base frame through the flange pose
+//! and the hand-eye transform, gates outliers and filters. A markerless pose also goes out
+//! with its covariance (`~pose_with_covariance`; the roll fixed by the convention of
+//! [`crate::vision::markerless::measurement`]).
 //!
 //! The flange pose is the arm's at the image's stamp: joint states are kept in a short
 //! [`JointHistory`] and interpolated there, so a moving arm does not smear the estimate.
 //! The pose is stamped with the image's stamp, so the controller's latency figure counts
 //! from the camera frame. A frame that cannot be used (no camera_info yet, a wrong size or
-//! encoding, no joint state at its stamp, no marker, an outlier) publishes nothing and
-//! says why in the log (throttled); the controller then sees its trocar pose age and holds.
+//! encoding, no joint state at its stamp, no marker, a markerless estimate of low
+//! confidence, an outlier) publishes nothing and says why on `~status` and in the log
+//! (throttled); the controller then sees its trocar pose age and holds.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -19,7 +26,7 @@ use nalgebra::Isometry3;
 
 use super::convert;
 use super::convert::image as image_msgs;
-use super::msgs::{geometry_msgs, sensor_msgs};
+use super::msgs::{geometry_msgs, sensor_msgs, std_msgs};
 use super::node::{lock, ros_err, NodeError, Throttle};
 use super::params;
 use super::stats::LoopStats;
@@ -29,9 +36,11 @@ use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::validate;
 use crate::vision::estimator::PoseYaml;
 use crate::vision::joint_history::JointHistory;
+use crate::vision::markerless::measurement::{self, EstimatorMethod, MarkerlessParams};
+use crate::vision::markerless::{MarkerlessEstimator, TrocarModel};
 use crate::vision::{
-    CameraModel, EstimateStatus, EstimatorParams, MarkerDetector, MarkerSpec, RgbImage, TrackingDetector,
-    TrocarEstimator,
+    CameraModel, EstimateStatus, EstimatorParams, ImageView, MarkerDetection, MarkerDetector, MarkerSpec, RgbImage,
+    TrackingDetector, TrocarEstimator,
 };
 
 /// Parameters of the node (its private namespace; `config/trocar_estimator.yaml`).
@@ -58,6 +67,18 @@ pub struct EstimatorNodeParams {
     pub marker_pose_topic: String,
     /// Debug image out (RGB8, the detection drawn).
     pub debug_image_topic: String,
+    /// One line per frame (std_msgs/String): what was published, or why nothing.
+    pub status_topic: String,
+    /// A markerless pose with its covariance out (geometry_msgs/PoseWithCovarianceStamped).
+    pub pose_covariance_topic: String,
+    /// How the trocar is measured: `marker` (the marker on the trocar), `markerless` (its
+    /// shape alone) or `fused` (the marker when seen, else markerless).
+    pub method: EstimatorMethod,
+    /// The trocar model YAML the markerless estimate looks for ('' = the shipped
+    /// `config/trocar_model.yaml`, built in).
+    pub trocar_model_file: String,
+    /// The markerless measurement: the confidence gate and the covariance's scale.
+    pub markerless: MarkerlessParams,
     /// Hand-eye result YAML (`trocar_docking hand-eye --out`); its `flange_t_camera`
     /// replaces `estimator.flange_t_camera`. '' = use the value in `estimator`.
     pub hand_eye_file: String,
@@ -98,6 +119,11 @@ impl Default for EstimatorNodeParams {
             trocar_pose_topic: topics::TROCAR_POSE.into(),
             marker_pose_topic: "~marker_pose".into(),
             debug_image_topic: "~debug_image".into(),
+            status_topic: "~status".into(),
+            pose_covariance_topic: "~pose_with_covariance".into(),
+            method: EstimatorMethod::Marker,
+            trocar_model_file: String::new(),
+            markerless: MarkerlessParams::default(),
             hand_eye_file: String::new(),
             marker: MarkerSpec::default(),
             estimator: EstimatorParams::default(),
@@ -131,6 +157,15 @@ impl EstimatorNodeParams {
         Ok(e)
     }
 
+    /// The trocar model of the markerless estimate, validated.
+    pub fn trocar_model(&self) -> Result<TrocarModel, NodeError> {
+        if self.trocar_model_file.is_empty() {
+            return Ok(TrocarModel::shipped());
+        }
+        TrocarModel::from_yaml_file(std::path::Path::new(&self.trocar_model_file))
+            .map_err(|e| NodeError::Invalid(format!("trocar_model_file: {e}")))
+    }
+
     /// Check every value once at start-up: a bad one stops the node with its key named.
     pub fn validate(&self) -> Result<(), NodeError> {
         if self.joint_names.len() != crate::kinematics::N_JOINTS {
@@ -147,6 +182,12 @@ impl EstimatorNodeParams {
         validate::non_negative("max_joint_extrapolation_s", self.max_joint_extrapolation_s)?;
         validate::non_negative("search_margin", self.search_margin)?;
         validate::non_negative("border_margin_px", self.border_margin_px)?;
+        self.markerless
+            .validate()
+            .map_err(|e| NodeError::Invalid(e.to_string()))?;
+        if self.method.uses_markerless() {
+            self.trocar_model()?;
+        }
         self.report_period()?;
         validate::integer_in_range("realtime_priority", i64::from(self.realtime_priority), 0, 99)?;
         Ok(())
@@ -163,6 +204,7 @@ impl EstimatorNodeParams {
 struct FrameCounts {
     frames: u64,
     detected: u64,
+    markerless: u64,
     published: u64,
 }
 
@@ -171,6 +213,8 @@ struct Pipeline {
     p: EstimatorNodeParams,
     flange: LbrKinematics,
     detector: Option<TrackingDetector>,
+    markerless: Option<MarkerlessEstimator>,
+    model: TrocarModel,
     estimator: TrocarEstimator,
     last_stamp: Option<f64>,
     counts: FrameCounts,
@@ -183,12 +227,17 @@ struct Pipeline {
 /// What one frame produced.
 struct FrameOutput {
     trocar: Option<Isometry3<f64>>,
+    /// The covariance of a markerless pose.
+    covariance: Option<[f64; 36]>,
     marker: Option<Isometry3<f64>>,
     debug: Option<RgbImage>,
+    /// What was published, or why nothing (`~status`).
+    status: String,
 }
 
 impl Pipeline {
-    /// Process one frame: detect, pair with the joint state at its stamp, fuse.
+    /// Process one frame: measure (marker, markerless or both), pair with the joint state at
+    /// its stamp, fuse.
     fn frame(
         &mut self,
         img: &sensor_msgs::Image,
@@ -207,14 +256,13 @@ impl Pipeline {
         }
         self.last_stamp = Some(stamp);
         let camera = camera.ok_or("no camera_info received yet")?;
-        if self.detector.as_ref().is_none_or(|d| d.detector().camera() != camera) {
-            let d = MarkerDetector::new(self.p.marker.clone(), camera).map_err(|e| e.to_string())?;
-            self.detector = Some(TrackingDetector::new(d, self.p.search_margin));
-        }
         let (pixels, channels, order) = image_msgs::image_pixels(img)?;
         let view = image_msgs::view(img, &pixels, channels).map_err(|e| e.to_string())?;
-        let detector = self.detector.as_mut().ok_or("no detector")?;
-        let detection = detector.detect(&view).map_err(|e| e.to_string())?;
+        let detection = if self.p.method.uses_marker() {
+            self.detect_marker(camera, &view)?
+        } else {
+            None
+        };
         let debug = if want_debug {
             let mut rgb = RgbImage::from_view(&view, order).map_err(|e| e.to_string())?;
             if let Some(d) = &detection {
@@ -224,13 +272,57 @@ impl Pipeline {
         } else {
             None
         };
-        let Some(det) = detection else {
-            return Ok(FrameOutput {
-                trocar: None,
-                marker: None,
-                debug,
-            });
+        let marker = detection.as_ref().map(|d| d.pose_camera_marker);
+        let out = |trocar, covariance, status| FrameOutput {
+            trocar,
+            covariance,
+            marker,
+            debug,
+            status,
         };
+        let measured = match (self.p.method, detection) {
+            (EstimatorMethod::Marker, None) => return Ok(out(None, None, "no marker in the image".into())),
+            (EstimatorMethod::Marker, Some(det)) => self.marker_pose(&det, stamp, &view, history, false)?,
+            (EstimatorMethod::Fused, Some(det)) => match self.marker_pose(&det, stamp, &view, history, true) {
+                Ok(m) => m,
+                // A marker cut by the border: the trocar's shape may still be whole.
+                Err(e) if e.contains("border") => self.markerless_pose(camera, &view, stamp, history)?,
+                Err(e) => return Err(e),
+            },
+            (EstimatorMethod::Markerless, _) | (EstimatorMethod::Fused, None) => {
+                self.markerless_pose(camera, &view, stamp, history)?
+            }
+        };
+        self.counts.published += u64::from(measured.0.is_some());
+        Ok(out(measured.0, measured.1, measured.2))
+    }
+
+    /// The marker in `view`, through a detector for `camera` (built when the camera changes).
+    fn detect_marker(&mut self, camera: &CameraModel, view: &ImageView) -> Result<Option<MarkerDetection>, String> {
+        if self.detector.as_ref().is_none_or(|d| d.detector().camera() != camera) {
+            let d = MarkerDetector::new(self.p.marker.clone(), camera).map_err(|e| e.to_string())?;
+            self.detector = Some(TrackingDetector::new(d, self.p.search_margin));
+        }
+        let detector = self.detector.as_mut().ok_or("no detector")?;
+        detector.detect(view).map_err(|e| e.to_string())
+    }
+
+    /// The base-to-camera pose at `stamp` (the joint history, FK, the hand-eye).
+    fn camera_at(&self, stamp: f64, history: &Mutex<JointHistory>) -> Result<Isometry3<f64>, String> {
+        let q: JointVector = lock(history).at(stamp).map_err(|e| e.to_string())?;
+        let base_t_flange = self.flange.fk(&q).map_err(|e| e.to_string())?;
+        Ok(base_t_flange * self.estimator.flange_t_camera())
+    }
+
+    /// Fuse the marker's pose (`roll_convention`: with the markerless roll, as `fused` does).
+    fn marker_pose(
+        &mut self,
+        det: &MarkerDetection,
+        stamp: f64,
+        view: &ImageView,
+        history: &Mutex<JointHistory>,
+        roll_convention: bool,
+    ) -> Result<Measured, String> {
         self.counts.detected += 1;
         let border = det.border_distance_px(view.width, view.height);
         if border < self.p.border_margin_px {
@@ -240,31 +332,76 @@ impl Pipeline {
         }
         let q: JointVector = lock(history).at(stamp).map_err(|e| e.to_string())?;
         let base_t_flange = self.flange.fk(&q).map_err(|e| e.to_string())?;
-        let status = self.estimator.update(stamp, &base_t_flange, Some(&det));
-        let trocar = match status {
-            EstimateStatus::Initialized | EstimateStatus::Updated | EstimateStatus::Reinitialized => {
-                self.estimator.estimate(stamp).map(|e| e.pose_base_trocar)
+        let status = if roll_convention {
+            if !det.reprojection_error_px.is_finite()
+                || det.reprojection_error_px > self.estimator.params().max_reprojection_error_px
+            {
+                EstimateStatus::PoorQuality
+            } else {
+                let z = self
+                    .estimator
+                    .measurement_in_base(&base_t_flange, &det.pose_camera_marker);
+                self.estimator.fuse(stamp, measurement::with_roll_convention(&z))
             }
-            EstimateStatus::Outlier => return Err("marker pose rejected as an outlier".into()),
-            EstimateStatus::PoorQuality => {
-                return Err(format!(
-                    "marker reprojection error {:.2} px above the limit",
-                    det.reprojection_error_px
-                ))
-            }
-            EstimateStatus::InvalidInput => return Err("invalid marker pose or stamp".into()),
-            EstimateStatus::NoMeasurement => None,
+        } else {
+            self.estimator.update(stamp, &base_t_flange, Some(det))
         };
-        if trocar.is_some() {
-            self.counts.published += 1;
+        match status {
+            EstimateStatus::Initialized | EstimateStatus::Updated | EstimateStatus::Reinitialized => {
+                let pose = self.estimator.estimate(stamp).map(|e| e.pose_base_trocar);
+                Ok((pose, None, format!("marker: published ({status:?})")))
+            }
+            EstimateStatus::Outlier => Err("marker pose rejected as an outlier".into()),
+            EstimateStatus::PoorQuality => Err(format!(
+                "marker reprojection error {:.2} px above the limit",
+                det.reprojection_error_px
+            )),
+            EstimateStatus::InvalidInput => Err("invalid marker pose or stamp".into()),
+            EstimateStatus::NoMeasurement => Ok((None, None, "no marker in the image".into())),
         }
-        Ok(FrameOutput {
-            trocar,
-            marker: Some(det.pose_camera_marker),
-            debug,
-        })
+    }
+
+    /// The markerless estimate of `view`, the previous estimate as its prior, fused when its
+    /// confidence passes the gate.
+    fn markerless_pose(
+        &mut self,
+        camera: &CameraModel,
+        view: &ImageView,
+        stamp: f64,
+        history: &Mutex<JointHistory>,
+    ) -> Result<Measured, String> {
+        let base_t_camera = self.camera_at(stamp, history)?;
+        let prior = self
+            .estimator
+            .estimate(stamp)
+            .map(|e| measurement::prior_direction(&base_t_camera, &e.pose_base_trocar));
+        if self.markerless.as_ref().is_none_or(|m| m.camera() != camera) {
+            self.markerless = Some(MarkerlessEstimator::new(camera, &self.model).map_err(|e| e.to_string())?);
+        }
+        let est = self.markerless.as_mut().ok_or("no markerless estimator")?;
+        let e = est.estimate(view, prior.as_ref()).map_err(|e| e.to_string())?;
+        let m = measurement::accept(e.as_ref(), &base_t_camera, &self.p.markerless)?;
+        self.counts.markerless += 1;
+        match self.estimator.fuse(stamp, m.pose) {
+            s @ (EstimateStatus::Initialized | EstimateStatus::Updated | EstimateStatus::Reinitialized) => {
+                let pose = self
+                    .estimator
+                    .estimate(stamp)
+                    .map(|e| measurement::with_roll_convention(&e.pose_base_trocar));
+                let status = format!("markerless: published ({s:?}), confidence {:.2}", m.confidence);
+                Ok((pose, Some(m.covariance), status))
+            }
+            EstimateStatus::Outlier => Err(format!(
+                "markerless pose (confidence {:.2}) rejected as an outlier",
+                m.confidence
+            )),
+            _ => Err("invalid markerless pose or stamp".into()),
+        }
     }
 }
+
+/// A frame's published pose (if any), its covariance (markerless), and its status line.
+type Measured = (Option<Isometry3<f64>>, Option<[f64; 36]>, String);
 
 /// What the callbacks share: the joint history, the last camera model, the pipeline.
 #[derive(Clone)]
@@ -285,6 +422,8 @@ impl Shared {
             p: p.clone(),
             flange,
             detector: None,
+            markerless: None,
+            model: p.trocar_model()?,
             estimator,
             last_stamp: None,
             counts: FrameCounts::default(),
@@ -305,6 +444,8 @@ struct Publishers {
     pose: rosrust::Publisher<geometry_msgs::PoseStamped>,
     marker: rosrust::Publisher<geometry_msgs::PoseStamped>,
     debug: rosrust::Publisher<sensor_msgs::Image>,
+    status: rosrust::Publisher<std_msgs::String>,
+    covariance: rosrust::Publisher<geometry_msgs::PoseWithCovarianceStamped>,
 }
 
 impl Publishers {
@@ -313,14 +454,27 @@ impl Publishers {
             pose: rosrust::publish(&p.trocar_pose_topic, 10).map_err(ros_err)?,
             marker: rosrust::publish(&p.marker_pose_topic, 10).map_err(ros_err)?,
             debug: rosrust::publish(&p.debug_image_topic, 1).map_err(ros_err)?,
+            status: rosrust::publish(&p.status_topic, 10).map_err(ros_err)?,
+            covariance: rosrust::publish(&p.pose_covariance_topic, 10).map_err(ros_err)?,
         })
     }
 
     /// Publish what one frame produced, stamped with the image's stamp.
     fn frame(&self, img: &sensor_msgs::Image, base_frame: &str, out: FrameOutput) {
         if let Some(t) = &out.trocar {
-            let _ = self.pose.send(convert::pose_stamped(img.header.stamp, base_frame, t));
+            let stamped = convert::pose_stamped(img.header.stamp, base_frame, t);
+            if let Some(c) = out.covariance {
+                let _ = self.covariance.send(geometry_msgs::PoseWithCovarianceStamped {
+                    header: stamped.header.clone(),
+                    pose: geometry_msgs::PoseWithCovariance {
+                        pose: stamped.pose.clone(),
+                        covariance: c,
+                    },
+                });
+            }
+            let _ = self.pose.send(stamped);
         }
+        self.status(out.status);
         if let Some(m) = &out.marker {
             let _ = self
                 .marker
@@ -337,6 +491,13 @@ impl Publishers {
                 d.data,
             ));
         }
+    }
+}
+
+impl Publishers {
+    /// One line on `~status`.
+    fn status(&self, line: String) {
+        let _ = self.status.send(std_msgs::String { data: line });
     }
 }
 
@@ -404,8 +565,8 @@ fn on_image(img: &sensor_msgs::Image, shared: &Shared, publishers: &Publishers, 
     let want_debug = publishers.debug.subscriber_count() > 0;
     match pl.frame(img, cam.as_ref(), &shared.history, want_debug) {
         Ok(out) => {
-            if out.marker.is_none() && pl.warn.ready() {
-                rosrust::ros_warn!("no marker {} in the image", pl.p.marker.family);
+            if out.trocar.is_none() && pl.warn.ready() {
+                rosrust::ros_warn!("frame dropped: {}", out.status);
             }
             publishers.frame(img, base_frame, out);
         }
@@ -413,6 +574,7 @@ fn on_image(img: &sensor_msgs::Image, shared: &Shared, publishers: &Publishers, 
             if pl.warn.ready() {
                 rosrust::ros_warn!("frame dropped: {e}");
             }
+            publishers.status(format!("{}: dropped: {e}", pl.p.method));
         }
     }
     pl.processing.latency(t0.elapsed().as_secs_f64() * 1e3);
@@ -445,9 +607,10 @@ fn report(pipeline: &Mutex<Pipeline>) {
     let (c, lat, age) = (pl.counts, pl.processing.percentiles(), pl.arrival_age.percentiles());
     if c.frames > 0 {
         rosrust::ros_info!(
-            "trocar_estimator: {} frames, marker in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms, p99 {:.1} ms",
+            "trocar_estimator: {} frames, marker in {}, markerless accepted in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms, p99 {:.1} ms",
             c.frames,
             c.detected,
+            c.markerless,
             c.published,
             lat.p50,
             lat.p99,
@@ -472,7 +635,8 @@ pub fn run() -> Result<(), NodeError> {
         subscribe_images(&p, &shared, publishers)?,
     ];
     rosrust::ros_info!(
-        "trocar_estimator: {} on {}, marker {} id {:?} {} m, pose on {}",
+        "trocar_estimator: method {}, {} on {}, marker {} id {:?} {} m, pose on {}",
+        p.method,
         p.image_topic,
         p.camera_info_topic,
         p.marker.family,
@@ -518,6 +682,34 @@ mod tests {
         ] {
             assert_eq!(a, b);
         }
+    }
+
+    #[test]
+    fn the_method_and_the_markerless_section_are_read_and_checked() {
+        assert_eq!(EstimatorNodeParams::default().method, EstimatorMethod::Marker);
+        let p: EstimatorNodeParams = params::from_yaml_str(
+            "t",
+            "method: markerless\nmarkerless: {min_confidence: 0.7, sigma_position_m: 0.002}\n",
+        )
+        .unwrap();
+        assert_eq!(p.method, EstimatorMethod::Markerless);
+        assert_eq!(p.markerless.min_confidence, 0.7);
+        assert_eq!(
+            p.markerless.sigma_direction_rad,
+            MarkerlessParams::default().sigma_direction_rad
+        );
+        p.validate().unwrap();
+        assert_eq!(p.trocar_model().unwrap(), TrocarModel::shipped());
+        assert!(params::from_yaml_str::<EstimatorNodeParams>("t", "method: aruco\n").is_err());
+        assert!(params::from_yaml_str::<EstimatorNodeParams>("t", "markerless: {min_conf: 0.5}\n").is_err());
+        let e = with("markerless: {min_confidence: 0}").unwrap_err().to_string();
+        assert!(e.contains("min_confidence"), "{e}");
+        // A missing model file stops a markerless estimator at start-up, not a marker one.
+        let e = with("method: fused\ntrocar_model_file: /nonexistent/trocar.yaml")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("trocar_model_file"), "{e}");
+        with("method: marker\ntrocar_model_file: /nonexistent/trocar.yaml").unwrap();
     }
 
     #[test]

@@ -60,6 +60,9 @@ pub enum Protocol {
     /// LBR torque errors, finite joint stiffness.
     #[default]
     Realistic,
+    /// The realistic bench without a marker: the pose sensor with the markerless estimate's
+    /// measured error (docs/markerless.md).
+    RealisticMarkerless,
 }
 
 impl Protocol {
@@ -68,6 +71,7 @@ impl Protocol {
         match self {
             Self::Paper => "paper",
             Self::Realistic => "realistic",
+            Self::RealisticMarkerless => "realistic_markerless",
         }
     }
 }
@@ -207,6 +211,26 @@ mod tests {
         assert!(real.sim.breathing.amplitude_axial_m > 0.0);
         assert_eq!(real.sim.measurement.bias_frame, crate::sim::noise::BiasFrame::Camera);
         assert!(SimConfig::from_yaml_str("trial: {timeout_s: -1}").is_err());
+    }
+
+    #[test]
+    fn the_markerless_protocol_is_the_realistic_plant_with_the_markerless_pose_error() {
+        let c = shipped();
+        let (real, ml) = (
+            c.with_protocol(Protocol::Realistic.name()).unwrap(),
+            c.with_protocol(Protocol::RealisticMarkerless.name()).unwrap(),
+        );
+        let same_plant = SimConfig {
+            sim: crate::sim::SimParams {
+                measurement: real.sim.measurement.clone(),
+                ..ml.sim.clone()
+            },
+            ..ml.clone()
+        };
+        assert_eq!(same_plant, real);
+        let (m, r) = (&ml.sim.measurement, &real.sim.measurement);
+        assert!(m.gaussian_position_m > r.gaussian_position_m && m.gaussian_rotation_rad > r.gaussian_rotation_rad);
+        assert!(m.latency_s > r.latency_s && m.rate_hz == r.rate_hz && m.bias_frame == r.bias_frame);
     }
 
     #[test]

@@ -180,6 +180,11 @@ impl TrocarEstimator {
         &self.params
     }
 
+    /// The camera pose in the flange frame (the hand-eye transform in use).
+    pub fn flange_t_camera(&self) -> Isometry3<f64> {
+        self.flange_t_camera
+    }
+
     /// The trocar pose in the base frame that one measurement implies.
     pub fn measurement_in_base(
         &self,

@@ -86,6 +86,11 @@ impl MarkerlessEstimator {
         })
     }
 
+    /// The camera it was built for.
+    pub fn camera(&self) -> &CameraModel {
+        &self.camera
+    }
+
     /// The axis of the trocar in `image`, or `None` when no opening is found well enough.
     /// `prior`: an axis direction the estimate should be near (resolves the ambiguity).
     pub fn estimate(

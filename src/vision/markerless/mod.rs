@@ -5,10 +5,12 @@
 pub mod approach;
 pub mod estimator;
 pub mod geometry;
+pub mod measurement;
 pub mod model;
 pub mod render;
 
 pub use estimator::{MarkerlessEstimate, MarkerlessEstimator, HIGH_CONFIDENCE};
 pub use geometry::Axis;
+pub use measurement::{EstimatorMethod, MarkerlessParams};
 pub use model::TrocarModel;
 pub use render::{Scene, TrocarRenderer};
