@@ -163,14 +163,19 @@ fn watch<T: rosrust::Message>(
     rosrust::subscribe(topic, queue, move |m: T| f(&mut lock(&s), m)).map_err(ros_err)
 }
 
+/// Messages a driver topic's subscriber may hold before it drops (2 s of a 500 Hz FRI
+/// stream): the rates are counted from the stamps of what arrives, so a preflight thread
+/// that the scheduler holds back must not drop messages and read a slow driver.
+const DRIVER_QUEUE: usize = 1000;
+
 /// Subscribe the topics; the subscribers live as long as the returned handles.
 fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
     let (topic, frame) = (t.trocar_pose.clone(), t.base_frame.clone());
     Ok(vec![
-        watch(&t.joint_states, 50, seen, |s, m: sensor_msgs::JointState| {
+        watch(&t.joint_states, DRIVER_QUEUE, seen, |s, m: sensor_msgs::JointState| {
             s.joint_states(&m)
         })?,
-        watch(&t.lbr_state, 50, seen, |s, m: lbr_msgs::LBRState| {
+        watch(&t.lbr_state, DRIVER_QUEUE, seen, |s, m: lbr_msgs::LBRState| {
             s.lbr.add(convert::seconds(m.stamp.data));
             s.sample_time = m.sample_time;
             s.tau_ext.push(m.external_torque);
