@@ -2,6 +2,19 @@
 //! flange poses in the base (FK) and marker poses in the camera, the camera pose in the
 //! flange (eMc), with residuals: the marker is fixed in the base, so each pair's
 //! base_T_marker = base_T_flange * eMc * camera_T_marker should be the same pose.
+//!
+//! For a live calibration: `samples` (the acceptance rules), `refine` (a non-linear
+//! refinement over all samples), `quality` (held-out residuals, conditioning, set-up faults),
+//! `poses` (the automatic mode's poses).
+
+pub mod poses;
+pub mod quality;
+pub mod refine;
+pub mod samples;
+
+pub use quality::{calibrate_samples, Calibration, HeldOut};
+pub use refine::{ObservationModel, Sample};
+pub use samples::{AcceptanceRules, Refusal, SampleSet, Stillness};
 
 use std::path::Path;
 
