@@ -122,7 +122,10 @@ fn automatic(seed: u64, mm: f64, deg: f64) -> Run {
     let (lim, margin) = (kin.limits(), PlanParams::default().joint_margin_rad);
     for q in &poses {
         for i in 0..7 {
-            assert!(q[i] >= lim.lower[i] + margin - 1e-9 && q[i] <= lim.upper[i] - margin + 1e-9, "{q}");
+            assert!(
+                q[i] >= lim.lower[i] + margin - 1e-9 && q[i] <= lim.upper[i] - margin + 1e-9,
+                "{q}"
+            );
         }
     }
     let mut set = SampleSet::new(AcceptanceRules::default());

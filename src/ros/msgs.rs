@@ -9,6 +9,7 @@ rosrust::rosmsg_include!(
     lbr_msgs / LBRState,
     std_msgs / Float64MultiArray,
     std_msgs / Header,
+    std_msgs / String,
     std_srvs / Trigger,
     sensor_msgs / JointState,
     sensor_msgs / Image,

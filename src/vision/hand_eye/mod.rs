@@ -68,6 +68,38 @@ impl HandEyeInput {
     }
 }
 
+/// The text of a hand-eye file (what the estimator's `hand_eye_file` and the preflight
+/// read): a comment naming `source`, the `calibrated` date (YYYY-MM-DD, UTC), the result and,
+/// from a live calibration, the held-out residuals and the warnings.
+pub fn file_text(
+    source: &str,
+    date: &str,
+    result: &HandEyeResult,
+    held_out: Option<&HeldOut>,
+    warnings: &[String],
+) -> Result<String, VisionError> {
+    let mut text = format!(
+        "# Camera pose in the flange frame (eMc) from {source}, with residuals;\n\
+         # `calibrated` (UTC) dates it for the preflight's age check.\ncalibrated: {date}\n{}",
+        yaml(result)?
+    );
+    if let Some(h) = held_out {
+        text.push_str(&format!("held_out:\n{}", indent(&yaml(h)?)));
+    }
+    if !warnings.is_empty() {
+        text.push_str(&format!("warnings:\n{}", indent(&yaml(&warnings)?)));
+    }
+    Ok(text)
+}
+
+fn yaml<T: Serialize>(v: &T) -> Result<String, VisionError> {
+    serde_yaml::to_string(v).map_err(|e| VisionError::Io(e.to_string()))
+}
+
+fn indent(s: &str) -> String {
+    s.lines().map(|l| format!("  {l}\n")).collect()
+}
+
 /// Calibrate from pose pairs.
 pub fn calibrate(
     base_t_flange: &[Isometry3<f64>],

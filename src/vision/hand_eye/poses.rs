@@ -80,18 +80,25 @@ fn solve_ik(kin: &dyn Kinematics, q0: &JointVector, goal: &Isometry3<f64>, margi
     None
 }
 
+/// The marker's corners (TL, TR, BR, BL) projected into the image from `camera_t_marker`;
+/// `None` when one is behind the camera.
+pub fn projected_corners(camera: &CameraModel, camera_t_marker: &Isometry3<f64>, size: f64) -> Option<[[f64; 2]; 4]> {
+    let c = marker_corners(size);
+    let p = |i: usize| camera.project(&(camera_t_marker * c[i]).coords);
+    Some([p(0)?, p(1)?, p(2)?, p(3)?])
+}
+
 /// The marker's nearest corner distance from the image border, px, seen from `camera_t_marker`
-/// (negative or `None` when out of view).
+/// (negative when a corner is outside; `None` when one is behind the camera).
 pub fn border_distance_px(camera: &CameraModel, camera_t_marker: &Isometry3<f64>, size: f64) -> Option<f64> {
     let (w, h) = (f64::from(camera.width), f64::from(camera.height));
-    marker_corners(size)
-        .iter()
-        .map(|c| {
-            camera
-                .project(&(camera_t_marker * c).coords)
-                .map(|[x, y]| x.min(y).min(w - 1.0 - x).min(h - 1.0 - y))
-        })
-        .try_fold(f64::INFINITY, |acc, d| d.map(|d| acc.min(d)))
+    let corners = projected_corners(camera, camera_t_marker, size)?;
+    Some(
+        corners
+            .iter()
+            .map(|[x, y]| x.min(*y).min(w - 1.0 - x).min(h - 1.0 - y))
+            .fold(f64::INFINITY, f64::min),
+    )
 }
 
 /// Joint positions for the automatic mode around `q0` (the marker seen at `camera_t_marker`
