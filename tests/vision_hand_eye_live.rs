@@ -87,8 +87,9 @@ struct Run {
 }
 
 /// The automatic mode on the rendered camera: plan through the shipped mount, render from
-/// the true mount, detect, sample (still for 0.5 s, in view, adds rotation), calibrate.
-fn automatic(seed: u64, mm: f64, deg: f64) -> Run {
+/// the true mount, detect, sample (still for 0.5 s, in view, adds rotation), calibrate; the
+/// marker is `MARKER_SIZE_M`, the detector and the calibration told it is `configured`.
+fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
     let kin = flange_kinematics();
     let cam = camera();
     let truth = true_mount(seed, mm, deg);
@@ -98,7 +99,11 @@ fn automatic(seed: u64, mm: f64, deg: f64) -> Run {
         id: Some(7),
         size: MARKER_SIZE_M,
     };
-    let mut detector = MarkerDetector::new(spec.clone(), &cam).unwrap();
+    let told = MarkerSpec {
+        size: configured,
+        ..spec.clone()
+    };
+    let mut detector = MarkerDetector::new(told, &cam).unwrap();
     let opts = |i: u64| RenderOptions {
         plane_scale: 1.6,
         blur_sigma: 0.6,
@@ -115,7 +120,10 @@ fn automatic(seed: u64, mm: f64, deg: f64) -> Run {
         &shipped_mount(),
         &first.pose_camera_marker,
         &cam,
-        &PlanParams::default(),
+        &PlanParams {
+            marker_size: configured,
+            ..PlanParams::default()
+        },
     )
     .unwrap();
     assert_eq!(poses.len(), 12, "every orbit is reachable from the nominal start");
@@ -142,7 +150,7 @@ fn automatic(seed: u64, mm: f64, deg: f64) -> Run {
     }
     let model = ObservationModel {
         camera: Some(cam),
-        marker_size: MARKER_SIZE_M,
+        marker_size: configured,
     };
     let c = calibrate_samples(set.samples(), &model).unwrap();
     let err = |e: &Isometry3<f64>| {
@@ -177,7 +185,7 @@ fn automatic(seed: u64, mm: f64, deg: f64) -> Run {
 #[test]
 fn automatic_mode_recovers_the_true_mount_on_the_rendered_camera() {
     for (seed, mm, deg) in [(1, 5.0, 3.0), (2, 5.0, 3.0), (3, 2.0, 1.0), (4, 0.0, 0.0)] {
-        let r = automatic(seed, mm, deg);
+        let r = automatic(seed, mm, deg, MARKER_SIZE_M);
         assert!(
             r.error_mm < GOAL_MM && r.error_deg < GOAL_DEG,
             "seed {seed}: {:.3} mm {:.3} deg",
@@ -198,6 +206,19 @@ fn automatic_mode_recovers_the_true_mount_on_the_rendered_camera() {
         // The refinement is what reaches the goal: ViSP's closed form alone is worse.
         assert!(r.visp_error_mm + r.visp_error_deg > r.error_mm + r.error_deg);
     }
+}
+
+#[test]
+fn a_wrong_marker_size_is_detected_on_the_rendered_camera() {
+    // The printed marker is 40 mm, the configuration says 44 mm (10 % off).
+    let r = automatic(5, 3.0, 2.0, 0.044);
+    let f = &r.calibration.faults;
+    assert!(
+        f.len() == 1 && f[0].contains("marker size wrong") && f[0].contains("smaller"),
+        "{f:?}"
+    );
+    // The scale it names is the printed marker's, to a percent.
+    assert!(f[0].contains("(0.040"), "{f:?}");
 }
 
 /// Synthetic samples: flange poses turning about `axes` by up to `deg`, the marker seen

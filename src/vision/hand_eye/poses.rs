@@ -1,6 +1,8 @@
 //! Poses for the automatic mode: the camera orbits the marker's centre (tilted about two
 //! axes of the image and rolled about the line of sight), so the marker stays where it is in
-//! the image while the flange turns about three axes. Each camera pose is reached in joint
+//! the image while the flange turns about three axes; two of the poses also move closer and
+//! farther along the line of sight (orbits alone cannot tell a wrong marker size from a
+//! camera shifted along its optical axis). Each camera pose is reached in joint
 //! space by damped least squares on the flange, the joints kept a margin inside their limits,
 //! and kept only when the marker (through the current hand-eye guess) stays fully in view.
 
@@ -23,6 +25,8 @@ pub struct PlanParams {
     pub border_margin_px: f64,
     /// The marker's side, m.
     pub marker_size: f64,
+    /// Two poses move along the line of sight by this fraction of the distance, in and out.
+    pub approach_fraction: f64,
 }
 
 impl Default for PlanParams {
@@ -33,30 +37,33 @@ impl Default for PlanParams {
             joint_margin_rad: 5f64.to_radians(),
             border_margin_px: 30.0,
             marker_size: 0.04,
+            approach_fraction: 0.2,
         }
     }
 }
 
-/// The 12 orbit rotations (axis in the camera frame, angle as a fraction of the tilt or roll):
-/// tilts about x, y and the two diagonals, both ways; rolls both ways; two tilt-and-roll.
-fn orbit(p: &PlanParams, sight: &Unit<Vector3<f64>>) -> Vec<UnitQuaternion<f64>> {
+/// The 12 orbits (rotation about the marker's centre in the camera frame, and the move along
+/// the line of sight as a fraction of the distance): tilts about x, y and the two diagonals,
+/// both ways; rolls both ways; two tilt-and-roll, one closer and one farther.
+fn orbit(p: &PlanParams, sight: &Unit<Vector3<f64>>) -> Vec<(UnitQuaternion<f64>, f64)> {
     let t = p.tilt_rad;
     let tilt =
         |x: f64, y: f64, a: f64| UnitQuaternion::from_axis_angle(&Unit::new_normalize(Vector3::new(x, y, 0.0)), a);
     let roll = |a: f64| UnitQuaternion::from_axis_angle(sight, a);
+    let a = p.approach_fraction;
     vec![
-        tilt(1.0, 0.0, t),
-        tilt(0.0, 1.0, t),
-        tilt(1.0, 0.0, -t),
-        tilt(0.0, 1.0, -t),
-        tilt(1.0, 1.0, t),
-        tilt(1.0, -1.0, t),
-        tilt(1.0, 1.0, -t),
-        tilt(1.0, -1.0, -t),
-        roll(p.roll_rad),
-        roll(-p.roll_rad),
-        tilt(1.0, 0.0, t / 2.0) * roll(p.roll_rad / 2.0),
-        tilt(0.0, 1.0, -t / 2.0) * roll(-p.roll_rad / 2.0),
+        (tilt(1.0, 0.0, t), 0.0),
+        (tilt(0.0, 1.0, t), 0.0),
+        (tilt(1.0, 0.0, -t), 0.0),
+        (tilt(0.0, 1.0, -t), 0.0),
+        (tilt(1.0, 1.0, t), 0.0),
+        (tilt(1.0, -1.0, t), 0.0),
+        (tilt(1.0, 1.0, -t), 0.0),
+        (tilt(1.0, -1.0, -t), 0.0),
+        (roll(p.roll_rad), 0.0),
+        (roll(-p.roll_rad), 0.0),
+        (tilt(1.0, 0.0, t / 2.0) * roll(p.roll_rad / 2.0), a),
+        (tilt(0.0, 1.0, -t / 2.0) * roll(-p.roll_rad / 2.0), -a),
     ]
 }
 
@@ -118,13 +125,15 @@ pub fn plan(
     let centre = camera_t_marker.translation.vector;
     let sight = Unit::new_normalize(centre);
     let mut out = Vec::new();
-    for r in orbit(p, &sight) {
+    for (r, approach) in orbit(p, &sight) {
         for fraction in [1.0, 0.5] {
             let r = UnitQuaternion::identity().slerp(&r, fraction);
-            // Rotate the camera about the marker's centre (camera frame at q0).
+            // Rotate the camera about the marker's centre (camera frame at q0), then move it
+            // along the line of sight.
             let about = Translation3::from(centre)
                 * Isometry3::from_parts(Translation3::identity(), r)
-                * Translation3::from(-centre);
+                * Translation3::from(-centre)
+                * Translation3::from(centre * approach * fraction);
             let goal = base_t_camera0 * about * flange_t_camera.inverse();
             let Some(q) = solve_ik(kin, q0, &goal, p.joint_margin_rad) else {
                 continue;

@@ -17,6 +17,8 @@ pub const MIN_SPREAD_RAD: f64 = 30.0 * std::f64::consts::PI / 180.0;
 pub const AXIS_RMS_RAD: f64 = 3.0 * std::f64::consts::PI / 180.0;
 /// A fitted marker scale this far from 1 is reported as a wrong marker size.
 pub const SCALE_FAULT: f64 = 0.03;
+/// ... and the fit with the scale free must be this many times better than with it fixed.
+pub const SCALE_FIT_GAIN: f64 = 1.5;
 /// A median difference between the flange's and the camera's rotation angles above this
 /// (rad) is reported as a robot-pose frame mismatch.
 pub const ANGLE_MISMATCH_RAD: f64 = 1.0 * std::f64::consts::PI / 180.0;
@@ -265,9 +267,12 @@ pub fn faults(
         f.push(m);
         return Ok(f);
     }
+    let fixed = refine(samples, model, full.0, full.1, o)?;
     let free = RefineOptions { free_scale: true, ..*o };
     let r = refine(samples, model, full.0, full.1, &free)?;
-    if (r.scale - 1.0).abs() > SCALE_FAULT {
+    // A scale away from 1 that the residuals want: fixing it at 1 must cost clearly more than
+    // the noise (a weakly observed scale wanders without changing the fit).
+    if (r.scale - 1.0).abs() > SCALE_FAULT && fixed.rms > SCALE_FIT_GAIN * r.rms {
         f.push(format!(
             "marker size wrong: the residuals fit a marker {:.1} % {} ({:.4} m instead of {:.4} m); check the \
              printed marker's side",
