@@ -153,6 +153,13 @@ fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
         marker_size: configured,
     };
     let c = calibrate_samples(set.samples(), &model).unwrap();
+    let run = judge(&truth, c);
+    eprintln!("seed {seed} mount error {mm} mm {deg} deg: {}", run.line());
+    run
+}
+
+/// The calibration against the true mount.
+fn judge(truth: &Isometry3<f64>, c: trocar_docking::vision::hand_eye::Calibration) -> Run {
     let err = |e: &Isometry3<f64>| {
         (
             (e.translation.vector - truth.translation.vector).norm() * 1e3,
@@ -161,24 +168,34 @@ fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
     };
     let (error_mm, error_deg) = err(&c.flange_t_camera);
     let (visp_error_mm, visp_error_deg) = err(&c.visp_flange_t_camera);
-    eprintln!(
-        "seed {seed} mount error {mm} mm {deg} deg: refined {error_mm:.3} mm {error_deg:.3} deg, ViSP alone \
-         {visp_error_mm:.3} mm {visp_error_deg:.3} deg; held-out {:.3} mm rms ({:.3} max), {:.3} deg rms ({:.3} \
-         max), {:.3} px; spread {:.1} deg, {} axes",
-        c.held_out.position_rms_mm,
-        c.held_out.position_max_mm,
-        c.held_out.rotation_rms_deg,
-        c.held_out.rotation_max_deg,
-        c.held_out.reprojection_rms_px.unwrap_or(f64::NAN),
-        c.conditioning.spread_deg,
-        c.conditioning.rotation_axes
-    );
     Run {
         error_mm,
         error_deg,
         visp_error_mm,
         visp_error_deg,
         calibration: c,
+    }
+}
+
+impl Run {
+    /// The figures in one line (docs/lab.md's table).
+    fn line(&self) -> String {
+        let c = &self.calibration;
+        format!(
+            "refined {:.3} mm {:.3} deg, ViSP alone {:.3} mm {:.3} deg; held-out {:.3} mm rms ({:.3} max), {:.3} deg \
+             rms ({:.3} max), {:.3} px; spread {:.1} deg, {} axes",
+            self.error_mm,
+            self.error_deg,
+            self.visp_error_mm,
+            self.visp_error_deg,
+            c.held_out.position_rms_mm,
+            c.held_out.position_max_mm,
+            c.held_out.rotation_rms_deg,
+            c.held_out.rotation_max_deg,
+            c.held_out.reprojection_rms_px.unwrap_or(f64::NAN),
+            c.conditioning.spread_deg,
+            c.conditioning.rotation_axes
+        )
     }
 }
 

@@ -567,8 +567,11 @@ fn subscribe(node: &Arc<Node>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
     Ok(vec![joints, marker, info])
 }
 
+/// A service's handler on the node.
+type Handler = fn(&Node) -> Reply;
+
 fn services(node: &Arc<Node>) -> Result<Vec<rosrust::Service>, NodeError> {
-    let handlers: [(&str, fn(&Node) -> Reply); 5] = [
+    let handlers: [(&str, Handler); 5] = [
         ("~take_sample", Node::take_sample),
         ("~remove_sample", Node::remove_sample),
         ("~compute", Node::compute),
