@@ -203,15 +203,13 @@ pub fn run_hand_eye(a: &HandEyeArgs) -> super::CliResult {
     let input = hand_eye::HandEyeInput::from_file(&a.input)?;
     let r = hand_eye::calibrate_input(&input)?;
     if let Some(out) = &a.out {
-        let header = "# Camera pose in the flange frame (eMc) from `trocar_docking hand-eye`, with residuals;\n\
-                      # `calibrated` (UTC) dates it for the preflight's age check.\n";
         let now = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map_or(0.0, |d| d.as_secs_f64());
         let date = crate::preflight::date_of(now);
         std::fs::write(
             out,
-            format!("{header}calibrated: {date}\n{}", serde_yaml::to_string(&r)?),
+            hand_eye::file_text("`trocar_docking hand-eye`", &date, &r, None, &[])?,
         )?;
     }
     if a.json {

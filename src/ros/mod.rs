@@ -21,6 +21,7 @@
 pub mod controller_node;
 pub mod convert;
 pub mod estimator_node;
+pub mod hand_eye_node;
 pub mod handover;
 pub mod joy;
 pub mod joy_node;

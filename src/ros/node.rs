@@ -3,6 +3,7 @@
 
 use std::sync::{Mutex, MutexGuard};
 
+use super::msgs::std_srvs;
 use super::params;
 
 /// How a joint command travels (the driver's two controller types).
@@ -90,6 +91,35 @@ pub fn node_main(name: &str, run: fn() -> Result<(), NodeError>) -> ! {
         std::process::exit(1);
     }
     std::process::exit(0)
+}
+
+/// A service reply: `Ok` is a success, `Err` a refusal, each with its message.
+pub type Reply = Result<String, String>;
+
+/// A `std_srvs/Trigger` service answering with `handler`'s reply (logged; `Err` is a
+/// refusal).
+pub fn reply_service<F>(name: &str, handler: F) -> Result<rosrust::Service, NodeError>
+where
+    F: Fn() -> Reply + Send + Sync + 'static,
+{
+    let label = name.to_string();
+    rosrust::service::<std_srvs::Trigger, _>(name, move |_req| {
+        let r = handler();
+        match &r {
+            Ok(m) => {
+                rosrust::ros_info!("{label}: {m}");
+            }
+            Err(m) => {
+                rosrust::ros_warn!("{label} refused: {m}");
+            }
+        }
+        let (success, message) = match r {
+            Ok(m) => (true, m),
+            Err(m) => (false, m),
+        };
+        Ok(std_srvs::TriggerRes { success, message })
+    })
+    .map_err(ros_err)
 }
 
 #[cfg(test)]

@@ -223,6 +223,31 @@ impl CameraModel {
     pub fn intrinsics(&self) -> [f64; 4] {
         [self.fx, self.fy, self.cx, self.cy]
     }
+
+    /// The pixel of a point in the camera optical frame, through the distortion (OpenCV's
+    /// rational model, k1 k2 p1 p2 [k3 [k4 k5 k6]]; thin-prism and tilt terms ignored).
+    /// `None` for a point less than 1 mm in front of the camera.
+    pub fn project(&self, p: &nalgebra::Vector3<f64>) -> Option<[f64; 2]> {
+        if p.z.is_nan() || p.z <= 1e-3 {
+            return None;
+        }
+        let (x, y) = (p.x / p.z, p.y / p.z);
+        let d = |i: usize| self.distortion.get(i).copied().unwrap_or(0.0);
+        let r2 = x * x + y * y;
+        let (r4, r6) = (r2 * r2, r2 * r2 * r2);
+        let num = 1.0 + d(0) * r2 + d(1) * r4 + d(4) * r6;
+        let den = 1.0 + d(5) * r2 + d(6) * r4 + d(7) * r6;
+        let g = num / den;
+        let (p1, p2) = (d(2), d(3));
+        let xd = g * x + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
+        let yd = g * y + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+        Some([self.fx * xd + self.cx, self.fy * yd + self.cy])
+    }
+
+    /// Whether the model has any non-zero distortion coefficient.
+    pub fn is_distorted(&self) -> bool {
+        self.distortion.iter().any(|d| *d != 0.0)
+    }
 }
 
 #[cfg(test)]

@@ -139,6 +139,17 @@ pub struct CheckParams {
     pub preview_topic: String,
     /// `dry_run`: the ghost arm's joints.
     pub preview_joint_states_topic: String,
+    /// `docking`: the largest accepted distance at DONE of the true port from the estimated
+    /// insertion axis (`pose_topic` against `true_pose_topic`), m (0 = not checked).
+    pub max_axis_error_m: f64,
+    /// `hand_eye`: the calibration node's name (its services are `<name>/auto` etc.).
+    pub hand_eye_node: String,
+    /// `hand_eye`: the file the node's `~save` writes.
+    pub hand_eye_output: String,
+    /// `hand_eye`: the largest accepted distance of the computed mount from the true one, m.
+    pub max_mount_error_m: f64,
+    /// `hand_eye`: the largest accepted rotation of the computed mount from the true one, deg.
+    pub max_mount_error_deg: f64,
 }
 
 impl Default for CheckParams {
@@ -204,6 +215,11 @@ impl Default for CheckParams {
             reconfigure_force_stop: 1.0,
             preview_topic: "/docking_controller/preview".into(),
             preview_joint_states_topic: "/docking_controller/preview_joint_states".into(),
+            max_axis_error_m: 0.0,
+            hand_eye_node: "/hand_eye_calibration".into(),
+            hand_eye_output: String::new(),
+            max_mount_error_m: 0.0005,
+            max_mount_error_deg: 0.2,
         }
     }
 }
@@ -246,6 +262,9 @@ impl CheckParams {
         validate::duration("still_window_s", self.still_window_s)?;
         validate::duration("retract_timeout", self.retract_timeout)?;
         validate::positive("reconfigure_force_stop", self.reconfigure_force_stop)?;
+        validate::non_negative("max_axis_error_m", self.max_axis_error_m)?;
+        validate::positive("max_mount_error_m", self.max_mount_error_m)?;
+        validate::positive("max_mount_error_deg", self.max_mount_error_deg)?;
         Ok(())
     }
 }

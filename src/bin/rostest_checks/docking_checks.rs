@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{joint_names, JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
-use ::trocar_docking::ros::msgs::{lbr_msgs, sensor_msgs, trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trajectory_msgs, trocar_docking};
 use ::trocar_docking::ros::topics;
 
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
@@ -177,6 +177,8 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     };
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
     let (max_force, _sub_force) = subscribe_max_force(&p.status_topic)?;
+    let (estimate, _sub_estimate) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.pose_topic)?;
+    let (truth, _sub_truth) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.true_pose_topic)?;
     wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
     if p.call_start {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
@@ -218,6 +220,9 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     if let Some(insert) = insert {
         note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }
+    if p.max_axis_error_m > 0.0 {
+        note.push_str(&judge_axis(estimate.get(), truth.get(), p.max_axis_error_m)?);
+    }
     Ok(format!(
         "success: DONE in {:.2} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), max force {:.2} N, \
          tip {:.1} mm from the goal, latency trocar->command p50 {:.2} / p99 {:.2} ms, loop {:.1} Hz, {} steps{}",
@@ -233,6 +238,35 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         done.steps,
         note
     ))
+}
+
+/// The true port's distance from the estimated insertion axis (z of the estimated trocar
+/// pose) and the angle between the axes, at DONE; an error above `max_m`.
+fn judge_axis(
+    estimate: Option<geometry_msgs::PoseStamped>,
+    truth: Option<geometry_msgs::PoseStamped>,
+    max_m: f64,
+) -> Result<String, String> {
+    let (Some(e), Some(t)) = (estimate, truth) else {
+        return Err("no estimated or true trocar pose at DONE".into());
+    };
+    let e = convert::pose("estimate", &e.pose).map_err(|x| x.to_string())?;
+    let t = convert::pose("truth", &t.pose).map_err(|x| x.to_string())?;
+    let axis = e.rotation * nalgebra::Vector3::z();
+    let d = t.translation.vector - e.translation.vector;
+    let lateral = (d - axis * axis.dot(&d)).norm();
+    let angle = axis.angle(&(t.rotation * nalgebra::Vector3::z())).to_degrees();
+    let text = format!(
+        "; estimated axis {:.2} mm from the true port, {angle:.2} deg",
+        lateral * 1e3
+    );
+    if lateral > max_m {
+        return Err(format!(
+            "DONE, but the estimated axis is over {} mm off{text}",
+            max_m * 1e3
+        ));
+    }
+    Ok(text)
 }
 
 /// Start the controller, wait for HOLD with a reason containing the expected text (the

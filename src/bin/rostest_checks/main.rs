@@ -4,7 +4,7 @@
 //! ([`docking_checks`]), `replay` and `replay_controller` ([`replay_checks`]), `bad_input` ([`fault_injection`]), `latency` and `bad_images`
 //! ([`camera_checks`]), `blocked_arm`, `clock_back`, `clock_forward`, `driver_restart` and
 //! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]), `preflight`
-//! ([`preflight_checks`]), `dry_run` ([`dry_run_checks`]), `reconfigure` ([`reconfigure_checks`]).
+//! ([`preflight_checks`]), `dry_run` ([`dry_run_checks`]), `reconfigure` ([`reconfigure_checks`]), `hand_eye` and `hand_eye_dock` ([`hand_eye_checks`]).
 
 mod camera_checks;
 mod common;
@@ -12,6 +12,7 @@ mod docking_checks;
 mod dry_run_checks;
 mod failure_modes;
 mod fault_injection;
+mod hand_eye_checks;
 mod junit;
 mod preflight_checks;
 mod reconfigure_checks;
@@ -61,6 +62,9 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "preflight" => preflight_checks::preflight(&p),
             "dry_run" => dry_run_checks::dry_run(&p),
             "reconfigure" => reconfigure_checks::reconfigure(&p),
+            "hand_eye" => hand_eye_checks::hand_eye(&p),
+            "hand_eye_dock" => hand_eye_checks::hand_eye(&p)
+                .and_then(|c| docking_checks::docking(&p).map(|d| format!("{c}; then docking: {d}"))),
             other => Err(format!("unknown check {other}")),
         }?;
         rosrust::ros_info!("{name}: {summary}");

@@ -36,8 +36,7 @@ use crate::kinematics::{Kinematics, LbrKinematics, TIP_LINK};
 use crate::ros::convert;
 use crate::ros::handover::{self, OutputSender, RequestClient, RequestServer};
 use crate::ros::markers::MarkerStyle;
-use crate::ros::msgs::std_srvs;
-use crate::ros::node::{ros_err, CommandType, NodeError};
+use crate::ros::node::{reply_service, CommandType, NodeError, Reply};
 use crate::ros::pacer::Pacer;
 use crate::ros::params;
 use crate::ros::preflight::{self, PreflightParams};
@@ -207,36 +206,8 @@ enum Request {
     Reconfigure(LiveValues),
 }
 
-type Reply = Result<String, String>;
-
 /// How long a service waits for the loop to take its request.
 const SERVICE_TIMEOUT: Duration = Duration::from_secs(1);
-
-/// A `std_srvs/Trigger` service answering with `handler`'s reply (logged; `Err` is a
-/// refusal).
-fn reply_service<F>(name: &str, handler: F) -> Result<rosrust::Service, NodeError>
-where
-    F: Fn() -> Reply + Send + Sync + 'static,
-{
-    let label = name.to_string();
-    rosrust::service::<std_srvs::Trigger, _>(name, move |_req| {
-        let r = handler();
-        match &r {
-            Ok(m) => {
-                rosrust::ros_info!("{label}: {m}");
-            }
-            Err(m) => {
-                rosrust::ros_warn!("{label} refused: {m}");
-            }
-        }
-        let (success, message) = match r {
-            Ok(m) => (true, m),
-            Err(m) => (false, m),
-        };
-        Ok(std_srvs::TriggerRes { success, message })
-    })
-    .map_err(ros_err)
-}
 
 /// A `std_srvs/Trigger` service that sends `request` to the loop and returns its reply.
 fn trigger_service(

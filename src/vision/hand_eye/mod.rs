@@ -2,6 +2,19 @@
 //! flange poses in the base (FK) and marker poses in the camera, the camera pose in the
 //! flange (eMc), with residuals: the marker is fixed in the base, so each pair's
 //! base_T_marker = base_T_flange * eMc * camera_T_marker should be the same pose.
+//!
+//! For a live calibration: `samples` (the acceptance rules), `refine` (a non-linear
+//! refinement over all samples), `quality` (held-out residuals, conditioning, set-up faults),
+//! `poses` (the automatic mode's poses).
+
+pub mod poses;
+pub mod quality;
+pub mod refine;
+pub mod samples;
+
+pub use quality::{calibrate_samples, Calibration, HeldOut};
+pub use refine::{ObservationModel, Sample};
+pub use samples::{AcceptanceRules, Refusal, SampleSet, Stillness};
 
 use std::path::Path;
 
@@ -53,6 +66,38 @@ impl HandEyeInput {
         let s = std::fs::read_to_string(path).map_err(|e| VisionError::Io(format!("{}: {e}", path.display())))?;
         serde_yaml::from_str(&s).map_err(|e| VisionError::Io(format!("{}: {e}", path.display())))
     }
+}
+
+/// The text of a hand-eye file (what the estimator's `hand_eye_file` and the preflight
+/// read): a comment naming `source`, the `calibrated` date (YYYY-MM-DD, UTC), the result and,
+/// from a live calibration, the held-out residuals and the warnings.
+pub fn file_text(
+    source: &str,
+    date: &str,
+    result: &HandEyeResult,
+    held_out: Option<&HeldOut>,
+    warnings: &[String],
+) -> Result<String, VisionError> {
+    let mut text = format!(
+        "# Camera pose in the flange frame (eMc) from {source}, with residuals;\n\
+         # `calibrated` (UTC) dates it for the preflight's age check.\ncalibrated: {date}\n{}",
+        yaml(result)?
+    );
+    if let Some(h) = held_out {
+        text.push_str(&format!("held_out:\n{}", indent(&yaml(h)?)));
+    }
+    if !warnings.is_empty() {
+        text.push_str(&format!("warnings:\n{}", indent(&yaml(&warnings)?)));
+    }
+    Ok(text)
+}
+
+fn yaml<T: Serialize>(v: &T) -> Result<String, VisionError> {
+    serde_yaml::to_string(v).map_err(|e| VisionError::Io(e.to_string()))
+}
+
+fn indent(s: &str) -> String {
+    s.lines().map(|l| format!("  {l}\n")).collect()
 }
 
 /// Calibrate from pose pairs.

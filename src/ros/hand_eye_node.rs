@@ -1,0 +1,679 @@
+//! The `hand_eye_calibration` node: eye-in-hand calibration from live topics. Joint states
+//! in (the flange pose through the KDL chain), the estimator's marker pose in the camera
+//! (`/trocar_estimator/marker_pose`) and camera_info in; services (std_srvs/Trigger)
+//! `~take_sample`, `~remove_sample`, `~compute`, `~auto`, `~save`; `~samples` (the count and
+//! the rotation spread) and `~markers` (the calibrated camera frame, each sample's marker) out.
+//! The maths is `vision::hand_eye`'s; `~auto` streams speed-limited joint commands on the
+//! driver's command topic and stops, holding, on stale joint states or an arm not following.
+
+use std::f64::consts::PI;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use nalgebra::{Isometry3, Vector3};
+
+use super::convert;
+use super::msgs::{geometry_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs};
+use super::node::{lock, reply_service, ros_err, CommandType, NodeError, Reply};
+use super::params;
+use super::topics;
+use crate::kinematics::lbr::LbrModel;
+use crate::kinematics::{joint_names, JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
+use crate::validate;
+use crate::vision::estimator::PoseYaml;
+use crate::vision::hand_eye::poses::{border_distance_px, plan, projected_corners, PlanParams};
+use crate::vision::hand_eye::quality::camera_info_warning;
+use crate::vision::hand_eye::{
+    calibrate_samples, file_text, AcceptanceRules, Calibration, ObservationModel, Sample, SampleSet, Stillness,
+};
+use crate::vision::CameraModel;
+
+/// Parameters of the node (its private namespace; `config/hand_eye_calibration.yaml`).
+#[derive(Debug, Clone, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct HandEyeNodeParams {
+    /// Arm model when `urdf_file` is empty.
+    pub model: LbrModel,
+    /// URDF with the chain `lbr_link_0` -> `lbr_link_ee` ('' = built-in model).
+    pub urdf_file: String,
+    /// Joint names in chain order, as in the joint states.
+    pub joint_names: Vec<String>,
+    /// Robot base frame (the markers are drawn in it).
+    pub base_frame: String,
+    /// Joint states in.
+    pub joint_states_topic: String,
+    /// The estimator's marker pose in the camera optical frame.
+    pub marker_pose_topic: String,
+    /// CameraInfo in (the camera model of the detections).
+    pub camera_info_topic: String,
+    /// The driver's joint position command (for `~auto`).
+    pub command_topic: String,
+    /// `trajectory` (one-point JointTrajectory) or `float64_multi_array`.
+    pub command_type: CommandType,
+    /// The current hand-eye guess (`~auto` plans through it), a `hand_eye_file`.
+    pub hand_eye_file: String,
+    /// Where `~save` writes ('' = the package's `config/hand_eye.yaml`).
+    pub output_file: String,
+    /// The marker's side, m.
+    pub marker_size: f64,
+    /// `~auto`: the fastest joint speed, rad/s.
+    pub max_joint_speed: f64,
+    /// `~auto`: command rate, Hz.
+    pub command_rate_hz: f64,
+    /// `~auto`: at each pose, wait at most this long for the arm and the detection to be still, s.
+    pub settle_timeout_s: f64,
+    /// `~auto`: stop when a joint lags its command by more than this, rad.
+    pub max_tracking_error: f64,
+    /// Joint states or detections older than this are stale, s.
+    pub stale_after_s: f64,
+    /// The acceptance rules' still period, s.
+    pub still_for_s: f64,
+    /// The acceptance rules' border margin, px.
+    pub border_margin_px: f64,
+    /// The automatic mode's tilt about the image axes, deg.
+    pub auto_tilt_deg: f64,
+    /// The automatic mode's roll about the line of sight, deg.
+    pub auto_roll_deg: f64,
+}
+
+impl Default for HandEyeNodeParams {
+    fn default() -> Self {
+        Self {
+            model: LbrModel::Med7,
+            urdf_file: String::new(),
+            joint_names: joint_names(),
+            base_frame: "lbr_link_0".into(),
+            joint_states_topic: topics::JOINT_STATES.into(),
+            marker_pose_topic: "/trocar_estimator/marker_pose".into(),
+            camera_info_topic: topics::CAMERA_INFO.into(),
+            command_topic: topics::COMMAND.into(),
+            command_type: CommandType::Trajectory,
+            hand_eye_file: String::new(),
+            output_file: String::new(),
+            marker_size: 0.04,
+            max_joint_speed: 0.3,
+            command_rate_hz: 50.0,
+            settle_timeout_s: 4.0,
+            max_tracking_error: 0.05,
+            stale_after_s: 0.3,
+            still_for_s: 0.5,
+            border_margin_px: 10.0,
+            auto_tilt_deg: 20.0,
+            auto_roll_deg: 25.0,
+        }
+    }
+}
+
+impl HandEyeNodeParams {
+    /// Range checks, each naming its key.
+    pub fn validate(&self) -> Result<(), NodeError> {
+        validate::in_range("marker_size", self.marker_size, 0.005, 1.0)?;
+        validate::in_range("max_joint_speed", self.max_joint_speed, 0.01, 1.0)?;
+        validate::in_range("command_rate_hz", self.command_rate_hz, 10.0, 1000.0)?;
+        validate::in_range("settle_timeout_s", self.settle_timeout_s, 0.5, 60.0)?;
+        validate::in_range("max_tracking_error", self.max_tracking_error, 0.001, 0.5)?;
+        validate::in_range("stale_after_s", self.stale_after_s, 0.01, 5.0)?;
+        validate::in_range("still_for_s", self.still_for_s, 0.0, 10.0)?;
+        validate::in_range("border_margin_px", self.border_margin_px, 0.0, 200.0)?;
+        validate::in_range("auto_tilt_deg", self.auto_tilt_deg, 5.0, 45.0)?;
+        validate::in_range("auto_roll_deg", self.auto_roll_deg, 0.0, 90.0)?;
+        if self.joint_names.len() != 7 {
+            return Err(NodeError::Invalid(format!(
+                "`joint_names`: 7 names are needed, got {}",
+                self.joint_names.len()
+            )));
+        }
+        Ok(())
+    }
+
+    fn rules(&self) -> AcceptanceRules {
+        AcceptanceRules {
+            still_for_s: self.still_for_s,
+            border_margin_px: self.border_margin_px,
+            ..AcceptanceRules::default()
+        }
+    }
+
+    fn output_path(&self) -> String {
+        if self.output_file.is_empty() {
+            concat!(env!("CARGO_MANIFEST_DIR"), "/config/hand_eye.yaml").into()
+        } else {
+            self.output_file.clone()
+        }
+    }
+}
+
+/// The hand-eye file's `flange_t_camera`.
+#[derive(serde::Deserialize)]
+struct HandEyeFile {
+    flange_t_camera: PoseYaml,
+}
+
+/// What the callbacks and services share.
+struct State {
+    q: Option<(f64, JointVector)>,
+    marker: Option<(f64, Isometry3<f64>)>,
+    camera: Option<CameraModel>,
+    stillness: Stillness,
+    set: SampleSet,
+    calibration: Option<Calibration>,
+    auto_running: bool,
+}
+
+/// The node: parameters, chain, state, publishers.
+struct Node {
+    p: HandEyeNodeParams,
+    kin: LbrKinematics,
+    guess: Isometry3<f64>,
+    state: Mutex<State>,
+    samples: rosrust::Publisher<std_msgs::String>,
+    markers: rosrust::Publisher<visualization_msgs::MarkerArray>,
+    trajectory: Option<rosrust::Publisher<trajectory_msgs::JointTrajectory>>,
+    multiarray: Option<rosrust::Publisher<std_msgs::Float64MultiArray>>,
+}
+
+fn now() -> f64 {
+    convert::seconds(rosrust::now())
+}
+
+impl Node {
+    fn fresh<T: Copy>(&self, v: Option<(f64, T)>, t: f64) -> Option<T> {
+        v.filter(|(at, _)| t - at <= self.p.stale_after_s).map(|(_, x)| x)
+    }
+
+    fn model(&self, st: &State) -> ObservationModel {
+        ObservationModel {
+            camera: st.camera.clone(),
+            marker_size: self.p.marker_size,
+        }
+    }
+
+    /// `~take_sample`.
+    fn take_sample(&self) -> Reply {
+        let t = now();
+        let mut st = lock(&self.state);
+        let q = self.fresh(st.q, t).ok_or("no fresh joint state")?;
+        let camera = st
+            .camera
+            .clone()
+            .ok_or_else(|| camera_info_warning(None).unwrap_or_default())?;
+        let marker = self
+            .fresh(st.marker, t)
+            .ok_or("no marker detection (none fresh from the estimator)")?;
+        let base_t_flange = self.kin.fk(&q).map_err(|e| e.to_string())?;
+        let border = border_distance_px(&camera, &marker, self.p.marker_size).unwrap_or(-1.0);
+        let sample = Sample {
+            base_t_flange,
+            camera_t_marker: marker,
+            corners: projected_corners(&camera, &marker, self.p.marker_size),
+        };
+        let still = st.stillness.still_for(t, self.p.stale_after_s);
+        let i = st.set.try_add(sample, still, border).map_err(|e| e.to_string())?;
+        let msg = format!("sample {} taken; {}", i + 1, self.summary(&st));
+        self.publish_samples(&st);
+        Ok(msg)
+    }
+
+    fn summary(&self, st: &State) -> String {
+        format!(
+            "{} samples, rotation spread {:.1} deg",
+            st.set.samples().len(),
+            st.set.rotation_spread_rad().to_degrees()
+        )
+    }
+
+    fn publish_samples(&self, st: &State) {
+        let _ = self.samples.send(std_msgs::String { data: self.summary(st) });
+    }
+
+    /// `~remove_sample`: the last one.
+    fn remove_sample(&self) -> Reply {
+        let mut st = lock(&self.state);
+        st.set.remove_last().ok_or("no sample to remove")?;
+        let msg = format!("last sample removed; {}", self.summary(&st));
+        self.publish_samples(&st);
+        Ok(msg)
+    }
+
+    /// `~compute`: ViSP + refinement, held-out residuals, warnings and faults.
+    fn compute(&self) -> Reply {
+        let mut st = lock(&self.state);
+        let c = calibrate_samples(st.set.samples(), &self.model(&st)).map_err(|e| e.to_string())?;
+        let msg = describe(&c, &self.guess, st.camera.as_ref());
+        let faults = c.faults.clone();
+        st.calibration = Some(c);
+        if faults.is_empty() {
+            Ok(msg)
+        } else {
+            Err(msg)
+        }
+    }
+
+    /// `~save`: the computed calibration to `output_file`.
+    fn save(&self) -> Reply {
+        let st = lock(&self.state);
+        let c = st
+            .calibration
+            .as_ref()
+            .ok_or("nothing computed yet: call ~compute first")?;
+        if !c.faults.is_empty() {
+            return Err(format!(
+                "not saved, the calibration has faults: {}",
+                c.faults.join("; ")
+            ));
+        }
+        let date = crate::preflight::date_of(
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64()),
+        );
+        let text = file_text(
+            "the `hand_eye_calibration` node",
+            &date,
+            &c.fit,
+            Some(&c.held_out),
+            &c.warnings,
+        )
+        .map_err(|e| e.to_string())?;
+        let path = self.p.output_path();
+        std::fs::write(&path, text).map_err(|e| format!("{path}: {e}"))?;
+        Ok(format!(
+            "saved to {path} ({} samples, calibrated {date})",
+            c.fit.samples
+        ))
+    }
+
+    /// Send one joint command.
+    fn command(&self, q: &JointVector, time_from_start: f64) {
+        if let Some(p) = &self.trajectory {
+            let _ = p.send(convert::trajectory_command(
+                rosrust::now(),
+                &self.p.joint_names,
+                q,
+                time_from_start,
+            ));
+        }
+        if let Some(p) = &self.multiarray {
+            let _ = p.send(convert::multiarray_command(q));
+        }
+    }
+
+    /// Move to `target` on a cosine profile at most `max_joint_speed` fast, streaming
+    /// commands; on stale joint states or an arm lagging its command, hold where the arm is
+    /// and stop with the reason.
+    fn move_to(&self, target: &JointVector) -> Result<(), String> {
+        let start = self.fresh(lock(&self.state).q, now()).ok_or("no fresh joint state")?;
+        let delta = target - start;
+        let duration = (delta.amax() * PI / (2.0 * self.p.max_joint_speed)).max(0.2);
+        let dt = 1.0 / self.p.command_rate_hz;
+        let steps = (duration / dt).ceil() as usize;
+        for k in 1..=steps + (0.5 / dt) as usize {
+            let s = (k.min(steps) as f64 / steps as f64 * PI).cos();
+            let q_cmd = start + delta * ((1.0 - s) / 2.0);
+            let measured = self.fresh(lock(&self.state).q, now());
+            let fault = match measured {
+                None => Some("joint states stale".to_string()),
+                Some(q) if (q - q_cmd).amax() > self.p.max_tracking_error + delta.amax() * dt * 2.0 => {
+                    Some(format!("the arm lags its command by {:.3} rad", (q - q_cmd).amax()))
+                }
+                _ => None,
+            };
+            if let Some(f) = fault {
+                if let Some(q) = measured {
+                    self.command(&q, 2.0 * dt);
+                }
+                return Err(format!("motion stopped, the arm held: {f}"));
+            }
+            if !rosrust::is_ok() {
+                return Err("shutting down".into());
+            }
+            self.command(&q_cmd, 2.0 * dt);
+            std::thread::sleep(Duration::from_secs_f64(dt));
+        }
+        Ok(())
+    }
+
+    /// Wait until the arm and the detection are still, then take a sample.
+    fn settle_and_sample(&self) -> Reply {
+        let t0 = std::time::Instant::now();
+        let mut last = Err(String::from("not tried"));
+        while t0.elapsed().as_secs_f64() < self.p.settle_timeout_s && rosrust::is_ok() {
+            std::thread::sleep(Duration::from_millis(100));
+            last = self.take_sample();
+            if last.is_ok() {
+                break;
+            }
+        }
+        last
+    }
+
+    /// `~auto`: 12 poses around the current one, a sample at each, back, compute.
+    fn auto(&self) -> Reply {
+        {
+            let mut st = lock(&self.state);
+            if st.auto_running {
+                return Err("~auto is already running".into());
+            }
+            st.auto_running = true;
+        }
+        let r = self.auto_run();
+        lock(&self.state).auto_running = false;
+        r
+    }
+
+    fn auto_run(&self) -> Reply {
+        let t0 = std::time::Instant::now();
+        let (q0, marker, camera) = {
+            let st = lock(&self.state);
+            let t = now();
+            (
+                self.fresh(st.q, t).ok_or("no fresh joint state")?,
+                self.fresh(st.marker, t)
+                    .ok_or("no marker detection: bring the marker into view")?,
+                st.camera
+                    .clone()
+                    .ok_or_else(|| camera_info_warning(None).unwrap_or_default())?,
+            )
+        };
+        let plan_params = PlanParams {
+            tilt_rad: self.p.auto_tilt_deg.to_radians(),
+            roll_rad: self.p.auto_roll_deg.to_radians(),
+            marker_size: self.p.marker_size,
+            ..PlanParams::default()
+        };
+        let poses = plan(&self.kin, &q0, &self.guess, &marker, &camera, &plan_params).map_err(|e| e.to_string())?;
+        let mut notes = Vec::new();
+        for (i, q) in poses.iter().enumerate() {
+            self.move_to(q)?;
+            if let Err(e) = self.settle_and_sample() {
+                notes.push(format!("pose {}: {e}", i + 1));
+            }
+        }
+        self.move_to(&q0)?;
+        let computed = self.compute();
+        let secs = t0.elapsed().as_secs_f64();
+        let head = format!("{} poses in {secs:.0} s", poses.len());
+        let skipped = if notes.is_empty() {
+            String::new()
+        } else {
+            format!("; skipped: {}", notes.join("; "))
+        };
+        match computed {
+            Ok(m) => Ok(format!("{head}{skipped}; {m}")),
+            Err(m) => Err(format!("{head}{skipped}; {m}")),
+        }
+    }
+
+    /// The calibrated camera frame at the current pose and each sample's marker.
+    fn publish_markers(&self) {
+        let st = lock(&self.state);
+        let emc = st.calibration.as_ref().map_or(self.guess, |c| c.flange_t_camera);
+        let stamp = rosrust::now();
+        let mut out = Vec::new();
+        if let Some(q) = self.fresh(st.q, now()) {
+            if let Ok(f) = self.kin.fk(&q) {
+                out.extend(axes_markers(stamp, &self.p.base_frame, &(f * emc), 0));
+            }
+        }
+        for (i, s) in st.set.samples().iter().enumerate() {
+            let m = s.base_t_flange * emc * s.camera_t_marker;
+            out.push(marker_plate(
+                stamp,
+                &self.p.base_frame,
+                &m,
+                self.p.marker_size,
+                10 + i as i32,
+            ));
+        }
+        drop(st);
+        let _ = self.markers.send(visualization_msgs::MarkerArray { markers: out });
+    }
+}
+
+/// The reply of `~compute`: eMc, its change from the guess, the residuals, warnings, faults.
+pub fn describe(c: &Calibration, guess: &Isometry3<f64>, camera: Option<&CameraModel>) -> String {
+    let e = c.flange_t_camera;
+    let t = e.translation.vector;
+    let q = e.rotation;
+    let h = &c.held_out;
+    let mut s = format!(
+        "eMc t [{:+.5} {:+.5} {:+.5}] m q_xyzw [{:+.5} {:+.5} {:+.5} {:+.5}] ({:.2} mm, {:.3} deg from the guess); \
+         {} samples, spread {:.1} deg, {} axes; held-out residuals {:.3} mm rms ({:.3} max), {:.3} deg rms ({:.3} max)",
+        t.x,
+        t.y,
+        t.z,
+        q.i,
+        q.j,
+        q.k,
+        q.w,
+        (t - guess.translation.vector).norm() * 1e3,
+        q.angle_to(&guess.rotation).to_degrees(),
+        c.conditioning.samples,
+        c.conditioning.spread_deg,
+        c.conditioning.rotation_axes,
+        h.position_rms_mm,
+        h.position_max_mm,
+        h.rotation_rms_deg,
+        h.rotation_max_deg
+    );
+    if let Some(px) = h.reprojection_rms_px {
+        s.push_str(&format!(", {px:.3} px"));
+    }
+    for w in &c.warnings {
+        s.push_str(&format!("; WARNING {w}"));
+    }
+    if let Some(w) = camera_info_warning(camera) {
+        s.push_str(&format!("; NOTE {w}"));
+    }
+    for f in &c.faults {
+        s.push_str(&format!("; FAULT {f}"));
+    }
+    s
+}
+
+fn marker_base(stamp: rosrust::Time, frame: &str, id: i32, kind: i32) -> visualization_msgs::Marker {
+    visualization_msgs::Marker {
+        header: convert::header(stamp, frame),
+        ns: "hand_eye".into(),
+        id,
+        type_: kind,
+        action: visualization_msgs::Marker::ADD as i32,
+        ..Default::default()
+    }
+}
+
+/// Three arrows (x red, y green, z blue), 5 cm, for a frame.
+fn axes_markers(stamp: rosrust::Time, frame: &str, pose: &Isometry3<f64>, id: i32) -> Vec<visualization_msgs::Marker> {
+    [Vector3::x(), Vector3::y(), Vector3::z()]
+        .iter()
+        .enumerate()
+        .map(|(k, axis)| {
+            let mut m = marker_base(stamp, frame, id + k as i32, visualization_msgs::Marker::ARROW as i32);
+            let o = pose.translation.vector;
+            let tip = o + pose.rotation * axis * 0.05;
+            m.points = vec![convert::point_msg(&o.into()), convert::point_msg(&tip.into())];
+            m.scale = geometry_msgs::Vector3 {
+                x: 0.004,
+                y: 0.008,
+                z: 0.0,
+            };
+            m.pose.orientation.w = 1.0;
+            m.color = std_msgs::ColorRGBA {
+                r: (k == 0) as u8 as f32,
+                g: (k == 1) as u8 as f32,
+                b: (k == 2) as u8 as f32,
+                a: 1.0,
+            };
+            m
+        })
+        .collect()
+}
+
+/// A thin plate where a sample puts the marker.
+fn marker_plate(
+    stamp: rosrust::Time,
+    frame: &str,
+    pose: &Isometry3<f64>,
+    size: f64,
+    id: i32,
+) -> visualization_msgs::Marker {
+    let mut m = marker_base(stamp, frame, id, visualization_msgs::Marker::CUBE as i32);
+    m.pose = convert::pose_msg(pose);
+    m.scale = geometry_msgs::Vector3 {
+        x: size,
+        y: size,
+        z: 0.001,
+    };
+    m.color = std_msgs::ColorRGBA {
+        r: 1.0,
+        g: 0.6,
+        b: 0.0,
+        a: 0.5,
+    };
+    m
+}
+
+fn subscribe(node: &Arc<Node>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
+    let p = &node.p;
+    let n = node.clone();
+    let (topic, names) = (p.joint_states_topic.clone(), p.joint_names.clone());
+    let joints = rosrust::subscribe(&p.joint_states_topic, 10, move |m: sensor_msgs::JointState| {
+        if let Ok(q) = convert::joint_positions(&topic, &m, &names) {
+            let t = now();
+            let mut st = lock(&n.state);
+            let rules = st.set.rules;
+            st.stillness.joints(t, q.as_slice(), &rules);
+            st.q = Some((t, q));
+        }
+    })
+    .map_err(ros_err)?;
+    let n = node.clone();
+    let topic = p.marker_pose_topic.clone();
+    let marker = rosrust::subscribe(&p.marker_pose_topic, 10, move |m: geometry_msgs::PoseStamped| {
+        if let Ok(pose) = convert::pose(&topic, &m.pose) {
+            let t = now();
+            let mut st = lock(&n.state);
+            let rules = st.set.rules;
+            st.stillness.marker(t, Some(&pose), &rules);
+            st.marker = Some((t, pose));
+        }
+    })
+    .map_err(ros_err)?;
+    let n = node.clone();
+    let info = rosrust::subscribe(&p.camera_info_topic, 2, move |m: sensor_msgs::CameraInfo| {
+        lock(&n.state).camera = super::convert::image::camera_model(&m).ok();
+    })
+    .map_err(ros_err)?;
+    Ok(vec![joints, marker, info])
+}
+
+/// A service's handler on the node.
+type Handler = fn(&Node) -> Reply;
+
+fn services(node: &Arc<Node>) -> Result<Vec<rosrust::Service>, NodeError> {
+    let handlers: [(&str, Handler); 5] = [
+        ("~take_sample", Node::take_sample),
+        ("~remove_sample", Node::remove_sample),
+        ("~compute", Node::compute),
+        ("~save", Node::save),
+        ("~auto", Node::auto),
+    ];
+    handlers
+        .iter()
+        .map(|(name, f)| {
+            let (n, f) = (node.clone(), *f);
+            reply_service(name, move || f(&n))
+        })
+        .collect()
+}
+
+/// Run the node until shutdown. Call after `rosrust::init`.
+pub fn run() -> Result<(), NodeError> {
+    let p: HandEyeNodeParams = params::load_private()?;
+    p.validate()?;
+    let kin = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, FLANGE_LINK)?;
+    let guess = if p.hand_eye_file.is_empty() {
+        crate::vision::EstimatorParams::default().flange_t_camera
+    } else {
+        params::from_yaml_file::<HandEyeFile>(std::path::Path::new(&p.hand_eye_file))?.flange_t_camera
+    }
+    .to_isometry()
+    .map_err(|e| NodeError::Invalid(format!("`hand_eye_file`: {e}")))?;
+    let (trajectory, multiarray) = match p.command_type {
+        CommandType::Trajectory => (Some(rosrust::publish(&p.command_topic, 10).map_err(ros_err)?), None),
+        CommandType::Float64MultiArray => (None, Some(rosrust::publish(&p.command_topic, 10).map_err(ros_err)?)),
+    };
+    let node = Arc::new(Node {
+        state: Mutex::new(State {
+            q: None,
+            marker: None,
+            camera: None,
+            stillness: Stillness::default(),
+            set: SampleSet::new(p.rules()),
+            calibration: None,
+            auto_running: false,
+        }),
+        samples: rosrust::publish("~samples", 2).map_err(ros_err)?,
+        markers: rosrust::publish("~markers", 2).map_err(ros_err)?,
+        trajectory,
+        multiarray,
+        kin,
+        guess,
+        p,
+    });
+    let _subs = subscribe(&node)?;
+    let _services = services(&node)?;
+    rosrust::ros_info!(
+        "hand_eye_calibration: marker pose on {}, joints on {}, commands on {}; saves to {}",
+        node.p.marker_pose_topic,
+        node.p.joint_states_topic,
+        node.p.command_topic,
+        node.p.output_path()
+    );
+    while rosrust::is_ok() {
+        std::thread::sleep(Duration::from_millis(500));
+        node.publish_markers();
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::UnitQuaternion;
+
+    #[test]
+    fn defaults_and_the_shipped_config_are_valid_and_bad_values_name_their_key() {
+        HandEyeNodeParams::default().validate().unwrap();
+        let text =
+            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/hand_eye_calibration.yaml")).unwrap();
+        let p: HandEyeNodeParams = params::from_yaml_str("t", &text).unwrap();
+        p.validate().unwrap();
+        for (yaml, key) in [
+            ("max_joint_speed: 3", "max_joint_speed"),
+            ("marker_size: 0", "marker_size"),
+            ("auto_tilt_deg: 60", "auto_tilt_deg"),
+        ] {
+            let e = params::from_yaml_str::<HandEyeNodeParams>("t", yaml)
+                .unwrap()
+                .validate()
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(&format!("`{key}`")), "{yaml}: {e}");
+        }
+        assert!(params::from_yaml_str::<HandEyeNodeParams>("t", "max_speed: 1").is_err());
+    }
+
+    #[test]
+    fn the_markers_draw_the_frame_axes_along_the_pose() {
+        let pose = Isometry3::from_parts(
+            nalgebra::Translation3::new(0.1, 0.2, 0.3),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), PI / 2.0),
+        );
+        let m = axes_markers(rosrust::Time::default(), "b", &pose, 0);
+        // x of the frame points along the base's y.
+        let tip = &m[0].points[1];
+        assert!((tip.x - 0.1).abs() < 1e-9 && (tip.y - 0.25).abs() < 1e-9, "{tip:?}");
+        assert_eq!(m.len(), 3);
+    }
+}
