@@ -13,9 +13,9 @@
 //! tip never slides across the trocar face, and never leaps). INSERT advances the target
 //! along the axis to the goal depth with c1 keeping the tip on the axis; the axial force
 //! slows the advance but never stops it, and the lateral force moves r so the tip yields
-//! sideways (see [`super::admittance`]). DONE when the tip is within the position and angle
+//! sideways (see [`super::force::admittance`]). DONE when the tip is within the position and angle
 //! tolerance of the goal, or when it has settled at the goal depth held off the estimated
-//! axis by the port itself (a biased trocar estimate; see [`super::seated`]).
+//! axis by the port itself (a biased trocar estimate; see [`super::docking::seated`]).
 //!
 //! **Linearisation point.** The SQP starts from the previous command, not the measured
 //! position: the command is what the position-controlled arm tracks, the velocity box is
@@ -26,20 +26,20 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::admittance::Admittance;
-use super::geometry::{pose_is_finite, InsertionAxis};
-use super::goal_window::GoalWindow;
-use super::guard::{CommandGuard, HoldReason};
-use super::guarded::{CommandSource, Guarded, StepContext};
-use super::metrics::ForceMetric;
-use super::motion::MotionLimiter;
+use super::docking::geometry::{pose_is_finite, InsertionAxis};
+use super::docking::goal_window::GoalWindow;
+use super::docking::metrics::ForceMetric;
+use super::docking::seated::{Seated, SeatedCheck, TipState};
+use super::force::admittance::Admittance;
+use super::force::tare::{Tare, TareStep};
 pub use super::params::{ControllerParams, ParamError};
-use super::pivot::{live_command, Pivot};
-use super::scope::{PivotReport, ScopeCommand};
-use super::seated::{Seated, SeatedCheck, TipState};
+use super::safety::guard::{CommandGuard, HoldReason};
+use super::safety::guarded::{CommandSource, Guarded, StepContext};
+use super::safety::motion::MotionLimiter;
+use super::scope::command::{PivotReport, ScopeCommand};
+use super::scope::pivot::{live_command, Pivot};
 use super::sqp::{CostTerms, CostWeights, LimitAvoidance, PivotCost, SqpSolver, SqpStatus, Targets};
 use super::supervisor::{Phase, Supervisor};
-use super::tare::{Tare, TareStep};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
 
 /// A value with the time it was measured, s (same clock as [`ControlInput::now`]).
@@ -508,13 +508,13 @@ impl OptimalController {
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
         let cmd = if sol.status.is_usable() && pivot_on {
             // Pivoting (DONE, RETRACT) shapes its own rates within the motion limits (see
-            // [`super::pivot`]) and uses no trocar pose, whose noise the limiter is for;
+            // [`super::scope::pivot`]) and uses no trocar pose, whose noise the limiter is for;
             // limiting its linear and angular parts apart would move the shaft off the
             // fulcrum.
             self.run.motion.rest();
             sol.q
         } else if sol.status.is_usable() {
-            // The tip's speed, acceleration and jerk bounded (see [`super::motion`]).
+            // The tip's speed, acceleration and jerk bounded (see [`super::safety::motion`]).
             // Braking for what is left: the tip's distance to the phase's target point and
             // the alignment error.
             let tip = Point3::from(arm.tip.translation.vector);
@@ -634,7 +634,7 @@ impl OptimalController {
     }
 
     /// After DONE: hold the port as the remote centre of motion while the surgeon steers,
-    /// or withdraw (RETRACT); see [`super::pivot`]. `None` in the other phases (and before
+    /// or withdraw (RETRACT); see [`super::scope::pivot`]. `None` in the other phases (and before
     /// any trocar estimate, when DONE just holds).
     fn pivot_step(
         &mut self,

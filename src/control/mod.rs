@@ -1,34 +1,26 @@
-//! The docking controller and its parts, pure Rust (no ROS, no C++): the optimal control
-//! law ([`sqp`]: costs, Gauss–Newton SQP on Clarabel, active-set warm start), the force
-//! estimate and admittance law ([`admittance`]), the command guard ([`guard`]), the phase
-//! state machine ([`supervisor`]), seated completion ([`seated`]), the metric M
-//! ([`metrics`]), the insertion-axis geometry ([`geometry`]), and after docking the port
-//! held as a remote centre of motion ([`pivot`], [`fulcrum`], [`port_follow`], [`scope`]); [`controller`]
-//! runs them in one step per control period.
+//! The docking controller and its parts, pure Rust (no ROS, no C++), one folder per job:
+//! [`controller`] runs one step per control period through the phases of the state machine
+//! ([`supervisor`]), with the parameters of [`params`];
+//! [`docking`] the approach and insertion (the insertion axis, seated completion, the goal
+//! window, the metric M); [`scope`] after docking, the port held as a remote centre of motion
+//! while the surgeon steers the scope (the law, the fulcrum, the port's breathing, the
+//! commands and limits); [`force`] the force sensing (torque tare, payload fit, force
+//! estimate and admittance law); [`safety`] the command guard, the typed hold reasons and the
+//! tip's motion limits; [`sqp`] the optimal control law (costs, Gauss–Newton SQP on
+//! Clarabel, active-set warm start).
 
-pub mod admittance;
 pub mod controller;
-pub mod fulcrum;
-pub mod geometry;
-pub mod goal_window;
-pub mod guard;
-pub mod guarded;
-pub mod hold;
-pub mod metrics;
-pub mod motion;
+pub mod docking;
+pub mod force;
 pub mod params;
-pub mod payload;
-pub mod pivot;
-pub mod port_follow;
+pub mod safety;
 pub mod scope;
-pub mod seated;
 pub mod sqp;
 pub mod supervisor;
-pub mod tare;
 
 pub use controller::{ControlInput, ControlOutput, Controller, OptimalController, SolveReport, Stamped};
-pub use guard::HoldReason;
-pub use guarded::{CommandSource, Guarded, StepContext};
 pub use params::{ControllerParams, ParamError};
-pub use scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
+pub use safety::guard::HoldReason;
+pub use safety::guarded::{CommandSource, Guarded, StepContext};
+pub use scope::command::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 pub use supervisor::Phase;

@@ -3,13 +3,13 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::admittance::AdmittanceParams;
-use super::guard::GuardParams;
-use super::motion::MotionLimits;
-use super::scope::ScopeParams;
-use super::seated::SeatedParams;
+use super::docking::seated::SeatedParams;
+use super::force::admittance::AdmittanceParams;
+use super::force::tare::TareParams;
+use super::safety::guard::GuardParams;
+use super::safety::motion::MotionLimits;
+use super::scope::command::ScopeParams;
 use super::sqp::{CostWeights, SqpSettings};
-use super::tare::TareParams;
 
 /// Errors in the controller's parameters.
 #[derive(Debug, thiserror::Error)]
@@ -52,10 +52,10 @@ pub struct ControllerParams {
     pub goal_angle_tolerance_deg: f64,
     /// DONE is judged on the tip-to-goal error and the angle averaged over windows of this
     /// length, s, so that one lucky sample of a noisy trocar estimate does not end the
-    /// docking (0 = judged on each sample); see [`super::goal_window`].
+    /// docking (0 = judged on each sample); see [`super::docking::goal_window`].
     pub goal_window: f64,
     /// DONE also for a scope seated in the port beside a biased trocar estimate; see
-    /// [`super::seated`].
+    /// [`super::docking::seated`].
     pub seated: SeatedParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant: f64,

@@ -97,7 +97,8 @@ impl Policy for Baseline {
         let Ok((tip, jac)) = kin.fk_jacobian(&obs.q) else {
             return hold("kinematics failed");
         };
-        let f_ext = crate::control::admittance::tip_force(&jac, &obs.tau_ext, 0.0, 0.05).unwrap_or_else(Vector3::zeros);
+        let f_ext =
+            crate::control::force::admittance::tip_force(&jac, &obs.tau_ext, 0.0, 0.05).unwrap_or_else(Vector3::zeros);
         let Some(m) = obs.trocar else {
             return Action {
                 command: None,

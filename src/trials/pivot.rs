@@ -1,6 +1,6 @@
 //! After docking, on the simulated plant: dock with the controller, then steer the scope
 //! through the port with a script of surgeon's commands, and measure how well the port is
-//! held as the remote centre of motion ([`crate::control::pivot`]).
+//! held as the remote centre of motion ([`crate::control::scope::pivot`]).
 //!
 //! **The true port** is where the abdominal wall holds the trocar: the anchor of the
 //! trocar's mount at its fulcrum ([`crate::sim::trocar::Trocar::anchor`]), which moves with
@@ -563,7 +563,7 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
         }
     }
     if let Some(m) = lp.world.measure_trocar(lp.world.time()) {
-        let axis = crate::control::geometry::InsertionAxis::from_pose(&m.pose);
+        let axis = crate::control::docking::geometry::InsertionAxis::from_pose(&m.pose);
         r.estimate_error_m = axis.distance_to_axis(&lp.world.trocar().anchor());
     }
     r.fulcrum_error_start_m = first.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum));

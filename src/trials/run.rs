@@ -21,7 +21,7 @@ use crate::signal::StreamLowPass;
 use crate::sim::noise::TrocarMeasurement;
 use crate::sim::{check_range, SimError, SimWorld};
 
-pub use crate::control::metrics::PAPER_CODE_SCALE;
+pub use crate::control::docking::metrics::PAPER_CODE_SCALE;
 
 /// What a policy sees at a control tick.
 #[derive(Debug, Clone, Copy, PartialEq)]

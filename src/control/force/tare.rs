@@ -29,8 +29,8 @@ use serde::{Deserialize, Serialize};
 
 use nalgebra::UnitQuaternion;
 
-use super::hold::HoldReason;
-use super::payload::PayloadFit;
+use crate::control::force::payload::PayloadFit;
+use crate::control::safety::hold::HoldReason;
 use crate::kinematics::{Jacobian, JointVector};
 
 /// Parameters of the tare (`tare:` in `config/controller.yaml`).
@@ -52,7 +52,7 @@ pub struct TareParams {
     /// Tracking runs while the tip is at least this far before the trocar face, m.
     pub track_clearance_m: f64,
     /// Prior standard deviation of a payload's mass error, kg, for the fit of the offset's
-    /// pose-dependent part from the tracked samples ([`super::payload`]; 0 = no fit: the
+    /// pose-dependent part from the tracked samples ([`crate::control::force::payload`]; 0 = no fit: the
     /// offset stays what tracking left).
     pub payload_prior_kg: f64,
 }
@@ -219,14 +219,14 @@ impl Tare {
     }
 
     /// The torques less the offset, without the dead-band: for a consumer that filters
-    /// them and bands its own estimate (the fulcrum's, [`super::fulcrum`]).
+    /// them and bands its own estimate (the fulcrum's, [`crate::control::scope::fulcrum`]).
     pub fn remove_offset(&self, tau: &JointVector) -> JointVector {
         tau - self.offset_here()
     }
 
     /// The torques less the offset, with the dead-band applied per joint.
     pub fn correct(&self, tau: &JointVector) -> JointVector {
-        (tau - self.offset_here()).zip_map(&self.band, super::admittance::deadband)
+        (tau - self.offset_here()).zip_map(&self.band, crate::control::force::admittance::deadband)
     }
 }
 
@@ -339,7 +339,7 @@ mod tests {
         let tau_at = |q: &JointVector| {
             let (tip, jac) = kin.fk_jacobian(q).unwrap();
             let r = nalgebra::Vector3::new(0.0, 0.0, -0.2);
-            let tau = super::super::payload::tests::payload_torque(&jac, &tip.rotation, 0.15, &r);
+            let tau = crate::control::force::payload::tests::payload_torque(&jac, &tip.rotation, 0.15, &r);
             (tau.add_scalar(0.4), jac, tip.rotation)
         };
         let run = |p: &TareParams| {
