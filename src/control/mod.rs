@@ -1,5 +1,5 @@
 //! The docking controller and its parts, pure Rust (no ROS, no C++), one folder per job:
-//! [`controller`] runs one step per control period through the phases of the state machine
+//! [`controller`] runs one step per control period ([`io`]: its inputs and outputs) through the phases of the state machine
 //! ([`supervisor`]), with the parameters of [`params`];
 //! [`docking`] the approach and insertion (the insertion axis, seated completion, the goal
 //! window, the metric M); [`scope`] after docking, the port held as a remote centre of motion
@@ -12,13 +12,15 @@
 pub mod controller;
 pub mod docking;
 pub mod force;
+pub mod io;
 pub mod params;
 pub mod safety;
 pub mod scope;
 pub mod sqp;
 pub mod supervisor;
 
-pub use controller::{ControlInput, ControlOutput, Controller, OptimalController, SolveReport, Stamped};
+pub use controller::{Controller, OptimalController};
+pub use io::{ControlInput, ControlOutput, SolveReport, Stamped};
 pub use params::{ControllerParams, ParamError};
 pub use safety::guard::HoldReason;
 pub use safety::guarded::{CommandSource, Guarded, StepContext};

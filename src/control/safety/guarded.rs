@@ -25,7 +25,7 @@
 //! velocity) from it: a hold never jumps to where it must stand, it walks there
 //! ([`Guarded::step`], [`HoldTarget`]); a start resumes from the last published command.
 
-use crate::control::controller::{ControlInput, ControlOutput};
+use crate::control::io::{ControlInput, ControlOutput};
 use crate::control::safety::guard::{CommandGuard, HoldReason};
 use crate::control::supervisor::Phase;
 use crate::kinematics::{JointVector, Kinematics};

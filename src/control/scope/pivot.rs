@@ -38,8 +38,8 @@
 
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 
-use crate::control::controller::Stamped;
 use crate::control::docking::geometry::InsertionAxis;
+use crate::control::io::Stamped;
 use crate::control::safety::motion::{MotionLimits, Rate, RateShaper};
 use crate::control::scope::command::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 use crate::control::scope::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
