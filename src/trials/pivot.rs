@@ -21,6 +21,7 @@ use rand::{RngExt, SeedableRng};
 use serde::Serialize;
 
 use super::run::TrialParams;
+use crate::stats::finite_quantile;
 use crate::control::{ControlInput, Controller, ControllerParams, Phase, ScopeCommand, Stamped};
 use crate::kinematics::{JointVector, Kinematics};
 use crate::signal::StreamLowPass;
@@ -238,17 +239,6 @@ pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
     c.scope.fulcrum.max_displacement = 0.0;
     c.scope.breathing.follow = false;
     c
-}
-
-/// The `p`-quantile of the finite values of `v` (NaN if there are none).
-pub fn finite_quantile(v: &[f64], p: f64) -> f64 {
-    let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    v.sort_by(f64::total_cmp);
-    if v.is_empty() {
-        f64::NAN
-    } else {
-        super::plot::quantile(&v, p)
-    }
 }
 
 /// Distance of the line through `e` along unit `a` from `p`.
