@@ -9,7 +9,8 @@
 use nalgebra::{Matrix6, Point3, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
-use super::run::{Action, Observation, Policy};
+use super::closed_loop::Observation;
+use super::run::{Action, Policy};
 use crate::kinematics::{JointVector, Kinematics};
 
 /// The baseline reports DONE within this distance of the measured goal, m, ...

@@ -20,12 +20,12 @@ use nalgebra::{Point3, Vector3};
 use rand::{RngExt, SeedableRng};
 use serde::Serialize;
 
+use super::closed_loop::{control_input, ClosedLoop, PlantError};
 use super::run::TrialParams;
-use crate::stats::finite_quantile;
-use crate::control::{ControlInput, Controller, ControllerParams, Phase, ScopeCommand, Stamped};
-use crate::kinematics::{JointVector, Kinematics};
-use crate::signal::StreamLowPass;
+use crate::control::{Controller, ControllerParams, Phase, ScopeCommand, Stamped};
+use crate::kinematics::Kinematics;
 use crate::sim::{SimError, SimParams, SimWorld};
+use crate::stats::finite_quantile;
 
 /// One piece of a script: a command held for a duration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -318,10 +318,7 @@ pub struct PivotSession {
     ctrl: Controller,
     kin: Arc<dyn Kinematics>,
     period: f64,
-    physics_per_tick: usize,
-    /// The low-pass of the torques at the plant's rate (`torque_filter_time_constant`) and
-    /// its newest output.
-    torques: (StreamLowPass<7>, JointVector),
+    plant: ClosedLoop,
 }
 
 impl PivotSession {
@@ -342,11 +339,8 @@ impl PivotSession {
         let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
         let ctrl = Controller::new(params.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
         let period = 1.0 / trial.control_rate_hz;
-        let mut filter = StreamLowPass::new(params.torque_filter_time_constant);
-        let tau = filter.update(world.time(), &world.external_torques());
         let mut lp = Self {
-            torques: (filter, tau),
-            physics_per_tick: (period * sim.physics_rate_hz).round().max(1.0) as usize,
+            plant: ClosedLoop::new(&world, trial.control_rate_hz, params.torque_filter_time_constant),
             world,
             ctrl,
             kin,
@@ -390,31 +384,11 @@ impl PivotSession {
         &mut self,
         scope: Option<Stamped<ScopeCommand>>,
     ) -> Result<crate::control::ControlOutput, SimError> {
-        let t = self.world.time();
-        let input = ControlInput {
-            now: t,
-            joints: Some(Stamped {
-                stamp: t,
-                value: self.world.joint_positions(),
-            }),
-            tau_ext: Some(Stamped {
-                stamp: t,
-                value: self.torques.1,
-            }),
-            trocar: self.world.measure_trocar(t).map(|m| Stamped {
-                stamp: m.stamp,
-                value: m.pose,
-            }),
-            scope,
-        };
+        let input = control_input(&self.plant.observe(&self.world), scope);
         let out = self.ctrl.step(self.kin.as_ref(), &input);
-        if let Some(q) = out.command {
-            self.world.set_command(&q)?;
-        }
-        for _ in 0..self.physics_per_tick {
-            self.world.step_physics()?;
-            self.torques.1 = self.torques.0.update(self.world.time(), &self.world.external_torques());
-        }
+        self.plant
+            .advance(&mut self.world, out.command.as_ref())
+            .map_err(PlantError::into_sim)?;
         Ok(out)
     }
 
