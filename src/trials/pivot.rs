@@ -22,6 +22,7 @@ use serde::Serialize;
 
 use super::closed_loop::{control_input, ClosedLoop, PlantError};
 use super::run::TrialParams;
+use crate::control::docking::geometry::{across, distance_to_line};
 use crate::control::{Controller, ControllerParams, Phase, ScopeCommand, Stamped};
 use crate::kinematics::Kinematics;
 use crate::sim::{SimError, SimParams, SimWorld};
@@ -241,12 +242,6 @@ pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
     c
 }
 
-/// Distance of the line through `e` along unit `a` from `p`.
-fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
-    let u = p - e;
-    (u - a * a.dot(&u)).norm()
-}
-
 /// Samples while commanded and while still.
 #[derive(Default)]
 struct Series {
@@ -401,8 +396,7 @@ impl PivotSession {
     /// The distance of `p` from the true port across the true shaft, m.
     pub fn across_from_port(&self, p: &Point3<f64>) -> f64 {
         let (_, a) = self.shaft();
-        let v = p - self.world.trocar().anchor();
-        (v - a * a.dot(&v)).norm()
+        distance_to_line(p, &self.world.trocar().anchor(), &a)
     }
 
     /// The law's port (the tip less its reported `depth` past it along the shaft) from the
@@ -416,7 +410,7 @@ impl PivotSession {
     /// The true shaft line's distance from the true port (the module doc), m.
     pub fn distance(&self) -> f64 {
         let (e, a) = self.shaft();
-        line_distance(&e, &a, &self.world.trocar().anchor())
+        distance_to_line(&self.world.trocar().anchor(), &e, &a)
     }
 }
 
@@ -503,8 +497,8 @@ fn traced(
         t: lp.world.time() - t0,
         commanded: scope.is_some(),
         distance_m: lp.distance(),
-        wall_m: (v - a * a.dot(&v)).norm(),
-        lateral_true_n: (f - a * a.dot(&f)).norm(),
+        wall_m: across(&a, &v).norm(),
+        lateral_true_n: across(&a, &f).norm(),
         lateral_est_n: o.pivot.map_or(f64::NAN, |p| p.lateral_force),
         axial_true_n: a.dot(&f).abs(),
     };
@@ -542,23 +536,23 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
             r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
             let (e, _) = lp.shaft();
             let port = Point3::from(lp.world.trocar_pose_true().translation.vector);
-            s.face.push(line_distance(&e, &a, &port));
+            s.face.push(distance_to_line(&port, &e, &a));
             let anchor = lp.world.trocar().anchor();
-            s.bore.push(line_distance(&e, &a, &lp.world.trocar().pivot()));
+            s.bore.push(distance_to_line(&lp.world.trocar().pivot(), &e, &a));
             let trocar_axis = lp.world.trocar_pose_true().rotation * Vector3::z();
             s.bore_angle.push(a.angle(&trocar_axis));
             s.depth.push(lp.world.contact().max_depth);
             s.estimate
                 .push(o.pivot.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum)));
             s.tracking
-                .push(o.pivot.map_or(f64::NAN, |p| line_distance(&e, &a, &p.fulcrum)));
+                .push(o.pivot.map_or(f64::NAN, |p| distance_to_line(&p.fulcrum, &e, &a)));
             if let Some(p) = o.pivot {
                 let along = lp.port_along(p.depth);
                 let from = *s.port_along_from.get_or_insert(along);
                 s.port_along.push((along - from).abs());
             }
             let b = anchor - anchor0;
-            s.breathing.push((b - a * a.dot(&b)).norm());
+            s.breathing.push(across(&a, &b).norm());
             s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
             s.swept = s.swept.max(a.angle(&a0));
             s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
@@ -578,7 +572,7 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
         let rel = e - lp.world.trocar().anchor();
         let rel_from = *s.still_rel_from.get_or_insert(rel);
         let d = rel - rel_from;
-        s.still_rel = s.still_rel.max((d - a * a.dot(&d)).norm());
+        s.still_rel = s.still_rel.max(across(&a, &d).norm());
         s.still_distance.push(lp.distance());
         r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
     }

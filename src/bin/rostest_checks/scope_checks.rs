@@ -43,6 +43,7 @@ use std::sync::{Arc, Mutex};
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use ::trocar_docking::control::docking::geometry::distance_to_line;
 use ::trocar_docking::control::ScopeCommand;
 use ::trocar_docking::kinematics::lbr::LbrModel;
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics, TIP_LINK};
@@ -189,8 +190,11 @@ fn port_at(truth: &[(f64, Point3<f64>)], t: f64) -> Option<Point3<f64>> {
 
 /// Distance of the shaft (the line through the tip along its z axis) from `port`, m.
 fn shaft_distance(tip: &Isometry3<f64>, port: &Point3<f64>) -> f64 {
-    let z = tip.rotation * Vector3::z();
-    (port - Point3::from(tip.translation.vector)).cross(&z).norm()
+    distance_to_line(
+        port,
+        &Point3::from(tip.translation.vector),
+        &(tip.rotation * Vector3::z()),
+    )
 }
 
 /// The pivot as measured over the commanded window: shaft distances from the true port, and

@@ -31,7 +31,7 @@
 use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::control::docking::geometry::InsertionAxis;
+use crate::control::docking::geometry::{across, InsertionAxis};
 use crate::kinematics::{Jacobian, JointVector};
 
 /// 7 x 7 matrix of the QP.
@@ -143,8 +143,7 @@ impl PivotCost {
     /// P_a (f - e): zero when the shaft passes through the fulcrum.
     pub fn rcm_residual(&self, pose: &Isometry3<f64>) -> Vector3<f64> {
         let a = pose.rotation * Vector3::z();
-        let u = self.fulcrum - Point3::from(pose.translation.vector);
-        u - a * a.dot(&u)
+        across(&a, &(self.fulcrum - Point3::from(pose.translation.vector)))
     }
 
     /// The weighted value of both terms at `pose`.
