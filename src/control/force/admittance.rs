@@ -100,6 +100,7 @@ impl AdmittanceParams {
 }
 
 pub use crate::signal::deadband;
+use crate::signal::rc_smoothing;
 
 /// f = (J J^T + λ² I)^{-1} J tau for the linear rows of `jac`; `None` when the inputs are
 /// not finite.
@@ -128,14 +129,7 @@ impl Admittance {
     /// Returns the filtered force; a non-finite estimate leaves the filter unchanged.
     pub fn update_force(&mut self, p: &AdmittanceParams, jac: &Jacobian, tau: &JointVector, dt: f64) -> Vector3<f64> {
         if let Some(f) = tip_force(jac, tau, p.torque_deadband, p.pinv_damping) {
-            let fc = p.filter_cutoff_hz;
-            let alpha = if fc > 0.0 && dt > 0.0 {
-                let rc = 1.0 / (2.0 * std::f64::consts::PI * fc);
-                dt / (rc + dt)
-            } else {
-                1.0
-            };
-            self.force += (f - self.force) * alpha;
+            self.force += (f - self.force) * rc_smoothing(p.filter_cutoff_hz, dt);
         }
         self.force
     }
