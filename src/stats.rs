@@ -2,12 +2,19 @@
 //!
 //! The rule is linear interpolation between the closest ranks (Hyndman and Fan's
 //! definition 7, the default of R and NumPy): the `p`-quantile of `n` ascending samples
-//! `v` is `v[i] + f (v[i + 1] - v[i])` with `i + f = p (n - 1)`. The pivot benchmark's p95
-//! figures and the trials' box plots use it.
+//! `v` is `v[i] + f (v[i + 1] - v[i])` with `i + f = p (n - 1)`; the median of an even count
+//! is the mean of the middle two, p = 1 the largest sample. Every offline figure uses it: the
+//! pivot benchmark's p95 figures, the trials' box plots, the benchmarks' latency and
+//! accuracy percentiles, the rostest pivot check. The nodes' real-time loop statistics
+//! ([`crate::ros::stats`]) and the soak's step times keep fixed histograms instead (no
+//! sample kept, nothing sorted), read by the nearest rank of their bins.
 
-/// The `p`-quantile (0..=1, clamped) of `sorted` (ascending, non-empty) by the rule of this
-/// module.
+/// The `p`-quantile (0..=1, clamped) of `sorted` (ascending) by the rule of this module; NaN
+/// when empty.
 pub fn quantile_sorted(sorted: &[f64], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
     let pos = p.clamp(0.0, 1.0) * (sorted.len() - 1) as f64;
     let (i, f) = (pos.floor() as usize, pos.fract());
     let j = (i + 1).min(sorted.len() - 1);
@@ -37,6 +44,7 @@ mod tests {
         assert!((quantile_sorted(&v, 0.95) - 4.8).abs() < 1e-12);
         assert!((quantile_sorted(&[1.0, 2.0], 0.5) - 1.5).abs() < 1e-12);
         assert_eq!(quantile_sorted(&[7.0], 0.99), 7.0);
+        assert!(quantile_sorted(&[], 0.5).is_nan());
     }
 
     #[test]
