@@ -155,38 +155,38 @@ mod tests {
         SimWorld::new(&SimParams::default(), kin, 1).unwrap()
     }
 
-    #[test]
-    fn a_period_steps_the_physics_to_the_next_control_tick() {
+    /// One period of a loop at `rate_hz` in a fresh world, stopped after `stop_at` physics
+    /// ticks (if ever): the result, the ticks run and the world.
+    fn period(rate_hz: f64, stop_at: usize) -> (Result<ControlFlow<usize>, PlantError>, usize, SimWorld) {
         let mut w = world();
-        let mut lp = ClosedLoop::new(&w, 100.0, 0.005);
+        let mut lp = ClosedLoop::new(&w, rate_hz, 0.005);
         let mut ticks = 0;
         let r = lp.advance_until(&mut w, None, |_| {
             ticks += 1;
-            ControlFlow::<()>::Continue(())
+            if ticks == stop_at {
+                ControlFlow::Break(ticks)
+            } else {
+                ControlFlow::Continue(())
+            }
         });
+        (r, ticks, w)
+    }
+
+    #[test]
+    fn a_period_steps_the_physics_to_the_next_control_tick() {
+        let (r, ticks, w) = period(100.0, usize::MAX);
         assert!(matches!(r, Ok(ControlFlow::Continue(()))));
-        let physics_hz = w.params().physics_rate_hz;
-        assert_eq!(ticks, (physics_hz / 100.0).round() as usize);
+        assert_eq!(ticks, (w.params().physics_rate_hz / 100.0).round() as usize);
         assert!((w.time() - 0.01).abs() < 1e-9, "{}", w.time());
-        let obs = lp.observe(&w);
+        let obs = ClosedLoop::new(&w, 100.0, 0.0).observe(&w);
         assert_eq!(obs.t, w.time());
         assert_eq!(obs.q, w.joint_positions());
     }
 
     #[test]
     fn a_break_ends_the_period_early() {
-        let mut w = world();
-        let mut lp = ClosedLoop::new(&w, 10.0, 0.0);
-        let mut ticks = 0;
-        let r = lp.advance_until(&mut w, None, |_| {
-            ticks += 1;
-            if ticks == 3 {
-                ControlFlow::Break("stop")
-            } else {
-                ControlFlow::Continue(())
-            }
-        });
-        assert!(matches!(r, Ok(ControlFlow::Break("stop"))));
+        let (r, ticks, _) = period(10.0, 3);
+        assert!(matches!(r, Ok(ControlFlow::Break(3))));
         assert_eq!(ticks, 3);
     }
 

@@ -17,6 +17,7 @@ use nalgebra::{Matrix3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::kinematics::{Jacobian, JointVector};
+use crate::validate;
 
 /// Parameters of the force estimate and the admittance law.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -66,35 +67,21 @@ impl Default for AdmittanceParams {
 impl AdmittanceParams {
     /// Check ranges; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let pos = |n: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("admittance.{n} must be > 0, got {v}"))
-            }
-        };
-        let nonneg = |n: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(format!("admittance.{n} must be >= 0, got {v}"))
-            }
-        };
-        nonneg("torque_deadband", self.torque_deadband)?;
-        pos("pinv_damping", self.pinv_damping)?;
-        nonneg("filter_cutoff_hz", self.filter_cutoff_hz)?;
-        nonneg("force_deadband", self.force_deadband)?;
-        pos("mass", self.mass)?;
-        nonneg("damping", self.damping)?;
-        nonneg("stiffness", self.stiffness)?;
-        pos("max_displacement", self.max_displacement)?;
-        pos("axial_force_full_stop", self.axial_force_full_stop)?;
-        if !(0.0..=1.0).contains(&self.min_insert_speed_ratio) {
-            return Err(format!(
-                "admittance.min_insert_speed_ratio must be in [0, 1], got {}",
-                self.min_insert_speed_ratio
-            ));
-        }
+        validate::non_negative("admittance.torque_deadband", self.torque_deadband)?;
+        validate::positive("admittance.pinv_damping", self.pinv_damping)?;
+        validate::non_negative("admittance.filter_cutoff_hz", self.filter_cutoff_hz)?;
+        validate::non_negative("admittance.force_deadband", self.force_deadband)?;
+        validate::positive("admittance.mass", self.mass)?;
+        validate::non_negative("admittance.damping", self.damping)?;
+        validate::non_negative("admittance.stiffness", self.stiffness)?;
+        validate::positive("admittance.max_displacement", self.max_displacement)?;
+        validate::positive("admittance.axial_force_full_stop", self.axial_force_full_stop)?;
+        validate::in_range(
+            "admittance.min_insert_speed_ratio",
+            self.min_insert_speed_ratio,
+            0.0,
+            1.0,
+        )?;
         Ok(())
     }
 }

@@ -32,6 +32,7 @@ use nalgebra::UnitQuaternion;
 use crate::control::force::payload::PayloadFit;
 use crate::control::safety::hold::HoldReason;
 use crate::kinematics::{Jacobian, JointVector};
+use crate::validate;
 
 /// Parameters of the tare (`tare:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -75,31 +76,15 @@ impl Default for TareParams {
 impl TareParams {
     /// Check ranges; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let nonneg = |n: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(format!("tare.{n} must be >= 0, got {v}"))
-            }
-        };
-        let pos = |n: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("tare.{n} must be > 0, got {v}"))
-            }
-        };
-        nonneg("window_s", self.window_s)?;
-        if self.window_s > 10.0 {
-            return Err(format!("tare.window_s must be <= 10 s, got {}", self.window_s));
-        }
-        pos("max_motion_rad", self.max_motion_rad)?;
-        pos("max_offset_nm", self.max_offset_nm)?;
-        pos("max_noise_nm", self.max_noise_nm)?;
-        nonneg("deadband_sigmas", self.deadband_sigmas)?;
-        nonneg("track_time_constant_s", self.track_time_constant_s)?;
-        nonneg("track_clearance_m", self.track_clearance_m)?;
-        nonneg("payload_prior_kg", self.payload_prior_kg)
+        validate::in_range("tare.window_s", self.window_s, 0.0, 10.0)?;
+        validate::positive("tare.max_motion_rad", self.max_motion_rad)?;
+        validate::positive("tare.max_offset_nm", self.max_offset_nm)?;
+        validate::positive("tare.max_noise_nm", self.max_noise_nm)?;
+        validate::non_negative("tare.deadband_sigmas", self.deadband_sigmas)?;
+        validate::non_negative("tare.track_time_constant_s", self.track_time_constant_s)?;
+        validate::non_negative("tare.track_clearance_m", self.track_clearance_m)?;
+        validate::non_negative("tare.payload_prior_kg", self.payload_prior_kg)?;
+        Ok(())
     }
 }
 
