@@ -28,6 +28,7 @@ pub mod realtime;
 pub mod ros;
 pub mod signal;
 pub mod sim;
+pub mod stats;
 #[cfg(test)]
 mod test_alloc;
 pub mod trials;

@@ -1,4 +1,6 @@
-//! Small signal-processing helpers shared by the controller and the simulated sensors.
+//! Small signal-processing helpers shared by the controller and the simulated sensors: the
+//! dead-band, the two first-order low-pass rules ([`exp_smoothing`] for stamped streams,
+//! [`rc_smoothing`] at a fixed step) and the stream low-pass built on the first.
 
 /// Dead-band: values within ±`band` become 0, others shrink towards 0 by `band`.
 pub fn deadband(x: f64, band: f64) -> f64 {
@@ -8,6 +10,30 @@ pub fn deadband(x: f64, band: f64) -> f64 {
         x + band
     } else {
         0.0
+    }
+}
+
+/// The weight of a new sample in a first-order low-pass of time constant `tau` s, `dt` s
+/// after the last one: `1 - exp(-dt / tau)`, exact for an input held between samples (a
+/// `dt` below 0 counts as 0; `tau` of 0 or less: 1, no filter). The rule of
+/// [`StreamLowPass`] and of the trocar estimate's smoothing.
+pub fn exp_smoothing(dt: f64, tau: f64) -> f64 {
+    if tau > 0.0 {
+        1.0 - (-dt.max(0.0) / tau).exp()
+    } else {
+        1.0
+    }
+}
+
+/// The weight of a new sample in a first-order low-pass of cut-off `cutoff_hz` Hz stepped at
+/// a fixed `dt` s: the discrete RC filter's `dt / (RC + dt)`, `RC = 1 / (2 pi cutoff)` (a
+/// cut-off or `dt` of 0 or less: 1, no filter). The rule of the force estimates' filters.
+pub fn rc_smoothing(cutoff_hz: f64, dt: f64) -> f64 {
+    if cutoff_hz > 0.0 && dt > 0.0 {
+        let rc = 1.0 / (2.0 * std::f64::consts::PI * cutoff_hz);
+        dt / (rc + dt)
+    } else {
+        1.0
     }
 }
 
@@ -47,7 +73,7 @@ impl<const N: usize> StreamLowPass<N> {
         let fresh = stamp.is_finite() && x.iter().all(|v| v.is_finite());
         let y = match self.state {
             Some((t0, y)) if fresh && self.time_constant > 0.0 && stamp >= t0 => {
-                y + (x - y) * (1.0 - (-(stamp - t0) / self.time_constant).exp())
+                y + (x - y) * exp_smoothing(stamp - t0, self.time_constant)
             }
             _ => *x,
         };
@@ -89,6 +115,18 @@ mod tests {
         lp.update(0.0, &Vector2::zeros());
         let y = lp.update(0.005, &Vector2::new(1.0, 1.0));
         assert!((y.x - (1.0 - (-1.0f64).exp())).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_smoothing_weights_follow_their_rules() {
+        assert!((exp_smoothing(0.005, 0.005) - (1.0 - (-1.0f64).exp())).abs() < 1e-15);
+        assert_eq!(exp_smoothing(-1.0, 0.005), 0.0);
+        assert_eq!(exp_smoothing(0.01, 0.0), 1.0);
+        // RC = 1 / (2 pi) s at 1 Hz: after dt = RC, half of the step.
+        let rc = 1.0 / (2.0 * std::f64::consts::PI);
+        assert!((rc_smoothing(1.0, rc) - 0.5).abs() < 1e-15);
+        assert_eq!(rc_smoothing(0.0, 0.01), 1.0);
+        assert_eq!(rc_smoothing(5.0, 0.0), 1.0);
     }
 
     #[test]

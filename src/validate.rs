@@ -53,6 +53,13 @@ pub struct RangeError {
     pub rule: Rule,
 }
 
+/// The error's text, for the checks that report a `String` (the controller's parameters).
+impl From<RangeError> for String {
+    fn from(e: RangeError) -> Self {
+        e.to_string()
+    }
+}
+
 fn check(key: &str, value: f64, rule: Rule, ok: bool) -> Result<f64, RangeError> {
     if ok {
         Ok(value)

@@ -3,7 +3,7 @@
 //! without force feedback; and the command is always inside the limits and the step box.
 
 use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
-use trocar_docking::control::geometry::InsertionAxis;
+use trocar_docking::control::docking::geometry::InsertionAxis;
 use trocar_docking::control::{ControlInput, Controller, ControllerParams, Phase, Stamped};
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -282,7 +282,7 @@ fn a_scope_seated_beside_a_biased_estimate_is_done_and_says_so() {
     assert!((run.depth - depth).abs() < 0.001, "depth {}", run.depth);
     assert!(run.f_max < 10.0, "{} N", run.f_max);
     let off = ControllerParams {
-        seated: trocar_docking::control::seated::SeatedParams {
+        seated: trocar_docking::control::docking::seated::SeatedParams {
             lateral_tolerance: 0.0,
             ..Default::default()
         },

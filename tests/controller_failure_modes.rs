@@ -7,7 +7,7 @@
 //! within the speed limits, and the new start begins from the last published command.
 
 use nalgebra::Isometry3;
-use trocar_docking::control::guard::LEAD_WATCH_FRACTION;
+use trocar_docking::control::safety::guard::LEAD_WATCH_FRACTION;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, HoldReason, Phase, Stamped};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 

@@ -4,7 +4,7 @@
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
-use trocar_docking::control::geometry::InsertionAxis;
+use trocar_docking::control::docking::geometry::InsertionAxis;
 use trocar_docking::control::sqp::SqpStatus;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -539,7 +539,7 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     }
     let k0 = held_at.expect("no hold although the arm never moved");
     // Still frozen: the hold stays and walks the command to where the arm is (within the
-    // speed limits, src/control/guarded.rs), then stays put; a start resumes.
+    // speed limits, src/control/safety/guarded.rs), then stays put; a start resumes.
     let mut held = None;
     for k in k0 + 1..=k0 + 10 {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));

@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use trocar_docking::stats::finite_quantile;
 use trocar_docking::vision::markerless::approach::docking_approach;
 use trocar_docking::vision::markerless::render::ToolCylinder;
 use trocar_docking::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer, HIGH_CONFIDENCE};
@@ -36,11 +37,6 @@ fn run(
     Some((pos, ang, e.confidence))
 }
 
-fn percentile(v: &mut [f64], p: f64) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * p).round() as usize]
-}
-
 #[test]
 fn the_axis_along_the_docking_approach_under_varied_light_and_noise() {
     let cam = camera();
@@ -65,9 +61,9 @@ fn the_axis_along_the_docking_approach_under_varied_light_and_noise() {
         }
     }
     let (pm, p95, am) = (
-        percentile(&mut pos, 0.5),
-        percentile(&mut pos, 0.95),
-        percentile(&mut ang, 0.5),
+        finite_quantile(&pos, 0.5),
+        finite_quantile(&pos, 0.95),
+        finite_quantile(&ang, 0.5),
     );
     eprintln!("found {found}/{n}; port median {pm:.2} mm p95 {p95:.2} mm; axis median {am:.2} deg");
     assert!(found as f64 >= 0.95 * n as f64, "found {found}/{n}");
@@ -76,7 +72,7 @@ fn the_axis_along_the_docking_approach_under_varied_light_and_noise() {
     assert!(am <= AXIS_MEDIAN_DEG, "axis median {am:.2} deg");
 }
 
-/// Bounds just above the measured figures (median 0.35 mm, p95 1.70 mm, axis median 0.42 deg;
+/// Bounds just above the measured figures (median 0.29 mm, p95 1.73 mm, axis median 0.41 deg;
 /// docs/markerless.md).
 const PORT_MEDIAN_MM: f64 = 0.4;
 const PORT_P95_MM: f64 = 2.0;

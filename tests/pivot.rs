@@ -453,7 +453,7 @@ fn pan_to_the_cone(controller: &ControllerParams, seed: u64) -> (f64, bool) {
         assert_eq!(o.phase, Phase::Done);
         let p = o.pivot.unwrap();
         assert_eq!(p.ignored, None);
-        cone |= p.limit == Some(trocar_docking::control::scope::ScopeLimit::Cone);
+        cone |= p.limit == Some(trocar_docking::control::scope::command::ScopeLimit::Cone);
         let (_, a) = s.shaft();
         along = along.max(a.dot(&s.world().contact().force).abs());
     }

@@ -8,7 +8,8 @@ use trocar_docking::kinematics::{Kinematics, LbrKinematics};
 use trocar_docking::sim::noise::NoiseModel;
 use trocar_docking::sim::{SimParams, SimWorld};
 use trocar_docking::trials::baseline::Baseline;
-use trocar_docking::trials::run::{run_trial, Action, Observation, Outcome, Policy, TrialParams};
+use trocar_docking::trials::closed_loop::Observation;
+use trocar_docking::trials::run::{run_trial, Action, Outcome, Policy, TrialParams};
 
 fn kin() -> Arc<dyn Kinematics> {
     Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("model"))

@@ -15,9 +15,11 @@ use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 use super::{scheduler_name, time_wall_and_cpu, LatencyStats, SuiteReport};
 use crate::control::sqp::SqpStatus;
 use crate::control::Phase;
-use crate::control::{ControlInput, Controller, ControllerParams, Stamped};
+use crate::control::{Controller, ControllerParams};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, KinematicsError, LbrKinematics};
+use crate::sim::noise::TrocarMeasurement;
+use crate::trials::closed_loop::{control_input, Observation};
 
 /// A benchmark scenario.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -127,19 +129,17 @@ pub fn run_scenario(
     while s.wall_us.len() < steps {
         now += params.dt;
         let (_, trocar) = scenario_trocar(kin, scenario, now).map_err(|e| e.to_string())?;
-        let input = ControlInput {
-            scope: None,
-            now,
-            joints: Some(Stamped { stamp: now, value: q }),
-            tau_ext: Some(Stamped {
+        // An ideal arm (at its command, no contact): the controller's own time alone.
+        let seen = Observation {
+            t: now,
+            q,
+            tau_ext: JointVector::zeros(),
+            trocar: Some(TrocarMeasurement {
                 stamp: now,
-                value: JointVector::zeros(),
-            }),
-            trocar: Some(Stamped {
-                stamp: now,
-                value: trocar,
+                pose: trocar,
             }),
         };
+        let input = control_input(&seen, None);
         let (out, wall, cpu) = time_wall_and_cpu(|| c.step(kin, &input));
         if out.phase == Phase::Tare {
             // The torque tare at each start holds the arm still: not the loop under test.

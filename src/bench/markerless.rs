@@ -62,10 +62,22 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
     extra.insert("frames".into(), frames.len().into());
     extra.insert("found".into(), found.into());
     if !pos.is_empty() {
-        extra.insert("port_error_median_mm".into(), super::percentile(&pos, 0.5).into());
-        extra.insert("port_error_max_mm".into(), super::percentile(&pos, 1.0).into());
-        extra.insert("axis_error_median_deg".into(), super::percentile(&ang, 0.5).into());
-        extra.insert("axis_error_max_deg".into(), super::percentile(&ang, 1.0).into());
+        extra.insert(
+            "port_error_median_mm".into(),
+            crate::stats::quantile_sorted(&pos, 0.5).into(),
+        );
+        extra.insert(
+            "port_error_max_mm".into(),
+            crate::stats::quantile_sorted(&pos, 1.0).into(),
+        );
+        extra.insert(
+            "axis_error_median_deg".into(),
+            crate::stats::quantile_sorted(&ang, 0.5).into(),
+        );
+        extra.insert(
+            "axis_error_max_deg".into(),
+            crate::stats::quantile_sorted(&ang, 1.0).into(),
+        );
     }
     let mut out = vec![SuiteReport {
         name: "markerless_axis_zedm_1280x720".into(),

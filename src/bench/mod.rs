@@ -5,6 +5,8 @@
 pub use crate::realtime::{scheduler_name, set_realtime_priority, thread_cpu_time};
 use std::time::Instant;
 
+use crate::stats::quantile_sorted;
+
 pub mod controller;
 pub mod kinematics;
 pub mod markerless;
@@ -36,7 +38,7 @@ impl LatencyStats {
             return None;
         }
         v.sort_by(f64::total_cmp);
-        let q = |p: f64| percentile(&v, p);
+        let q = |p: f64| quantile_sorted(&v, p);
         Some(Self {
             samples: v.len(),
             median_us: q(0.5),
@@ -45,17 +47,6 @@ impl LatencyStats {
             max_us: q(1.0),
             mean_us: v.iter().sum::<f64>() / v.len() as f64,
         })
-    }
-}
-
-/// The `p` quantile (0..=1) of `sorted` (ascending, non-empty): the sample of rank
-/// `round((n - 1) p)`, no interpolation, so every figure is a measured value. The one
-/// percentile rule of the offline statistics (benchmarks, accuracy sweeps); NaN when empty.
-/// The nodes' real-time statistics use the fixed histogram of [`crate::ros::stats`].
-pub fn percentile(sorted: &[f64], p: f64) -> f64 {
-    match sorted.len() {
-        0 => f64::NAN,
-        n => sorted[((n - 1) as f64 * p.clamp(0.0, 1.0)).round() as usize],
     }
 }
 
@@ -109,14 +100,12 @@ mod tests {
         let s = LatencyStats::from_samples(&v).unwrap();
         assert_eq!(s.samples, 100);
         assert_eq!(s.max_us, 100.0);
-        assert!((s.median_us - 50.0).abs() <= 1.0);
-        assert!((s.p99_us - 99.0).abs() <= 1.0);
+        // The rule of crate::stats: interpolated between the closest ranks.
+        assert!((s.median_us - 50.5).abs() < 1e-12);
+        assert!((s.p90_us - 90.1).abs() < 1e-9);
+        assert!((s.p99_us - 99.01).abs() < 1e-9);
         assert!((s.mean_us - 50.5).abs() < 1e-12);
         assert!(LatencyStats::from_samples(&[f64::NAN]).is_none());
-        assert_eq!(percentile(&[1.0, 2.0, 3.0, 4.0], 0.5), 3.0);
-        assert_eq!(percentile(&[1.0, 2.0, 3.0], 0.5), 2.0);
-        assert_eq!(percentile(&[7.0], 0.99), 7.0);
-        assert!(percentile(&[], 0.5).is_nan());
     }
 
     #[test]

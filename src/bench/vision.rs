@@ -5,6 +5,7 @@
 use rand::{RngExt, SeedableRng};
 
 use super::{time_each, LatencyStats, SuiteReport};
+use crate::stats::quantile_sorted;
 use crate::vision::{
     facing_pose, pose_distance, render_marker_image, CameraModel, GreyImage, MarkerDetector, MarkerFamily, MarkerSpec,
     RenderOptions, VisionError,
@@ -66,7 +67,7 @@ impl SweepResult {
 fn median_max(v: &[f64]) -> (f64, f64) {
     let mut s = v.to_vec();
     s.sort_by(f64::total_cmp);
-    (super::percentile(&s, 0.5), super::percentile(&s, 1.0))
+    (quantile_sorted(&s, 0.5), quantile_sorted(&s, 1.0))
 }
 
 /// Random frames within the target envelope: 1280x720, fx 700–1000 px, marker 4–8 cm,

@@ -14,11 +14,10 @@ use serde::Serialize;
 use crate::control::ControllerParams;
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{Kinematics, LbrKinematics};
+use crate::stats::finite_quantile;
 use crate::trials::batch::Stats;
 use crate::trials::config::{load_controller, Protocol, SimConfig};
-use crate::trials::pivot::{
-    done_when_script, finite_quantile, fixed_fulcrum, random_script, run_pivot, PivotResult, PivotTiming,
-};
+use crate::trials::pivot::{done_when_script, fixed_fulcrum, random_script, run_pivot, PivotResult, PivotTiming};
 
 use super::CliResult;
 

@@ -13,9 +13,9 @@
 //! tip never slides across the trocar face, and never leaps). INSERT advances the target
 //! along the axis to the goal depth with c1 keeping the tip on the axis; the axial force
 //! slows the advance but never stops it, and the lateral force moves r so the tip yields
-//! sideways (see [`super::admittance`]). DONE when the tip is within the position and angle
+//! sideways (see [`super::force::admittance`]). DONE when the tip is within the position and angle
 //! tolerance of the goal, or when it has settled at the goal depth held off the estimated
-//! axis by the port itself (a biased trocar estimate; see [`super::seated`]).
+//! axis by the port itself (a biased trocar estimate; see [`super::docking::seated`]).
 //!
 //! **Linearisation point.** The SQP starts from the previous command, not the measured
 //! position: the command is what the position-controlled arm tracks, the velocity box is
@@ -26,131 +26,22 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::admittance::Admittance;
-use super::geometry::{pose_is_finite, InsertionAxis};
-use super::goal_window::GoalWindow;
-use super::guard::{CommandGuard, HoldReason};
-use super::guarded::{CommandSource, Guarded, StepContext};
+use super::docking::geometry::{pose_is_finite, InsertionAxis};
+use super::docking::goal_window::GoalWindow;
+use super::docking::metrics::ForceMetric;
+use super::docking::seated::{SeatedCheck, TipState};
+use super::force::admittance::Admittance;
+use super::force::tare::{Tare, TareStep};
+use super::io::{ControlInput, ControlOutput, SolveReport};
 use super::live::{self, LiveValues};
-use super::metrics::ForceMetric;
-use super::motion::MotionLimiter;
 pub use super::params::{ControllerParams, ParamError};
-use super::pivot::{live_command, Pivot};
-use super::scope::{PivotReport, ScopeCommand};
-use super::seated::{Seated, SeatedCheck, TipState};
-use super::sqp::{CostTerms, CostWeights, LimitAvoidance, PivotCost, SqpSolver, SqpStatus, Targets};
+use super::safety::guard::{CommandGuard, HoldReason};
+use super::safety::guarded::{CommandSource, Guarded, StepContext};
+use super::safety::motion::MotionLimiter;
+use super::scope::pivot::{live_command, Pivot};
+use super::sqp::{CostWeights, LimitAvoidance, PivotCost, SqpSolver, Targets};
 use super::supervisor::{Phase, Supervisor};
-use super::tare::{Tare, TareStep};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
-
-/// A value with the time it was measured, s (same clock as [`ControlInput::now`]).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Stamped<T> {
-    /// Measurement time, s.
-    pub stamp: f64,
-    /// The value.
-    pub value: T,
-}
-
-/// The inputs of one control step; `None` where missing or rejected.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct ControlInput {
-    /// Now, s.
-    pub now: f64,
-    /// Measured joint positions.
-    pub joints: Option<Stamped<JointVector>>,
-    /// External joint torques, Nm.
-    pub tau_ext: Option<Stamped<JointVector>>,
-    /// Trocar pose in the base frame (origin = port, z = insertion direction into the body).
-    pub trocar: Option<Stamped<Isometry3<f64>>>,
-    /// The surgeon's newest scope command (after DONE), stamped when it was sent.
-    pub scope: Option<Stamped<ScopeCommand>>,
-}
-
-/// What the SQP reported, in a step that ran it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct SolveReport {
-    /// Unweighted c1..c5 at the solution.
-    pub costs: CostTerms,
-    /// QPs solved.
-    pub iterations: usize,
-    /// Interior-point iterations, over all the step's QPs.
-    pub qp_iterations: u32,
-    /// QPs solved by Clarabel (the others from a proven active set).
-    pub clarabel_qps: usize,
-    /// SQP wall time, µs.
-    pub solve_time_us: f64,
-    /// How the SQP ended.
-    pub status: SqpStatus,
-}
-
-/// The outputs of one control step; `None` where unknown.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ControlOutput {
-    /// `None`: send nothing (idle, or no joint state yet). `Some`: a guarded joint position
-    /// command (during a hold, the last safe command).
-    pub command: Option<JointVector>,
-    /// The phase after this step.
-    pub phase: Phase,
-    /// Reason of the last hold or abort.
-    pub hold: Option<HoldReason>,
-    /// How DONE was reached, when not plainly at the goal.
-    pub note: Option<Seated>,
-    /// The SQP's report, when it ran this step.
-    pub solve: Option<SolveReport>,
-    /// Filtered tip force estimate, base frame, N.
-    pub f_ext: Vector3<f64>,
-    /// Admittance reference r.
-    pub reference: Option<Point3<f64>>,
-    /// Tip pose from the measured joints.
-    pub tip: Option<Isometry3<f64>>,
-    /// Goal point.
-    pub goal: Option<Point3<f64>>,
-    /// M so far (time average of ||f_ext|| while moving), N.
-    pub metric_m: f64,
-    /// While the port is held as a remote centre of motion (after DONE): the fulcrum and
-    /// the shaft's distance from it.
-    pub pivot: Option<PivotReport>,
-}
-
-impl ControlOutput {
-    /// An output in `phase` that commands nothing and knows nothing else (no force, no
-    /// tip, no solve), for sources that fill in only what they have.
-    pub fn empty(phase: Phase) -> Self {
-        Self {
-            command: None,
-            phase,
-            hold: None,
-            note: None,
-            solve: None,
-            f_ext: Vector3::zeros(),
-            reference: None,
-            tip: None,
-            goal: None,
-            metric_m: 0.0,
-            pivot: None,
-        }
-    }
-
-    /// The text for the surgeon: the hold reason, or how DONE was reached.
-    pub fn reason_text(&self) -> Option<String> {
-        match (&self.hold, &self.note) {
-            (Some(h), _) => Some(h.to_string()),
-            (None, Some(n)) => Some(n.to_string()),
-            (None, None) => None,
-        }
-    }
-
-    /// The stable code of [`ControlOutput::reason_text`]: the hold's code, `SEATED` for a
-    /// DONE reached by the seated test, `""` for none.
-    pub fn reason_code(&self) -> &'static str {
-        match (&self.hold, &self.note) {
-            (Some(h), _) => h.code(),
-            (None, Some(_)) => "SEATED",
-            (None, None) => "",
-        }
-    }
-}
 
 /// Retreat after a force stop: the current target depth and the final depth, m.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -523,13 +414,13 @@ impl OptimalController {
         let sol = self.sqp.solve(kin, &start, &lo, &hi, &targets, weights);
         let cmd = if sol.status.is_usable() && pivot_on {
             // Pivoting (DONE, RETRACT) shapes its own rates within the motion limits (see
-            // [`super::pivot`]) and uses no trocar pose, whose noise the limiter is for;
+            // [`super::scope::pivot`]) and uses no trocar pose, whose noise the limiter is for;
             // limiting its linear and angular parts apart would move the shaft off the
             // fulcrum.
             self.run.motion.rest();
             sol.q
         } else if sol.status.is_usable() {
-            // The tip's speed, acceleration and jerk bounded (see [`super::motion`]).
+            // The tip's speed, acceleration and jerk bounded (see [`super::safety::motion`]).
             // Braking for what is left: the tip's distance to the phase's target point and
             // the alignment error.
             let tip = Point3::from(arm.tip.translation.vector);
@@ -649,7 +540,7 @@ impl OptimalController {
     }
 
     /// After DONE: hold the port as the remote centre of motion while the surgeon steers,
-    /// or withdraw (RETRACT); see [`super::pivot`]. `None` in the other phases (and before
+    /// or withdraw (RETRACT); see [`super::scope::pivot`]. `None` in the other phases (and before
     /// any trocar estimate, when DONE just holds).
     fn pivot_step(
         &mut self,

@@ -1,35 +1,29 @@
-//! The docking controller and its parts, pure Rust (no ROS, no C++): the optimal control
-//! law ([`sqp`]: costs, Gauss–Newton SQP on Clarabel, active-set warm start), the force
-//! estimate and admittance law ([`admittance`]), the command guard ([`guard`]), the phase
-//! state machine ([`supervisor`]), seated completion ([`seated`]), the metric M
-//! ([`metrics`]), live tuning ([`live`]), the insertion-axis geometry ([`geometry`]), and after docking the port
-//! held as a remote centre of motion ([`pivot`], [`fulcrum`], [`port_follow`], [`scope`]); [`controller`]
-//! runs them in one step per control period.
+//! The docking controller and its parts, pure Rust (no ROS, no C++), one folder per job:
+//! [`controller`] runs one step per control period ([`io`]: its inputs and outputs) through the phases of the state machine
+//! ([`supervisor`]), with the parameters of [`params`];
+//! [`docking`] the approach and insertion (the insertion axis, seated completion, the goal
+//! window, the metric M); [`scope`] after docking, the port held as a remote centre of motion
+//! while the surgeon steers the scope (the law, the fulcrum, the port's breathing, the
+//! commands and limits); [`force`] the force sensing (torque tare, payload fit, force
+//! estimate and admittance law); [`safety`] the command guard, the typed hold reasons and the
+//! tip's motion limits; [`live`] the parameters tuned while it runs; [`sqp`] the optimal control law (costs, Gauss–Newton SQP on
+//! Clarabel, active-set warm start).
 
-pub mod admittance;
 pub mod controller;
-pub mod fulcrum;
-pub mod geometry;
-pub mod goal_window;
-pub mod guard;
-pub mod guarded;
-pub mod hold;
+pub mod docking;
+pub mod force;
+pub mod io;
 pub mod live;
-pub mod metrics;
-pub mod motion;
 pub mod params;
-pub mod payload;
-pub mod pivot;
-pub mod port_follow;
+pub mod safety;
 pub mod scope;
-pub mod seated;
 pub mod sqp;
 pub mod supervisor;
-pub mod tare;
 
-pub use controller::{ControlInput, ControlOutput, Controller, OptimalController, SolveReport, Stamped};
-pub use guard::HoldReason;
-pub use guarded::{CommandSource, Guarded, StepContext};
+pub use controller::{Controller, OptimalController};
+pub use io::{ControlInput, ControlOutput, SolveReport, Stamped};
 pub use params::{ControllerParams, ParamError};
-pub use scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
+pub use safety::guard::HoldReason;
+pub use safety::guarded::{CommandSource, Guarded, StepContext};
+pub use scope::command::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
 pub use supervisor::Phase;

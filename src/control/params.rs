@@ -3,13 +3,14 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::admittance::AdmittanceParams;
-use super::guard::GuardParams;
-use super::motion::MotionLimits;
-use super::scope::ScopeParams;
-use super::seated::SeatedParams;
+use super::docking::seated::SeatedParams;
+use super::force::admittance::AdmittanceParams;
+use super::force::tare::TareParams;
+use super::safety::guard::GuardParams;
+use super::safety::motion::MotionLimits;
+use super::scope::command::ScopeParams;
 use super::sqp::{CostWeights, SqpSettings};
-use super::tare::TareParams;
+use crate::validate;
 
 /// Errors in the controller's parameters.
 #[derive(Debug, thiserror::Error)]
@@ -52,10 +53,10 @@ pub struct ControllerParams {
     pub goal_angle_tolerance_deg: f64,
     /// DONE is judged on the tip-to-goal error and the angle averaged over windows of this
     /// length, s, so that one lucky sample of a noisy trocar estimate does not end the
-    /// docking (0 = judged on each sample); see [`super::goal_window`].
+    /// docking (0 = judged on each sample); see [`super::docking::goal_window`].
     pub goal_window: f64,
     /// DONE also for a scope seated in the port beside a biased trocar estimate; see
-    /// [`super::seated`].
+    /// [`super::docking::seated`].
     pub seated: SeatedParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant: f64,
@@ -146,41 +147,24 @@ impl ControllerParams {
 
     /// Check every range; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let pos = |n: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("{n} must be > 0, got {v}"))
-            }
-        };
-        let nonneg = |n: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(format!("{n} must be >= 0, got {v}"))
-            }
-        };
-        pos("dt", self.dt)?;
-        if self.dt > 0.1 {
-            return Err(format!("dt must be <= 0.1 s, got {}", self.dt));
-        }
+        validate::positive_at_most("dt", self.dt, 0.1)?;
         self.approach_weights.validate("approach_weights")?;
         self.insert_weights.validate("insert_weights")?;
-        pos("insertion_depth", self.insertion_depth)?;
-        nonneg("standoff", self.standoff)?;
-        pos("approach_speed", self.approach_speed)?;
-        pos("insert_speed", self.insert_speed)?;
-        pos("approach_tolerance", self.approach_tolerance)?;
-        pos("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
-        pos("goal_tolerance", self.goal_tolerance)?;
-        pos("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
-        nonneg("goal_window", self.goal_window)?;
+        validate::positive("insertion_depth", self.insertion_depth)?;
+        validate::non_negative("standoff", self.standoff)?;
+        validate::positive("approach_speed", self.approach_speed)?;
+        validate::positive("insert_speed", self.insert_speed)?;
+        validate::positive("approach_tolerance", self.approach_tolerance)?;
+        validate::positive("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
+        validate::positive("goal_tolerance", self.goal_tolerance)?;
+        validate::positive("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
+        validate::non_negative("goal_window", self.goal_window)?;
         self.seated.validate()?;
-        nonneg("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
-        nonneg("torque_filter_time_constant", self.torque_filter_time_constant)?;
-        nonneg("retreat_distance", self.retreat_distance)?;
-        nonneg("limit_avoidance_weight", self.limit_avoidance_weight)?;
-        pos("approach_stall_timeout", self.approach_stall_timeout)?;
+        validate::non_negative("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
+        validate::non_negative("torque_filter_time_constant", self.torque_filter_time_constant)?;
+        validate::non_negative("retreat_distance", self.retreat_distance)?;
+        validate::non_negative("limit_avoidance_weight", self.limit_avoidance_weight)?;
+        validate::positive("approach_stall_timeout", self.approach_stall_timeout)?;
         if !(0.0..1.0).contains(&self.limit_avoidance_zone) {
             return Err(format!(
                 "limit_avoidance_zone must be in [0, 1), got {}",

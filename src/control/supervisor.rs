@@ -8,8 +8,8 @@
 
 use std::fmt;
 
-use super::hold::HoldReason;
-use super::seated::Seated;
+use super::docking::seated::Seated;
+use super::safety::hold::HoldReason;
 
 /// The phase of a docking run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
@@ -17,7 +17,7 @@ pub enum Phase {
     /// Waiting for start; nothing moves.
     Idle,
     /// Started: the arm is held still while the external torques are tared
-    /// ([`crate::control::tare`]); then APPROACH, or back to IDLE with the reason.
+    /// ([`crate::control::force::tare`]); then APPROACH, or back to IDLE with the reason.
     Tare,
     /// Moving the tip to the stand-off point on the insertion axis, aligning the scope.
     Approach,

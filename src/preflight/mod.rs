@@ -14,7 +14,7 @@
 
 use nalgebra::Isometry3;
 
-use crate::control::tare::TareParams;
+use crate::control::force::tare::TareParams;
 use crate::kinematics::{Kinematics, N_JOINTS};
 use crate::sim::scenario::Scenario;
 

@@ -451,7 +451,7 @@ mod tests {
         let mut sorted = v.clone();
         sorted.sort_by(f64::total_cmp);
         let p = s.percentiles();
-        let want = |q: f64| crate::bench::percentile(&sorted, q);
+        let want = |q: f64| crate::stats::quantile_sorted(&sorted, q);
         assert!(close(p.p50, want(0.5)), "{} vs {}", p.p50, want(0.5));
         assert!(close(p.p99, want(0.99)), "{} vs {}", p.p99, want(0.99));
         assert!(close(p.max, want(1.0)), "{} vs {}", p.max, want(1.0));

@@ -9,7 +9,8 @@
 use nalgebra::{Matrix6, Point3, Vector3, Vector6};
 use serde::{Deserialize, Serialize};
 
-use super::run::{Action, Observation, Policy};
+use super::closed_loop::Observation;
+use super::run::{Action, Policy};
 use crate::kinematics::{JointVector, Kinematics};
 
 /// The baseline reports DONE within this distance of the measured goal, m, ...
@@ -97,7 +98,8 @@ impl Policy for Baseline {
         let Ok((tip, jac)) = kin.fk_jacobian(&obs.q) else {
             return hold("kinematics failed");
         };
-        let f_ext = crate::control::admittance::tip_force(&jac, &obs.tau_ext, 0.0, 0.05).unwrap_or_else(Vector3::zeros);
+        let f_ext =
+            crate::control::force::admittance::tip_force(&jac, &obs.tau_ext, 0.0, 0.05).unwrap_or_else(Vector3::zeros);
         let Some(m) = obs.trocar else {
             return Action {
                 command: None,

@@ -2,8 +2,9 @@
 //! observation becomes a `ControlInput` (joints and torques stamped now, the trocar pose
 //! stamped at capture), its output the commanded joints and the f_ext estimate.
 
-use super::run::{Action, Observation, Policy};
-use crate::control::{ControlInput, Controller, ControllerParams, Phase, Stamped};
+use super::closed_loop::{control_input, Observation};
+use super::run::{Action, Policy};
+use crate::control::{Controller, ControllerParams, Phase};
 use crate::kinematics::{JointLimits, Kinematics};
 
 /// The controller driving a simulated trial.
@@ -24,27 +25,6 @@ impl ControllerPolicy {
     }
 }
 
-/// The controller's input from an observation: joints and torques stamped now, the trocar
-/// pose stamped at capture.
-fn control_input(obs: &Observation) -> ControlInput {
-    ControlInput {
-        scope: None,
-        now: obs.t,
-        joints: Some(Stamped {
-            stamp: obs.t,
-            value: obs.q,
-        }),
-        tau_ext: Some(Stamped {
-            stamp: obs.t,
-            value: obs.tau_ext,
-        }),
-        trocar: obs.trocar.map(|m| Stamped {
-            stamp: m.stamp,
-            value: m.pose,
-        }),
-    }
-}
-
 impl Policy for ControllerPolicy {
     fn torque_filter_time_constant(&self) -> f64 {
         self.torque_filter
@@ -57,7 +37,7 @@ impl Policy for ControllerPolicy {
     }
 
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action {
-        let input = control_input(obs);
+        let input = control_input(obs, None);
         let out = self.ctrl.step(kin, &input);
         Action {
             command: out.command,
@@ -159,7 +139,7 @@ mod tests {
                 calls: Cell::new(0),
                 poisoned: Cell::new(poison),
             };
-            let input = control_input(obs);
+            let input = control_input(obs, None);
             let before = allocations_on_this_thread();
             let out = self.inner.ctrl.step(&kin, &input);
             let allocated = allocations_on_this_thread() > before;

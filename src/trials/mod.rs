@@ -7,9 +7,11 @@
 
 pub mod baseline;
 pub mod batch;
+pub mod closed_loop;
 pub mod config;
 pub mod controller_policy;
 pub mod pivot;
 pub mod plot;
 pub mod policy;
 pub mod run;
+pub mod soak;

@@ -1,6 +1,6 @@
 //! After docking, on the simulated plant: dock with the controller, then steer the scope
 //! through the port with a script of surgeon's commands, and measure how well the port is
-//! held as the remote centre of motion ([`crate::control::pivot`]).
+//! held as the remote centre of motion ([`crate::control::scope::pivot`]).
 //!
 //! **The true port** is where the abdominal wall holds the trocar: the anchor of the
 //! trocar's mount at its fulcrum ([`crate::sim::trocar::Trocar::anchor`]), which moves with
@@ -20,11 +20,13 @@ use nalgebra::{Point3, Vector3};
 use rand::{RngExt, SeedableRng};
 use serde::Serialize;
 
+use super::closed_loop::{control_input, ClosedLoop, PlantError};
 use super::run::TrialParams;
-use crate::control::{ControlInput, Controller, ControllerParams, Phase, ScopeCommand, Stamped};
-use crate::kinematics::{JointVector, Kinematics};
-use crate::signal::StreamLowPass;
+use crate::control::docking::geometry::{across, distance_to_line};
+use crate::control::{Controller, ControllerParams, Phase, ScopeCommand, Stamped};
+use crate::kinematics::Kinematics;
 use crate::sim::{SimError, SimParams, SimWorld};
+use crate::stats::finite_quantile;
 
 /// One piece of a script: a command held for a duration.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -240,23 +242,6 @@ pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
     c
 }
 
-/// The `p`-quantile of the finite values of `v` (NaN if there are none).
-pub fn finite_quantile(v: &[f64], p: f64) -> f64 {
-    let mut v: Vec<f64> = v.iter().copied().filter(|x| x.is_finite()).collect();
-    v.sort_by(f64::total_cmp);
-    if v.is_empty() {
-        f64::NAN
-    } else {
-        super::plot::quantile(&v, p)
-    }
-}
-
-/// Distance of the line through `e` along unit `a` from `p`.
-fn line_distance(e: &Point3<f64>, a: &Vector3<f64>, p: &Point3<f64>) -> f64 {
-    let u = p - e;
-    (u - a * a.dot(&u)).norm()
-}
-
 /// Samples while commanded and while still.
 #[derive(Default)]
 struct Series {
@@ -328,10 +313,7 @@ pub struct PivotSession {
     ctrl: Controller,
     kin: Arc<dyn Kinematics>,
     period: f64,
-    physics_per_tick: usize,
-    /// The low-pass of the torques at the plant's rate (`torque_filter_time_constant`) and
-    /// its newest output.
-    torques: (StreamLowPass<7>, JointVector),
+    plant: ClosedLoop,
 }
 
 impl PivotSession {
@@ -352,11 +334,8 @@ impl PivotSession {
         let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
         let ctrl = Controller::new(params.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
         let period = 1.0 / trial.control_rate_hz;
-        let mut filter = StreamLowPass::new(params.torque_filter_time_constant);
-        let tau = filter.update(world.time(), &world.external_torques());
         let mut lp = Self {
-            torques: (filter, tau),
-            physics_per_tick: (period * sim.physics_rate_hz).round().max(1.0) as usize,
+            plant: ClosedLoop::new(&world, trial.control_rate_hz, params.torque_filter_time_constant),
             world,
             ctrl,
             kin,
@@ -400,31 +379,11 @@ impl PivotSession {
         &mut self,
         scope: Option<Stamped<ScopeCommand>>,
     ) -> Result<crate::control::ControlOutput, SimError> {
-        let t = self.world.time();
-        let input = ControlInput {
-            now: t,
-            joints: Some(Stamped {
-                stamp: t,
-                value: self.world.joint_positions(),
-            }),
-            tau_ext: Some(Stamped {
-                stamp: t,
-                value: self.torques.1,
-            }),
-            trocar: self.world.measure_trocar(t).map(|m| Stamped {
-                stamp: m.stamp,
-                value: m.pose,
-            }),
-            scope,
-        };
+        let input = control_input(&self.plant.observe(&self.world), scope);
         let out = self.ctrl.step(self.kin.as_ref(), &input);
-        if let Some(q) = out.command {
-            self.world.set_command(&q)?;
-        }
-        for _ in 0..self.physics_per_tick {
-            self.world.step_physics()?;
-            self.torques.1 = self.torques.0.update(self.world.time(), &self.world.external_torques());
-        }
+        self.plant
+            .advance(&mut self.world, out.command.as_ref())
+            .map_err(PlantError::into_sim)?;
         Ok(out)
     }
 
@@ -437,8 +396,7 @@ impl PivotSession {
     /// The distance of `p` from the true port across the true shaft, m.
     pub fn across_from_port(&self, p: &Point3<f64>) -> f64 {
         let (_, a) = self.shaft();
-        let v = p - self.world.trocar().anchor();
-        (v - a * a.dot(&v)).norm()
+        distance_to_line(p, &self.world.trocar().anchor(), &a)
     }
 
     /// The law's port (the tip less its reported `depth` past it along the shaft) from the
@@ -452,7 +410,7 @@ impl PivotSession {
     /// The true shaft line's distance from the true port (the module doc), m.
     pub fn distance(&self) -> f64 {
         let (e, a) = self.shaft();
-        line_distance(&e, &a, &self.world.trocar().anchor())
+        distance_to_line(&self.world.trocar().anchor(), &e, &a)
     }
 }
 
@@ -539,8 +497,8 @@ fn traced(
         t: lp.world.time() - t0,
         commanded: scope.is_some(),
         distance_m: lp.distance(),
-        wall_m: (v - a * a.dot(&v)).norm(),
-        lateral_true_n: (f - a * a.dot(&f)).norm(),
+        wall_m: across(&a, &v).norm(),
+        lateral_true_n: across(&a, &f).norm(),
         lateral_est_n: o.pivot.map_or(f64::NAN, |p| p.lateral_force),
         axial_true_n: a.dot(&f).abs(),
     };
@@ -563,7 +521,7 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
         }
     }
     if let Some(m) = lp.world.measure_trocar(lp.world.time()) {
-        let axis = crate::control::geometry::InsertionAxis::from_pose(&m.pose);
+        let axis = crate::control::docking::geometry::InsertionAxis::from_pose(&m.pose);
         r.estimate_error_m = axis.distance_to_axis(&lp.world.trocar().anchor());
     }
     r.fulcrum_error_start_m = first.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum));
@@ -578,23 +536,23 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
             r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
             let (e, _) = lp.shaft();
             let port = Point3::from(lp.world.trocar_pose_true().translation.vector);
-            s.face.push(line_distance(&e, &a, &port));
+            s.face.push(distance_to_line(&port, &e, &a));
             let anchor = lp.world.trocar().anchor();
-            s.bore.push(line_distance(&e, &a, &lp.world.trocar().pivot()));
+            s.bore.push(distance_to_line(&lp.world.trocar().pivot(), &e, &a));
             let trocar_axis = lp.world.trocar_pose_true().rotation * Vector3::z();
             s.bore_angle.push(a.angle(&trocar_axis));
             s.depth.push(lp.world.contact().max_depth);
             s.estimate
                 .push(o.pivot.map_or(f64::NAN, |p| lp.across_from_port(&p.fulcrum)));
             s.tracking
-                .push(o.pivot.map_or(f64::NAN, |p| line_distance(&e, &a, &p.fulcrum)));
+                .push(o.pivot.map_or(f64::NAN, |p| distance_to_line(&p.fulcrum, &e, &a)));
             if let Some(p) = o.pivot {
                 let along = lp.port_along(p.depth);
                 let from = *s.port_along_from.get_or_insert(along);
                 s.port_along.push((along - from).abs());
             }
             let b = anchor - anchor0;
-            s.breathing.push((b - a * a.dot(&b)).norm());
+            s.breathing.push(across(&a, &b).norm());
             s.solve_us.push(o.solve.as_ref().map_or(f64::NAN, |x| x.solve_time_us));
             s.swept = s.swept.max(a.angle(&a0));
             s.held += usize::from(o.phase != Phase::Done || o.hold.is_some());
@@ -614,7 +572,7 @@ fn play(lp: &mut PivotSession, script: &[Segment], timing: &PivotTiming, r: &mut
         let rel = e - lp.world.trocar().anchor();
         let rel_from = *s.still_rel_from.get_or_insert(rel);
         let d = rel - rel_from;
-        s.still_rel = s.still_rel.max((d - a * a.dot(&d)).norm());
+        s.still_rel = s.still_rel.max(across(&a, &d).norm());
         s.still_distance.push(lp.distance());
         r.port_motion_m = r.port_motion_m.max((lp.world.trocar().anchor() - anchor0).norm());
     }

@@ -9,6 +9,7 @@ use std::sync::OnceLock;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
 
+use crate::stats::quantile_sorted;
 use crate::trials::pivot::{PivotResult, PivotSample};
 use crate::trials::run::TrialResult;
 
@@ -159,7 +160,7 @@ pub fn box_plot(path: &Path, title: &str, y_desc: &str, groups: &[(String, Vec<f
             continue;
         }
         let x = i as f64;
-        let q = |p: f64| quantile(v, p);
+        let q = |p: f64| quantile_sorted(v, p);
         let (q1, med, q3) = (q(0.25), q(0.5), q(0.75));
         let iqr = q3 - q1;
         let lo = v.iter().copied().find(|&y| y >= q1 - 1.5 * iqr).unwrap_or(q1);
@@ -312,25 +313,9 @@ pub fn pivot_runs(path: &Path, arms: &[(&str, &PivotResult)]) -> Result<(), Plot
     lines_over_time(path, &panels)
 }
 
-/// Linear-interpolated quantile of sorted, non-empty `v`.
-pub(crate) fn quantile(v: &[f64], p: f64) -> f64 {
-    let pos = p.clamp(0.0, 1.0) * (v.len() - 1) as f64;
-    let (i, f) = (pos.floor() as usize, pos.fract());
-    let j = (i + 1).min(v.len() - 1);
-    v[i] * (1.0 - f) + v[j] * f
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn quantiles() {
-        let v = [1.0, 2.0, 3.0, 4.0, 5.0];
-        assert_eq!(quantile(&v, 0.5), 3.0);
-        assert_eq!(quantile(&v, 0.25), 2.0);
-        assert!((quantile(&[1.0, 2.0], 0.5) - 1.5).abs() < 1e-12);
-    }
 
     #[test]
     fn writes_pngs() {

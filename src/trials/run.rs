@@ -13,28 +13,16 @@
 //! simulator's true contact force (`m_true`) and its component across the trocar's true
 //! axis (`m_lateral_true`). The paper's public code reports 2.4 x M.
 
+use std::ops::ControlFlow;
+
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
+use super::closed_loop::{ClosedLoop, Observation, PlantError};
 use crate::kinematics::{JointVector, Kinematics};
-use crate::signal::StreamLowPass;
-use crate::sim::noise::TrocarMeasurement;
 use crate::sim::{check_range, SimError, SimWorld};
 
-pub use crate::control::metrics::PAPER_CODE_SCALE;
-
-/// What a policy sees at a control tick.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Observation {
-    /// Simulated time, s.
-    pub t: f64,
-    /// Measured joint positions, rad.
-    pub q: JointVector,
-    /// Measured external joint torques, Nm.
-    pub tau_ext: JointVector,
-    /// Newest trocar pose measurement, if any.
-    pub trocar: Option<TrocarMeasurement>,
-}
+pub use crate::control::docking::metrics::PAPER_CODE_SCALE;
 
 /// What a policy answers at a control tick.
 #[derive(Debug, Clone, PartialEq)]
@@ -398,21 +386,13 @@ fn drive(
     end: &mut RunEnd,
 ) -> Result<String, SimError> {
     p.validate()?;
-    let period = 1.0 / p.control_rate_hz;
-    let physics_per_tick = (period * world.params().physics_rate_hz).round().max(1.0) as usize;
     policy.start(world.kinematics());
-    let mut torques = StreamLowPass::new(policy.torque_filter_time_constant());
-    let mut tau_ext = torques.update(world.time(), &world.external_torques());
+    let mut plant = ClosedLoop::new(world, p.control_rate_hz, policy.torque_filter_time_constant());
     // The true tip's last position and velocity (finite differences at the control rate).
     let mut last_tip: Option<(f64, Vector3<f64>, Option<Vector3<f64>>)> = None;
     loop {
-        let t = world.time();
-        let obs = Observation {
-            t,
-            q: world.joint_positions(),
-            tau_ext,
-            trocar: world.measure_trocar(t),
-        };
+        let obs = plant.observe(world);
+        let t = obs.t;
         let action = policy.tick(world.kinematics(), &obs);
         let port = world.tip_in_port();
         let radial = (port.x * port.x + port.y * port.y).sqrt();
@@ -447,20 +427,25 @@ fn drive(
         if let Some(why) = end_of_tick(world, p, &action, t, end) {
             return Ok(why);
         }
-        if let Some(q) = action.command {
-            if let Err(e) = world.set_command(&q) {
-                end.outcome = Outcome::PolicyAbort;
-                return Ok(format!("bad command: {e}"));
-            }
-        }
-        for _ in 0..physics_per_tick {
-            world.step_physics()?;
-            tau_ext = torques.update(world.time(), &world.external_torques());
-            let f = world.contact().force.norm();
+        let over_force = |w: &SimWorld| {
+            let f = w.contact().force.norm();
             if f > p.abort_force_n {
+                ControlFlow::Break(f)
+            } else {
+                ControlFlow::Continue(())
+            }
+        };
+        match plant.advance_until(world, action.command.as_ref(), over_force) {
+            Ok(ControlFlow::Continue(())) => {}
+            Ok(ControlFlow::Break(f)) => {
                 end.outcome = Outcome::ForceAbort;
                 return Ok(format!("contact force {f:.1} N > {} N", p.abort_force_n));
             }
+            Err(PlantError::Command(e)) => {
+                end.outcome = Outcome::PolicyAbort;
+                return Ok(format!("bad command: {e}"));
+            }
+            Err(PlantError::Physics(e)) => return Err(e),
         }
     }
 }

@@ -12,6 +12,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::VisionError;
+use crate::signal::exp_smoothing;
 use crate::validate;
 
 /// A pose as YAML: translation (m) and quaternion x, y, z, w.
@@ -253,12 +254,7 @@ impl TrocarEstimator {
             return EstimateStatus::Outlier;
         }
         self.outliers.clear();
-        let tau = self.params.time_constant_s;
-        let a = if tau <= 0.0 {
-            1.0
-        } else {
-            1.0 - (-(now - t_prev).max(0.0) / tau).exp()
-        };
+        let a = exp_smoothing(now - t_prev, self.params.time_constant_s);
         let t: Vector3<f64> = x.translation.vector.lerp(&z.translation.vector, a);
         let r = x.rotation.try_slerp(&z.rotation, a, 1e-9).unwrap_or(z.rotation);
         self.state = Some((Isometry3::from_parts(Translation3::from(t), r), now));

@@ -211,7 +211,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             done.hold_code, done.hold_reason, p.done_code
         ));
     }
-    // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::seated`).
+    // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::docking::seated`).
     let mut note = if done.hold_reason.is_empty() {
         String::new()
     } else {

@@ -32,7 +32,7 @@ use nalgebra::{Isometry3, Translation3, Vector3};
 
 use crate::camera_checks::camera_frame;
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
-use ::trocar_docking::control::guard::LEAD_WATCH_FRACTION;
+use ::trocar_docking::control::safety::guard::LEAD_WATCH_FRACTION;
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;

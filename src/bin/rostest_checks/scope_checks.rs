@@ -43,6 +43,7 @@ use std::sync::{Arc, Mutex};
 use nalgebra::{Isometry3, Point3, Vector3};
 
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use ::trocar_docking::control::docking::geometry::distance_to_line;
 use ::trocar_docking::control::ScopeCommand;
 use ::trocar_docking::kinematics::lbr::LbrModel;
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics, TIP_LINK};
@@ -51,6 +52,7 @@ use ::trocar_docking::ros::joy::JoyParams;
 use ::trocar_docking::ros::msgs::{geometry_msgs, sensor_msgs, trocar_docking};
 use ::trocar_docking::ros::node::lock;
 use ::trocar_docking::ros::params;
+use ::trocar_docking::stats::finite_quantile;
 
 /// A time series recorded from a topic: (stamp s, value).
 type Series<T> = Arc<Mutex<Vec<(f64, T)>>>;
@@ -188,18 +190,11 @@ fn port_at(truth: &[(f64, Point3<f64>)], t: f64) -> Option<Point3<f64>> {
 
 /// Distance of the shaft (the line through the tip along its z axis) from `port`, m.
 fn shaft_distance(tip: &Isometry3<f64>, port: &Point3<f64>) -> f64 {
-    let z = tip.rotation * Vector3::z();
-    (port - Point3::from(tip.translation.vector)).cross(&z).norm()
-}
-
-/// The `q`-quantile of `v` (sorted here; NaN last), NaN if empty.
-fn quantile(mut v: Vec<f64>, q: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    let i = ((v.len() - 1) as f64 * q).round() as usize;
-    v[i]
+    distance_to_line(
+        port,
+        &Point3::from(tip.translation.vector),
+        &(tip.rotation * Vector3::z()),
+    )
 }
 
 /// The pivot as measured over the commanded window: shaft distances from the true port, and
@@ -371,7 +366,7 @@ impl Figures {
         let still = tips_between(kin, &joints, still_from, still_from + p.still_window_s)?;
         Ok(Self {
             counts: (n, n_status),
-            p95: (quantile(distances, 0.95), quantile(face, 0.95)),
+            p95: (finite_quantile(&distances, 0.95), finite_quantile(&face, 0.95)),
             sweep,
             status,
             others,
@@ -664,7 +659,7 @@ mod tests {
             .collect();
         let (d, sweep) = pivot_figures(&tips, &truth);
         assert_eq!(d.len(), 21);
-        assert!(quantile(d, 0.95) < 1e-12);
+        assert!(finite_quantile(&d, 0.95) < 1e-12);
         assert!((sweep.to_degrees() - 20.0).abs() < 1e-9);
         assert!((spread(&tips) - 2.0 * 0.03 * 10f64.to_radians().sin()).abs() < 1e-9);
         // A scope carried across its shaft by a moving port has not moved beyond it; along
@@ -676,7 +671,6 @@ mod tests {
         assert!(beyond_port(&carried, &port) < 1e-12);
         let still: Vec<_> = (0..3).map(|k| (f64::from(k), Isometry3::identity())).collect();
         assert!((beyond_port(&still, &port) - 0.002).abs() < 1e-12);
-        assert!(quantile(vec![3.0, 1.0, 2.0], 0.5) == 2.0 && quantile(vec![], 0.9).is_nan());
         assert!(mean([1.0, f64::NAN, 3.0].into_iter()) == 2.0 && mean(std::iter::empty()).is_nan());
     }
 

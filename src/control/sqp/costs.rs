@@ -11,7 +11,7 @@
 //! | c4 | q - q_prev | joint step (velocity) |
 //! | c5 | P (e - r) | tip to the admittance reference r, across the axis |
 //!
-//! c5 acts across the insertion axis only, as the admittance does ([`crate::control::admittance`]):
+//! c5 acts across the insertion axis only, as the admittance does ([`crate::control::force::admittance`]):
 //! the paper's e - r also penalises the tip's motion along the axis, which with an arm that
 //! contact deflects (a seal's friction, finite joint stiffness) holds the tip short of the
 //! goal by the deflection times w5 / w2.
@@ -21,7 +21,7 @@
 //! breaks a Gauss–Newton model exactly where the tip follows r closely. The squared form is
 //! smooth, and the weight w5 sets the same trade-off.
 //!
-//! After docking ([`crate::control::pivot`]) two more terms hold the port as a remote centre
+//! After docking ([`crate::control::scope::pivot`]) two more terms hold the port as a remote centre
 //! of motion ([`PivotCost`]): the fulcrum f's distance from the shaft line,
 //! P_a (f - e) with P_a = I - a a^T (the RCM residual), and the roll residual x - x_t of the
 //! tip's x axis. Linearising e and a about q_lin
@@ -31,7 +31,7 @@
 use nalgebra::{Isometry3, Matrix3, Point3, SMatrix, SVector, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::control::geometry::InsertionAxis;
+use crate::control::docking::geometry::{across, InsertionAxis};
 use crate::kinematics::{Jacobian, JointVector};
 
 /// 7 x 7 matrix of the QP.
@@ -125,7 +125,7 @@ pub struct Targets {
 }
 
 /// The terms that hold a fulcrum on the shaft line and the roll about the shaft (after
-/// docking; see [`crate::control::pivot`]).
+/// docking; see [`crate::control::scope::pivot`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PivotCost {
     /// The fulcrum point the shaft line must pass through, base frame, m.
@@ -143,8 +143,7 @@ impl PivotCost {
     /// P_a (f - e): zero when the shaft passes through the fulcrum.
     pub fn rcm_residual(&self, pose: &Isometry3<f64>) -> Vector3<f64> {
         let a = pose.rotation * Vector3::z();
-        let u = self.fulcrum - Point3::from(pose.translation.vector);
-        u - a * a.dot(&u)
+        across(&a, &(self.fulcrum - Point3::from(pose.translation.vector)))
     }
 
     /// The weighted value of both terms at `pose`.

@@ -537,7 +537,7 @@ impl SqpSolver {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::control::geometry::InsertionAxis;
+    use crate::control::docking::geometry::InsertionAxis;
     use crate::kinematics::lbr::{LbrModel, ToolParams};
     use crate::kinematics::LbrKinematics;
     use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};

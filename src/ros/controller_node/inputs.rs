@@ -17,7 +17,7 @@
 //! node's clock). A bad one (NaN, a frame other than '' or the tip's, a stamp that goes
 //! back) clears it, so the scope holds still, with a throttled warning; it is no fault of
 //! the docking and never holds the controller. The controller's dead-man
-//! ([`crate::control::pivot::live_command`]) drops a command older than
+//! ([`crate::control::scope::pivot::live_command`]) drops a command older than
 //! `scope.command_timeout`, and ignores one stamped further ahead of its clock (a clock that
 //! went back).
 

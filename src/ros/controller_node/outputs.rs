@@ -245,7 +245,7 @@ fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::
         f_ext: convert::vector_msg(&out.f_ext),
         f_ext_norm: out.f_ext.norm(),
         metric_m: out.metric_m,
-        metric_m_paper_scale: crate::control::metrics::PAPER_CODE_SCALE * out.metric_m,
+        metric_m_paper_scale: crate::control::docking::metrics::PAPER_CODE_SCALE * out.metric_m,
         elapsed: r.elapsed,
         tip_to_goal: match (tip_point, out.goal) {
             (Some(t), Some(g)) => (t - g).norm(),

@@ -3,7 +3,7 @@
 //! The LBR subtracts the gravity of the tool it was told about; a camera mount weighed by
 //! hand or a cable left out leaves a mass error dm at some point r of the tool (tip frame),
 //! whose gravity reads as external torque: g(q) = J_v^T (dm g0) + J_w^T ((R r) x dm g0). The
-//! tare ([`super::tare`]) removes the offset at the poses it sees out of contact, but the
+//! tare ([`crate::control::force::tare`]) removes the offset at the poses it sees out of contact, but the
 //! offset changes as the scope then pivots about the port (tens of degrees after docking),
 //! and that change reads as a force across the shaft (0.5 N and more for 0.15 kg at 0.2 m).
 //!

@@ -29,9 +29,10 @@ use serde::{Deserialize, Serialize};
 
 use nalgebra::UnitQuaternion;
 
-use super::hold::HoldReason;
-use super::payload::PayloadFit;
+use crate::control::force::payload::PayloadFit;
+use crate::control::safety::hold::HoldReason;
 use crate::kinematics::{Jacobian, JointVector};
+use crate::validate;
 
 /// Parameters of the tare (`tare:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -52,7 +53,7 @@ pub struct TareParams {
     /// Tracking runs while the tip is at least this far before the trocar face, m.
     pub track_clearance_m: f64,
     /// Prior standard deviation of a payload's mass error, kg, for the fit of the offset's
-    /// pose-dependent part from the tracked samples ([`super::payload`]; 0 = no fit: the
+    /// pose-dependent part from the tracked samples ([`crate::control::force::payload`]; 0 = no fit: the
     /// offset stays what tracking left).
     pub payload_prior_kg: f64,
 }
@@ -75,31 +76,15 @@ impl Default for TareParams {
 impl TareParams {
     /// Check ranges; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let nonneg = |n: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(format!("tare.{n} must be >= 0, got {v}"))
-            }
-        };
-        let pos = |n: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("tare.{n} must be > 0, got {v}"))
-            }
-        };
-        nonneg("window_s", self.window_s)?;
-        if self.window_s > 10.0 {
-            return Err(format!("tare.window_s must be <= 10 s, got {}", self.window_s));
-        }
-        pos("max_motion_rad", self.max_motion_rad)?;
-        pos("max_offset_nm", self.max_offset_nm)?;
-        pos("max_noise_nm", self.max_noise_nm)?;
-        nonneg("deadband_sigmas", self.deadband_sigmas)?;
-        nonneg("track_time_constant_s", self.track_time_constant_s)?;
-        nonneg("track_clearance_m", self.track_clearance_m)?;
-        nonneg("payload_prior_kg", self.payload_prior_kg)
+        validate::in_range("tare.window_s", self.window_s, 0.0, 10.0)?;
+        validate::positive("tare.max_motion_rad", self.max_motion_rad)?;
+        validate::positive("tare.max_offset_nm", self.max_offset_nm)?;
+        validate::positive("tare.max_noise_nm", self.max_noise_nm)?;
+        validate::non_negative("tare.deadband_sigmas", self.deadband_sigmas)?;
+        validate::non_negative("tare.track_time_constant_s", self.track_time_constant_s)?;
+        validate::non_negative("tare.track_clearance_m", self.track_clearance_m)?;
+        validate::non_negative("tare.payload_prior_kg", self.payload_prior_kg)?;
+        Ok(())
     }
 }
 
@@ -219,14 +204,14 @@ impl Tare {
     }
 
     /// The torques less the offset, without the dead-band: for a consumer that filters
-    /// them and bands its own estimate (the fulcrum's, [`super::fulcrum`]).
+    /// them and bands its own estimate (the fulcrum's, [`crate::control::scope::fulcrum`]).
     pub fn remove_offset(&self, tau: &JointVector) -> JointVector {
         tau - self.offset_here()
     }
 
     /// The torques less the offset, with the dead-band applied per joint.
     pub fn correct(&self, tau: &JointVector) -> JointVector {
-        (tau - self.offset_here()).zip_map(&self.band, super::admittance::deadband)
+        (tau - self.offset_here()).zip_map(&self.band, crate::control::force::admittance::deadband)
     }
 }
 
@@ -339,7 +324,7 @@ mod tests {
         let tau_at = |q: &JointVector| {
             let (tip, jac) = kin.fk_jacobian(q).unwrap();
             let r = nalgebra::Vector3::new(0.0, 0.0, -0.2);
-            let tau = super::super::payload::tests::payload_torque(&jac, &tip.rotation, 0.15, &r);
+            let tau = crate::control::force::payload::tests::payload_torque(&jac, &tip.rotation, 0.15, &r);
             (tau.add_scalar(0.4), jac, tip.rotation)
         };
         let run = |p: &TareParams| {

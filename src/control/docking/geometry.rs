@@ -42,8 +42,7 @@ impl InsertionAxis {
 
     /// The component of `p - port` across the axis (zero on the axis).
     pub fn lateral_offset(&self, p: &Point3<f64>) -> Vector3<f64> {
-        let d = p - self.port;
-        d - self.direction.into_inner() * d.dot(&self.direction)
+        across(&self.direction, &(p - self.port))
     }
 
     /// Distance from `p` to the axis line, m.
@@ -62,13 +61,25 @@ impl InsertionAxis {
 
     /// Project `v` across the axis (remove its component along the axis).
     pub fn across(&self, v: &Vector3<f64>) -> Vector3<f64> {
-        v - self.direction.into_inner() * v.dot(&self.direction)
+        across(&self.direction, v)
     }
 
     /// Whether the axis is usable: finite port and a unit direction.
     pub fn is_finite(&self) -> bool {
         self.port.coords.iter().all(|x| x.is_finite()) && (self.direction.norm() - 1.0).abs() < 1e-6
     }
+}
+
+/// The component of `v` across the unit direction `a`: `v - a (a . v)`, the projection on
+/// the plane normal to `a` (zero for `v` along `a`).
+pub fn across(a: &Vector3<f64>, v: &Vector3<f64>) -> Vector3<f64> {
+    v - a * v.dot(a)
+}
+
+/// Distance of `p` from the line through `origin` along the unit direction `a`, m: the one
+/// point-to-line distance (the shaft's from the port, the axis's from the tip).
+pub fn distance_to_line(p: &Point3<f64>, origin: &Point3<f64>, a: &Vector3<f64>) -> f64 {
+    across(a, &(p - origin)).norm()
 }
 
 /// Whether a pose has only finite entries and a unit quaternion.

@@ -6,13 +6,13 @@
 //! orientation R (its z axis the shaft direction d, its x axis the roll), the port P (where
 //! the shaft enters the trocar's face: the trocar estimate's port projected on the shaft
 //! line, since the port holds the docked shaft), the target tip depth s_t past P, and the
-//! fulcrum F = P + d s_f + x ([`super::fulcrum`]: depth s_f along the shaft from a prior,
+//! fulcrum F = P + d s_f + x ([`crate::control::scope::fulcrum`]: depth s_f along the shaft from a prior,
 //! displacement x across it, both adapted from the force across the shaft).
 //!
 //! **Per step** the surgeon's command (dead-man: older than `command_timeout` is none; not
 //! finite, or stamped in the future, is ignored with the reason) is cut to the speed
 //! limits, and its rates are shaped within the controller's `motion:` limits
-//! ([`super::motion::RateShaper`]: a command that starts, stops or reverses at once, or
+//! ([`crate::control::safety::motion::RateShaper`]: a command that starts, stops or reverses at once, or
 //! the dead-man, moves the target with bounded acceleration and jerk, braking ahead of the
 //! cone and the depth limits); the angular velocity R (pan, tilt, roll) turns R about F (the port P turns with
 //! it: P = F - d s_f), unless the new d would leave the cone about the docking axis
@@ -20,7 +20,7 @@
 //! `max_depth` (never pushed back into the range when it started outside it). The SQP
 //! then gets: c1 tip to the line (P, d), c2 tip to P + d s_t, c3 optical axis to d, c4,
 //! and the RCM term (F's distance from the shaft line) with the roll term
-//! ([`super::sqp::PivotCost`]). With no command the targets do not move, so the scope
+//! ([`crate::control::sqp::PivotCost`]). With no command the targets do not move, so the scope
 //! holds still; only the fulcrum's lateral adaptation moves it, with the wall.
 //!
 //! **Retract** (`~retract`): the commands are ignored and s_t falls at `retract_speed` to
@@ -38,13 +38,13 @@
 
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 
-use super::controller::Stamped;
-use super::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
-use super::geometry::InsertionAxis;
-use super::motion::{MotionLimits, Rate, RateShaper};
-use super::port_follow::PortFollow;
-use super::scope::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
-use super::sqp::{CostWeights, PivotCost};
+use crate::control::docking::geometry::InsertionAxis;
+use crate::control::io::Stamped;
+use crate::control::safety::motion::{MotionLimits, Rate, RateShaper};
+use crate::control::scope::command::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
+use crate::control::scope::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
+use crate::control::scope::port_follow::PortFollow;
+use crate::control::sqp::{CostWeights, PivotCost};
 use crate::kinematics::{Jacobian, JointVector};
 
 /// The surgeon's command for this step: `Ok(None)` when there is none or it is older than

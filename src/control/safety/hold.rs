@@ -39,7 +39,7 @@ pub enum HoldReason {
         limit: f64,
     },
     /// The optimiser failed; its solution is not used. The text is the solve's status
-    /// ([`super::sqp::SqpStatus::as_text`]), static so that the hold allocates nothing.
+    /// ([`crate::control::sqp::SqpStatus::as_text`]), static so that the hold allocates nothing.
     SolverFailed(&'static str),
     /// The command was not finite.
     NonFiniteCommand,

@@ -33,7 +33,7 @@
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use crate::control::geometry::InsertionAxis;
+use crate::control::docking::geometry::InsertionAxis;
 
 /// Parameters of the seated test (`seated:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

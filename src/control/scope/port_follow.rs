@@ -4,7 +4,7 @@
 //! The abdominal wall moves the trocar with breathing, mostly along its axis (millimetres:
 //! `config/sim.yaml`'s realistic world moves it 4 mm along and 1 mm across). The fulcrum
 //! follows the motion across the shaft only through the force it takes to drag the wall
-//! ([`super::fulcrum`]), and along the shaft not at all below the axial dead-band: the
+//! ([`crate::control::scope::fulcrum`]), and along the shaft not at all below the axial dead-band: the
 //! trocar slides up and down a scope that holds its depth, so that the tip rises above the
 //! wall's fulcrum and the shaft, guided by less of the bore, cocks in its clearance; once
 //! the scope is panned, the axial breathing also moves the port across the shaft.

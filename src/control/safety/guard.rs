@@ -5,16 +5,16 @@
 //! and within the per-step velocity limit from the previous command. Otherwise the guard
 //! answers with a hold at the previous command (a hold never moves the arm). Stale joint
 //! state, a stale or missing trocar pose, and a tip force over the threshold are reasons to
-//! hold as well. [`super::guarded::Guarded`] puts the command check around any command
+//! hold as well. [`crate::control::safety::guarded::Guarded`] puts the command check around any command
 //! source, so that nothing is published unchecked.
 
 use serde::{Deserialize, Serialize};
 
-pub use super::hold::HoldReason;
+pub use crate::control::safety::hold::HoldReason;
 use crate::kinematics::{JointLimits, JointVector};
 
 /// The share of `max_command_lead` from which the command counts as waiting for the arm
-/// (the not-following watch of [`super::guarded`] runs from there).
+/// (the not-following watch of [`crate::control::safety::guarded`] runs from there).
 pub const LEAD_WATCH_FRACTION: f64 = 0.25;
 
 /// Parameters of the guard.
@@ -130,7 +130,7 @@ impl CommandGuard {
 
     /// The joint whose command `cmd` leads the measured joints by [`LEAD_WATCH_FRACTION`] of
     /// the lead bound or more, with its lead (`cmd - measured`), if any. Not the bound itself:
-    /// the motion limits ([`super::motion`]) brake the command as it nears the bound, so a
+    /// the motion limits ([`crate::control::safety::motion`]) brake the command as it nears the bound, so a
     /// blocked arm's command creeps towards it without ever sitting on it.
     pub fn lead_saturated(&self, cmd: &JointVector) -> Option<(usize, f64)> {
         let q = self.measured.as_ref()?;

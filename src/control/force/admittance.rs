@@ -17,6 +17,7 @@ use nalgebra::{Matrix3, Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use crate::kinematics::{Jacobian, JointVector};
+use crate::validate;
 
 /// Parameters of the force estimate and the admittance law.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -66,40 +67,27 @@ impl Default for AdmittanceParams {
 impl AdmittanceParams {
     /// Check ranges; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        let pos = |n: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("admittance.{n} must be > 0, got {v}"))
-            }
-        };
-        let nonneg = |n: &str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
-                Ok(())
-            } else {
-                Err(format!("admittance.{n} must be >= 0, got {v}"))
-            }
-        };
-        nonneg("torque_deadband", self.torque_deadband)?;
-        pos("pinv_damping", self.pinv_damping)?;
-        nonneg("filter_cutoff_hz", self.filter_cutoff_hz)?;
-        nonneg("force_deadband", self.force_deadband)?;
-        pos("mass", self.mass)?;
-        nonneg("damping", self.damping)?;
-        nonneg("stiffness", self.stiffness)?;
-        pos("max_displacement", self.max_displacement)?;
-        pos("axial_force_full_stop", self.axial_force_full_stop)?;
-        if !(0.0..=1.0).contains(&self.min_insert_speed_ratio) {
-            return Err(format!(
-                "admittance.min_insert_speed_ratio must be in [0, 1], got {}",
-                self.min_insert_speed_ratio
-            ));
-        }
+        validate::non_negative("admittance.torque_deadband", self.torque_deadband)?;
+        validate::positive("admittance.pinv_damping", self.pinv_damping)?;
+        validate::non_negative("admittance.filter_cutoff_hz", self.filter_cutoff_hz)?;
+        validate::non_negative("admittance.force_deadband", self.force_deadband)?;
+        validate::positive("admittance.mass", self.mass)?;
+        validate::non_negative("admittance.damping", self.damping)?;
+        validate::non_negative("admittance.stiffness", self.stiffness)?;
+        validate::positive("admittance.max_displacement", self.max_displacement)?;
+        validate::positive("admittance.axial_force_full_stop", self.axial_force_full_stop)?;
+        validate::in_range(
+            "admittance.min_insert_speed_ratio",
+            self.min_insert_speed_ratio,
+            0.0,
+            1.0,
+        )?;
         Ok(())
     }
 }
 
 pub use crate::signal::deadband;
+use crate::signal::rc_smoothing;
 
 /// f = (J J^T + λ² I)^{-1} J tau for the linear rows of `jac`; `None` when the inputs are
 /// not finite.
@@ -128,14 +116,7 @@ impl Admittance {
     /// Returns the filtered force; a non-finite estimate leaves the filter unchanged.
     pub fn update_force(&mut self, p: &AdmittanceParams, jac: &Jacobian, tau: &JointVector, dt: f64) -> Vector3<f64> {
         if let Some(f) = tip_force(jac, tau, p.torque_deadband, p.pinv_damping) {
-            let fc = p.filter_cutoff_hz;
-            let alpha = if fc > 0.0 && dt > 0.0 {
-                let rc = 1.0 / (2.0 * std::f64::consts::PI * fc);
-                dt / (rc + dt)
-            } else {
-                1.0
-            };
-            self.force += (f - self.force) * alpha;
+            self.force += (f - self.force) * rc_smoothing(p.filter_cutoff_hz, dt);
         }
         self.force
     }

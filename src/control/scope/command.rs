@@ -3,14 +3,14 @@
 //! the surgeon's [`ScopeCommand`] (from `/docking/scope_command`), the limits that stop a
 //! command ([`ScopeLimit`]), their parameters ([`ScopeParams`]) and what the controller
 //! reports while pivoting ([`PivotReport`]).
-//! The law is [`super::pivot`], the fulcrum's adaptation [`super::fulcrum`].
+//! The law is [`crate::control::scope::pivot`], the fulcrum's adaptation [`crate::control::scope::fulcrum`].
 
 use nalgebra::{Point3, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::fulcrum::FulcrumParams;
-use super::port_follow::PortFollowParams;
-use super::sqp::CostWeights;
+use crate::control::scope::fulcrum::FulcrumParams;
+use crate::control::scope::port_follow::PortFollowParams;
+use crate::control::sqp::CostWeights;
 use crate::validate::in_range;
 
 /// A surgeon's scope command, in the `endoscope_tip` frame (a `TwistStamped` on
@@ -201,6 +201,6 @@ pub struct PivotReport {
     /// The fulcrum's adapted depth past the port along the shaft, m.
     pub fulcrum_depth: f64,
     /// The port's breathing followed along the docking axis since DONE, m
-    /// ([`super::port_follow`]).
+    /// ([`crate::control::scope::port_follow`]).
     pub breathing_offset: f64,
 }

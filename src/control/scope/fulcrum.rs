@@ -407,7 +407,7 @@ mod tests {
         let (fe, me) = shaft_wrench(&jac, &tau, 1e-4).unwrap();
         assert!((fe - f).norm() < 1e-6 && (me - m).norm() < 1e-6, "{fe} {me}");
         // The linear rows alone read the moment as a force of the same order.
-        let lin = crate::control::admittance::tip_force(&jac, &tau, 0.0, 1e-4).unwrap();
+        let lin = crate::control::force::admittance::tip_force(&jac, &tau, 0.0, 1e-4).unwrap();
         assert!((lin - f).norm() > 0.1, "{lin}");
         assert!(shaft_wrench(&jac, &tau.map(|_| f64::NAN), 0.02).is_none());
         let mut filt = ForceFilter::default();

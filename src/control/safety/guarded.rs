@@ -25,9 +25,9 @@
 //! velocity) from it: a hold never jumps to where it must stand, it walks there
 //! ([`Guarded::step`], [`HoldTarget`]); a start resumes from the last published command.
 
-use super::controller::{ControlInput, ControlOutput};
-use super::guard::{CommandGuard, HoldReason};
-use super::supervisor::Phase;
+use crate::control::io::{ControlInput, ControlOutput};
+use crate::control::safety::guard::{CommandGuard, HoldReason};
+use crate::control::supervisor::Phase;
 use crate::kinematics::{JointVector, Kinematics};
 
 /// What a source gets from its guard for one step.
@@ -281,7 +281,7 @@ impl<S: CommandSource> Guarded<S> {
         }
     }
 
-    /// The arm does not follow when the command has led it (by [`LEAD_WATCH_FRACTION`](super::guard::LEAD_WATCH_FRACTION) of
+    /// The arm does not follow when the command has led it (by [`LEAD_WATCH_FRACTION`](crate::control::safety::guard::LEAD_WATCH_FRACTION) of
     /// the bound or more) for the timeout while the arm has not moved (by [`MIN_PROGRESS`]
     /// of the bound on any joint) since the lead began. Not "sat on the bound without a
     /// break": against a blocked arm the limited command wanders inside its lead box, in and
@@ -388,7 +388,7 @@ impl<S: CommandSource> Guarded<S> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::control::guard::GuardParams;
+    use crate::control::safety::guard::GuardParams;
     use crate::control::Stamped;
     use crate::kinematics::lbr::{LbrModel, ToolParams};
     use crate::kinematics::{JointLimits, LbrKinematics};
@@ -546,7 +546,7 @@ mod walk_tests {
     //! Every published command within the guard's per-step speed limit, through each of
     //! the wrapper's latched holds and the start that resumes it.
     use super::*;
-    use crate::control::guard::GuardParams;
+    use crate::control::safety::guard::GuardParams;
     use crate::control::Stamped;
     use crate::kinematics::lbr::{LbrModel, ToolParams};
     use crate::kinematics::{JointLimits, LbrKinematics};

@@ -1,0 +1,8 @@
+//! Docking: the approach to the port and the insertion along its axis ([`geometry`]: the
+//! insertion axis), DONE judged over windows ([`goal_window`]) or when the port itself holds
+//! the tip ([`seated`]), and the paper's force metric M ([`metrics`]).
+
+pub mod geometry;
+pub mod goal_window;
+pub mod metrics;
+pub mod seated;

@@ -1,0 +1,121 @@
+//! The inputs and outputs of one control step, shared by the controller, the command guard
+//! and the after-docking law ([`crate::control::scope::pivot`]), so that none of them imports
+//! another for its I/O types.
+
+use nalgebra::{Isometry3, Point3, Vector3};
+
+use super::docking::seated::Seated;
+use super::safety::hold::HoldReason;
+use super::scope::command::{PivotReport, ScopeCommand};
+use super::sqp::{CostTerms, SqpStatus};
+use super::supervisor::Phase;
+use crate::kinematics::JointVector;
+
+/// A value with the time it was measured, s (same clock as [`ControlInput::now`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Stamped<T> {
+    /// Measurement time, s.
+    pub stamp: f64,
+    /// The value.
+    pub value: T,
+}
+
+/// The inputs of one control step; `None` where missing or rejected.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct ControlInput {
+    /// Now, s.
+    pub now: f64,
+    /// Measured joint positions.
+    pub joints: Option<Stamped<JointVector>>,
+    /// External joint torques, Nm.
+    pub tau_ext: Option<Stamped<JointVector>>,
+    /// Trocar pose in the base frame (origin = port, z = insertion direction into the body).
+    pub trocar: Option<Stamped<Isometry3<f64>>>,
+    /// The surgeon's newest scope command (after DONE), stamped when it was sent.
+    pub scope: Option<Stamped<ScopeCommand>>,
+}
+
+/// What the SQP reported, in a step that ran it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolveReport {
+    /// Unweighted c1..c5 at the solution.
+    pub costs: CostTerms,
+    /// QPs solved.
+    pub iterations: usize,
+    /// Interior-point iterations, over all the step's QPs.
+    pub qp_iterations: u32,
+    /// QPs solved by Clarabel (the others from a proven active set).
+    pub clarabel_qps: usize,
+    /// SQP wall time, µs.
+    pub solve_time_us: f64,
+    /// How the SQP ended.
+    pub status: SqpStatus,
+}
+
+/// The outputs of one control step; `None` where unknown.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ControlOutput {
+    /// `None`: send nothing (idle, or no joint state yet). `Some`: a guarded joint position
+    /// command (during a hold, the last safe command).
+    pub command: Option<JointVector>,
+    /// The phase after this step.
+    pub phase: Phase,
+    /// Reason of the last hold or abort.
+    pub hold: Option<HoldReason>,
+    /// How DONE was reached, when not plainly at the goal.
+    pub note: Option<Seated>,
+    /// The SQP's report, when it ran this step.
+    pub solve: Option<SolveReport>,
+    /// Filtered tip force estimate, base frame, N.
+    pub f_ext: Vector3<f64>,
+    /// Admittance reference r.
+    pub reference: Option<Point3<f64>>,
+    /// Tip pose from the measured joints.
+    pub tip: Option<Isometry3<f64>>,
+    /// Goal point.
+    pub goal: Option<Point3<f64>>,
+    /// M so far (time average of ||f_ext|| while moving), N.
+    pub metric_m: f64,
+    /// While the port is held as a remote centre of motion (after DONE): the fulcrum and
+    /// the shaft's distance from it.
+    pub pivot: Option<PivotReport>,
+}
+
+impl ControlOutput {
+    /// An output in `phase` that commands nothing and knows nothing else (no force, no
+    /// tip, no solve), for sources that fill in only what they have.
+    pub fn empty(phase: Phase) -> Self {
+        Self {
+            command: None,
+            phase,
+            hold: None,
+            note: None,
+            solve: None,
+            f_ext: Vector3::zeros(),
+            reference: None,
+            tip: None,
+            goal: None,
+            metric_m: 0.0,
+            pivot: None,
+        }
+    }
+
+    /// The text for the surgeon: the hold reason, or how DONE was reached.
+    pub fn reason_text(&self) -> Option<String> {
+        match (&self.hold, &self.note) {
+            (Some(h), _) => Some(h.to_string()),
+            (None, Some(n)) => Some(n.to_string()),
+            (None, None) => None,
+        }
+    }
+
+    /// The stable code of [`ControlOutput::reason_text`]: the hold's code, `SEATED` for a
+    /// DONE reached by the seated test, `""` for none.
+    pub fn reason_code(&self) -> &'static str {
+        match (&self.hold, &self.note) {
+            (Some(h), _) => h.code(),
+            (None, Some(_)) => "SEATED",
+            (None, None) => "",
+        }
+    }
+}

@@ -1,0 +1,8 @@
+//! Safety: the command guard ([`guard`]) and the guard as a decorator around any command
+//! source ([`guarded`]), the typed hold reasons ([`hold`]), and the tip's speed,
+//! acceleration and jerk bounded in every phase ([`motion`]).
+
+pub mod guard;
+pub mod guarded;
+pub mod hold;
+pub mod motion;

@@ -1,0 +1,214 @@
+//! The one closed loop every experiment drives (the trials, the pivot benchmark, the soak):
+//! a controller at its control rate against a [`SimWorld`] stepped at the physics rate.
+//!
+//! One control period: [`ClosedLoop::observe`] reads what the controller sees now (the
+//! measured joints, the external torques, the newest trocar pose), the experiment steps its
+//! controller on it ([`control_input`] turns the observation into the controller's input),
+//! and [`ClosedLoop::advance`] sends the command and steps the physics up to the next
+//! control tick, the torques low-passed at the plant's rate on the way
+//! ([`crate::signal::StreamLowPass`], the controller's `torque_filter_time_constant`).
+
+use std::ops::ControlFlow;
+
+use crate::control::{ControlInput, ScopeCommand, Stamped};
+use crate::kinematics::JointVector;
+use crate::signal::StreamLowPass;
+use crate::sim::noise::TrocarMeasurement;
+use crate::sim::{SimError, SimWorld};
+
+/// What a controller sees at a control tick.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Observation {
+    /// Simulated time, s.
+    pub t: f64,
+    /// Measured joint positions, rad.
+    pub q: JointVector,
+    /// Measured external joint torques, Nm.
+    pub tau_ext: JointVector,
+    /// Newest trocar pose measurement, if any.
+    pub trocar: Option<TrocarMeasurement>,
+}
+
+/// Why a control period of the plant did not complete.
+#[derive(Debug)]
+pub enum PlantError {
+    /// The world refused the command.
+    Command(SimError),
+    /// A physics tick failed.
+    Physics(SimError),
+}
+
+impl PlantError {
+    /// The simulator's error, whichever step it came from.
+    pub fn into_sim(self) -> SimError {
+        match self {
+            Self::Command(e) | Self::Physics(e) => e,
+        }
+    }
+}
+
+impl std::fmt::Display for PlantError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Command(e) | Self::Physics(e) => e.fmt(f),
+        }
+    }
+}
+
+/// The plant side of the loop: the physics ticks per control period and the torque
+/// low-pass at the plant's rate, for one run in one world.
+#[derive(Debug, Clone)]
+pub struct ClosedLoop {
+    physics_per_tick: usize,
+    torques: StreamLowPass<7>,
+    tau_ext: JointVector,
+}
+
+impl ClosedLoop {
+    /// The loop for a controller at `control_rate_hz` in `world` (fresh, or reset for a new
+    /// run), its torques low-passed with time constant `torque_filter_s` (0: the newest
+    /// sample).
+    pub fn new(world: &SimWorld, control_rate_hz: f64, torque_filter_s: f64) -> Self {
+        let period = 1.0 / control_rate_hz;
+        let mut torques = StreamLowPass::new(torque_filter_s);
+        let tau_ext = torques.update(world.time(), &world.external_torques());
+        Self {
+            physics_per_tick: (period * world.params().physics_rate_hz).round().max(1.0) as usize,
+            torques,
+            tau_ext,
+        }
+    }
+
+    /// What the controller sees now.
+    pub fn observe(&self, world: &SimWorld) -> Observation {
+        let t = world.time();
+        Observation {
+            t,
+            q: world.joint_positions(),
+            tau_ext: self.tau_ext,
+            trocar: world.measure_trocar(t),
+        }
+    }
+
+    /// Send `command` (if any), then step the physics to the next control tick, the torques
+    /// filtered after each physics tick.
+    pub fn advance(&mut self, world: &mut SimWorld, command: Option<&JointVector>) -> Result<(), PlantError> {
+        self.advance_until(world, command, |_| ControlFlow::<()>::Continue(()))
+            .map(|_| ())
+    }
+
+    /// As [`ClosedLoop::advance`]; `after_physics` sees the world after each physics tick
+    /// and may end the period early with `Break`, which is returned.
+    pub fn advance_until<B>(
+        &mut self,
+        world: &mut SimWorld,
+        command: Option<&JointVector>,
+        mut after_physics: impl FnMut(&SimWorld) -> ControlFlow<B>,
+    ) -> Result<ControlFlow<B>, PlantError> {
+        if let Some(q) = command {
+            world.set_command(q).map_err(PlantError::Command)?;
+        }
+        for _ in 0..self.physics_per_tick {
+            world.step_physics().map_err(PlantError::Physics)?;
+            self.tau_ext = self.torques.update(world.time(), &world.external_torques());
+            if let ControlFlow::Break(b) = after_physics(world) {
+                return Ok(ControlFlow::Break(b));
+            }
+        }
+        Ok(ControlFlow::Continue(()))
+    }
+}
+
+/// The docking controller's input from an observation: joints and torques stamped now, the
+/// trocar pose stamped at capture, and the surgeon's `scope` command if any.
+pub fn control_input(obs: &Observation, scope: Option<Stamped<ScopeCommand>>) -> ControlInput {
+    ControlInput {
+        scope,
+        now: obs.t,
+        joints: Some(Stamped {
+            stamp: obs.t,
+            value: obs.q,
+        }),
+        tau_ext: Some(Stamped {
+            stamp: obs.t,
+            value: obs.tau_ext,
+        }),
+        trocar: obs.trocar.map(|m| Stamped {
+            stamp: m.stamp,
+            value: m.pose,
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::Arc;
+
+    use super::*;
+    use crate::kinematics::lbr::{LbrModel, ToolParams};
+    use crate::kinematics::{Kinematics, LbrKinematics};
+    use crate::sim::SimParams;
+
+    fn world() -> SimWorld {
+        let kin: Arc<dyn Kinematics> =
+            Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap());
+        SimWorld::new(&SimParams::default(), kin, 1).unwrap()
+    }
+
+    /// One period of a loop at `rate_hz` in a fresh world, stopped after `stop_at` physics
+    /// ticks (if ever): the result, the ticks run and the world.
+    fn period(rate_hz: f64, stop_at: usize) -> (Result<ControlFlow<usize>, PlantError>, usize, SimWorld) {
+        let mut w = world();
+        let mut lp = ClosedLoop::new(&w, rate_hz, 0.005);
+        let mut ticks = 0;
+        let r = lp.advance_until(&mut w, None, |_| {
+            ticks += 1;
+            if ticks == stop_at {
+                ControlFlow::Break(ticks)
+            } else {
+                ControlFlow::Continue(())
+            }
+        });
+        (r, ticks, w)
+    }
+
+    #[test]
+    fn a_period_steps_the_physics_to_the_next_control_tick() {
+        let (r, ticks, w) = period(100.0, usize::MAX);
+        assert!(matches!(r, Ok(ControlFlow::Continue(()))));
+        assert_eq!(ticks, (w.params().physics_rate_hz / 100.0).round() as usize);
+        assert!((w.time() - 0.01).abs() < 1e-9, "{}", w.time());
+        let obs = ClosedLoop::new(&w, 100.0, 0.0).observe(&w);
+        assert_eq!(obs.t, w.time());
+        assert_eq!(obs.q, w.joint_positions());
+    }
+
+    #[test]
+    fn a_break_ends_the_period_early() {
+        let (r, ticks, _) = period(10.0, 3);
+        assert!(matches!(r, Ok(ControlFlow::Break(3))));
+        assert_eq!(ticks, 3);
+    }
+
+    #[test]
+    fn a_bad_command_is_the_commands_error() {
+        let mut w = world();
+        let mut lp = ClosedLoop::new(&w, 100.0, 0.0);
+        let bad = JointVector::from_element(f64::NAN);
+        let r = lp.advance(&mut w, Some(&bad));
+        assert!(matches!(r, Err(PlantError::Command(_))), "{r:?}");
+        assert_eq!(w.time(), 0.0);
+    }
+
+    #[test]
+    fn the_input_stamps_joints_and_torques_now_and_the_pose_at_capture() {
+        let w = world();
+        let obs = ClosedLoop::new(&w, 100.0, 0.0).observe(&w);
+        let input = control_input(&obs, None);
+        assert_eq!(input.now, obs.t);
+        assert_eq!(input.joints.unwrap().value, obs.q);
+        assert_eq!(input.tau_ext.unwrap().stamp, obs.t);
+        assert_eq!(input.trocar.map(|s| s.stamp), obs.trocar.map(|m| m.stamp));
+        assert!(input.scope.is_none());
+    }
+}
