@@ -133,6 +133,8 @@ pub struct CheckParams {
     pub joy_config: String,
     /// `preflight`: the check that must fail ('' = every check must pass).
     pub preflight_failure: String,
+    /// `replay_fault`: where the bag's fault begins, s after the recorded APPROACH.
+    pub fault_after_s: f64,
 }
 
 impl Default for CheckParams {
@@ -195,6 +197,7 @@ impl Default for CheckParams {
             retract_timeout: 30.0,
             joy_config: String::new(),
             preflight_failure: String::new(),
+            fault_after_s: 0.5,
         }
     }
 }
