@@ -170,3 +170,78 @@ fn judge(p: &CheckParams, seen: &Holds, fault_at: Option<f64>, a: &Audit) -> Res
         MAX_SPEED_RATIO * 100.0
     ))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn holds(seen: &[(&str, &str)], first_hold: Option<f64>) -> Holds {
+        Holds(
+            seen.iter().map(|(p, c)| ((*p).to_string(), (*c).to_string())).collect(),
+            first_hold,
+        )
+    }
+
+    /// The verdict fails on each broken condition: a hold before the fault, another code at
+    /// the end, a command pair over 110 % of the speed limit, too few commands.
+    #[test]
+    fn the_verdict_fails_on_each_broken_condition() {
+        let p = CheckParams {
+            hold_code: "ARM_NOT_FOLLOWING".into(),
+            min_commands: 100,
+            ..CheckParams::default()
+        };
+        let good = holds(
+            &[("TARE", ""), ("APPROACH", ""), ("HOLD", "ARM_NOT_FOLLOWING")],
+            Some(10.7),
+        );
+        let a = Audit {
+            count: 150,
+            worst: 0.5,
+            ..Audit::default()
+        };
+        assert!(judge(&p, &good, Some(10.5), &a).is_ok());
+        let early = judge(&p, &good, Some(10.8), &a).unwrap_err();
+        assert!(early.contains("before the fault"), "{early}");
+        let other = holds(&[("APPROACH", ""), ("HOLD", "TRACKING_ERROR")], Some(10.7));
+        assert!(judge(&p, &other, Some(10.5), &a).unwrap_err().contains("not HOLD"));
+        let fast = Audit {
+            worst: 1.2,
+            ..Audit::default()
+        };
+        assert!(judge(&p, &good, Some(10.5), &Audit { count: 150, ..fast })
+            .unwrap_err()
+            .contains("speed limit"));
+        let silent = Audit {
+            count: 20,
+            ..Audit::default()
+        };
+        assert!(judge(&p, &good, Some(10.5), &silent).unwrap_err().contains("silence"));
+    }
+
+    /// The audit measures each consecutive pair by its stamps: a joint moving its whole
+    /// speed limit's worth in one stamp step is 100 %.
+    #[test]
+    fn the_audit_divides_each_step_by_the_stamps_difference() {
+        let names = joint_names();
+        let limit = JointLimits::of_model(LbrModel::Med7).velocity;
+        let mut a = Audit::default();
+        let msg = |t: f64, q: &JointVector| {
+            let mut m = trajectory_msgs::JointTrajectory::default();
+            m.header.stamp = rosrust::Time::from_nanos((t * 1e9) as i64);
+            m.joint_names.clone_from(&names);
+            m.points.push(trajectory_msgs::JointTrajectoryPoint {
+                positions: q.iter().copied().collect(),
+                ..Default::default()
+            });
+            m
+        };
+        let q0 = JointVector::zeros();
+        let mut q1 = q0;
+        q1[1] = limit[1] * 0.01;
+        a.add(&msg(1.0, &q0), &names, &limit);
+        a.add(&msg(1.01, &q1), &names, &limit);
+        assert_eq!(a.count, 2);
+        assert!((a.worst - 1.0).abs() < 1e-3, "{}", a.worst);
+    }
+}
