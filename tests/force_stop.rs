@@ -98,6 +98,15 @@ fn jam(controller: &ControllerParams, seed: u64, retract: bool, stiffness: f64, 
         last = Some((o.phase, o.reason_code()));
     }
     let (phase, code) = last.unwrap();
+    eprintln!(
+        "{} seed {seed}, {stiffness} N/m, stop at {} N: true peak {peak:.2} N, {held} steps held, {code}",
+        if retract { "withdrawal" } else { "pan" },
+        if retract {
+            controller.scope.retract_force_stop
+        } else {
+            controller.guard.force_stop
+        },
+    );
     Jammed {
         peak_n: peak,
         phase,
@@ -108,15 +117,45 @@ fn jam(controller: &ControllerParams, seed: u64, retract: bool, stiffness: f64, 
     }
 }
 
-/// A withdrawal into a stiff obstacle (5000 N/m: three times the abdominal wall's 1500 N/m,
-/// config/sim.yaml) brakes at `scope.retract_force_stop` and holds: the true force stays
-/// under the guard's 20 N stop (measured 15.3-17.6 N, seeds 1-3) and the tip still; without
-/// the stop it goes on pulling (measured over 170 N). Freed and started, it withdraws on.
+/// A start while the tip is still caught: refused while the force estimate is over
+/// `limit`; taken, the phase resumes and the force stop holds it again within 0.5 s, the
+/// true force under `limit` + 20 %.
+fn start_while_caught(s: &mut PivotSession, limit: f64, seed: u64) {
+    match s.controller().start() {
+        Err(refused) => assert!(refused.contains("still over"), "seed {seed}: {refused}"),
+        Ok(()) => {
+            let t = s.world().time();
+            let mut held = None;
+            while s.world().time() < t + 0.5 && held.is_none() {
+                let o = s.tick(None).unwrap();
+                let f = s.world().contact().force.norm();
+                assert!(f < 1.2 * limit, "seed {seed}: {f:.1} N after the start");
+                held = (o.phase == Phase::Hold).then(|| o.reason_code());
+            }
+            assert_eq!(
+                held,
+                Some("FORCE_LIMIT"),
+                "seed {seed}: a start into the jam holds again"
+            );
+        }
+    }
+}
+
+/// The jams of the tests: from soft (5000 N/m: three times the abdominal wall's 1500 N/m,
+/// config/sim.yaml) to stiff (50 000 N/m, the order of the arm's own stiffness at the tip).
+const STIFFNESSES: [f64; 4] = [5000.0, 8000.0, 20_000.0, 50_000.0];
+
+/// A withdrawal into a stiff obstacle brakes at `scope.retract_force_stop` and holds, the
+/// tip still. The true force stays under that stop + 20 % in a jam of 5000 N/m (measured
+/// 10.5-12.0 N, seeds 1-3; 15.3-17.6 N before the stop acted on its prediction) and under
+/// the guard's stop + 20 % at 20 000 N/m (11.1-15.2 N); without the stop it goes on
+/// pulling (over 170 N). Freed and started, it withdraws on. (At 50 000 N/m a 20 mm/s
+/// withdrawal gains 10 N per 10 ms step: docs/after-docking.md.)
 #[test]
 fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
     let c = shipped();
     for seed in [1, 2, 3] {
-        let mut j = jam(&c, seed, true, 5000.0, 2.0);
+        let j = jam(&c, seed, true, 5000.0, 2.0);
         assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}");
         assert!(
             j.held >= 150,
@@ -124,20 +163,28 @@ fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
             j.held
         );
         assert!(
-            j.peak_n < c.guard.force_stop,
-            "seed {seed}: true force {:.1} N, over the {} N stop",
+            j.peak_n < 1.2 * c.scope.retract_force_stop,
+            "seed {seed}: true force {:.1} N, over the {} N retract stop + 20 %",
             j.peak_n,
-            c.guard.force_stop
+            c.scope.retract_force_stop
         );
         assert!(
             j.moved_while_held_m < 0.0002,
             "seed {seed}: moved {:.3} mm held",
             j.moved_while_held_m * 1e3
         );
-        // Still caught: a start is refused while the estimate is over the limit.
+        let mut j = jam(&c, seed, true, 20_000.0, 1.0);
+        assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}");
+        assert!(
+            j.peak_n < 1.2 * c.guard.force_stop,
+            "seed {seed}: 20 000 N/m: true force {:.1} N",
+            j.peak_n
+        );
+        // Still caught: a start is refused while the estimate is over the limit, and one
+        // taken (the stop acted on the predicted force) meets the stop again, under the
+        // guard's stop + 20 % (the bound at this stiffness).
         let s = &mut j.session;
-        let refused = s.controller().start().unwrap_err();
-        assert!(refused.contains("still over"), "{refused}");
+        start_while_caught(s, c.guard.force_stop, seed);
         // Freed: once the estimate is under the limit a start goes on withdrawing, to IDLE.
         s.world_mut().set_jam(None);
         let t = s.world().time();
@@ -166,18 +213,31 @@ fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
     }
 }
 
-/// The pivot targets' pan (0.17 rad/s) with the tip caught by a stiff obstacle (8000 N/m): DONE
-/// holds, `FORCE_LIMIT`, the scope stays where it stopped and stays held until a start;
-/// without the stop the force goes past 200 N. The true force's peak is 24.9-28.2 N
-/// (seeds 1-2), over the 20 N stop by 25-41 %: against a tip caught this stiffly the
-/// fulcrum's lateral adaptation (damping 50 N s/m, one 10 ms step: 8000 x 0.01 / 50 = 1.6
-/// of gain) rings, and the force rises faster than the torque estimate follows. The bound
-/// here is what the stop achieves, a fifth of the force without it.
+/// The pivot targets' pan (0.17 rad/s) with the tip caught, from soft to stiff
+/// ([`STIFFNESSES`], seeds 1-3): the true force stays under the 20 N stop + 20 % (measured
+/// 4.4-21.3 N; before the rate bounds and the predicted stop 24.9-28.2 N at 8000 N/m and
+/// up to 67 N at 20 000 N/m). Against the soft jams the fulcrum and the depth give way to
+/// the caught tip and the force stays under the stop; against the stiff ones DONE holds,
+/// `FORCE_LIMIT`, the scope stays where it stopped and stays held until a start; without
+/// the stop the force passes the bound in the worst of the seeds (50 000 N/m: 24.6-30.5 N,
+/// the fulcrum and the depth giving way).
 #[test]
-fn a_jammed_pan_holds_with_the_scope_where_it_stopped() {
+fn a_jammed_pan_stays_under_the_stop_and_holds_with_the_scope_where_it_stopped() {
     let c = shipped();
-    for seed in [1, 2] {
-        let mut j = jam(&c, seed, false, 8000.0, 3.0);
+    let mut worst_without = 0.0f64;
+    for seed in [1, 2, 3] {
+        for k in STIFFNESSES {
+            let j = jam(&c, seed, false, k, 3.0);
+            assert!(
+                j.peak_n < 1.2 * c.guard.force_stop,
+                "seed {seed}, {k} N/m: true force {:.1} N",
+                j.peak_n
+            );
+            if j.held > 0 {
+                assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}, {k} N/m");
+            }
+        }
+        let mut j = jam(&c, seed, false, 50_000.0, 3.0);
         assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}");
         assert!(j.held >= 100, "seed {seed}: held {} steps", j.held);
         assert!(
@@ -185,14 +245,7 @@ fn a_jammed_pan_holds_with_the_scope_where_it_stopped() {
             "seed {seed}: moved {:.3} mm held",
             j.moved_while_held_m * 1e3
         );
-        let without = jam(&without_stop(), seed, false, 8000.0, 3.0);
-        assert!(
-            without.peak_n > 1.2 * c.guard.force_stop && j.peak_n < 0.2 * without.peak_n,
-            "seed {seed}: {:.1} N with the stop, {:.1} N without",
-            j.peak_n,
-            without.peak_n
-        );
-        assert!(j.peak_n < 1.5 * c.guard.force_stop, "seed {seed}: {:.1} N", j.peak_n);
+        worst_without = worst_without.max(jam(&without_stop(), seed, false, 50_000.0, 3.0).peak_n);
         // Freed and started: DONE again, re-anchored where the scope is (no jump: the guard
         // would hold on one), steering again.
         let s = &mut j.session;
@@ -211,4 +264,8 @@ fn a_jammed_pan_holds_with_the_scope_where_it_stopped() {
             assert_eq!(o.phase, Phase::Done, "seed {seed}: {:?}", o.hold);
         }
     }
+    assert!(
+        worst_without > 1.2 * c.guard.force_stop,
+        "without the stop only {worst_without:.1} N"
+    );
 }

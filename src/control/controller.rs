@@ -92,6 +92,24 @@ struct Arm {
     prev: JointVector,
 }
 
+/// How far ahead the force stop after docking looks, s: how long a force that rises at a
+/// steady rate goes on rising after the estimate showed it, i.e. the lag of the estimate
+/// behind the true force (the torques' low-pass `torque_filter_time_constant` plus the
+/// estimate's first-order low-pass at `admittance.filter_cutoff_hz`, 1 / (2 pi f_c): each
+/// first-order lag delays a ramp by its time constant), plus one control period (the
+/// step whose command brakes), plus the arm's tracking lag `scope.arm_lag` (a position-mode
+/// joint servo reaches a stopped command about that late). With the shipped values
+/// 5 + 8 + 10 + 20 = 43 ms.
+fn force_stop_lead(p: &ControllerParams) -> f64 {
+    let fc = p.admittance.filter_cutoff_hz;
+    let estimate = if fc > 0.0 {
+        1.0 / (2.0 * std::f64::consts::PI * fc)
+    } else {
+        0.0
+    };
+    p.torque_filter_time_constant + estimate + p.dt + p.scope.arm_lag
+}
+
 /// The docking controller, guarded: what the nodes, the trials and the tests run.
 pub type Controller = Guarded<OptimalController>;
 
@@ -248,6 +266,7 @@ impl OptimalController {
             hold_at: Some(arm.prev),
             tip: Some(arm.tip),
         };
+        let before = self.run.admittance.force().norm();
         match input.tau_ext {
             Some(t)
                 if t.value.iter().all(|x| x.is_finite())
@@ -281,7 +300,7 @@ impl OptimalController {
                 return Ok(());
             }
         }
-        self.pivot_force_stop(phase, f.norm());
+        self.pivot_force_stop(phase, f.norm(), (f.norm() - before) / dt);
         Ok(())
     }
 
@@ -291,15 +310,27 @@ impl OptimalController {
     /// then stands still ([`Pivot::hold`]): the scope stays where it stopped, neither
     /// pulled out nor pushed in. Only the operator's start resumes (DONE re-anchored at the
     /// measured tip, RETRACT going on).
-    fn pivot_force_stop(&mut self, phase: Phase, force: f64) {
+    ///
+    /// It acts on the force predicted when the arm will have stopped: `force` (the
+    /// estimate's norm) plus its rate `rate` times [`force_stop_lead`]
+    /// (a rising force only): against a stiff obstacle the true force rises on while the
+    /// estimate lags it and the arm brakes and catches up with its command.
+    fn pivot_force_stop(&mut self, phase: Phase, force: f64, rate: f64) {
         let limit = match phase {
             Phase::Done => self.params.guard.force_stop,
             Phase::Retract => self.params.scope.retract_force_stop,
             _ => return,
         };
-        if force.is_finite() && force <= limit {
+        let ahead = if rate.is_finite() {
+            rate.max(0.0) * force_stop_lead(&self.params)
+        } else {
+            0.0
+        };
+        if force.is_finite() && force + ahead <= limit {
             return;
         }
+        // The hold reports the predicted force, which passed the limit.
+        let force = force + ahead;
         self.run.supervisor.hold(HoldReason::ForceLimit { force, limit }, true);
         if let Some(p) = self.run.pivot.as_mut() {
             p.hold();

@@ -150,6 +150,8 @@ pub struct CheckParams {
     pub max_mount_error_m: f64,
     /// `hand_eye`: the largest accepted rotation of the computed mount from the true one, deg.
     pub max_mount_error_deg: f64,
+    /// `replay_fault`: where the bag's fault begins, s after the recorded APPROACH.
+    pub fault_after_s: f64,
 }
 
 impl Default for CheckParams {
@@ -220,6 +222,7 @@ impl Default for CheckParams {
             hand_eye_output: String::new(),
             max_mount_error_m: 0.0005,
             max_mount_error_deg: 0.2,
+            fault_after_s: 0.5,
         }
     }
 }

@@ -117,7 +117,7 @@ impl Seen {
 
 /// Largest `|b - a| / (limit * dt)` over the joints; none for a stamp step outside
 /// (0, 1 s]: a clock that stalls or jumps is the fault some tests inject, not a speed.
-fn speed_ratio(a: &JointVector, b: &JointVector, dt: f64, limit: &JointVector) -> Option<f64> {
+pub(crate) fn speed_ratio(a: &JointVector, b: &JointVector, dt: f64, limit: &JointVector) -> Option<f64> {
     (dt > 0.0 && dt <= 1.0).then(|| {
         (b - a)
             .iter()
@@ -128,7 +128,7 @@ fn speed_ratio(a: &JointVector, b: &JointVector, dt: f64, limit: &JointVector) -
 }
 
 /// The speed audit's bound: consecutive commands within 110 % of every joint's speed limit.
-const MAX_SPEED_RATIO: f64 = 1.10;
+pub(crate) const MAX_SPEED_RATIO: f64 = 1.10;
 
 /// The audit over the whole run: an error when a command pair broke the bound.
 fn speed_audit(code: &str, seen: &Seen) -> Result<String, String> {

@@ -17,6 +17,7 @@ mod junit;
 mod preflight_checks;
 mod reconfigure_checks;
 mod replay_checks;
+mod replay_faults;
 mod scope_checks;
 
 use ::trocar_docking::ros::params;
@@ -49,6 +50,7 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "stale_hold" => docking_checks::stale_hold(&p),
             "replay" => replay_checks::replay(&p),
             "replay_controller" => replay_checks::replay_controller(&p),
+            "replay_fault" => replay_faults::replay_fault(&p),
             "bad_input" => fault_injection::bad_input(&p),
             "latency" => camera_checks::latency(&p),
             "bad_images" => camera_checks::bad_images(&p),

@@ -105,6 +105,11 @@ pub struct ScopeParams {
     /// and holds, `FORCE_LIMIT`, N: below the guard's `force_stop`, by what the force grows
     /// while the estimate lags and the withdrawal brakes against a stiff obstacle.
     pub retract_force_stop: f64,
+    /// The arm's tracking lag in position mode, s: after a force stop the arm goes on
+    /// towards its last command for about this long, and the force with it. The stop after
+    /// docking acts on the force this lag, the estimate's low-passes and one control period
+    /// ahead ([`ScopeParams::force_stop_lead`]).
+    pub arm_lag: f64,
     /// The fulcrum's adaptation from the force across the shaft.
     pub fulcrum: FulcrumParams,
     /// The port's breathing along the docking axis, followed from the trocar estimate.
@@ -132,6 +137,7 @@ impl Default for ScopeParams {
             roll_weight: 5.0,
             retract_speed: 0.02,
             retract_force_stop: 12.0,
+            arm_lag: 0.02,
             fulcrum: FulcrumParams::default(),
             breathing: PortFollowParams::default(),
         }
@@ -154,6 +160,7 @@ impl ScopeParams {
         pos("max_zoom_speed", self.max_zoom_speed)?;
         pos("retract_speed", self.retract_speed)?;
         in_range("scope.retract_force_stop", self.retract_force_stop, 1.0, 200.0).map_err(|e| e.to_string())?;
+        in_range("scope.arm_lag", self.arm_lag, 0.0, 1.0).map_err(|e| e.to_string())?;
         self.weights.validate("scope.weights")?;
         for (n, w) in [("rcm_weight", self.rcm_weight), ("roll_weight", self.roll_weight)] {
             if !(w.is_finite() && w >= 0.0) {

@@ -23,6 +23,28 @@
 //!   force then says nothing about the depth). s stays between 0 (the port) and the tip's
 //!   depth (the wall can only push where there is shaft).
 //!
+//! **The rate bound.** Both the lateral admittance and the depth's yield along the shaft
+//! ([`FulcrumParams::axial_yield`]) are integrators of a force that reaches them late: the
+//! arm follows its command about 20 ms behind (a position-mode joint servo), the torques
+//! are low-passed (5 ms), the force again at 5 Hz (32 ms), and the law acts a control
+//! period later. Against a contact of stiffness k such a loop has the gain k / D per
+//! second; with D = 50 N s/m it crosses over near 70 rad/s against k = 8000 N/m, where
+//! those lags take more than the 90 deg of phase the integrator leaves (the 5 Hz low-pass
+//! alone 66 deg, the servo about 70, the period 40): it rings and grows (measured: a pan with the tip
+//! caught at 8000 N/m, the force oscillating at about 16 Hz, 8 -> 28 N in 0.4 s, the
+//! fulcrum swinging 1-8 mm across and 23-31 mm in depth with it). No damping serves both
+//! the wall (1500 N/m, which the fulcrum must follow) and a caught tip (10^4-10^5 N/m).
+//! What bounds the damage is the speed: the laws exist to follow the port, and the port
+//! moves slowly: across the shaft at most about 5 mm/s (breathing 3 mm across at 0.25 Hz,
+//! p95 in the realistic world: 4.7 mm/s) plus what pivoting about a wrong depth needs
+//! (10 mm off at the benchmark's 10 deg/s: 1.7 mm/s), so the lateral motion is bounded
+//! at `max_lateral_speed` 10 mm/s; along the shaft the yield must undo the fastest zoom's
+//! drag on a wedged trocar (`max_zoom_speed` 20 mm/s), so `axial_max_speed` is 20 mm/s.
+//! The force a caught tip then gains from the laws in one step is at most k v dt (50 000
+//! N/m x 20 mm/s x 10 ms = 10 N), which the controller's force stop, acting on the force
+//! predicted past its lags, catches (`tests/force_stop.rs`); on a compliant wall the laws
+//! run below their bounds and are unchanged.
+//!
 //! **The force** is the shaft's whole wrench at the tip from the external joint torques,
 //! [f; m] = (J J^T + λ² I)^{-1} J tau over all six rows of the Jacobian ([`shaft_wrench`]),
 //! low-passed: a moment on the shaft (the trocar's tilt spring, transmitted as a couple
@@ -56,6 +78,8 @@ pub struct FulcrumParams {
     pub still_force_deadband: f64,
     /// Largest displacement of the fulcrum across the shaft, m.
     pub max_displacement: f64,
+    /// Largest speed of the fulcrum across the shaft, m/s (module doc: the rate bound).
+    pub max_lateral_speed: f64,
     /// Gain γ of the depth's adaptation, m/(N s) (0 = the depth stays at the prior).
     pub depth_gain: f64,
     /// The depth adapts only while the scope pivots faster than this, rad/s.
@@ -72,6 +96,8 @@ pub struct FulcrumParams {
     /// ... and below this while no command comes, N: the scope then holds still against
     /// the breathing trocar's pull through the seal, and yields only to more.
     pub axial_still_deadband: f64,
+    /// Largest speed of that yield, m/s (module doc: the rate bound).
+    pub axial_max_speed: f64,
 }
 
 impl Default for FulcrumParams {
@@ -83,12 +109,14 @@ impl Default for FulcrumParams {
             force_deadband: 0.15,
             still_force_deadband: 2.0,
             max_displacement: 0.01,
+            max_lateral_speed: 0.01,
             depth_gain: 0.1,
             min_pivot_speed: 0.02,
             filter_cutoff_hz: 5.0,
             axial_damping: 50.0,
             axial_deadband: 2.0,
             axial_still_deadband: 5.0,
+            axial_max_speed: 0.02,
         }
     }
 }
@@ -109,12 +137,14 @@ impl FulcrumParams {
         check("force_deadband", self.force_deadband, 0.0, 50.0)?;
         check("still_force_deadband", self.still_force_deadband, 0.0, 50.0)?;
         check("max_displacement", self.max_displacement, 0.0, 0.05)?;
+        check("max_lateral_speed", self.max_lateral_speed, 1e-4, 1.0)?;
         check("depth_gain", self.depth_gain, 0.0, 1.0)?;
         check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)?;
         check("filter_cutoff_hz", self.filter_cutoff_hz, 0.0, 1000.0)?;
         check("axial_damping", self.axial_damping, 0.0, 1e5)?;
         check("axial_deadband", self.axial_deadband, 0.0, 50.0)?;
-        check("axial_still_deadband", self.axial_still_deadband, 0.0, 50.0)
+        check("axial_still_deadband", self.axial_still_deadband, 0.0, 50.0)?;
+        check("axial_max_speed", self.axial_max_speed, 1e-4, 1.0)
     }
 
     /// How far the tip's target depth yields in a step of `dt` to `along`, the force on the
@@ -128,7 +158,8 @@ impl FulcrumParams {
             self.axial_still_deadband
         };
         if self.axial_damping > 0.0 && along.is_finite() && dt.is_finite() && dt > 0.0 {
-            deadband(along, band) / self.axial_damping * dt
+            let most = self.axial_max_speed * dt;
+            (deadband(along, band) / self.axial_damping * dt).clamp(-most, most)
         } else {
             0.0
         }
@@ -242,6 +273,14 @@ impl Fulcrum {
         } else {
             lateral + f * (dt / p.damping)
         };
+        // The rate bound (module doc).
+        let step = x - lateral;
+        let most = p.max_lateral_speed * dt;
+        let x = if step.norm() > most {
+            lateral + step * (most / step.norm())
+        } else {
+            x
+        };
         let xn = x.norm();
         self.lateral = if xn > p.max_displacement {
             x * (p.max_displacement / xn)
@@ -352,15 +391,32 @@ mod tests {
         assert_eq!(p.stiffness, 0.0);
         let mut fc = Fulcrum::new(&p);
         for _ in 0..10 {
-            fc.step(&p, &Vector3::new(1.3, 0.0, 0.0), &a, &m, 0.01);
+            fc.step(&p, &Vector3::new(0.6, 0.0, 0.0), &a, &m, 0.01);
         }
-        let past = 1.3 - p.force_deadband;
+        let past = 0.6 - p.force_deadband;
         assert!((fc.lateral.x - past / p.damping * 0.1).abs() < 1e-12, "{}", fc.lateral);
         let held = fc.lateral;
         for _ in 0..100 {
             fc.step(&p, &Vector3::zeros(), &a, &m, 0.01);
         }
         assert_eq!(fc.lateral, held);
+        // Past D times the rate bound (0.5 N + the dead-band), no faster than the bound,
+        // steering or not, with a spring or without.
+        for (q, m) in [(p.clone(), m), (p.clone(), silent())] {
+            for stiff in [0.0, 100.0] {
+                let q = FulcrumParams {
+                    stiffness: stiff,
+                    ..q.clone()
+                };
+                let mut fc = Fulcrum::new(&q);
+                fc.step(&q, &Vector3::new(0.0, 30.0, 0.0), &a, &m, 0.01);
+                assert!(
+                    (fc.lateral.norm() - q.max_lateral_speed * 0.01).abs() < 1e-12,
+                    "{}",
+                    fc.lateral
+                );
+            }
+        }
     }
 
     /// Silent (no command): forces under the still dead-band move nothing, larger ones move
@@ -389,8 +445,8 @@ mod tests {
             (fc.lateral - before).norm() < 1e-12,
             "no motion and no spring back while silent"
         );
-        fc.step(&p, &Vector3::new(0.0, -3.0, 0.0), &a, &silent(), 0.01);
-        let expect = -(3.0 - p.still_force_deadband) / p.damping * 0.01;
+        fc.step(&p, &Vector3::new(0.0, -2.4, 0.0), &a, &silent(), 0.01);
+        let expect = -(2.4 - p.still_force_deadband) / p.damping * 0.01;
         assert!((fc.lateral.y - before.y - expect).abs() < 1e-12);
     }
 
@@ -434,10 +490,13 @@ mod tests {
         assert_eq!(p.axial_yield(1.9, true, dt), 0.0);
         assert_eq!(p.axial_yield(-4.9, false, dt), 0.0);
         // Past it: the way the force pushes, at 1/D per newton over the band.
-        let out = p.axial_yield(-4.0, true, dt);
-        assert!((out - (-2.0 / p.axial_damping * dt)).abs() < 1e-15, "{out}");
-        assert!(p.axial_yield(7.0, false, dt) > 0.0);
-        assert!((p.axial_yield(7.0, false, dt) - 2.0 / p.axial_damping * dt).abs() < 1e-15);
+        let out = p.axial_yield(-2.4, true, dt);
+        assert!((out - (-0.4 / p.axial_damping * dt)).abs() < 1e-15, "{out}");
+        assert!(p.axial_yield(5.4, false, dt) > 0.0);
+        assert!((p.axial_yield(5.4, false, dt) - 0.4 / p.axial_damping * dt).abs() < 1e-15);
+        // No faster than its rate bound, either way.
+        assert_eq!(p.axial_yield(40.0, true, dt), p.axial_max_speed * dt);
+        assert_eq!(p.axial_yield(-40.0, false, dt), -p.axial_max_speed * dt);
         // Off, or bad input: nothing.
         let off = FulcrumParams {
             axial_damping: 0.0,

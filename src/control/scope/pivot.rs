@@ -476,10 +476,11 @@ mod tests {
         // Under the still dead-band (5 N): nothing moves without a command.
         pv.step((&p, &lim), Ok(None), &Vector3::new(0.0, 0.0, 4.0), true, 0.01);
         assert_eq!(pv.target_depth(), 0.03);
-        // Steering (a zero command: the dead-man held), 10 N out: (10 - 2) / 50 = 0.16 m/s.
+        // Steering (a zero command: the dead-man held), 10 N out: (10 - 2) / 50 = 0.16 m/s,
+        // cut to the rate bound (`axial_max_speed`).
         pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
         assert!(
-            (pv.target_depth() - (0.03 - 0.0016)).abs() < 1e-12,
+            (pv.target_depth() - (0.03 - p.fulcrum.axial_max_speed * 0.01)).abs() < 1e-12,
             "{}",
             pv.target_depth()
         );
@@ -488,12 +489,12 @@ mod tests {
         off.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, false, 0.01);
         assert_eq!(off.target_depth(), 0.03);
         // Past min_depth (30 mm), but never out of the port.
-        for _ in 0..100 {
+        for _ in 0..400 {
             pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
         }
         assert_eq!(pv.target_depth(), 0.0);
         // Pulled in: up to max_depth, no further.
-        for _ in 0..200 {
+        for _ in 0..1000 {
             pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &-out, true, 0.01);
         }
         assert_eq!(pv.target_depth(), p.max_depth);
