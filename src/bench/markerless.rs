@@ -10,6 +10,32 @@ use crate::vision::markerless::approach::docking_approach;
 use crate::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer};
 use crate::vision::{CameraModel, GreyImage, VisionError};
 
+/// The estimates' accuracy for the report: frames, found, and the port's and the axis's
+/// median and largest errors (mm, deg).
+fn accuracy(
+    frames: usize,
+    found: usize,
+    mut pos: Vec<f64>,
+    mut ang: Vec<f64>,
+) -> serde_json::Map<String, serde_json::Value> {
+    pos.sort_by(f64::total_cmp);
+    ang.sort_by(f64::total_cmp);
+    let mut extra = serde_json::Map::new();
+    extra.insert("frames".into(), frames.into());
+    extra.insert("found".into(), found.into());
+    if !pos.is_empty() {
+        for (key, v, q) in [
+            ("port_error_median_mm", &pos, 0.5),
+            ("port_error_max_mm", &pos, 1.0),
+            ("axis_error_median_deg", &ang, 0.5),
+            ("axis_error_max_deg", &ang, 1.0),
+        ] {
+            extra.insert(key.into(), crate::stats::quantile_sorted(v, q).into());
+        }
+    }
+    extra
+}
+
 /// Run the case: 12 frames from 0.4 to 0.1 m, `n` timed estimates (frames cycle).
 pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
     let camera = CameraModel::from_yaml_str(include_str!("../../config/camera_zedm.yaml"))?;
@@ -56,29 +82,7 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
     let Some(latency) = LatencyStats::from_samples(&t) else {
         return Ok(vec![]);
     };
-    pos.sort_by(f64::total_cmp);
-    ang.sort_by(f64::total_cmp);
-    let mut extra = serde_json::Map::new();
-    extra.insert("frames".into(), frames.len().into());
-    extra.insert("found".into(), found.into());
-    if !pos.is_empty() {
-        extra.insert(
-            "port_error_median_mm".into(),
-            crate::stats::quantile_sorted(&pos, 0.5).into(),
-        );
-        extra.insert(
-            "port_error_max_mm".into(),
-            crate::stats::quantile_sorted(&pos, 1.0).into(),
-        );
-        extra.insert(
-            "axis_error_median_deg".into(),
-            crate::stats::quantile_sorted(&ang, 0.5).into(),
-        );
-        extra.insert(
-            "axis_error_max_deg".into(),
-            crate::stats::quantile_sorted(&ang, 1.0).into(),
-        );
-    }
+    let extra = accuracy(frames.len(), found, pos, ang);
     let mut out = vec![SuiteReport {
         name: "markerless_axis_zedm_1280x720".into(),
         latency,
