@@ -14,12 +14,14 @@
 //! - [`preflight`]: the checks of a set-up before the arm moves (pure), on what the ROS side observed.
 //! - [`signal`]: the dead-band shared by the controller and the simulated sensors.
 //! - [`realtime`]: the SCHED_FIFO class and the thread CPU clock for the real-time loops.
+//! - [`config`]: YAML loading (one parser, one error naming the file, line and key) for every configuration file.
 //! - [`validate`]: range checks of configuration values, one style for nodes and CLI.
 //! - `ffi` (crate-private): the cxx bridges to KDL, ViSP and OpenCV.
 #![warn(missing_docs)]
 
 pub mod bench;
 pub mod cli;
+pub mod config;
 pub mod control;
 mod ffi;
 pub mod kinematics;

@@ -88,7 +88,7 @@ fn cli_writes_yaml_the_estimator_reads() {
     std::fs::create_dir_all(&dir).unwrap();
     let inp = dir.join("pairs.yaml");
     let out = dir.join("hand_eye.yaml");
-    std::fs::write(&inp, serde_yaml::to_string(&input).unwrap()).unwrap();
+    std::fs::write(&inp, trocar_docking::config::to_yaml_string("input", &input).unwrap()).unwrap();
     let st = std::process::Command::new(env!("CARGO_BIN_EXE_trocar_docking"))
         .args(["hand-eye", "--input"])
         .arg(&inp)
@@ -98,7 +98,7 @@ fn cli_writes_yaml_the_estimator_reads() {
         .unwrap();
     assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
     let text = std::fs::read_to_string(&out).unwrap();
-    let r: HandEyeResult = serde_yaml::from_str(&text).unwrap();
+    let r: HandEyeResult = trocar_docking::config::from_yaml_str("result", &text).unwrap();
     assert!(error(&r).0 < 1e-4);
     // Dated today, with its residuals: the preflight's HAND_EYE check reads both (its age by
     // the date, not by the file's modification time, 10 days later here).

@@ -39,7 +39,7 @@ fn shipped_mount() -> Isometry3<f64> {
         flange_t_camera: PoseYaml,
     }
     let s = std::fs::read_to_string(root().join("config/hand_eye.yaml")).unwrap();
-    serde_yaml::from_str::<HandEye>(&s)
+    trocar_docking::config::from_yaml_str::<HandEye>("hand-eye file", &s)
         .unwrap()
         .flange_t_camera
         .to_isometry()

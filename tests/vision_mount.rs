@@ -34,7 +34,7 @@ fn root() -> &'static Path {
 
 fn shipped_mount() -> Isometry3<f64> {
     let s = std::fs::read_to_string(root().join("config/hand_eye.yaml")).unwrap();
-    let h: HandEye = serde_yaml::from_str(&s).unwrap();
+    let h: HandEye = trocar_docking::config::from_yaml_str("hand-eye file", &s).unwrap();
     h.flange_t_camera.to_isometry().unwrap()
 }
 

@@ -92,13 +92,13 @@ pub fn parse_pose(v: &[f64], what: &str) -> Result<Isometry3<f64>, String> {
 
 /// The camera mount `camera.flange_t_camera` of a lbr_med_sim parameter file.
 pub fn read_mount(path: &Path) -> Result<Isometry3<f64>, String> {
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let v: serde_yaml::Value = serde_yaml::from_str(&text).map_err(|e| format!("{}: {e}", path.display()))?;
+    let v: crate::config::Value = crate::config::from_yaml_file(path).map_err(|e| e.to_string())?;
     let m = v
         .get("camera")
         .and_then(|c| c.get("flange_t_camera"))
         .ok_or_else(|| format!("{}: no camera.flange_t_camera", path.display()))?;
-    let p: PoseYaml = serde_yaml::from_value(m.clone()).map_err(|e| format!("{}: {e}", path.display()))?;
+    let p: PoseYaml =
+        crate::config::from_yaml_value(&path.display().to_string(), m.clone()).map_err(|e| e.to_string())?;
     p.to_isometry().map_err(|e| format!("{}: {e}", path.display()))
 }
 

@@ -16,8 +16,8 @@ use crate::validate;
 #[derive(Debug, thiserror::Error)]
 pub enum ParamError {
     /// The YAML did not parse or had unknown fields.
-    #[error("controller YAML: {0}")]
-    Yaml(#[from] serde_yaml::Error),
+    #[error(transparent)]
+    Yaml(#[from] crate::config::YamlError),
     /// A value is out of range.
     #[error("controller parameter: {0}")]
     Invalid(String),
@@ -140,7 +140,7 @@ impl Default for ControllerParams {
 impl ControllerParams {
     /// Parse YAML (missing fields take their defaults) and validate.
     pub fn from_yaml_str(s: &str) -> Result<Self, ParamError> {
-        let p: Self = serde_yaml::from_str(s)?;
+        let p: Self = crate::config::from_yaml_str("controller YAML", s)?;
         p.validate().map_err(ParamError::Invalid)?;
         Ok(p)
     }

@@ -632,7 +632,8 @@ fn parse_date(s: &str) -> Option<f64> {
 /// an optional `calibrated: YYYY-MM-DD`). Its age is from `calibrated` if present (a copied
 /// file's modification time says nothing), else from `modified_unix_s`.
 pub fn hand_eye_file(path: &str, text: &str, modified_unix_s: f64, now_unix_s: f64) -> Result<HandEye, String> {
-    let v: serde_json::Value = serde_yaml::from_str(text).map_err(|e| format!("{path}: not YAML: {e}"))?;
+    let v: serde_json::Value =
+        crate::config::from_yaml_str(path, text).map_err(|e| format!("{path}: not YAML: {}", e.message))?;
     if v.get("flange_t_camera").is_none() {
         return Err(format!("{path}: no flange_t_camera"));
     }

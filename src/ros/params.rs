@@ -47,11 +47,10 @@ pub fn from_value<T: DeserializeOwned>(namespace: &str, value: serde_json::Value
 
 /// Build the settings `T` from YAML text.
 pub fn from_yaml_str<T: DeserializeOwned>(name: &str, yaml: &str) -> Result<T, ParamError> {
-    let value: serde_json::Value = serde_yaml::from_str(yaml).map_err(|e| ParamError::Invalid {
-        namespace: name.to_string(),
-        message: e.to_string(),
-    })?;
-    from_value(name, value)
+    crate::config::from_yaml_str(name, yaml).map_err(|e| ParamError::Invalid {
+        namespace: e.what,
+        message: e.message,
+    })
 }
 
 /// Build the settings `T` from a YAML file.

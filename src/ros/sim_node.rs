@@ -710,9 +710,7 @@ mod tests {
     /// parameter server hands them over).
     fn shipped() -> SimNodeParams {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
-        let read = |f: &str| -> serde_json::Value {
-            serde_yaml::from_str(&std::fs::read_to_string(dir.join(f)).unwrap()).unwrap()
-        };
+        let read = |f: &str| -> serde_json::Value { crate::config::from_yaml_file(&dir.join(f)).unwrap() };
         let mut tree = read("lbr_med_sim.yaml");
         tree["world"] = read("sim.yaml");
         params::from_value("lbr_med_sim", tree).unwrap()

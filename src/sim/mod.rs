@@ -58,8 +58,8 @@ pub enum SimError {
         what: &'static str,
     },
     /// The YAML could not be parsed.
-    #[error("sim YAML: {0}")]
-    Yaml(#[from] serde_yaml::Error),
+    #[error(transparent)]
+    Yaml(#[from] crate::config::YamlError),
 }
 
 /// Check that `v` is finite and within `[lo, hi]`.
@@ -120,7 +120,7 @@ impl Default for SimParams {
 impl SimParams {
     /// Parse from YAML (missing fields take their defaults) and validate.
     pub fn from_yaml_str(s: &str) -> Result<Self, SimError> {
-        let p: Self = serde_yaml::from_str(s)?;
+        let p: Self = crate::config::from_yaml_str("sim YAML", s)?;
         p.validate()?;
         Ok(p)
     }
@@ -171,7 +171,7 @@ mod tests {
     fn defaults_are_valid_and_yaml_round_trips() {
         let p = SimParams::default();
         p.validate().unwrap();
-        let y = serde_yaml::to_string(&p).unwrap();
+        let y = crate::config::to_yaml_string("sim", &p).unwrap();
         assert_eq!(SimParams::from_yaml_str(&y).unwrap(), p);
     }
 

@@ -36,7 +36,7 @@ pub struct SimConfig {
     pub baseline: BaselineParams,
     /// Named protocols: each a partial tree of `sim:` and `trial:` values that replace the
     /// base ones (maps merge key by key, anything else is replaced).
-    pub protocols: BTreeMap<String, serde_yaml::Value>,
+    pub protocols: BTreeMap<String, crate::config::Value>,
 }
 
 /// The policy of the trials.
@@ -83,9 +83,9 @@ impl std::fmt::Display for Protocol {
 }
 
 /// Lay `over` onto `base`: mappings merge key by key (recursively), other values replace.
-fn merge(base: &mut serde_yaml::Value, over: &serde_yaml::Value) {
+fn merge(base: &mut crate::config::Value, over: &crate::config::Value) {
     match (base, over) {
-        (serde_yaml::Value::Mapping(b), serde_yaml::Value::Mapping(o)) => {
+        (crate::config::Value::Mapping(b), crate::config::Value::Mapping(o)) => {
             for (k, v) in o {
                 match b.get_mut(k) {
                     Some(slot) => merge(slot, v),
@@ -102,7 +102,12 @@ fn merge(base: &mut serde_yaml::Value, over: &serde_yaml::Value) {
 impl SimConfig {
     /// Parse and validate YAML.
     pub fn from_yaml_str(s: &str) -> Result<Self, SimError> {
-        let c: Self = serde_yaml::from_str(s)?;
+        Self::parse("sim YAML", s)
+    }
+
+    /// Parse YAML (`what` names it in errors) and validate.
+    fn parse(what: &str, s: &str) -> Result<Self, SimError> {
+        let c: Self = crate::config::from_yaml_str(what, s)?;
         c.validate()?;
         Ok(c)
     }
@@ -140,11 +145,11 @@ impl SimConfig {
             protocols: BTreeMap::new(),
             ..self.clone()
         };
-        let mut tree = serde_yaml::to_value(&base)?;
+        let mut tree = crate::config::to_yaml_value("sim YAML", &base)?;
         merge(&mut tree, over);
-        let mut out: Self = serde_yaml::from_value(tree).map_err(|e| SimError::Param {
+        let mut out: Self = crate::config::from_yaml_value(name, tree).map_err(|e| SimError::Param {
             name: "protocols",
-            why: format!("protocol '{name}': {e}"),
+            why: format!("protocol '{name}': {}", e.message),
         })?;
         out.sim.validate()?;
         out.trial.validate()?;
@@ -166,7 +171,7 @@ impl SimConfig {
     /// Read a file.
     pub fn from_file(path: &Path) -> Result<Self, SimError> {
         let s = std::fs::read_to_string(path).map_err(|e| SimError::Input(format!("{}: {e}", path.display())))?;
-        Self::from_yaml_str(&s)
+        Self::parse(&path.display().to_string(), &s)
     }
 }
 

@@ -146,7 +146,8 @@ impl CameraModel {
 
     /// Parse a ROS camera calibration YAML string.
     pub fn from_yaml_str(s: &str) -> Result<Self, VisionError> {
-        let c: CalibrationYaml = serde_yaml::from_str(s).map_err(|e| VisionError::Io(format!("camera YAML: {e}")))?;
+        let c: CalibrationYaml =
+            crate::config::from_yaml_str("camera YAML", s).map_err(|e| VisionError::Io(e.to_string()))?;
         Self::from_calibration(&c)
     }
 
@@ -258,7 +259,7 @@ mod tests {
     fn yaml_round_trip_and_shipped_file() {
         let mut c = CameraModel::pinhole(1280, 720, 700.0, 701.0, 640.5, 360.2).unwrap();
         c.distortion = vec![-0.17, 0.02, 0.0005, -0.0003, 0.0];
-        let s = serde_yaml::to_string(&c.to_calibration()).unwrap();
+        let s = crate::config::to_yaml_string("camera", &c.to_calibration()).unwrap();
         assert_eq!(CameraModel::from_yaml_str(&s).unwrap(), c);
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml");
         let z = CameraModel::from_yaml_file(&path).unwrap();

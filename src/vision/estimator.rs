@@ -100,8 +100,7 @@ impl Default for EstimatorParams {
 impl EstimatorParams {
     /// Read from YAML (missing fields take defaults), validated.
     pub fn from_yaml_file(path: &Path) -> Result<Self, VisionError> {
-        let s = std::fs::read_to_string(path).map_err(|e| VisionError::Io(format!("{}: {e}", path.display())))?;
-        let p: Self = serde_yaml::from_str(&s).map_err(|e| VisionError::Io(format!("{}: {e}", path.display())))?;
+        let p: Self = crate::config::from_yaml_file(path).map_err(|e| VisionError::Io(e.to_string()))?;
         p.validate()?;
         Ok(p)
     }

@@ -37,7 +37,7 @@ pub fn hand_eye(p: &CheckParams) -> Result<String, String> {
     }
     let saved = trigger(&format!("{}/save", p.hand_eye_node), p.startup_timeout)?;
     let text = std::fs::read_to_string(&p.hand_eye_output).map_err(|e| format!("{}: {e}", p.hand_eye_output))?;
-    let mount: Mount = serde_yaml::from_str(&text).map_err(|e| format!("{}: {e}", p.hand_eye_output))?;
+    let mount: Mount = ::trocar_docking::config::from_yaml_str(&p.hand_eye_output, &text).map_err(|e| e.to_string())?;
     let m = mount.flange_t_camera.to_isometry().map_err(|e| e.to_string())?;
     let dt = (m.translation.vector - truth.translation.vector).norm();
     let dr = m.rotation.angle_to(&truth.rotation).to_degrees();

@@ -63,8 +63,7 @@ pub struct HandEyeResult {
 impl HandEyeInput {
     /// Read a YAML (or JSON) file.
     pub fn from_file(path: &Path) -> Result<Self, VisionError> {
-        let s = std::fs::read_to_string(path).map_err(|e| VisionError::Io(format!("{}: {e}", path.display())))?;
-        serde_yaml::from_str(&s).map_err(|e| VisionError::Io(format!("{}: {e}", path.display())))
+        crate::config::from_yaml_file(path).map_err(|e| VisionError::Io(e.to_string()))
     }
 }
 
@@ -93,7 +92,7 @@ pub fn file_text(
 }
 
 fn yaml<T: Serialize>(v: &T) -> Result<String, VisionError> {
-    serde_yaml::to_string(v).map_err(|e| VisionError::Io(e.to_string()))
+    crate::config::to_yaml_string("hand-eye file", v).map_err(|e| VisionError::Io(e.to_string()))
 }
 
 fn indent(s: &str) -> String {

@@ -216,10 +216,10 @@ mod tests {
             ("markerless", EstimatorMethod::Markerless),
             ("fused", EstimatorMethod::Fused),
         ] {
-            assert_eq!(serde_yaml::from_str::<EstimatorMethod>(s).unwrap(), m);
+            assert_eq!(crate::config::from_yaml_str::<EstimatorMethod>("t", s).unwrap(), m);
             assert_eq!(m.to_string(), s);
         }
-        assert!(serde_yaml::from_str::<EstimatorMethod>("aruco").is_err());
+        assert!(crate::config::from_yaml_str::<EstimatorMethod>("t", "aruco").is_err());
         assert!(EstimatorMethod::Fused.uses_marker() && EstimatorMethod::Fused.uses_markerless());
         assert!(!EstimatorMethod::Marker.uses_markerless() && !EstimatorMethod::Markerless.uses_marker());
     }

@@ -62,7 +62,8 @@ impl TrocarModel {
 
     /// Parse and validate a model YAML string.
     pub fn from_yaml_str(s: &str) -> Result<Self, VisionError> {
-        let m: Self = serde_yaml::from_str(s).map_err(|e| VisionError::Io(format!("trocar model YAML: {e}")))?;
+        let m: Self =
+            crate::config::from_yaml_str("trocar model YAML", s).map_err(|e| VisionError::Io(e.to_string()))?;
         m.validate()?;
         Ok(m)
     }
