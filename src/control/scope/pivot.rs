@@ -39,10 +39,11 @@
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 
 use crate::control::docking::geometry::InsertionAxis;
+use crate::control::force::wrench::{shaft_wrench, ForceFilter};
 use crate::control::io::Stamped;
 use crate::control::safety::motion::{MotionLimits, Rate, RateShaper};
 use crate::control::scope::command::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
-use crate::control::scope::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
+use crate::control::scope::fulcrum::{Fulcrum, Motion};
 use crate::control::scope::port_follow::PortFollow;
 use crate::control::sqp::{CostWeights, PivotCost};
 use crate::kinematics::{Jacobian, JointVector};
