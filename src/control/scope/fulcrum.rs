@@ -58,6 +58,7 @@ use nalgebra::{Unit, Vector3};
 
 use serde::{Deserialize, Serialize};
 
+use crate::control::docking::geometry::across;
 use crate::signal::deadband;
 
 /// Parameters of the fulcrum's adaptation (`scope.fulcrum` in `config/controller.yaml`).
@@ -208,8 +209,8 @@ impl Fulcrum {
         dt: f64,
     ) -> f64 {
         let (omega, tip_depth, steering) = (&m.omega, m.tip_depth, m.steering);
-        let across = force - shaft.into_inner() * force.dot(shaft);
-        let n = across.norm();
+        let f_across = across(shaft, force);
+        let n = f_across.norm();
         if !(n.is_finite() && dt > 0.0 && dt.is_finite()) {
             return 0.0;
         }
@@ -219,14 +220,14 @@ impl Fulcrum {
             } else {
                 p.still_force_deadband
             };
-            across * (deadband(n, band) / n)
+            f_across * (deadband(n, band) / n)
         } else {
-            across
+            f_across
         };
         // Across: first-order admittance, exact for a constant force over the step; while
         // no command comes, damping only (the spring would pull the scope back to where the
         // fulcrum began: a motion nobody asked for).
-        let lateral = self.lateral - shaft.into_inner() * self.lateral.dot(shaft);
+        let lateral = across(shaft, &self.lateral);
         let x = if p.stiffness > 0.0 && steering {
             let rest = f / p.stiffness;
             rest + (lateral - rest) * (-p.stiffness / p.damping * dt).exp()

@@ -38,7 +38,7 @@
 
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 
-use crate::control::docking::geometry::InsertionAxis;
+use crate::control::docking::geometry::{across, InsertionAxis};
 use crate::control::force::wrench::{shaft_wrench, ForceFilter};
 use crate::control::io::Stamped;
 use crate::control::safety::motion::{MotionLimits, Rate, RateShaper};
@@ -413,7 +413,7 @@ impl Pivot {
         PivotReport {
             fulcrum: self.fulcrum(),
             shaft_distance: cost.rcm_residual(tip).norm(),
-            lateral_force: (force - a * a.dot(force)).norm(),
+            lateral_force: across(&a, force).norm(),
             depth: a.dot(&(e - self.port())),
             cone_axis: self.cone_axis.into_inner(),
             cone_half_angle: p.cone_half_angle_deg.to_radians(),
