@@ -38,7 +38,7 @@ pub use super::params::{ControllerParams, ParamError};
 use super::safety::guard::{CommandGuard, HoldReason};
 use super::safety::guarded::{CommandSource, Guarded, StepContext};
 use super::safety::motion::MotionLimiter;
-use super::scope::pivot::{live_command, Pivot};
+use super::scope::pivot::{live_command, Pivot, PivotParams};
 use super::sqp::{CostWeights, LimitAvoidance, PivotCost, SqpSolver, Targets};
 use super::supervisor::{Phase, Supervisor};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
@@ -48,6 +48,25 @@ use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
 struct Retreat {
     depth: f64,
     end: f64,
+}
+
+/// Where the retreat after a force stop stands.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+enum RetreatState {
+    /// No retreat.
+    #[default]
+    Off,
+    /// A force stop asked for one: it begins from the tip's depth at the next step.
+    Due,
+    /// Backing out along the axis.
+    Backing(Retreat),
+}
+
+impl RetreatState {
+    /// Whether a retreat is due or under way.
+    fn active(self) -> bool {
+        self != Self::Off
+    }
 }
 
 /// Everything one docking run changes; a new run is `RunState::default()`.
@@ -68,8 +87,8 @@ struct RunState {
     /// The commanded tip motion, for its limits.
     motion: MotionLimiter,
     tare: Tare,
-    /// `Some(None)`: a retreat is due and begins from the tip's depth.
-    retreat: Option<Option<Retreat>>,
+    /// The retreat after a force stop.
+    retreat: RetreatState,
     /// After DONE: the port held as the remote centre of motion.
     pivot: Option<Pivot>,
     /// A start resumed DONE or RETRACT from a hold: the law re-anchors at the measured tip.
@@ -84,12 +103,20 @@ struct Early {
 }
 
 /// The measured arm of one step.
-struct Arm {
+struct MeasuredArm {
     q: JointVector,
     tip: Isometry3<f64>,
     jac: Jacobian,
     /// The previous command (the measured joints at the start of a run).
     prev: JointVector,
+}
+
+/// The targets of c2 for the step's SQP solve: the axis, the target point and the
+/// admittance's reference point.
+struct AxisTargets {
+    axis: InsertionAxis,
+    point: Point3<f64>,
+    reference: Point3<f64>,
 }
 
 /// How far ahead the force stop after docking looks, s: how long a force that rises at a
@@ -223,7 +250,12 @@ impl OptimalController {
 
     /// The measured joints, checked, with the tip pose and Jacobian there.
     #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
-    fn measured_arm(&self, kin: &dyn Kinematics, input: &ControlInput, guard: &CommandGuard) -> Result<Arm, Early> {
+    fn measured_arm(
+        &self,
+        kin: &dyn Kinematics,
+        input: &ControlInput,
+        guard: &CommandGuard,
+    ) -> Result<MeasuredArm, Early> {
         let early = |reason, hold_at, tip| Early { reason, hold_at, tip };
         let q = match input.joints {
             None => return Err(early(HoldReason::NoJointState, None, None)),
@@ -249,18 +281,24 @@ impl OptimalController {
         // unlatched hold keeps checking, so it resumes only once the arm has caught up.
         let s = &self.run.supervisor;
         let ph = s.phase();
-        let commanding = ph.is_moving() || (ph == Phase::Hold && (!s.is_latched() || self.run.retreat.is_some()));
+        let commanding = ph.is_moving() || (ph == Phase::Hold && (!s.is_latched() || self.run.retreat.active()));
         if commanding {
             guard
                 .check_tracking(&q, &prev)
                 .map_err(|r| early(r, Some(prev), Some(tip)))?;
         }
-        Ok(Arm { q, tip, jac, prev })
+        Ok(MeasuredArm { q, tip, jac, prev })
     }
 
     /// Update the force estimate from the torques; the metric while moving; the force stop.
     #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
-    fn update_force(&mut self, input: &ControlInput, arm: &Arm, guard: &CommandGuard, dt: f64) -> Result<(), Early> {
+    fn update_force(
+        &mut self,
+        input: &ControlInput,
+        arm: &MeasuredArm,
+        guard: &CommandGuard,
+        dt: f64,
+    ) -> Result<(), Early> {
         let early = |reason| Early {
             reason,
             hold_at: Some(arm.prev),
@@ -295,7 +333,7 @@ impl OptimalController {
             if moving {
                 self.run.supervisor.hold(r, true);
                 if self.params.retreat_distance > 0.0 {
-                    self.run.retreat = Some(None); // begins from the tip depth
+                    self.run.retreat = RetreatState::Due;
                 }
                 return Ok(());
             }
@@ -339,7 +377,12 @@ impl OptimalController {
 
     /// The trocar pose, checked and filtered.
     #[allow(clippy::result_large_err)] // `Early` is a hold on its way out, not a hot path
-    fn trocar_pose(&mut self, input: &ControlInput, arm: &Arm, guard: &CommandGuard) -> Result<Isometry3<f64>, Early> {
+    fn trocar_pose(
+        &mut self,
+        input: &ControlInput,
+        arm: &MeasuredArm,
+        guard: &CommandGuard,
+    ) -> Result<Isometry3<f64>, Early> {
         let early = |reason| Early {
             reason,
             hold_at: Some(arm.prev),
@@ -366,17 +409,20 @@ impl OptimalController {
         dt: f64,
     ) -> (CostWeights, Point3<f64>) {
         let p = &self.params;
-        let (mut weights, point) = if let Some(r) = self.run.retreat {
+        let (mut weights, point) = if self.run.retreat.active() {
             // Back out along the axis from where the stop happened, at the insertion speed.
-            let r = r.unwrap_or_else(|| {
-                let s_now = axis.depth_of(&tip);
-                Retreat {
-                    depth: s_now,
-                    end: s_now - p.retreat_distance,
+            let r = match self.run.retreat {
+                RetreatState::Backing(r) => r,
+                _ => {
+                    let s_now = axis.depth_of(&tip);
+                    Retreat {
+                        depth: s_now,
+                        end: s_now - p.retreat_distance,
+                    }
                 }
-            });
+            };
             let depth = (r.depth - p.insert_speed * dt).max(r.end);
-            self.run.retreat = Some(Some(Retreat { depth, ..r }));
+            self.run.retreat = RetreatState::Backing(Retreat { depth, ..r });
             let mut w = p.insert_weights;
             w.reference = 0.0;
             (w, axis.point_at(depth))
@@ -417,12 +463,12 @@ impl OptimalController {
         &mut self,
         kin: &dyn Kinematics,
         ctx: &StepContext<'_>,
-        arm: &Arm,
-        targets_for: (InsertionAxis, Point3<f64>, Point3<f64>),
+        arm: &MeasuredArm,
+        targets_for: AxisTargets,
         weights: &CostWeights,
         pivot: Option<PivotCost>,
     ) -> (JointVector, SolveReport) {
-        let (axis, point, reference) = targets_for;
+        let AxisTargets { axis, point, reference } = targets_for;
         let pivot_on = pivot.is_some();
         let prev = arm.prev;
         let g = ctx.guard;
@@ -537,7 +583,7 @@ impl OptimalController {
 
     /// One step of the TARE phase: hold still at the start pose while the torques are
     /// averaged; then APPROACH, or IDLE with the reason.
-    fn tare_step(&mut self, input: &ControlInput, arm: &Arm, guard: &CommandGuard, dt: f64) -> ControlOutput {
+    fn tare_step(&mut self, input: &ControlInput, arm: &MeasuredArm, guard: &CommandGuard, dt: f64) -> ControlOutput {
         let p = &self.params;
         let tau = input.tau_ext.filter(|t| {
             t.value.iter().all(|x| x.is_finite())
@@ -578,7 +624,7 @@ impl OptimalController {
         kin: &dyn Kinematics,
         input: &ControlInput,
         ctx: &StepContext<'_>,
-        arm: &Arm,
+        arm: &MeasuredArm,
     ) -> Option<ControlOutput> {
         let s = &self.run.supervisor;
         let held = s.phase() == Phase::Hold && matches!(s.resumes(), Phase::Done | Phase::Retract);
@@ -630,13 +676,24 @@ impl OptimalController {
         let f = pivot.sense(&arm.jac, &tau, a.pinv_damping, sp.fulcrum.filter_cutoff_hz, ctx.dt);
         // Without force feedback the law uses no force: the fulcrum stays where it began.
         let t = pivot.step(
-            (sp, &self.params.motion),
+            PivotParams::new(sp, &self.params.motion),
             command,
             &f,
             self.params.force_feedback,
             ctx.dt,
         );
-        let (cmd, report) = self.solve(kin, ctx, arm, (t.axis, t.point, t.point), &t.weights, Some(t.cost));
+        let (cmd, report) = self.solve(
+            kin,
+            ctx,
+            arm,
+            AxisTargets {
+                axis: t.axis,
+                point: t.point,
+                reference: t.point,
+            },
+            &t.weights,
+            Some(t.cost),
+        );
         self.run.last_command = Some(cmd);
         let pivot = self.run.pivot.as_ref()?;
         let back =
@@ -689,7 +746,7 @@ impl OptimalController {
         // Every input is good: an unlatched hold (stale data) resumes.
         self.run.supervisor.clear_hold();
         let phase = self.run.supervisor.phase();
-        let retreating = phase == Phase::Hold && self.run.retreat.is_some();
+        let retreating = phase == Phase::Hold && self.run.retreat.active();
         if !phase.is_moving() && !retreating {
             // Idle sends nothing; DONE, HOLD and ABORTED keep commanding the last command.
             self.run.last_command = (phase != Phase::Idle).then_some(arm.prev);
@@ -702,7 +759,7 @@ impl OptimalController {
         let x = self.run.admittance.step(&self.params.admittance, axis.across(&f), dt);
         let reference = tip_p + x;
         let (weights, point) = self.phase_target(&axis, tip_p, f, dt);
-        let (cmd, report) = self.solve(kin, ctx, &arm, (axis, point, reference), &weights, None);
+        let (cmd, report) = self.solve(kin, ctx, &arm, AxisTargets { axis, point, reference }, &weights, None);
         self.run.last_command = Some(cmd);
         self.transitions(&axis, goal, &arm.tip, f, dt);
         let mut out = self.output(Some(cmd), Some(arm.tip), Some(goal));
@@ -745,13 +802,13 @@ impl CommandSource for OptimalController {
                 ..RunState::default()
             };
         }
-        self.run.retreat = None;
+        self.run.retreat = RetreatState::Off;
         Ok(())
     }
 
     fn abort(&mut self, why: &str) {
         self.run.supervisor.abort(why);
-        self.run.retreat = None;
+        self.run.retreat = RetreatState::Off;
     }
 
     fn retract(&mut self) -> Result<(), String> {

@@ -13,53 +13,11 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::kinematics::Kinematics;
-use crate::preflight::{self, Camera, CameraInfo, JointStates, LbrState, Limits, Observations, Report, Stream};
-use crate::ros::controller_node::ControllerNodeParams;
+use crate::preflight::{self, Camera, CameraInfo, JointStates, LbrState, Observations, Report, Stream};
+use crate::ros::controller_node::node_params::{ControllerNodeParams, PreflightParams};
 use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs};
 use crate::ros::node::{lock, ros_err, NodeError};
 use crate::ros::{convert, params, topics};
-
-/// Settings of the preflight (the `preflight` node's private parameters; the controller's
-/// `~preflight`).
-#[derive(Debug, Clone, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct PreflightParams {
-    /// How long the streams are watched, s (wall time).
-    pub window_s: f64,
-    /// How long to wait for the first message of every stream before the window, s.
-    pub wait_s: f64,
-    /// The docking controller (its parameters: topics, URDF, tare limits).
-    pub controller_node: String,
-    /// The trocar estimator (its image topics, marker size, hand-eye file).
-    pub estimator_node: String,
-    /// The simulator's node.
-    pub simulator_node: String,
-    /// The bounds of the checks.
-    pub limits: Limits,
-}
-
-impl Default for PreflightParams {
-    fn default() -> Self {
-        Self {
-            window_s: 1.0,
-            wait_s: 5.0,
-            controller_node: "/docking_controller".into(),
-            estimator_node: "/trocar_estimator".into(),
-            simulator_node: "/lbr_med_sim".into(),
-            limits: Limits::default(),
-        }
-    }
-}
-
-impl PreflightParams {
-    /// Check every value; the error names the key.
-    pub fn validate(&self) -> Result<(), NodeError> {
-        crate::validate::positive_at_most("window_s", self.window_s, 60.0)?;
-        crate::validate::positive_at_most("wait_s", self.wait_s, 600.0)?;
-        self.limits.validate()?;
-        Ok(())
-    }
-}
 
 /// The span of the stamps seen.
 #[derive(Debug, Clone, Copy, Default)]

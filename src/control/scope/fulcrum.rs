@@ -46,18 +46,19 @@
 //! run below their bounds and are unchanged.
 //!
 //! **The force** is the shaft's whole wrench at the tip from the external joint torques,
-//! [f; m] = (J J^T + λ² I)^{-1} J tau over all six rows of the Jacobian ([`shaft_wrench`]),
+//! [f; m] = (J J^T + λ² I)^{-1} J tau over all six rows of the Jacobian
+//! ([`shaft_wrench`](crate::control::force::wrench::shaft_wrench)),
 //! low-passed: a moment on the shaft (the trocar's tilt spring, transmitted as a couple
 //! across its bore) is then not read as a force, as it is by the docking's estimate from
 //! the linear rows alone, which would bias both laws in proportion to the tilt.
 //!
 //! Nothing here allocates.
 
-use nalgebra::{Matrix6, Unit, Vector3, Vector6};
+use nalgebra::{Unit, Vector3};
 
-use crate::kinematics::{Jacobian, JointVector};
 use serde::{Deserialize, Serialize};
 
+use crate::control::docking::geometry::across;
 use crate::signal::deadband;
 
 /// Parameters of the fulcrum's adaptation (`scope.fulcrum` in `config/controller.yaml`).
@@ -166,46 +167,6 @@ impl FulcrumParams {
     }
 }
 
-/// The wrench on the shaft at the tip (force, moment about the tip; base frame) from the
-/// external joint torques `tau`: (J J^T + λ² I)^{-1} J tau with all six rows of `jac`.
-/// `None` when the inputs are not finite or the system is singular.
-pub fn shaft_wrench(jac: &Jacobian, tau: &JointVector, damping: f64) -> Option<(Vector3<f64>, Vector3<f64>)> {
-    if !(tau.iter().chain(jac.iter()).all(|x| x.is_finite()) && damping.is_finite()) {
-        return None;
-    }
-    let a: Matrix6<f64> = jac * jac.transpose() + Matrix6::identity() * (damping * damping);
-    let w: Vector6<f64> = a.cholesky()?.solve(&(jac * tau));
-    w.iter()
-        .all(|x| x.is_finite())
-        .then(|| (w.fixed_rows::<3>(0).into_owned(), w.fixed_rows::<3>(3).into_owned()))
-}
-
-/// A first-order low-pass of the shaft's force, `cutoff_hz` (0: none).
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct ForceFilter {
-    force: Option<Vector3<f64>>,
-}
-
-impl ForceFilter {
-    /// Feed the force of one step of `dt`; returns the filtered force.
-    pub fn update(&mut self, f: &Vector3<f64>, cutoff_hz: f64, dt: f64) -> Vector3<f64> {
-        let alpha = if cutoff_hz > 0.0 && dt > 0.0 {
-            let rc = 1.0 / (2.0 * std::f64::consts::PI * cutoff_hz);
-            dt / (rc + dt)
-        } else {
-            1.0
-        };
-        let out = self.force.map_or(*f, |x| x + (f - x) * alpha);
-        self.force = Some(out);
-        out
-    }
-
-    /// The filtered force (zero before the first).
-    pub fn force(&self) -> Vector3<f64> {
-        self.force.unwrap_or_else(Vector3::zeros)
-    }
-}
-
 /// The adapted fulcrum, relative to where it started: its depth along the shaft past the
 /// port and its displacement across the shaft.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -248,8 +209,8 @@ impl Fulcrum {
         dt: f64,
     ) -> f64 {
         let (omega, tip_depth, steering) = (&m.omega, m.tip_depth, m.steering);
-        let across = force - shaft.into_inner() * force.dot(shaft);
-        let n = across.norm();
+        let f_across = across(shaft, force);
+        let n = f_across.norm();
         if !(n.is_finite() && dt > 0.0 && dt.is_finite()) {
             return 0.0;
         }
@@ -259,14 +220,14 @@ impl Fulcrum {
             } else {
                 p.still_force_deadband
             };
-            across * (deadband(n, band) / n)
+            f_across * (deadband(n, band) / n)
         } else {
-            across
+            f_across
         };
         // Across: first-order admittance, exact for a constant force over the step; while
         // no command comes, damping only (the spring would pull the scope back to where the
         // fulcrum began: a motion nobody asked for).
-        let lateral = self.lateral - shaft.into_inner() * self.lateral.dot(shaft);
+        let lateral = across(shaft, &self.lateral);
         let x = if p.stiffness > 0.0 && steering {
             let rest = f / p.stiffness;
             rest + (lateral - rest) * (-p.stiffness / p.damping * dt).exp()
@@ -448,28 +409,6 @@ mod tests {
         fc.step(&p, &Vector3::new(0.0, -2.4, 0.0), &a, &silent(), 0.01);
         let expect = -(2.4 - p.still_force_deadband) / p.damping * 0.01;
         assert!((fc.lateral.y - before.y - expect).abs() < 1e-12);
-    }
-
-    #[test]
-    fn a_moment_is_not_read_as_a_force() {
-        use crate::kinematics::lbr::{LbrModel, ToolParams};
-        use crate::kinematics::{Kinematics, LbrKinematics};
-        let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
-        let q = JointVector::from_column_slice(&[0.1, 0.6, -0.1, -1.2, 0.2, 0.9, 0.3]);
-        let (_, jac) = kin.fk_jacobian(&q).unwrap();
-        let (f, m) = (Vector3::new(0.5, -0.3, 0.2), Vector3::new(0.0, 0.6, -0.1));
-        let w = Vector6::new(f.x, f.y, f.z, m.x, m.y, m.z);
-        let tau = jac.transpose() * w;
-        let (fe, me) = shaft_wrench(&jac, &tau, 1e-4).unwrap();
-        assert!((fe - f).norm() < 1e-6 && (me - m).norm() < 1e-6, "{fe} {me}");
-        // The linear rows alone read the moment as a force of the same order.
-        let lin = crate::control::force::admittance::tip_force(&jac, &tau, 0.0, 1e-4).unwrap();
-        assert!((lin - f).norm() > 0.1, "{lin}");
-        assert!(shaft_wrench(&jac, &tau.map(|_| f64::NAN), 0.02).is_none());
-        let mut filt = ForceFilter::default();
-        assert_eq!(filt.update(&f, 20.0, 0.01), f, "the first sample passes");
-        let g = filt.update(&Vector3::zeros(), 20.0, 0.01);
-        assert!(g.norm() < f.norm() && g.norm() > 0.0);
     }
 
     #[test]

@@ -38,11 +38,12 @@
 
 use nalgebra::{Isometry3, Point3, Unit, UnitQuaternion, Vector3};
 
-use crate::control::docking::geometry::InsertionAxis;
+use crate::control::docking::geometry::{across, InsertionAxis};
+use crate::control::force::wrench::{shaft_wrench, ForceFilter};
 use crate::control::io::Stamped;
 use crate::control::safety::motion::{MotionLimits, Rate, RateShaper};
 use crate::control::scope::command::{PivotReport, ScopeCommand, ScopeLimit, ScopeParams};
-use crate::control::scope::fulcrum::{shaft_wrench, ForceFilter, Fulcrum, Motion};
+use crate::control::scope::fulcrum::{Fulcrum, Motion};
 use crate::control::scope::port_follow::PortFollow;
 use crate::control::sqp::{CostWeights, PivotCost};
 use crate::kinematics::{Jacobian, JointVector};
@@ -63,6 +64,22 @@ pub fn live_command(
         return Err("scope command stamped in the future: ignored, holding still");
     }
     Ok((age <= p.command_timeout).then_some(c.value))
+}
+
+/// The parameters of a step of [`Pivot::step`]: the scope's and the motion limits.
+#[derive(Debug, Clone, Copy)]
+pub struct PivotParams<'a> {
+    /// The scope's parameters (`scope:`).
+    pub scope: &'a ScopeParams,
+    /// The tip's motion limits.
+    pub motion: &'a MotionLimits,
+}
+
+impl<'a> PivotParams<'a> {
+    /// The scope's parameters `scope` with the motion limits `motion`.
+    pub fn new(scope: &'a ScopeParams, motion: &'a MotionLimits) -> Self {
+        Self { scope, motion }
+    }
 }
 
 /// What the SQP gets this step.
@@ -321,12 +338,13 @@ impl Pivot {
     /// where it started, as without force feedback). Returns the SQP's targets.
     pub fn step(
         &mut self,
-        (p, lim): (&ScopeParams, &MotionLimits),
+        params: PivotParams<'_>,
         command: Result<Option<ScopeCommand>, &'static str>,
         force: &Vector3<f64>,
         adapt: bool,
         dt: f64,
     ) -> PivotTargets {
+        let (p, lim) = (params.scope, params.motion);
         self.limit = None;
         self.ignored = command.err();
         let steering = !self.held && (matches!(command, Ok(Some(_))) || self.retract_to.is_some());
@@ -412,7 +430,7 @@ impl Pivot {
         PivotReport {
             fulcrum: self.fulcrum(),
             shaft_distance: cost.rcm_residual(tip).norm(),
-            lateral_force: (force - a * a.dot(force)).norm(),
+            lateral_force: across(&a, force).norm(),
             depth: a.dot(&(e - self.port())),
             cone_axis: self.cone_axis.into_inner(),
             cone_half_angle: p.cone_half_angle_deg.to_radians(),
@@ -432,7 +450,13 @@ mod tests {
 
     /// One 10 ms step of `pv` with `c`, no force, the default motion limits.
     fn go(pv: &mut Pivot, p: &ScopeParams, c: Result<Option<ScopeCommand>, &'static str>) -> PivotTargets {
-        pv.step((p, &MotionLimits::default()), c, &Vector3::zeros(), true, 0.01)
+        pv.step(
+            PivotParams::new(p, &MotionLimits::default()),
+            c,
+            &Vector3::zeros(),
+            true,
+            0.01,
+        )
     }
 
     fn setup() -> (ScopeParams, Pivot) {
@@ -474,11 +498,17 @@ mod tests {
         // The shaft points down (-z): a force +z on it pushes the scope out.
         let out = Vector3::new(0.0, 0.0, 10.0);
         // Under the still dead-band (5 N): nothing moves without a command.
-        pv.step((&p, &lim), Ok(None), &Vector3::new(0.0, 0.0, 4.0), true, 0.01);
+        pv.step(
+            PivotParams::new(&p, &lim),
+            Ok(None),
+            &Vector3::new(0.0, 0.0, 4.0),
+            true,
+            0.01,
+        );
         assert_eq!(pv.target_depth(), 0.03);
         // Steering (a zero command: the dead-man held), 10 N out: (10 - 2) / 50 = 0.16 m/s,
         // cut to the rate bound (`axial_max_speed`).
-        pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
+        pv.step(PivotParams::new(&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
         assert!(
             (pv.target_depth() - (0.03 - p.fulcrum.axial_max_speed * 0.01)).abs() < 1e-12,
             "{}",
@@ -486,16 +516,16 @@ mod tests {
         );
         // Off without force feedback.
         let (_, mut off) = setup();
-        off.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, false, 0.01);
+        off.step(PivotParams::new(&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, false, 0.01);
         assert_eq!(off.target_depth(), 0.03);
         // Past min_depth (30 mm), but never out of the port.
         for _ in 0..400 {
-            pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
+            pv.step(PivotParams::new(&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
         }
         assert_eq!(pv.target_depth(), 0.0);
         // Pulled in: up to max_depth, no further.
         for _ in 0..1000 {
-            pv.step((&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &-out, true, 0.01);
+            pv.step(PivotParams::new(&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &-out, true, 0.01);
         }
         assert_eq!(pv.target_depth(), p.max_depth);
     }
@@ -507,7 +537,13 @@ mod tests {
         let lim = MotionLimits::default();
         let (mut angle, mut rate) = (0.0, 0.0);
         for k in 0..100 {
-            let t = pv.step((&p, &lim), cmd(0.17, 0.0, 0.0, 0.0), &Vector3::zeros(), true, 0.01);
+            let t = pv.step(
+                PivotParams::new(&p, &lim),
+                cmd(0.17, 0.0, 0.0, 0.0),
+                &Vector3::zeros(),
+                true,
+                0.01,
+            );
             // The target line passes through the fulcrum.
             assert!(t.axis.distance_to_axis(&f0) < 1e-12);
             assert!((t.cost.fulcrum - f0).norm() < 1e-12);
@@ -528,12 +564,12 @@ mod tests {
         assert!((rate - 0.17).abs() < 1e-9, "{rate} rad/s");
         // Released: the rate falls to 0 within the limits, in a few steps.
         for _ in 0..5 {
-            pv.step((&p, &lim), Ok(None), &Vector3::zeros(), true, 0.01);
+            pv.step(PivotParams::new(&p, &lim), Ok(None), &Vector3::zeros(), true, 0.01);
         }
         let d = pv.direction();
         let turned = d.angle(&-Vector3::z());
         assert!((turned - 0.17).abs() < 0.003, "{turned} rad for 1 s at 0.17 rad/s");
-        pv.step((&p, &lim), Ok(None), &Vector3::zeros(), true, 0.01);
+        pv.step(PivotParams::new(&p, &lim), Ok(None), &Vector3::zeros(), true, 0.01);
         assert!(
             pv.direction().angle(&d) < 1e-12,
             "still turning after 5 steps of release"
@@ -642,7 +678,7 @@ mod tests {
         for _ in 0..100 {
             let f = pv.sense(&jac, &JointVector::repeat(0.3), 0.02, 20.0, 0.01);
             let cmd = live_command(&p, 1.0, c);
-            pv.step((&p, &MotionLimits::default()), cmd, &f, true, 0.01);
+            pv.step(PivotParams::new(&p, &MotionLimits::default()), cmd, &f, true, 0.01);
             let _ = pv.report(&p, &Isometry3::identity(), &f);
         }
         assert_eq!(crate::test_alloc::allocations_on_this_thread(), before);
@@ -685,7 +721,7 @@ mod tests {
             let push = Vector3::new(8.0, 0.0, 9.0);
             let (mut rate, mut steps) = (if retract { p.retract_speed } else { p.max_angular_speed }, 0);
             while !pv.at_rest() {
-                let t = pv.step((&p, &lim), cmd(0.3, 0.0, 0.0, 0.02), &push, true, 0.01);
+                let t = pv.step(PivotParams::new(&p, &lim), cmd(0.3, 0.0, 0.0, 0.02), &push, true, 0.01);
                 // The rates only slow, within the acceleration limits: no jump.
                 let (v, a_max) = if retract {
                     (pv.zoom_rate.velocity().norm(), lim.max_accel)
@@ -701,7 +737,7 @@ mod tests {
             }
             // At rest: the targets stay, whatever the force and the commands.
             for _ in 0..200 {
-                let t = pv.step((&p, &lim), cmd(0.3, 0.0, 0.0, 0.02), &push, true, 0.01);
+                let t = pv.step(PivotParams::new(&p, &lim), cmd(0.3, 0.0, 0.0, 0.02), &push, true, 0.01);
                 assert_eq!(
                     t.point, prev.point,
                     "retract {retract}: the tip's target moved while held"
