@@ -11,7 +11,7 @@ use serde::{Deserialize, Serialize};
 use crate::control::scope::fulcrum::FulcrumParams;
 use crate::control::scope::port_follow::PortFollowParams;
 use crate::control::sqp::CostWeights;
-use crate::validate::in_range;
+use crate::validate::{in_range, non_negative, positive};
 
 /// A surgeon's scope command, in the `endoscope_tip` frame (a `TwistStamped` on
 /// `/docking/scope_command`).
@@ -148,11 +148,9 @@ impl ScopeParams {
     /// Check every range; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
         let pos = |n: &str, v: f64| {
-            if v.is_finite() && v > 0.0 {
-                Ok(())
-            } else {
-                Err(format!("scope.{n} must be > 0, got {v}"))
-            }
+            positive(&format!("scope.{n}"), v)
+                .map(|_| ())
+                .map_err(|e| e.to_string())
         };
         pos("command_timeout", self.command_timeout)?;
         pos("max_angular_speed", self.max_angular_speed)?;
@@ -162,11 +160,8 @@ impl ScopeParams {
         in_range("scope.retract_force_stop", self.retract_force_stop, 1.0, 200.0).map_err(|e| e.to_string())?;
         in_range("scope.arm_lag", self.arm_lag, 0.0, 1.0).map_err(|e| e.to_string())?;
         self.weights.validate("scope.weights")?;
-        for (n, w) in [("rcm_weight", self.rcm_weight), ("roll_weight", self.roll_weight)] {
-            if !(w.is_finite() && w >= 0.0) {
-                return Err(format!("scope.{n} must be finite and >= 0, got {w}"));
-            }
-        }
+        non_negative("scope.rcm_weight", self.rcm_weight).map_err(|e| e.to_string())?;
+        non_negative("scope.roll_weight", self.roll_weight).map_err(|e| e.to_string())?;
         self.fulcrum.validate()?;
         self.breathing.validate()?;
         pos("min_depth", self.min_depth)?;
