@@ -152,6 +152,13 @@ pub struct CheckParams {
     pub max_mount_error_deg: f64,
     /// `replay_fault`: where the bag's fault begins, s after the recorded APPROACH.
     pub fault_after_s: f64,
+    /// `replay_controller`, `replay_fault`: the recorded docking the check plays itself
+    /// ([`crate::bag_sync`]).
+    pub bag: String,
+    /// The remapping arguments of its player (`from:=to`).
+    pub bag_remaps: Vec<String>,
+    /// How long before the recorded APPROACH the live one begins, s ([`crate::bag_sync`]).
+    pub start_lead_s: f64,
 }
 
 impl Default for CheckParams {
@@ -223,6 +230,9 @@ impl Default for CheckParams {
             max_mount_error_m: 0.0005,
             max_mount_error_deg: 0.2,
             fault_after_s: 0.5,
+            bag: String::new(),
+            bag_remaps: Vec::new(),
+            start_lead_s: 0.05,
         }
     }
 }
@@ -234,6 +244,7 @@ impl CheckParams {
         validate::duration("time_limit", self.time_limit)?;
         validate::duration("startup_timeout", self.startup_timeout)?;
         validate::non_negative("hold_observe", self.hold_observe)?;
+        validate::non_negative("start_lead_s", self.start_lead_s)?;
         validate::positive("max_metric_m", self.max_metric_m)?;
         validate::positive("max_hold_motion_deg", self.max_hold_motion_deg)?;
         validate::non_negative("max_tip_rms_speed", self.max_tip_rms_speed)?;

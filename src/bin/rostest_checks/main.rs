@@ -6,6 +6,7 @@
 //! `flood` ([`failure_modes`]), `scope_pivot` and `scope_joy` ([`scope_checks`]), `preflight`
 //! ([`preflight_checks`]), `dry_run` ([`dry_run_checks`]), `reconfigure` ([`reconfigure_checks`]), `hand_eye` and `hand_eye_dock` ([`hand_eye_checks`]).
 
+mod bag_sync;
 mod camera_checks;
 mod common;
 mod docking_checks;

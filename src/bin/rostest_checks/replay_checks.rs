@@ -11,6 +11,7 @@ use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::msgs::{trajectory_msgs, trocar_docking};
 use ::trocar_docking::ros::params;
 
+use crate::bag_sync;
 use crate::common::{call_trigger, subscribe_latest, trigger_client, wait_for, CheckParams};
 
 /// Recorded topics are replayed into the nodes: the controller must publish status in the
@@ -247,8 +248,8 @@ fn phase_end(got: &[String], want: &[String], live_hold: &str, commands: usize) 
 }
 
 /// A recorded docking (its joints, torques and noisy trocar pose, with its clock) replayed
-/// into a fresh controller, started when the recording's controller entered TARE: the
-/// live controller's own commands must be finite, inside the joint limits and within the
+/// into a fresh controller, played by the check and started in step with the recorded
+/// controller ([`crate::bag_sync`]): the live controller's own commands must be finite, inside the joint limits and within the
 /// guard's per-step speed, at least `min_commands` of them, and it must go through the
 /// recorded phases (the recorded status, remapped to `recorded_status_topic`) to the same
 /// end (DONE). A stale-data hold that resumes (a late message under load) is left out of
@@ -293,24 +294,19 @@ pub fn replay_controller(p: &CheckParams) -> Result<String, String> {
     };
     let (live, _s1) = PhaseLog::subscribe(&p.status_topic)?;
     let (recorded, _s2) = PhaseLog::subscribe(&p.recorded_status_topic)?;
-    let (recorded_now, _s3) = subscribe_latest::<trocar_docking::DockingStatus>(&p.recorded_status_topic)?;
     let (live_now, _s4) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
     let phase_of = |log: &Arc<Mutex<PhaseLog>>| log.lock().ok().and_then(|l| l.last_phase());
-    // The client first, so that the start follows the recorded one by one round trip: the
-    // recorded arm moves 0.3 s after it, and a tare still running then is refused.
     let service = format!("{}/start", p.controller);
     let start = trigger_client(&service, p.startup_timeout)?;
-    let t0 = std::time::Instant::now();
-    while recorded_now.get().is_none_or(|s| s.phase != "TARE") {
-        if t0.elapsed().as_secs_f64() > p.startup_timeout || !rosrust::is_ok() {
-            return Err("the bag's controller never entered TARE (is the bag playing?)".into());
-        }
-        std::thread::sleep(std::time::Duration::from_millis(1));
-    }
-    call_trigger(&service, &start)?;
+    let _player = bag_sync::play_and_start(p, || call_trigger(&service, &start))?;
     // The live run ends where the recorded one does; past the recorded end, it has a
     // second to catch up.
     let ended = |s: Option<String>| matches!(s.as_deref(), Some("DONE" | "ABORTED" | "IDLE"));
+    // The first part of the bag ended in the recorded IDLE: its docking starts in the second.
+    wait_for(p.startup_timeout, || {
+        phase_of(&recorded).filter(|s| s != "IDLE").map(|_| ())
+    })
+    .ok_or("the recording's controller never started (is the bag playing?)")?;
     wait_for(p.time_limit, || ended(phase_of(&recorded)).then_some(()))
         .ok_or_else(|| format!("the recording never ended its docking: {:?}", phase_of(&recorded)))?;
     let _ = wait_for(1.0, || ended(phase_of(&live)).then_some(()));

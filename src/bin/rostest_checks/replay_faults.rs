@@ -1,9 +1,10 @@
 //! Recorded driver faults played into `robot.launch` on the bag's own clock
 //! (`tests/bags/fault_*.bag`, `scripts/fault-bags`): the controller runs as a lab runs it, the
 //! bag plays the driver and the trocar pose. The bag plays open loop: its arm follows the
-//! recorded controller's commands, not the live ones, so the live controller is started
-//! when the recorded one entered TARE (it then sees what the recorded one saw, and its
-//! commands stay close to the recorded arm until the fault). Checked over the whole run:
+//! recorded controller's commands, not the live ones, so the check plays the bag itself and
+//! starts the live controller in step with the recorded one ([`crate::bag_sync`]: it then
+//! sees what the recorded one saw, and its commands stay close to the recorded arm until
+//! the fault). Checked over the whole run:
 //! the controller publishes commands (at least `min_commands`); it does not hold before the
 //! fault (`fault_after_s` after the recorded APPROACH), holds with the fault's code
 //! (`hold_code`) after it, and still holds with it at the end;
@@ -18,7 +19,8 @@ use ::trocar_docking::kinematics::{joint_names, JointLimits, JointVector};
 use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::msgs::{trajectory_msgs, trocar_docking};
 
-use crate::common::{call_trigger, subscribe_latest, trigger_client, wait_for, CheckParams};
+use crate::bag_sync;
+use crate::common::{call_trigger, trigger_client, wait_for, CheckParams};
 use crate::failure_modes::{speed_ratio, MAX_SPEED_RATIO};
 
 /// The live commands, audited as they arrive.
@@ -55,10 +57,25 @@ impl Audit {
     }
 }
 
-/// The live status's phases and hold codes, in order, each change once; and the stamp of
-/// the first HOLD, s.
+/// The live status's phases and hold codes, in order, each change once; the stamp of
+/// the first HOLD, s; and the stamp of each change, s.
 #[derive(Default, Clone)]
-struct Holds(Vec<(String, String)>, Option<f64>);
+struct Holds(Vec<(String, String)>, Option<f64>, Vec<f64>);
+
+impl Holds {
+    /// The changes with their stamps relative to `origin` (the recorded APPROACH), for a
+    /// failure's message.
+    fn timeline(&self, origin: Option<f64>) -> String {
+        let o = origin.unwrap_or(f64::NAN);
+        let parts: Vec<String> = self
+            .0
+            .iter()
+            .zip(&self.2)
+            .map(|((ph, c), t)| format!("{} at {:+.3} s", format!("{ph} {c}").trim_end(), t - o))
+            .collect();
+        format!("{} (times from the recorded APPROACH)", parts.join(", "))
+    }
+}
 
 /// Play a fault bag into the controller (module doc).
 pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
@@ -85,12 +102,12 @@ pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
                 let now = (s.phase, s.hold_code);
                 if h.0.last() != Some(&now) {
                     h.0.push(now);
+                    h.2.push(convert::seconds(s.header.stamp));
                 }
             }
         })
         .map_err(|e| e.to_string())?
     };
-    let (recorded, _s) = subscribe_latest::<trocar_docking::DockingStatus>(&p.recorded_status_topic)?;
     // When the recorded controller entered APPROACH, s (the fault is `fault_after_s` later).
     let approach = Arc::new(Mutex::new(None));
     let _a = {
@@ -110,15 +127,16 @@ pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
     };
     let service = format!("{}/start", p.controller);
     let start = trigger_client(&service, p.startup_timeout)?;
-    wait_for(p.startup_timeout, || {
-        recorded.get().is_some_and(|s| s.phase == "TARE").then_some(())
-    })
-    .ok_or("the bag's controller never entered TARE (is the bag playing?)")?;
-    call_trigger(&service, &start)?;
+    let _player = bag_sync::play_and_start(p, || call_trigger(&service, &start))?;
     let code = p.hold_code.as_str();
     let held = |h: &Holds| h.0.iter().any(|(ph, c)| ph == "HOLD" && c == code);
-    wait_for(p.time_limit, || holds.lock().ok().filter(|h| held(h)).map(|_| ()))
-        .ok_or_else(|| format!("no HOLD {code}: statuses {:?}", holds.lock().map(|h| h.0.clone())))?;
+    wait_for(p.time_limit, || holds.lock().ok().filter(|h| held(h)).map(|_| ())).ok_or_else(|| {
+        let origin = approach.lock().ok().and_then(|a| *a);
+        format!(
+            "no HOLD {code}: statuses {:?}",
+            holds.lock().map(|h| h.timeline(origin))
+        )
+    })?;
     // Held: watched on while the bag plays on (the recorded arm moving away), then judged.
     std::thread::sleep(std::time::Duration::from_secs_f64(p.hold_observe));
     let seen = holds.lock().map_err(|e| e.to_string())?.clone();
@@ -131,6 +149,7 @@ pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
 /// began (s), `a` the audited commands.
 fn judge(p: &CheckParams, seen: &Holds, fault_at: Option<f64>, a: &Audit) -> Result<String, String> {
     let code = p.hold_code.as_str();
+    let timeline = seen.timeline(fault_at.map(|f| f - p.fault_after_s));
     let (first_hold, seen) = (seen.1, &seen.0);
     if let Some(e) = &a.malformed {
         return Err(format!("a malformed command: {e}"));
@@ -149,7 +168,7 @@ fn judge(p: &CheckParams, seen: &Holds, fault_at: Option<f64>, a: &Audit) -> Res
     // Nothing held before the fault: the live controller followed the recording until then.
     match (fault_at, first_hold) {
         (Some(f), Some(h)) if h < f => {
-            return Err(format!("held {:.2} s before the fault: statuses {seen:?}", f - h));
+            return Err(format!("held {:.2} s before the fault: {timeline}", f - h));
         }
         (None, _) => return Err("the recording never entered APPROACH".into()),
         _ => {}
@@ -163,7 +182,7 @@ fn judge(p: &CheckParams, seen: &Holds, fault_at: Option<f64>, a: &Audit) -> Res
         .map(|(ph, c)| if c.is_empty() { ph.clone() } else { format!("{ph} {c}") })
         .collect();
     Ok(format!(
-        "{}; {} commands, every one within {:.0} % of the joints' speed limits (bound {:.0} %)",
+        "{}; {} commands, every one within {:.0} % of the joints' speed limits (bound {:.0} %); {timeline}",
         phases.join(" -> "),
         a.count,
         a.worst * 100.0,
@@ -179,6 +198,7 @@ mod tests {
         Holds(
             seen.iter().map(|(p, c)| ((*p).to_string(), (*c).to_string())).collect(),
             first_hold,
+            Vec::new(),
         )
     }
 
