@@ -605,7 +605,7 @@ impl OptimalController {
                 let age = input.tau_ext.map_or(f64::INFINITY, |t| input.now - t.stamp);
                 r.supervisor.hold(HoldReason::StaleTorques { age }, false);
             }
-            Some(t) => match r.tare.collect(&p.tare, &arm.q, &t.value, dt) {
+            Some(t) => match r.tare.collect(&p.tare, &arm.q, &t.value, input.now, dt) {
                 TareStep::Collecting => {}
                 TareStep::Done => r.supervisor.tare_done(),
                 TareStep::Refused(why) => r.supervisor.tare_refused(why),

@@ -102,7 +102,8 @@ pub enum TareStep {
 /// The tare of one run: the window's sums, then the offset and dead-band.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Tare {
-    elapsed: f64,
+    /// When the window began, s (ROS time): its first step's time less that step's `dt`.
+    started: Option<f64>,
     n: f64,
     q0: Option<JointVector>,
     sum: JointVector,
@@ -140,8 +141,10 @@ impl Tare {
     }
 
     /// Feed one sample of the still window (`q` measured, `tau` finite external torques,
-    /// `dt` since the last step).
-    pub fn collect(&mut self, p: &TareParams, q: &JointVector, tau: &JointVector, dt: f64) -> TareStep {
+    /// `now` this step's time and `dt` its length, s). The window is `window_s` of the
+    /// clock, not a count of steps: a loop that runs late (a loaded host) takes fewer
+    /// samples but no longer window.
+    pub fn collect(&mut self, p: &TareParams, q: &JointVector, tau: &JointVector, now: f64, dt: f64) -> TareStep {
         let q0 = *self.q0.get_or_insert(*q);
         let moved = (q - q0).amax();
         if moved.is_nan() || moved > p.max_motion_rad {
@@ -150,8 +153,8 @@ impl Tare {
         self.n += 1.0;
         self.sum += tau;
         self.sum_sq += tau.component_mul(tau);
-        self.elapsed += dt;
-        if self.elapsed + 1e-9 < p.window_s {
+        let started = *self.started.get_or_insert(now - dt);
+        if now - started + 1e-9 < p.window_s {
             return TareStep::Collecting;
         }
         let mean = self.sum / self.n;
@@ -219,11 +222,30 @@ impl Tare {
 mod tests {
     use super::*;
 
+    /// The window is the clock's: a loop running late (steps 25 ms apart, each `dt` capped
+    /// at the 10 ms period) ends it after 0.3 s, in 13 steps, not after 30 steps (0.75 s).
+    #[test]
+    fn the_window_is_clock_time_not_a_count_of_steps() {
+        let p = TareParams::default();
+        let q = JointVector::repeat(0.3);
+        let mut t = Tare::default();
+        let mut steps = 0;
+        while t.collect(&p, &q, &JointVector::zeros(), 5.0 + f64::from(steps) * 0.025, 0.01) == TareStep::Collecting {
+            steps += 1;
+            assert!(steps < 100);
+        }
+        // ends at the first step whose time is 0.3 s past the window's start (5.0 - 0.01)
+        assert_eq!(steps, 12, "{steps} steps");
+        assert!(t.is_done());
+    }
+
     fn still(tare: &mut Tare, p: &TareParams, tau: impl Fn(usize) -> JointVector, steps: usize) -> TareStep {
         let q = JointVector::repeat(0.3);
         let mut last = TareStep::Collecting;
         for k in 0..steps {
-            last = tare.collect(p, &q, &tau(k), 0.01);
+            // one step of 10 ms after the window's samples so far
+            let now = tare.n * 0.01;
+            last = tare.collect(p, &q, &tau(k), now, 0.01);
             if last != TareStep::Collecting {
                 break;
             }
@@ -265,8 +287,8 @@ mod tests {
     fn motion_or_implausible_torques_refuse() {
         let p = TareParams::default();
         let mut t = Tare::default();
-        t.collect(&p, &JointVector::zeros(), &JointVector::zeros(), 0.01);
-        let r = t.collect(&p, &JointVector::repeat(0.01), &JointVector::zeros(), 0.01);
+        t.collect(&p, &JointVector::zeros(), &JointVector::zeros(), 0.0, 0.01);
+        let r = t.collect(&p, &JointVector::repeat(0.01), &JointVector::zeros(), 0.01, 0.01);
         assert!(matches!(r, TareStep::Refused(HoldReason::TareMotion { .. })), "{r:?}");
         let mut t = Tare::default();
         let big = JointVector::from_column_slice(&[0.0, 0.0, 0.0, 7.0, 0.0, 0.0, 0.0]);
@@ -287,7 +309,7 @@ mod tests {
             "{r:?}"
         );
         let mut t = Tare::default();
-        let r = t.collect(&p, &JointVector::repeat(f64::NAN), &JointVector::zeros(), 0.01);
+        let r = t.collect(&p, &JointVector::repeat(f64::NAN), &JointVector::zeros(), 0.0, 0.01);
         assert!(matches!(r, TareStep::Refused(_)), "NaN joints never pass: {r:?}");
     }
 

@@ -111,9 +111,12 @@ pub struct Guarded<S> {
     last_now: Option<f64>,
     /// The newest finite measured joints (a new start begins from them).
     last_measured: Option<JointVector>,
-    /// How long the command has led the arm, s, and the measured joints when it began.
+    /// How long the command has led the arm, s (measured time: see [`Self::watch_lead`]),
+    /// and the measured joints when it began.
     behind_for: f64,
     behind_from: Option<JointVector>,
+    /// The stamp of the newest measured joints, s.
+    last_joint_stamp: Option<f64>,
     /// The wrapper's own latched hold, until a start, an abort or a reset.
     latched: Option<Latched>,
     /// The reason of the last output, for a start that re-anchors a hold.
@@ -133,6 +136,7 @@ impl<S: CommandSource> Guarded<S> {
             last_measured: None,
             behind_for: 0.0,
             behind_from: None,
+            last_joint_stamp: None,
             latched: None,
             last_reason: None,
             sent: None,
@@ -281,8 +285,25 @@ impl<S: CommandSource> Guarded<S> {
         }
     }
 
+    /// How much measured time this step adds (s): the advance of the measured joints'
+    /// stamp since the last step, at most `dt`. A driver that stops sending adds none, so
+    /// the arm-following watch cannot mistake a silent driver for a still arm before the
+    /// stale-data hold names it.
+    fn measured_time(&mut self, input: &ControlInput, dt: f64) -> f64 {
+        let stamp = input.joints.map(|j| j.stamp).filter(|s| s.is_finite());
+        let advance = match (self.last_joint_stamp, stamp) {
+            (Some(a), Some(b)) if b > a => (b - a).min(dt),
+            _ => 0.0,
+        };
+        if stamp.is_some() {
+            self.last_joint_stamp = stamp;
+        }
+        advance
+    }
+
     /// The arm does not follow when the command has led it (by [`LEAD_WATCH_FRACTION`](crate::control::safety::guard::LEAD_WATCH_FRACTION) of
-    /// the bound or more) for the timeout while the arm has not moved (by [`MIN_PROGRESS`]
+    /// the bound or more) for the timeout of measured time (`dt`, from
+    /// [`Self::measured_time`]) while the arm has not moved (by [`MIN_PROGRESS`]
     /// of the bound on any joint) since the lead began. Not "sat on the bound without a
     /// break": against a blocked arm the limited command wanders inside its lead box, in and
     /// out of the bound.
@@ -351,7 +372,8 @@ impl<S: CommandSource> Guarded<S> {
                 .joints
                 .is_some_and(|j| CommandGuard::fresh(input.now - j.stamp, self.guard.params().joint_timeout));
             let command = out.command.as_ref().filter(|_| fresh && measured.is_some());
-            if let Some(why) = self.watch_lead(command, dt) {
+            let measured_for = self.measured_time(input, dt);
+            if let Some(why) = self.watch_lead(command, measured_for) {
                 // Hold where the arm is (walking there): when it frees itself, nothing jumps.
                 let at = measured.map(HoldTarget::Arm).or(out.command.map(|_| HoldTarget::Still));
                 self.raise(why, at);
@@ -495,8 +517,9 @@ mod tests {
     }
 
     /// The Scripted source proposes a command 1 deg ahead of a still arm for 0.5 s; the
-    /// joints arrive fresh, or stop (a silent driver: the last ones, growing old).
-    fn lead_for_half_a_second(fresh: bool) -> Option<HoldReason> {
+    /// joints arrive fresh until step `dies_at` (then a silent driver: the last ones,
+    /// growing old).
+    fn lead_for_half_a_second(dies_at: i32) -> Option<HoldReason> {
         let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap();
         let limits = JointLimits::of_model(LbrModel::Med7);
         let q = JointVector::from_column_slice(&[0.0, 0.5, 0.0, -1.2, 0.0, 1.0, 0.0]);
@@ -511,7 +534,7 @@ mod tests {
         let mut g = Guarded::wrap(source, CommandGuard::new(GuardParams::default(), &limits));
         for k in 0..50 {
             let now = 1.0 + f64::from(k) * 0.01;
-            let stamp = if fresh { now } else { 1.0 };
+            let stamp = 1.0 + f64::from(k.min(dies_at)) * 0.01;
             let input = ControlInput {
                 scope: None,
                 now,
@@ -529,15 +552,18 @@ mod tests {
 
     #[test]
     fn a_still_arm_behind_its_command_is_not_following_but_a_silent_driver_is_not_judged() {
-        let fresh = lead_for_half_a_second(true);
+        let fresh = lead_for_half_a_second(i32::MAX);
         assert_eq!(
             fresh.as_ref().map(HoldReason::code),
             Some("ARM_NOT_FOLLOWING"),
             "{fresh:?}"
         );
         // Stale joints say nothing of the arm's progress: the stale-data hold (the source's)
-        // speaks for them, not ARM_NOT_FOLLOWING.
-        assert_eq!(lead_for_half_a_second(false), None);
+        // speaks for them, not ARM_NOT_FOLLOWING. Also when the driver dies while the
+        // command leads, its last joints still within the stale timeout (0.1 s): the watch
+        // counts measured time only, so it does not fire in the stale hold's stead.
+        assert_eq!(lead_for_half_a_second(0), None);
+        assert_eq!(lead_for_half_a_second(5), None);
     }
 }
 
