@@ -259,8 +259,9 @@ impl TrocarRenderer {
         const SIDES: usize = 32;
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let circumscribe = 1.0 / (std::f64::consts::PI / SIDES as f64).cos();
-        // Circles: centre, two in-plane unit vectors, radius (camera frame).
-        let mut circles: Vec<(Vector3<f64>, Vector3<f64>, Vector3<f64>, f64)> = vec![];
+        // Circles (camera frame): centre, two unit vectors spanning their plane, radius.
+        type Circle = (Vector3<f64>, [Vector3<f64>; 2], f64);
+        let mut circles: Vec<Circle> = vec![];
         if scene.show_trocar {
             let m = model;
             let (ex, ey) = (
@@ -274,20 +275,20 @@ impl TrocarRenderer {
                 (end, m.cannula.radius),
             ] {
                 let c = camera_t_port.transform_point(&Point3::new(0.0, 0.0, z)).coords;
-                circles.push((c, ex, ey, r));
+                circles.push((c, [ex, ey], r));
             }
         }
         if let Some(t) = &scene.tool {
             let (a, b) = (Vector3::from(t.start), Vector3::from(t.end));
             let (u, v) = super::geometry::basis(&nalgebra::Unit::new_normalize(b - a));
-            circles.push((a, u, v, t.radius));
-            circles.push((b, u, v, t.radius));
+            circles.push((a, [u, v], t.radius));
+            circles.push((b, [u, v], t.radius));
         }
         if circles.is_empty() {
             return Rect::default();
         }
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for (c, u, v, r) in &circles {
+        for (c, [u, v], r) in &circles {
             for k in 0..SIDES {
                 let a = k as f64 * std::f64::consts::TAU / SIDES as f64;
                 let p = c + r * circumscribe * (a.cos() * u + a.sin() * v);
