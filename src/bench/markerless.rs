@@ -1,7 +1,7 @@
 //! The markerless cases of the vision suite: the trocar's axis from 1280x720 frames rendered
 //! along the docking approach (camera_zedm, noise 2), timed per frame on one core, with the
 //! accuracy against the truth in `extra`; and the render itself (what the simulated camera
-//! spends per frame without the marker, on rayon's threads).
+//! spends per frame without the marker, on rayon's threads and on the one thread it runs on).
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -53,12 +53,21 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
         .map(|(k, p)| renderer.render(&model, p, &Scene::random(17_000 + k as u64, 2.0)))
         .collect::<Result<_, _>>()?;
     let render_idx: Vec<usize> = (0..n.clamp(1, 24)).map(|i| i % poses.len()).collect();
-    // Per pixel (the offline tools), and with the wall every 4 px (the simulated camera).
-    let render_t = [1, 4].map(|step| {
+    // Per pixel (the offline tools), and with the wall every 4 px (the simulated camera),
+    // on rayon's threads; and the simulated camera's on one thread, as it runs.
+    let one_thread = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .map_err(|e| VisionError::InvalidInput(format!("thread pool: {e}")))?;
+    let render_t = [(1, None), (4, None), (4, Some(&one_thread))].map(|(step, pool)| {
         let r = renderer.clone().with_wall_step(step);
-        time_each(&render_idx, 1, |&i| {
+        let frame = |i: usize| {
             r.render(&model, &poses[i], &Scene::random(18_000 + i as u64, 2.0))
                 .map(|_| true)
+        };
+        time_each(&render_idx, 1, |&i| match pool {
+            Some(p) => p.install(|| frame(i)),
+            None => frame(i),
         })
     });
     let mut est = MarkerlessEstimator::new(&camera, &model)?;
@@ -88,13 +97,14 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
         latency,
         extra,
     }];
-    for (t, name) in render_t.iter().zip([
-        "markerless_render_zedm_1280x720",
-        "markerless_render_wall4_zedm_1280x720",
+    for (t, (name, threads)) in render_t.iter().zip([
+        ("markerless_render_zedm_1280x720", rayon::current_num_threads()),
+        ("markerless_render_wall4_zedm_1280x720", rayon::current_num_threads()),
+        ("markerless_render_wall4_1thread_zedm_1280x720", 1),
     ]) {
         if let Some(latency) = LatencyStats::from_samples(t) {
             let mut extra = serde_json::Map::new();
-            extra.insert("threads".into(), rayon::current_num_threads().into());
+            extra.insert("threads".into(), threads.into());
             out.push(SuiteReport {
                 name: name.into(),
                 latency,

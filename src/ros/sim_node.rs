@@ -22,7 +22,7 @@ use crate::sim::SimWorld;
 use crate::trials::config::SimConfig;
 use crate::vision::estimator::{marker_in_camera, PoseYaml};
 use crate::vision::markerless::{Scene, TrocarModel, TrocarRenderer};
-use crate::vision::render::add_gaussian_noise;
+use crate::vision::render::{add_fast_gaussian_noise, add_gaussian_noise};
 use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions, VisionError};
 
 use super::node::{ros_err, CommandType, NodeError};
@@ -214,6 +214,15 @@ impl SimScene {
         }
     }
 
+    /// Add the camera's pixel noise of `sigma` grey levels to a frame (`seq`: its number):
+    /// the marker's as before, the trocar's by the cheaper table (the same distribution).
+    fn add_noise(&self, grey: &mut [u8], sigma: f64, seq: u64) {
+        match self {
+            Self::Marker { .. } => add_gaussian_noise(grey, sigma, seq),
+            Self::Trocar { .. } => add_fast_gaussian_noise(grey, sigma, seq),
+        }
+    }
+
     /// The grey image of the port at `camera_t_trocar` (noise is added by the caller).
     fn render(&self, model: &CameraModel, camera_t_trocar: &Isometry3<f64>) -> Result<Vec<u8>, VisionError> {
         match self {
@@ -275,7 +284,7 @@ impl CameraOutput {
                 );
             }
             if noise > 0.0 {
-                add_gaussian_noise(&mut grey, noise, job.seq);
+                scene.add_noise(&mut grey, noise, job.seq);
             }
             let Ok((data, channels)) = image_msgs::grey_as(&c.encoding, grey) else {
                 continue;
