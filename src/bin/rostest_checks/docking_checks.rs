@@ -130,21 +130,34 @@ impl InsertJoints {
     }
 }
 
-/// The peak force estimate of the status on `topic` while docking (TARE to INSERT, HOLD),
-/// as it comes: after DONE `f_ext` is the shaft's force from another estimate (the whole
-/// wrench), of the steering, not of the docking.
-fn subscribe_max_force(topic: &str) -> Result<(Arc<Mutex<f64>>, rosrust::Subscriber), String> {
-    let max_force = Arc::new(Mutex::new(0.0_f64));
-    let m = max_force.clone();
+/// What the status on `topic` showed while docking (TARE to INSERT, HOLD), as it comes:
+/// the peak force estimate (after DONE `f_ext` is the shaft's force from another estimate,
+/// the whole wrench, of the steering, not of the docking) and the tip's last distance from
+/// the goal (after DONE the scope steers about the port, with no docking goal).
+#[derive(Debug, Clone, Copy, Default)]
+struct DockingSeen {
+    max_force: f64,
+    tip_to_goal: f64,
+}
+
+fn subscribe_docking_seen(topic: &str) -> Result<(Arc<Mutex<DockingSeen>>, rosrust::Subscriber), String> {
+    let seen = Arc::new(Mutex::new(DockingSeen {
+        max_force: 0.0,
+        tip_to_goal: f64::NAN,
+    }));
+    let m = seen.clone();
     let sub = rosrust::subscribe(topic, 100, move |s: trocar_docking::DockingStatus| {
         if let Ok(mut m) = m.lock() {
             if !matches!(s.phase.as_str(), "IDLE" | "DONE" | "RETRACT") && s.f_ext_norm.is_finite() {
-                *m = m.max(s.f_ext_norm);
+                m.max_force = m.max_force.max(s.f_ext_norm);
+            }
+            if s.tip_to_goal.is_finite() && s.phase != "RETRACT" {
+                m.tip_to_goal = s.tip_to_goal;
             }
         }
     })
     .map_err(|e| e.to_string())?;
-    Ok((max_force, sub))
+    Ok((seen, sub))
 }
 
 /// Wait up to `time_limit` for DONE or ABORTED on `status`; that status, or why not.
@@ -176,7 +189,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         None
     };
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
-    let (max_force, _sub_force) = subscribe_max_force(&p.status_topic)?;
+    let (seen, _sub_seen) = subscribe_docking_seen(&p.status_topic)?;
     let (estimate, _sub_estimate) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.pose_topic)?;
     let (truth, _sub_truth) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.true_pose_topic)?;
     wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
@@ -186,7 +199,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     let t0 = Instant::now();
     let done = wait_for_end(p, &status)?;
     if done.phase != "DONE" {
-        let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
+        let fmax = seen.lock().map(|m| m.max_force).unwrap_or(f64::NAN);
         return Err(format!(
             "failure: ABORTED after {:.2} s: {} (M = {:.2} N, max force {:.2} N)",
             done.elapsed, done.hold_reason, done.metric_m, fmax
@@ -198,7 +211,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             done.metric_m, p.max_metric_m
         ));
     }
-    let fmax = max_force.lock().map(|m| *m).unwrap_or(f64::NAN);
+    let fmax = seen.lock().map(|m| m.max_force).unwrap_or(f64::NAN);
     if fmax.is_nan() || fmax > p.max_force {
         return Err(format!(
             "peak force {fmax:.2} N above the bound {:.2} N (M = {:.2} N)",
@@ -231,7 +244,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         done.metric_m,
         done.metric_m_paper_scale,
         fmax,
-        done.tip_to_goal * 1e3,
+        seen.lock().map(|m| m.tip_to_goal).unwrap_or(f64::NAN) * 1e3,
         done.latency_p50_ms,
         done.latency_p99_ms,
         done.loop_rate_hz,
