@@ -3,11 +3,18 @@
 //! one parser (`serde_yaml_ng`) and one error, [`YamlError`], which names the file (or what was
 //! parsed) and the parser's line, column and key. Unknown keys are errors where the target type
 //! says `deny_unknown_fields`; an empty document gives the type's defaults.
+//!
+//! A type whose defaults are a section of a shipped file ([`Shipped`], declared with
+//! [`shipped_defaults!`](crate::shipped_defaults)) has each number written once, in that file
+//! with its comment and source: its `Default` is the section as built into the binary, and
+//! whatever it is read from (a YAML file, the ROS parameter server) is laid over that section
+//! key by key, so that a missing key takes the shipped value.
 
 use std::path::Path;
+use std::sync::OnceLock;
 
-use serde::de::DeserializeOwned;
-use serde::Serialize;
+use serde::de::{DeserializeOwned, Deserializer, Error as _};
+use serde::{Deserialize, Serialize};
 
 pub use serde_yaml_ng::{Mapping, Value};
 
@@ -61,6 +68,173 @@ pub fn to_yaml_value<T: Serialize>(what: &str, value: &T) -> Result<Value, YamlE
 /// `value` as YAML text.
 pub fn to_yaml_string<T: Serialize>(what: &str, value: &T) -> Result<String, YamlError> {
     serde_yaml_ng::to_string(value).map_err(|e| YamlError::new(what, e))
+}
+
+/// Lay `over` onto `base`: mappings merge key by key (recursively), other values replace.
+pub fn merge(base: &mut Value, over: &Value) {
+    match (base, over) {
+        (Value::Mapping(b), Value::Mapping(o)) => {
+            for (k, v) in o {
+                match b.get_mut(k) {
+                    Some(slot) => merge(slot, v),
+                    None => {
+                        b.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (b, o) => *b = o.clone(),
+    }
+}
+
+/// A YAML file shipped in `config/` and built into the binary (`include_str!`), parsed once
+/// on first use; its sections are the defaults of the types declared with
+/// [`shipped_defaults!`](crate::shipped_defaults). A unit test of each file proves that it
+/// parses and validates, so the parse here cannot fail in a build that passed its tests.
+pub struct Shipped {
+    name: &'static str,
+    text: &'static str,
+    tree: OnceLock<Value>,
+}
+
+impl Shipped {
+    /// The file `name` (for messages) with its text.
+    pub const fn new(name: &'static str, text: &'static str) -> Self {
+        Self {
+            name,
+            text,
+            tree: OnceLock::new(),
+        }
+    }
+
+    /// The file's name, as in `config/`.
+    pub const fn name(&self) -> &'static str {
+        self.name
+    }
+
+    /// The section at `path` (keys from the top; empty for the whole file).
+    ///
+    /// # Panics
+    /// If the built-in file does not parse or lacks the section: a defect of the build that
+    /// the file's unit test reports.
+    pub fn section(&self, path: &[&str]) -> &Value {
+        let tree = self.tree.get_or_init(|| {
+            serde_yaml_ng::from_str(self.text)
+                .unwrap_or_else(|e| panic!("the built-in {} does not parse: {e}", self.name))
+        });
+        path.iter().fold(tree, |node, key| {
+            node.get(key)
+                .unwrap_or_else(|| panic!("the built-in {} has no section {}", self.name, path.join(".")))
+        })
+    }
+}
+
+/// Deserialize a type declared with [`shipped_defaults!`](crate::shipped_defaults): the value
+/// `d` holds (a mapping, possibly partial; null for none) laid over the shipped section at
+/// `path`, then read by `derived`, the type's derived (`#[serde(remote = "Self")]`)
+/// deserializer. A key the section does not have is an error naming its dotted path (e.g.
+/// `` `guard.force_stp`: unknown key ``); other errors name the section.
+pub fn deserialize_over<'de, D, T>(
+    d: D,
+    path: &[&str],
+    shipped: &Value,
+    derived: impl FnOnce(Value) -> Result<T, serde_yaml_ng::Error>,
+) -> Result<T, D::Error>
+where
+    D: Deserializer<'de>,
+{
+    let given = Value::deserialize(d)?;
+    if let Some(e) = unknown_key(&given, shipped, &mut path.iter().map(|k| k.to_string()).collect()) {
+        return Err(D::Error::custom(e));
+    }
+    let mut tree = shipped.clone();
+    if !given.is_null() {
+        merge(&mut tree, &given);
+    }
+    derived(tree).map_err(|e| {
+        let e = e.to_string();
+        // An inner section has named itself already.
+        if path.is_empty() || e.starts_with('`') {
+            D::Error::custom(e)
+        } else {
+            D::Error::custom(format_args!("`{}`: {e}", path.join(".")))
+        }
+    })
+}
+
+/// The first key of `given` that `shipped` lacks, as an error naming its dotted path (under
+/// `path`) and the keys that exist there.
+fn unknown_key(given: &Value, shipped: &Value, path: &mut Vec<String>) -> Option<String> {
+    let (Value::Mapping(g), Value::Mapping(s)) = (given, shipped) else {
+        return None;
+    };
+    for (k, v) in g {
+        let name = k.as_str().map_or_else(|| format!("{k:?}"), str::to_string);
+        match s.get(k) {
+            None => {
+                let known: Vec<_> = s.keys().filter_map(Value::as_str).collect();
+                path.push(name);
+                return Some(format!(
+                    "`{}`: unknown key (expected one of: {})",
+                    path.join("."),
+                    known.join(", ")
+                ));
+            }
+            Some(sv) => {
+                path.push(name);
+                if let Some(e) = unknown_key(v, sv, path) {
+                    return Some(e);
+                }
+                path.pop();
+            }
+        }
+    }
+    None
+}
+
+/// Declare that a configuration type's defaults are a section of a [`Shipped`] file: the
+/// type derives `Serialize, Deserialize` with `#[serde(remote = "Self", deny_unknown_fields)]`
+/// (no `default`), and this macro writes its `Default` (the section, parsed once and cloned)
+/// and its `Serialize`/`Deserialize` (what is given laid over the section; see
+/// [`deserialize_over`]).
+///
+/// `shipped_defaults!(GuardParams, SHIPPED, ["guard"]);`
+#[macro_export]
+macro_rules! shipped_defaults {
+    ($ty:ty, $file:expr, [$($key:literal),*]) => {
+        impl ::std::default::Default for $ty {
+            /// The section of the shipped file (see [`crate::config::Shipped`]).
+            fn default() -> Self {
+                static DEFAULT: ::std::sync::OnceLock<$ty> = ::std::sync::OnceLock::new();
+                DEFAULT
+                    .get_or_init(|| {
+                        let path: &[&str] = &[$($key),*];
+                        <$ty>::deserialize($file.section(path).clone()).unwrap_or_else(|e| {
+                            panic!(
+                                "the built-in {} section `{}` does not fit {}: {e}",
+                                $file.name(),
+                                path.join("."),
+                                stringify!($ty)
+                            )
+                        })
+                    })
+                    .clone()
+            }
+        }
+
+        impl<'de> ::serde::Deserialize<'de> for $ty {
+            fn deserialize<D: ::serde::Deserializer<'de>>(d: D) -> ::std::result::Result<Self, D::Error> {
+                let path: &[&str] = &[$($key),*];
+                $crate::config::deserialize_over(d, path, $file.section(path), |v| <$ty>::deserialize(v))
+            }
+        }
+
+        impl ::serde::Serialize for $ty {
+            fn serialize<S: ::serde::Serializer>(&self, s: S) -> ::std::result::Result<S::Ok, S::Error> {
+                <$ty>::serialize(self, s)
+            }
+        }
+    };
 }
 
 #[cfg(test)]
