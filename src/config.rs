@@ -1,7 +1,9 @@
 //! YAML loading: every configuration file (controller, simulator, trials, cameras, models,
 //! node settings, hand-eye results) is read through [`from_yaml_str`] or [`from_yaml_file`], with
-//! one parser (`serde_yaml_ng`) and one error, [`YamlError`], which names the file (or what was
-//! parsed) and the parser's line, column and key. Unknown keys are errors where the target type
+//! one parser (`serde_yaml_ng`) and one error, [`ParamError`], which names the file (or the
+//! parameter namespace, or what was parsed), the key and the reason (with the parser's line
+//! and column where it has them). A parameter tree (a protocol's overrides, what the ROS
+//! parameter server hands over) takes the same typed path as a file: [`from_yaml_value`]. Unknown keys are errors where the target type
 //! says `deny_unknown_fields`; an empty document gives the type's defaults.
 //!
 //! A type whose defaults are a section of a shipped file ([`Shipped`], declared with
@@ -18,56 +20,79 @@ use serde::{Deserialize, Serialize};
 
 pub use serde_yaml_ng::{Mapping, Value};
 
-/// A YAML text could not be read, parsed or mapped onto its type.
+/// A parameter could not be read, parsed or mapped onto its type, or is out of range: the
+/// one error of every configuration file and parameter namespace.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{what}: {message}")]
-pub struct YamlError {
-    /// The file, or what was parsed.
+pub struct ParamError {
+    /// The file, the parameter namespace, or what was parsed.
     pub what: String,
-    /// The cause (the parser's message with its line and column, or the I/O error).
+    /// The key and the reason (the parser's message with its line and column, the range
+    /// rule broken, or the I/O error).
     pub message: String,
 }
 
-impl YamlError {
-    fn new(what: &str, e: impl std::fmt::Display) -> Self {
+impl ParamError {
+    /// `what` (a file, a namespace) is wrong for `reason`.
+    pub fn new(what: &str, reason: impl std::fmt::Display) -> Self {
         Self {
             what: what.to_string(),
-            message: e.to_string(),
+            message: reason.to_string(),
         }
+    }
+}
+
+/// A value out of its range, where the file or namespace is not known (the key is named).
+impl From<crate::validate::RangeError> for ParamError {
+    fn from(e: crate::validate::RangeError) -> Self {
+        Self::new("parameter", e)
     }
 }
 
 /// Parse `text` as `T`; `what` names the file (or what the text is) in the error. A document
 /// that is empty (or only comments, or `null`) gives `T` from an empty mapping (its defaults).
-pub fn from_yaml_str<T: DeserializeOwned>(what: &str, text: &str) -> Result<T, YamlError> {
-    let tree: Value = serde_yaml_ng::from_str(text).map_err(|e| YamlError::new(what, e))?;
+pub fn from_yaml_str<T: DeserializeOwned>(what: &str, text: &str) -> Result<T, ParamError> {
+    let tree: Value = serde_yaml_ng::from_str(text).map_err(|e| ParamError::new(what, e))?;
     if tree.is_null() {
-        return from_yaml_value(what, Value::Mapping(Mapping::new()));
+        return from_yaml_value(what, tree);
     }
     // Parse the text itself (not the tree) so that errors carry their line and column.
-    serde_yaml_ng::from_str(text).map_err(|e| YamlError::new(what, e))
+    serde_yaml_ng::from_str(text).map_err(|e| ParamError::new(what, e))
 }
 
 /// Read and parse the YAML file at `path` as `T`; the error names the file.
-pub fn from_yaml_file<T: DeserializeOwned>(path: &Path) -> Result<T, YamlError> {
+pub fn from_yaml_file<T: DeserializeOwned>(path: &Path) -> Result<T, ParamError> {
     let what = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| YamlError::new(&what, format_args!("cannot read: {e}")))?;
+    let text = std::fs::read_to_string(path).map_err(|e| ParamError::new(&what, format_args!("cannot read: {e}")))?;
     from_yaml_str(&what, &text)
 }
 
-/// Map an already parsed YAML tree onto `T`.
-pub fn from_yaml_value<T: DeserializeOwned>(what: &str, value: Value) -> Result<T, YamlError> {
-    serde_yaml_ng::from_value(value).map_err(|e| YamlError::new(what, e))
+/// Map a parameter tree onto `T` (missing keys take their defaults; null gives `T` from an
+/// empty mapping): a parsed YAML file, a protocol's overrides, or (through
+/// [`from_tree`]) what the ROS parameter server hands over.
+pub fn from_yaml_value<T: DeserializeOwned>(what: &str, value: Value) -> Result<T, ParamError> {
+    let value = if value.is_null() {
+        Value::Mapping(Mapping::new())
+    } else {
+        value
+    };
+    serde_yaml_ng::from_value(value).map_err(|e| ParamError::new(what, e))
+}
+
+/// Map any serde tree (e.g. the JSON value of a ROS parameter namespace) onto `T` through
+/// [`from_yaml_value`]: one typed deserialization and one error for files and trees.
+pub fn from_tree<T: DeserializeOwned, V: Serialize>(what: &str, tree: &V) -> Result<T, ParamError> {
+    from_yaml_value(what, to_yaml_value(what, tree)?)
 }
 
 /// `value` as a YAML tree.
-pub fn to_yaml_value<T: Serialize>(what: &str, value: &T) -> Result<Value, YamlError> {
-    serde_yaml_ng::to_value(value).map_err(|e| YamlError::new(what, e))
+pub fn to_yaml_value<T: Serialize>(what: &str, value: &T) -> Result<Value, ParamError> {
+    serde_yaml_ng::to_value(value).map_err(|e| ParamError::new(what, e))
 }
 
 /// `value` as YAML text.
-pub fn to_yaml_string<T: Serialize>(what: &str, value: &T) -> Result<String, YamlError> {
-    serde_yaml_ng::to_string(value).map_err(|e| YamlError::new(what, e))
+pub fn to_yaml_string<T: Serialize>(what: &str, value: &T) -> Result<String, ParamError> {
+    serde_yaml_ng::to_string(value).map_err(|e| ParamError::new(what, e))
 }
 
 /// Lay `over` onto `base`: mappings merge key by key (recursively), other values replace.

@@ -20,16 +20,10 @@ pub const SHIPPED_YAML: &str = include_str!("../../config/controller.yaml");
 /// and of its sections is its value there (written once, with its comment and source).
 pub static SHIPPED: Shipped = Shipped::new("config/controller.yaml", SHIPPED_YAML);
 
-/// Errors in the controller's parameters.
-#[derive(Debug, thiserror::Error)]
-pub enum ParamError {
-    /// The YAML did not parse or had unknown fields.
-    #[error(transparent)]
-    Yaml(#[from] crate::config::YamlError),
-    /// A value is out of range.
-    #[error("controller parameter: {0}")]
-    Invalid(String),
-}
+pub use crate::config::ParamError;
+
+/// What the controller's parameters are called in errors that have no file.
+pub const WHAT: &str = "controller parameter";
 
 /// Every parameter of the controller (`config/controller.yaml`); the defaults are that file
 /// as built into the binary ([`SHIPPED`]), and a partial file takes the rest from it.
@@ -106,7 +100,7 @@ impl ControllerParams {
     /// Parse YAML (missing fields take their defaults) and validate.
     pub fn from_yaml_str(s: &str) -> Result<Self, ParamError> {
         let p: Self = crate::config::from_yaml_str("controller YAML", s)?;
-        p.validate().map_err(ParamError::Invalid)?;
+        p.validate().map_err(|e| ParamError::new(WHAT, e))?;
         Ok(p)
     }
 
