@@ -112,6 +112,14 @@ pub fn merge(base: &mut Value, over: &Value) {
     }
 }
 
+/// `config/docking_controller.yaml` (the docking controller node's private parameters, and
+/// the preflight's) as built into the binary: the defaults of the node's settings
+/// (`ros::controller_node::node_params`) and of the preflight's limits.
+pub static DOCKING_CONTROLLER_NODE: Shipped = Shipped::new(
+    "config/docking_controller.yaml",
+    include_str!("../config/docking_controller.yaml"),
+);
+
 /// A YAML file shipped in `config/` and built into the binary (`include_str!`), parsed once
 /// on first use; its sections are the defaults of the types declared with
 /// [`shipped_defaults!`](crate::shipped_defaults). A unit test of each file proves that it
@@ -157,8 +165,8 @@ impl Shipped {
 /// Deserialize a type declared with [`shipped_defaults!`](crate::shipped_defaults): the value
 /// `d` holds (a mapping, possibly partial; null for none) laid over the shipped section at
 /// `path`, then read by `derived`, the type's derived (`#[serde(remote = "Self")]`)
-/// deserializer. A key the section does not have is an error naming its dotted path (e.g.
-/// `` `guard.force_stp`: unknown key ``); other errors name the section.
+/// deserializer, which rejects unknown keys. Its error names the unknown key's dotted path
+/// (e.g. `` `guard.force_stp`: unknown key ``), or else the section.
 pub fn deserialize_over<'de, D, T>(
     d: D,
     path: &[&str],
@@ -169,9 +177,6 @@ where
     D: Deserializer<'de>,
 {
     let given = Value::deserialize(d)?;
-    if let Some(e) = unknown_key(&given, shipped, &mut path.iter().map(|k| k.to_string()).collect()) {
-        return Err(D::Error::custom(e));
-    }
     let mut tree = shipped.clone();
     if !given.is_null() {
         merge(&mut tree, &given);
@@ -179,7 +184,13 @@ where
     derived(tree).map_err(|e| {
         let e = e.to_string();
         // An inner section has named itself already.
-        if path.is_empty() || e.starts_with('`') {
+        if e.starts_with('`') {
+            return D::Error::custom(e);
+        }
+        let mut at: Vec<String> = path.iter().map(|k| k.to_string()).collect();
+        if let Some(unknown) = unknown_key(&given, shipped, &mut at) {
+            D::Error::custom(unknown)
+        } else if path.is_empty() {
             D::Error::custom(e)
         } else {
             D::Error::custom(format_args!("`{}`: {e}", path.join(".")))
@@ -218,15 +229,25 @@ fn unknown_key(given: &Value, shipped: &Value, path: &mut Vec<String>) -> Option
 }
 
 /// Declare that a configuration type's defaults are a section of a [`Shipped`] file: the
-/// type derives `Serialize, Deserialize` with `#[serde(remote = "Self", deny_unknown_fields)]`
-/// (no `default`), and this macro writes its `Default` (the section, parsed once and cloned)
-/// and its `Serialize`/`Deserialize` (what is given laid over the section; see
-/// [`deserialize_over`]).
+/// type derives `Deserialize` (and `Serialize`) with `#[serde(remote = "Self",
+/// deny_unknown_fields)]` (no container `default`; a field the file leaves out has its own
+/// `#[serde(default)]`), and this macro writes its `Default` (the section, parsed once and
+/// cloned), its `Deserialize` (what is given laid over the section; see
+/// [`deserialize_over`]) and, unless `deserialize_only` follows, its `Serialize`.
 ///
 /// `shipped_defaults!(GuardParams, SHIPPED, ["guard"]);`
 #[macro_export]
 macro_rules! shipped_defaults {
     ($ty:ty, $file:expr, [$($key:literal),*]) => {
+        $crate::shipped_defaults!($ty, $file, [$($key),*], deserialize_only);
+
+        impl ::serde::Serialize for $ty {
+            fn serialize<S: ::serde::Serializer>(&self, s: S) -> ::std::result::Result<S::Ok, S::Error> {
+                <$ty>::serialize(self, s)
+            }
+        }
+    };
+    ($ty:ty, $file:expr, [$($key:literal),*], deserialize_only) => {
         impl ::std::default::Default for $ty {
             /// The section of the shipped file (see [`crate::config::Shipped`]).
             fn default() -> Self {
@@ -251,12 +272,6 @@ macro_rules! shipped_defaults {
             fn deserialize<D: ::serde::Deserializer<'de>>(d: D) -> ::std::result::Result<Self, D::Error> {
                 let path: &[&str] = &[$($key),*];
                 $crate::config::deserialize_over(d, path, $file.section(path), |v| <$ty>::deserialize(v))
-            }
-        }
-
-        impl ::serde::Serialize for $ty {
-            fn serialize<S: ::serde::Serializer>(&self, s: S) -> ::std::result::Result<S::Ok, S::Error> {
-                <$ty>::serialize(self, s)
             }
         }
     };
