@@ -120,6 +120,10 @@ pub static DOCKING_CONTROLLER_NODE: Shipped = Shipped::new(
     include_str!("../config/docking_controller.yaml"),
 );
 
+/// `config/scope_joy.yaml` (the `scope_joy` node's private parameters: a common gamepad in its
+/// Xbox layout) as built into the binary: the defaults of `ros::joy::JoyParams`.
+pub static SCOPE_JOY: Shipped = Shipped::new("config/scope_joy.yaml", include_str!("../config/scope_joy.yaml"));
+
 /// A YAML file shipped in `config/` and built into the binary (`include_str!`), parsed once
 /// on first use; its sections are the defaults of the types declared with
 /// [`shipped_defaults!`](crate::shipped_defaults). A unit test of each file proves that it
