@@ -1,66 +1,284 @@
 //! YAML loading: every configuration file (controller, simulator, trials, cameras, models,
 //! node settings, hand-eye results) is read through [`from_yaml_str`] or [`from_yaml_file`], with
-//! one parser (`serde_yaml_ng`) and one error, [`YamlError`], which names the file (or what was
-//! parsed) and the parser's line, column and key. Unknown keys are errors where the target type
+//! one parser (`serde_yaml_ng`) and one error, [`ParamError`], which names the file (or the
+//! parameter namespace, or what was parsed), the key and the reason (with the parser's line
+//! and column where it has them). A parameter tree (a protocol's overrides, what the ROS
+//! parameter server hands over) takes the same typed path as a file: [`from_yaml_value`]. Unknown keys are errors where the target type
 //! says `deny_unknown_fields`; an empty document gives the type's defaults.
+//!
+//! A type whose defaults are a section of a shipped file ([`Shipped`], declared with
+//! [`shipped_defaults!`](crate::shipped_defaults)) has each number written once, in that file
+//! with its comment and source: its `Default` is the section as built into the binary, and
+//! whatever it is read from (a YAML file, the ROS parameter server) is laid over that section
+//! key by key, so that a missing key takes the shipped value.
 
 use std::path::Path;
+use std::sync::OnceLock;
 
-use serde::de::DeserializeOwned;
-use serde::Serialize;
+use serde::de::{DeserializeOwned, Deserializer, Error as _};
+use serde::{Deserialize, Serialize};
 
 pub use serde_yaml_ng::{Mapping, Value};
 
-/// A YAML text could not be read, parsed or mapped onto its type.
+/// A parameter could not be read, parsed or mapped onto its type, or is out of range: the
+/// one error of every configuration file and parameter namespace.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{what}: {message}")]
-pub struct YamlError {
-    /// The file, or what was parsed.
+pub struct ParamError {
+    /// The file, the parameter namespace, or what was parsed.
     pub what: String,
-    /// The cause (the parser's message with its line and column, or the I/O error).
+    /// The key and the reason (the parser's message with its line and column, the range
+    /// rule broken, or the I/O error).
     pub message: String,
 }
 
-impl YamlError {
-    fn new(what: &str, e: impl std::fmt::Display) -> Self {
+impl ParamError {
+    /// `what` (a file, a namespace) is wrong for `reason`.
+    pub fn new(what: &str, reason: impl std::fmt::Display) -> Self {
         Self {
             what: what.to_string(),
-            message: e.to_string(),
+            message: reason.to_string(),
         }
+    }
+}
+
+/// A value out of its range, where the file or namespace is not known (the key is named).
+impl From<crate::validate::RangeError> for ParamError {
+    fn from(e: crate::validate::RangeError) -> Self {
+        Self::new("parameter", e)
     }
 }
 
 /// Parse `text` as `T`; `what` names the file (or what the text is) in the error. A document
 /// that is empty (or only comments, or `null`) gives `T` from an empty mapping (its defaults).
-pub fn from_yaml_str<T: DeserializeOwned>(what: &str, text: &str) -> Result<T, YamlError> {
-    let tree: Value = serde_yaml_ng::from_str(text).map_err(|e| YamlError::new(what, e))?;
+pub fn from_yaml_str<T: DeserializeOwned>(what: &str, text: &str) -> Result<T, ParamError> {
+    let tree: Value = serde_yaml_ng::from_str(text).map_err(|e| ParamError::new(what, e))?;
     if tree.is_null() {
-        return from_yaml_value(what, Value::Mapping(Mapping::new()));
+        return from_yaml_value(what, tree);
     }
     // Parse the text itself (not the tree) so that errors carry their line and column.
-    serde_yaml_ng::from_str(text).map_err(|e| YamlError::new(what, e))
+    serde_yaml_ng::from_str(text).map_err(|e| ParamError::new(what, e))
 }
 
 /// Read and parse the YAML file at `path` as `T`; the error names the file.
-pub fn from_yaml_file<T: DeserializeOwned>(path: &Path) -> Result<T, YamlError> {
+pub fn from_yaml_file<T: DeserializeOwned>(path: &Path) -> Result<T, ParamError> {
     let what = path.display().to_string();
-    let text = std::fs::read_to_string(path).map_err(|e| YamlError::new(&what, format_args!("cannot read: {e}")))?;
+    let text = std::fs::read_to_string(path).map_err(|e| ParamError::new(&what, format_args!("cannot read: {e}")))?;
     from_yaml_str(&what, &text)
 }
 
-/// Map an already parsed YAML tree onto `T`.
-pub fn from_yaml_value<T: DeserializeOwned>(what: &str, value: Value) -> Result<T, YamlError> {
-    serde_yaml_ng::from_value(value).map_err(|e| YamlError::new(what, e))
+/// Map a parameter tree onto `T` (missing keys take their defaults; null gives `T` from an
+/// empty mapping): a parsed YAML file, a protocol's overrides, or (through
+/// [`from_tree`]) what the ROS parameter server hands over.
+pub fn from_yaml_value<T: DeserializeOwned>(what: &str, value: Value) -> Result<T, ParamError> {
+    let value = if value.is_null() {
+        Value::Mapping(Mapping::new())
+    } else {
+        value
+    };
+    serde_yaml_ng::from_value(value).map_err(|e| ParamError::new(what, e))
+}
+
+/// Map any serde tree (e.g. the JSON value of a ROS parameter namespace) onto `T` through
+/// [`from_yaml_value`]: one typed deserialization and one error for files and trees.
+pub fn from_tree<T: DeserializeOwned, V: Serialize>(what: &str, tree: &V) -> Result<T, ParamError> {
+    from_yaml_value(what, to_yaml_value(what, tree)?)
 }
 
 /// `value` as a YAML tree.
-pub fn to_yaml_value<T: Serialize>(what: &str, value: &T) -> Result<Value, YamlError> {
-    serde_yaml_ng::to_value(value).map_err(|e| YamlError::new(what, e))
+pub fn to_yaml_value<T: Serialize>(what: &str, value: &T) -> Result<Value, ParamError> {
+    serde_yaml_ng::to_value(value).map_err(|e| ParamError::new(what, e))
 }
 
 /// `value` as YAML text.
-pub fn to_yaml_string<T: Serialize>(what: &str, value: &T) -> Result<String, YamlError> {
-    serde_yaml_ng::to_string(value).map_err(|e| YamlError::new(what, e))
+pub fn to_yaml_string<T: Serialize>(what: &str, value: &T) -> Result<String, ParamError> {
+    serde_yaml_ng::to_string(value).map_err(|e| ParamError::new(what, e))
+}
+
+/// Lay `over` onto `base`: mappings merge key by key (recursively), other values replace.
+pub fn merge(base: &mut Value, over: &Value) {
+    match (base, over) {
+        (Value::Mapping(b), Value::Mapping(o)) => {
+            for (k, v) in o {
+                match b.get_mut(k) {
+                    Some(slot) => merge(slot, v),
+                    None => {
+                        b.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
+        (b, o) => *b = o.clone(),
+    }
+}
+
+/// `config/docking_controller.yaml` (the docking controller node's private parameters, and
+/// the preflight's) as built into the binary: the defaults of the node's settings
+/// (`ros::controller_node::node_params`) and of the preflight's limits.
+pub static DOCKING_CONTROLLER_NODE: Shipped = Shipped::new(
+    "config/docking_controller.yaml",
+    include_str!("../config/docking_controller.yaml"),
+);
+
+/// `config/scope_joy.yaml` (the `scope_joy` node's private parameters: a common gamepad in its
+/// Xbox layout) as built into the binary: the defaults of `ros::joy::JoyParams`.
+pub static SCOPE_JOY: Shipped = Shipped::new("config/scope_joy.yaml", include_str!("../config/scope_joy.yaml"));
+
+/// A YAML file shipped in `config/` and built into the binary (`include_str!`), parsed once
+/// on first use; its sections are the defaults of the types declared with
+/// [`shipped_defaults!`](crate::shipped_defaults). A unit test of each file proves that it
+/// parses and validates, so the parse here cannot fail in a build that passed its tests.
+pub struct Shipped {
+    name: &'static str,
+    text: &'static str,
+    tree: OnceLock<Value>,
+}
+
+impl Shipped {
+    /// The file `name` (for messages) with its text.
+    pub const fn new(name: &'static str, text: &'static str) -> Self {
+        Self {
+            name,
+            text,
+            tree: OnceLock::new(),
+        }
+    }
+
+    /// The file's name, as in `config/`.
+    pub const fn name(&self) -> &'static str {
+        self.name
+    }
+
+    /// The section at `path` (keys from the top; empty for the whole file).
+    ///
+    /// # Panics
+    /// If the built-in file does not parse or lacks the section: a defect of the build that
+    /// the file's unit test reports.
+    pub fn section(&self, path: &[&str]) -> &Value {
+        let tree = self.tree.get_or_init(|| {
+            serde_yaml_ng::from_str(self.text)
+                .unwrap_or_else(|e| panic!("the built-in {} does not parse: {e}", self.name))
+        });
+        path.iter().fold(tree, |node, key| {
+            node.get(key)
+                .unwrap_or_else(|| panic!("the built-in {} has no section {}", self.name, path.join(".")))
+        })
+    }
+}
+
+/// Deserialize a type declared with [`shipped_defaults!`](crate::shipped_defaults): the value
+/// `d` holds (a mapping, possibly partial; null for none) laid over the shipped section at
+/// `path`, then read by `derived`, the type's derived (`#[serde(remote = "Self")]`)
+/// deserializer, which rejects unknown keys. Its error names the unknown key's dotted path
+/// (e.g. `` `guard.force_stp`: unknown key ``), or else the section.
+pub fn deserialize_over<'de, D, T>(
+    d: D,
+    path: &[&str],
+    shipped: &Value,
+    derived: impl FnOnce(Value) -> Result<T, serde_yaml_ng::Error>,
+) -> Result<T, D::Error>
+where
+    D: Deserializer<'de>,
+{
+    let given = Value::deserialize(d)?;
+    let mut tree = shipped.clone();
+    if !given.is_null() {
+        merge(&mut tree, &given);
+    }
+    derived(tree).map_err(|e| {
+        let e = e.to_string();
+        // An inner section has named itself already.
+        if e.starts_with('`') {
+            return D::Error::custom(e);
+        }
+        let mut at: Vec<String> = path.iter().map(|k| k.to_string()).collect();
+        if let Some(unknown) = unknown_key(&given, shipped, &mut at) {
+            D::Error::custom(unknown)
+        } else if path.is_empty() {
+            D::Error::custom(e)
+        } else {
+            D::Error::custom(format_args!("`{}`: {e}", path.join(".")))
+        }
+    })
+}
+
+/// The first key of `given` that `shipped` lacks, as an error naming its dotted path (under
+/// `path`) and the keys that exist there.
+fn unknown_key(given: &Value, shipped: &Value, path: &mut Vec<String>) -> Option<String> {
+    let (Value::Mapping(g), Value::Mapping(s)) = (given, shipped) else {
+        return None;
+    };
+    for (k, v) in g {
+        let name = k.as_str().map_or_else(|| format!("{k:?}"), str::to_string);
+        match s.get(k) {
+            None => {
+                let known: Vec<_> = s.keys().filter_map(Value::as_str).collect();
+                path.push(name);
+                return Some(format!(
+                    "`{}`: unknown key (expected one of: {})",
+                    path.join("."),
+                    known.join(", ")
+                ));
+            }
+            Some(sv) => {
+                path.push(name);
+                if let Some(e) = unknown_key(v, sv, path) {
+                    return Some(e);
+                }
+                path.pop();
+            }
+        }
+    }
+    None
+}
+
+/// Declare that a configuration type's defaults are a section of a [`Shipped`] file: the
+/// type derives `Deserialize` (and `Serialize`) with `#[serde(remote = "Self",
+/// deny_unknown_fields)]` (no container `default`; a field the file leaves out has its own
+/// `#[serde(default)]`), and this macro writes its `Default` (the section, parsed once and
+/// cloned), its `Deserialize` (what is given laid over the section; see
+/// [`deserialize_over`]) and, unless `deserialize_only` follows, its `Serialize`.
+///
+/// `shipped_defaults!(GuardParams, SHIPPED, ["guard"]);`
+#[macro_export]
+macro_rules! shipped_defaults {
+    ($ty:ty, $file:expr, [$($key:literal),*]) => {
+        $crate::shipped_defaults!($ty, $file, [$($key),*], deserialize_only);
+
+        impl ::serde::Serialize for $ty {
+            fn serialize<S: ::serde::Serializer>(&self, s: S) -> ::std::result::Result<S::Ok, S::Error> {
+                <$ty>::serialize(self, s)
+            }
+        }
+    };
+    ($ty:ty, $file:expr, [$($key:literal),*], deserialize_only) => {
+        impl ::std::default::Default for $ty {
+            /// The section of the shipped file (see [`crate::config::Shipped`]).
+            fn default() -> Self {
+                static DEFAULT: ::std::sync::OnceLock<$ty> = ::std::sync::OnceLock::new();
+                DEFAULT
+                    .get_or_init(|| {
+                        let path: &[&str] = &[$($key),*];
+                        <$ty>::deserialize($file.section(path).clone()).unwrap_or_else(|e| {
+                            panic!(
+                                "the built-in {} section `{}` does not fit {}: {e}",
+                                $file.name(),
+                                path.join("."),
+                                stringify!($ty)
+                            )
+                        })
+                    })
+                    .clone()
+            }
+        }
+
+        impl<'de> ::serde::Deserialize<'de> for $ty {
+            fn deserialize<D: ::serde::Deserializer<'de>>(d: D) -> ::std::result::Result<Self, D::Error> {
+                let path: &[&str] = &[$($key),*];
+                $crate::config::deserialize_over(d, path, $file.section(path), |v| <$ty>::deserialize(v))
+            }
+        }
+    };
 }
 
 #[cfg(test)]

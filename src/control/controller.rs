@@ -183,8 +183,8 @@ impl Controller {
 impl OptimalController {
     /// The law with `params` (validated).
     pub fn new(params: ControllerParams) -> Result<Self, ParamError> {
-        params.validate().map_err(ParamError::Invalid)?;
-        let sqp = SqpSolver::new(params.sqp.clone()).map_err(ParamError::Invalid)?;
+        params.validate().map_err(|e| ParamError::new(super::params::WHAT, e))?;
+        let sqp = SqpSolver::new(params.sqp.clone()).map_err(|e| ParamError::new(super::params::WHAT, e))?;
         Ok(Self {
             params,
             sqp,

@@ -10,22 +10,25 @@ use super::safety::guard::GuardParams;
 use super::safety::motion::MotionLimits;
 use super::scope::command::ScopeParams;
 use super::sqp::{CostWeights, SqpSettings};
+use crate::config::Shipped;
 use crate::validate;
 
-/// Errors in the controller's parameters.
-#[derive(Debug, thiserror::Error)]
-pub enum ParamError {
-    /// The YAML did not parse or had unknown fields.
-    #[error(transparent)]
-    Yaml(#[from] crate::config::YamlError),
-    /// A value is out of range.
-    #[error("controller parameter: {0}")]
-    Invalid(String),
-}
+/// The text of `config/controller.yaml` as built into the binary.
+pub const SHIPPED_YAML: &str = include_str!("../../config/controller.yaml");
 
-/// Every parameter of the controller (`config/controller.yaml`).
+/// `config/controller.yaml` as built into the binary: every default of [`ControllerParams`]
+/// and of its sections is its value there (written once, with its comment and source).
+pub static SHIPPED: Shipped = Shipped::new("config/controller.yaml", SHIPPED_YAML);
+
+pub use crate::config::ParamError;
+
+/// What the controller's parameters are called in errors that have no file.
+pub const WHAT: &str = "controller parameter";
+
+/// Every parameter of the controller (`config/controller.yaml`); the defaults are that file
+/// as built into the binary ([`SHIPPED`]), and a partial file takes the rest from it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct ControllerParams {
     /// Control period, s.
     pub dt: f64,
@@ -91,57 +94,13 @@ pub struct ControllerParams {
     pub scope: ScopeParams,
 }
 
-impl Default for ControllerParams {
-    fn default() -> Self {
-        Self {
-            dt: 0.01,
-            force_feedback: true,
-            approach_weights: CostWeights {
-                axis: 0.0,
-                goal: 1000.0,
-                align: 5.0,
-                step: 0.05,
-                reference: 300.0,
-            },
-            insert_weights: CostWeights {
-                axis: 1000.0,
-                goal: 300.0,
-                align: 20.0,
-                step: 0.05,
-                reference: 3000.0,
-            },
-            insertion_depth: 0.03,
-            standoff: 0.02,
-            approach_speed: 0.08,
-            insert_speed: 0.03,
-            approach_tolerance: 0.002,
-            approach_angle_tolerance_deg: 1.0,
-            goal_tolerance: 0.001,
-            goal_angle_tolerance_deg: 0.5,
-            goal_window: 0.3,
-            seated: SeatedParams::default(),
-            trocar_filter_time_constant: 0.1,
-            torque_filter_time_constant: 0.005,
-            require_torques: true,
-            retreat_distance: 0.0,
-            limit_avoidance_weight: 1.0,
-            limit_avoidance_zone: 0.9,
-            approach_stall_timeout: 3.0,
-            tare: TareParams::default(),
-            admittance: AdmittanceParams::default(),
-            guard: GuardParams::default(),
-            motion: MotionLimits::default(),
-            sqp: SqpSettings::default(),
-            scope: ScopeParams::default(),
-        }
-    }
-}
+crate::shipped_defaults!(ControllerParams, crate::control::params::SHIPPED, []);
 
 impl ControllerParams {
     /// Parse YAML (missing fields take their defaults) and validate.
     pub fn from_yaml_str(s: &str) -> Result<Self, ParamError> {
         let p: Self = crate::config::from_yaml_str("controller YAML", s)?;
-        p.validate().map_err(ParamError::Invalid)?;
+        p.validate().map_err(|e| ParamError::new(WHAT, e))?;
         Ok(p)
     }
 
@@ -183,5 +142,82 @@ impl ControllerParams {
             ));
         }
         self.sqp.validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_built_in_file_parses_validates_and_is_every_default() {
+        let p = ControllerParams::from_yaml_str(SHIPPED_YAML).unwrap();
+        p.validate().unwrap();
+        assert_eq!(p, ControllerParams::default());
+        assert_eq!(p.seated, SeatedParams::default());
+        assert_eq!(p.tare, TareParams::default());
+        assert_eq!(p.admittance, AdmittanceParams::default());
+        assert_eq!(p.guard, GuardParams::default());
+        assert_eq!(p.motion, MotionLimits::default());
+        assert_eq!(p.sqp, SqpSettings::default());
+        assert_eq!(p.scope, ScopeParams::default());
+        assert_eq!(p.scope.fulcrum, super::super::scope::fulcrum::FulcrumParams::default());
+        assert_eq!(
+            p.scope.breathing,
+            super::super::scope::port_follow::PortFollowParams::default()
+        );
+        // Figures of the file itself, so that the defaults are read, not made up.
+        assert_eq!(
+            (p.dt, p.guard.force_stop, p.scope.fulcrum.prior_depth),
+            (0.01, 20.0, 0.02)
+        );
+    }
+
+    #[test]
+    fn a_partial_file_takes_the_rest_from_the_shipped_one_and_unknown_keys_are_named() {
+        let d = ControllerParams::default();
+        for empty in ["", "# nothing\n", "guard: ~\n", "scope: {fulcrum: {}}\n"] {
+            assert_eq!(ControllerParams::from_yaml_str(empty).unwrap(), d, "{empty:?}");
+        }
+        let p = ControllerParams::from_yaml_str("guard: {force_stop: 15}\nscope: {fulcrum: {stiffness: 7}}\n").unwrap();
+        assert_eq!(p.guard.force_stop, 15.0);
+        assert_eq!(p.scope.fulcrum.stiffness, 7.0);
+        let same_rest = ControllerParams {
+            guard: GuardParams {
+                force_stop: d.guard.force_stop,
+                ..p.guard.clone()
+            },
+            scope: ScopeParams {
+                fulcrum: d.scope.fulcrum.clone(),
+                ..p.scope.clone()
+            },
+            ..p.clone()
+        };
+        assert_eq!(same_rest, d);
+        for (text, key) in [
+            ("guard: {force_stp: 15}\n", "guard.force_stp"),
+            ("scope: {fulcrum: {stiffnes: 1}}\n", "scope.fulcrum.stiffnes"),
+            ("no_such_field: 1\n", "no_such_field"),
+        ] {
+            let e = ControllerParams::from_yaml_str(text).unwrap_err().to_string();
+            assert!(e.contains(&format!("`{key}`: unknown key")), "{e}");
+        }
+        let e = ControllerParams::from_yaml_str("guard: {force_stop: fast}\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`guard`: invalid type"), "{e}");
+        let e = ControllerParams::from_yaml_str("scope: {fulcrum: {stiffness: []}}\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`scope.fulcrum`: invalid type"), "{e}");
+        // A section read on its own names its keys the same way.
+        let e = crate::config::from_yaml_str::<GuardParams>("g", "force_stp: 1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("`guard.force_stp`: unknown key"), "{e}");
+        // The same from a parameter tree (what the ROS parameter server gives), integers as floats.
+        let p: ControllerParams = serde_json::from_value(serde_json::json!({"guard": {"force_stop": 15}})).unwrap();
+        assert_eq!(p.guard.force_stop, 15.0);
+        assert_eq!(p.guard.velocity_scale, d.guard.velocity_scale);
     }
 }

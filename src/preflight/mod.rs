@@ -99,7 +99,7 @@ impl std::fmt::Display for Report {
 
 /// The bounds of the checks.
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct Limits {
     /// Lowest joint-state rate, Hz (the driver publishes them at 100 Hz or more).
     pub min_joint_states_hz: f64,
@@ -123,20 +123,12 @@ pub struct Limits {
     pub reach_margin_deg: f64,
 }
 
-impl Default for Limits {
-    fn default() -> Self {
-        Self {
-            min_joint_states_hz: 100.0,
-            rate_tolerance: 0.1,
-            min_image_hz: 5.0,
-            min_marker_hz: 5.0,
-            hand_eye_max_age_days: 30.0,
-            hand_eye_max_residual_m: 0.002,
-            hand_eye_max_residual_rad: 0.5f64.to_radians(),
-            reach_margin_deg: 5.0,
-        }
-    }
-}
+crate::shipped_defaults!(
+    Limits,
+    crate::config::DOCKING_CONTROLLER_NODE,
+    ["preflight", "limits"],
+    deserialize_only
+);
 
 impl Limits {
     /// Check every value; the error names the key.

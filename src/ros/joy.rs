@@ -11,7 +11,6 @@
 
 use crate::control::ScopeCommand;
 use crate::ros::msgs::sensor_msgs;
-use crate::ros::topics;
 use crate::validate;
 
 /// One scope motion driven by a joystick axis.
@@ -25,9 +24,10 @@ pub struct AxisMap {
     pub scale: f64,
 }
 
-/// Parameters of the `scope_joy` node (its private namespace; `config/scope_joy.yaml`).
+/// Parameters of the `scope_joy` node (its private namespace; `config/scope_joy.yaml`, whose
+/// values, built in, are the defaults: [`crate::config::SCOPE_JOY`]).
 #[derive(Debug, Clone, PartialEq, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct JoyParams {
     /// Joy in.
     pub joy_topic: String,
@@ -54,27 +54,7 @@ pub struct JoyParams {
     pub deadman_button: i32,
 }
 
-impl Default for JoyParams {
-    /// A common gamepad under `joy_node` (Xbox layout): left stick pan and tilt, right
-    /// stick roll and zoom, the left shoulder button as dead-man. Full deflection: 0.17
-    /// rad/s (10 deg/s) pan and tilt, 0.3 rad/s roll, 10 mm/s zoom, under the controller's
-    /// speed limits.
-    fn default() -> Self {
-        Self {
-            joy_topic: topics::JOY.into(),
-            command_topic: topics::SCOPE_COMMAND.into(),
-            frame_id: crate::kinematics::TIP_LINK.into(),
-            rate_hz: 30.0,
-            joy_timeout: 0.5,
-            pan: AxisMap { axis: 0, scale: 0.17 },
-            tilt: AxisMap { axis: 1, scale: 0.17 },
-            roll: AxisMap { axis: 3, scale: 0.3 },
-            zoom: AxisMap { axis: 4, scale: 0.01 },
-            dead_zone: 0.1,
-            deadman_button: 4,
-        }
-    }
-}
+crate::shipped_defaults!(JoyParams, crate::config::SCOPE_JOY, [], deserialize_only);
 
 /// Why a Joy message gives no command.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -288,7 +268,18 @@ mod tests {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/scope_joy.yaml");
         let p: JoyParams = crate::ros::params::from_yaml_file(&path).unwrap();
         p.validate().unwrap();
-        assert_eq!(p, JoyParams::default(), "the YAML spells the defaults");
+        assert_eq!(p, JoyParams::default(), "the built-in file is the defaults");
+        assert_eq!((p.rate_hz, p.zoom.scale, p.deadman_button), (30.0, 0.01, 4));
+        let partial: JoyParams =
+            crate::config::from_yaml_str("t", "rate_hz: 20\nzoom: {axis: 5, scale: 0.02}\n").unwrap();
+        let expected = JoyParams {
+            rate_hz: 20.0,
+            zoom: AxisMap { axis: 5, scale: 0.02 },
+            ..p.clone()
+        };
+        assert_eq!(partial, expected, "a partial file takes the rest from the built-in one");
+        let e = crate::config::from_yaml_str::<JoyParams>("t", "rate: 20\n").unwrap_err();
+        assert!(e.message.contains("`rate`: unknown key"), "{e}");
         let bad = [
             (
                 "rate_hz",

@@ -29,7 +29,7 @@ pub struct Scene {
 
 /// Marker sizes.
 #[derive(Debug, Clone, Copy, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct MarkerStyle {
     /// Length of the drawn insertion axis (beyond and before the port), m.
     pub axis_length: f64,
@@ -49,20 +49,12 @@ pub struct MarkerStyle {
     pub cone_length: f64,
 }
 
-impl Default for MarkerStyle {
-    fn default() -> Self {
-        Self {
-            axis_length: 0.15,
-            optical_axis_length: 0.08,
-            force_scale: 0.2,
-            force_max_length: 0.15,
-            sphere: 0.012,
-            trocar_diameter: 0.012,
-            trocar_length: 0.05,
-            cone_length: 0.08,
-        }
-    }
-}
+crate::shipped_defaults!(
+    MarkerStyle,
+    crate::config::DOCKING_CONTROLLER_NODE,
+    ["markers"],
+    deserialize_only
+);
 
 /// Marker ids (one marker each, replaced in place).
 #[derive(Debug, Clone, Copy)]

@@ -6,72 +6,26 @@
 
 use serde::de::DeserializeOwned;
 
-/// A parameter could not be read or does not fit the node's settings.
-#[derive(Debug, thiserror::Error)]
-pub enum ParamError {
-    /// The parameter server did not answer.
-    #[error("parameter server: {0}")]
-    Server(String),
-    /// The values do not match the settings struct (wrong type, unknown key).
-    #[error("parameters of {namespace}: {message}")]
-    Invalid {
-        /// The namespace read.
-        namespace: String,
-        /// What is wrong.
-        message: String,
-    },
-    /// A value is out of its range.
-    #[error("parameter {0}")]
-    Range(#[from] crate::validate::RangeError),
-    /// A YAML file could not be read.
-    #[error("cannot read {path}: {message}")]
-    File {
-        /// The file.
-        path: String,
-        /// The cause.
-        message: String,
-    },
-}
+pub use crate::config::{from_yaml_file, from_yaml_str, ParamError};
 
-/// Build the settings `T` from a parameter tree (missing keys take their defaults).
+/// Build the settings `T` from a parameter tree as the parameter server hands it over
+/// (missing keys take their defaults; null gives the defaults), through the same typed
+/// deserialization as a YAML file ([`crate::config::from_tree`]); errors name `namespace`.
 pub fn from_value<T: DeserializeOwned>(namespace: &str, value: serde_json::Value) -> Result<T, ParamError> {
-    let value = match value {
-        serde_json::Value::Null => serde_json::Value::Object(Default::default()),
-        v => v,
-    };
-    serde_json::from_value(value).map_err(|e| ParamError::Invalid {
-        namespace: namespace.to_string(),
-        message: e.to_string(),
-    })
-}
-
-/// Build the settings `T` from YAML text.
-pub fn from_yaml_str<T: DeserializeOwned>(name: &str, yaml: &str) -> Result<T, ParamError> {
-    crate::config::from_yaml_str(name, yaml).map_err(|e| ParamError::Invalid {
-        namespace: e.what,
-        message: e.message,
-    })
-}
-
-/// Build the settings `T` from a YAML file.
-pub fn from_yaml_file<T: DeserializeOwned>(path: &std::path::Path) -> Result<T, ParamError> {
-    let text = std::fs::read_to_string(path).map_err(|e| ParamError::File {
-        path: path.display().to_string(),
-        message: e.to_string(),
-    })?;
-    from_yaml_str(&path.display().to_string(), &text)
+    crate::config::from_tree(namespace, &value)
 }
 
 /// Read this node's private namespace (`~`) from the parameter server into `T`; a node
 /// without parameters gets the defaults. Call after `rosrust::init`.
 pub fn load_private<T: DeserializeOwned>() -> Result<T, ParamError> {
     let ns = rosrust::name();
-    let param = rosrust::param(&ns).ok_or_else(|| ParamError::Server(format!("bad name {ns}")))?;
-    let exists = param.exists().map_err(|e| ParamError::Server(e.to_string()))?;
+    let server = |e: &dyn std::fmt::Display| ParamError::new(&ns, format_args!("parameter server: {e}"));
+    let param = rosrust::param(&ns).ok_or_else(|| server(&"bad name"))?;
+    let exists = param.exists().map_err(|e| server(&e))?;
     if !exists {
         return from_value(&ns, serde_json::Value::Null);
     }
-    let value: serde_json::Value = param.get().map_err(|e| ParamError::Server(e.to_string()))?;
+    let value: serde_json::Value = param.get().map_err(|e| server(&e))?;
     from_value(&ns, value)
 }
 
@@ -106,21 +60,25 @@ mod tests {
         );
         let d: S = from_value("t", serde_json::Value::Null).unwrap();
         assert_eq!(d, S::default());
+        // A tree from the parameter server takes the same path: integers become floats.
+        let s: S = from_value("/ns", serde_json::json!({"rate": 1000})).unwrap();
+        assert_eq!((s.rate, s.topic.as_str()), (1000.0, "/a"));
     }
 
     #[test]
     fn unknown_keys_and_wrong_types_are_errors() {
-        assert!(matches!(
-            from_yaml_str::<S>("t", "rat: 3\n"),
-            Err(ParamError::Invalid { .. })
-        ));
-        assert!(matches!(
-            from_yaml_str::<S>("t", "rate: fast\n"),
-            Err(ParamError::Invalid { .. })
-        ));
-        assert!(matches!(
-            from_yaml_file::<S>(std::path::Path::new("/nonexistent.yaml")),
-            Err(ParamError::File { .. })
-        ));
+        let e = from_yaml_str::<S>("t", "rat: 3\n").unwrap_err();
+        assert!(e.what == "t" && e.message.contains("unknown field `rat`"), "{e}");
+        let e = from_yaml_str::<S>("t", "rate: fast\n").unwrap_err();
+        assert!(e.message.contains("rate: invalid type"), "{e}");
+        let e = from_value::<S>("/ns", serde_json::json!({"rate": "fast"})).unwrap_err();
+        assert!(e.what == "/ns" && e.message.contains("invalid type"), "{e}");
+        let e = from_value::<S>("/ns", serde_json::json!({"rat": 3})).unwrap_err();
+        assert!(e.message.contains("unknown field `rat`"), "{e}");
+        let e = from_yaml_file::<S>(std::path::Path::new("/nonexistent.yaml")).unwrap_err();
+        assert!(
+            e.what == "/nonexistent.yaml" && e.message.starts_with("cannot read"),
+            "{e}"
+        );
     }
 }

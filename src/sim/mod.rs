@@ -59,7 +59,7 @@ pub enum SimError {
     },
     /// The YAML could not be parsed.
     #[error(transparent)]
-    Yaml(#[from] crate::config::YamlError),
+    Yaml(#[from] crate::config::ParamError),
 }
 
 /// Check that `v` is finite and within `[lo, hi]`.

@@ -20,7 +20,7 @@ pub const DEFAULT_PATH: &str = "config/sim.yaml";
 pub const DEFAULT_CONTROLLER_PATH: &str = "config/controller.yaml";
 
 /// `config/controller.yaml` as built into the binary, for runs outside the package root.
-pub const EMBEDDED_CONTROLLER_YAML: &str = include_str!("../../config/controller.yaml");
+pub const EMBEDDED_CONTROLLER_YAML: &str = crate::control::params::SHIPPED_YAML;
 
 /// Everything `config/sim.yaml` holds.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
@@ -82,23 +82,6 @@ impl std::fmt::Display for Protocol {
     }
 }
 
-/// Lay `over` onto `base`: mappings merge key by key (recursively), other values replace.
-fn merge(base: &mut crate::config::Value, over: &crate::config::Value) {
-    match (base, over) {
-        (crate::config::Value::Mapping(b), crate::config::Value::Mapping(o)) => {
-            for (k, v) in o {
-                match b.get_mut(k) {
-                    Some(slot) => merge(slot, v),
-                    None => {
-                        b.insert(k.clone(), v.clone());
-                    }
-                }
-            }
-        }
-        (b, o) => *b = o.clone(),
-    }
-}
-
 impl SimConfig {
     /// Parse and validate YAML.
     pub fn from_yaml_str(s: &str) -> Result<Self, SimError> {
@@ -146,7 +129,7 @@ impl SimConfig {
             ..self.clone()
         };
         let mut tree = crate::config::to_yaml_value("sim YAML", &base)?;
-        merge(&mut tree, over);
+        crate::config::merge(&mut tree, over);
         let mut out: Self = crate::config::from_yaml_value(name, tree).map_err(|e| SimError::Param {
             name: "protocols",
             why: format!("protocol '{name}': {}", e.message),

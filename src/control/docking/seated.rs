@@ -37,7 +37,7 @@ use crate::control::docking::geometry::InsertionAxis;
 
 /// Parameters of the seated test (`seated:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct SeatedParams {
     /// Largest distance of the tip from the estimated axis, m (0 = the test is off).
     pub lateral_tolerance: f64,
@@ -54,18 +54,7 @@ pub struct SeatedParams {
     pub settle_time: f64,
 }
 
-impl Default for SeatedParams {
-    fn default() -> Self {
-        Self {
-            lateral_tolerance: 0.005,
-            depth_tolerance: 0.002,
-            angle_tolerance_deg: 2.0,
-            min_lateral_force: 0.0,
-            max_motion: 0.0015,
-            settle_time: 0.5,
-        }
-    }
-}
+crate::shipped_defaults!(SeatedParams, crate::control::params::SHIPPED, ["seated"]);
 
 impl SeatedParams {
     /// Check ranges; the error names the field.

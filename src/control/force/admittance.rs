@@ -21,7 +21,7 @@ use crate::validate;
 
 /// Parameters of the force estimate and the admittance law.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct AdmittanceParams {
     /// Per-joint torque dead-band, Nm.
     pub torque_deadband: f64,
@@ -47,22 +47,7 @@ pub struct AdmittanceParams {
     pub min_insert_speed_ratio: f64,
 }
 
-impl Default for AdmittanceParams {
-    fn default() -> Self {
-        Self {
-            torque_deadband: 0.0,
-            pinv_damping: 0.02,
-            filter_cutoff_hz: 20.0,
-            force_deadband: 0.2,
-            mass: 0.5,
-            damping: 60.0,
-            stiffness: 100.0,
-            max_displacement: 0.02,
-            axial_force_full_stop: 5.0,
-            min_insert_speed_ratio: 0.25,
-        }
-    }
-}
+crate::shipped_defaults!(AdmittanceParams, crate::control::params::SHIPPED, ["admittance"]);
 
 impl AdmittanceParams {
     /// Check ranges; the error names the field.

@@ -36,7 +36,7 @@ use crate::validate;
 
 /// Parameters of the tare (`tare:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct TareParams {
     /// Length of the still window at start, s (0 = no tare: offsets taken as zero).
     pub window_s: f64,
@@ -58,20 +58,7 @@ pub struct TareParams {
     pub payload_prior_kg: f64,
 }
 
-impl Default for TareParams {
-    fn default() -> Self {
-        Self {
-            window_s: 0.3,
-            max_motion_rad: 0.002,
-            max_offset_nm: 5.0,
-            max_noise_nm: 1.0,
-            deadband_sigmas: 2.0,
-            track_time_constant_s: 0.3,
-            track_clearance_m: 0.01,
-            payload_prior_kg: 0.5,
-        }
-    }
-}
+crate::shipped_defaults!(TareParams, crate::control::params::SHIPPED, ["tare"]);
 
 impl TareParams {
     /// Check ranges; the error names the field.

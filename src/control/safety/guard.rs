@@ -19,7 +19,7 @@ pub const LEAD_WATCH_FRACTION: f64 = 0.25;
 
 /// Parameters of the guard.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct GuardParams {
     /// Margin inside each position limit, rad.
     pub position_margin: f64,
@@ -49,22 +49,7 @@ pub struct GuardParams {
     pub max_clock_jump: f64,
 }
 
-impl Default for GuardParams {
-    fn default() -> Self {
-        Self {
-            position_margin: 5f64.to_radians(),
-            velocity_scale: 0.5,
-            force_stop: 20.0,
-            joint_timeout: 0.1,
-            trocar_timeout: 0.5,
-            torque_timeout: 0.1,
-            max_tracking_error: 0.15,
-            max_command_lead: 2f64.to_radians(),
-            follow_timeout: 0.1,
-            max_clock_jump: 1.0,
-        }
-    }
-}
+crate::shipped_defaults!(GuardParams, crate::control::params::SHIPPED, ["guard"]);
 
 impl GuardParams {
     /// Check ranges; the error names the field.

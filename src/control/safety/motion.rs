@@ -33,7 +33,7 @@ use crate::kinematics::{Jacobian, JointVector};
 
 /// Limits of the commanded tip motion (`motion:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct MotionLimits {
     /// Largest tip speed, m/s.
     pub max_speed: f64,
@@ -49,18 +49,7 @@ pub struct MotionLimits {
     pub max_angular_jerk: f64,
 }
 
-impl Default for MotionLimits {
-    fn default() -> Self {
-        Self {
-            max_speed: 0.1,
-            max_accel: 5.0,
-            max_jerk: 1000.0,
-            max_angular_speed: 1.0,
-            max_angular_accel: 20.0,
-            max_angular_jerk: 1000.0,
-        }
-    }
-}
+crate::shipped_defaults!(MotionLimits, crate::control::params::SHIPPED, ["motion"]);
 
 impl MotionLimits {
     /// Check every range; the error names the field.

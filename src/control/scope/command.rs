@@ -74,7 +74,7 @@ impl std::fmt::Display for ScopeLimit {
 
 /// Parameters of steering after docking (`scope:` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct ScopeParams {
     /// A command older than this counts as none (dead-man), s.
     pub command_timeout: f64,
@@ -116,33 +116,7 @@ pub struct ScopeParams {
     pub breathing: PortFollowParams,
 }
 
-impl Default for ScopeParams {
-    fn default() -> Self {
-        Self {
-            command_timeout: 0.2,
-            max_angular_speed: 0.35,
-            max_roll_speed: 0.5,
-            max_zoom_speed: 0.02,
-            min_depth: 0.03,
-            max_depth: 0.08,
-            cone_half_angle_deg: 30.0,
-            weights: CostWeights {
-                axis: 1000.0,
-                goal: 1000.0,
-                align: 20.0,
-                step: 0.05,
-                reference: 0.0,
-            },
-            rcm_weight: 3000.0,
-            roll_weight: 5.0,
-            retract_speed: 0.02,
-            retract_force_stop: 12.0,
-            arm_lag: 0.02,
-            fulcrum: FulcrumParams::default(),
-            breathing: PortFollowParams::default(),
-        }
-    }
-}
+crate::shipped_defaults!(ScopeParams, crate::control::params::SHIPPED, ["scope"]);
 
 impl ScopeParams {
     /// Check every range; the error names the field.

@@ -63,7 +63,7 @@ use crate::signal::deadband;
 
 /// Parameters of the fulcrum's adaptation (`scope.fulcrum` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct FulcrumParams {
     /// Prior depth of the fulcrum past the port (the trocar's face) along the shaft, m.
     pub prior_depth: f64,
@@ -101,26 +101,7 @@ pub struct FulcrumParams {
     pub axial_max_speed: f64,
 }
 
-impl Default for FulcrumParams {
-    fn default() -> Self {
-        Self {
-            prior_depth: 0.02,
-            stiffness: 0.0,
-            damping: 50.0,
-            force_deadband: 0.15,
-            still_force_deadband: 2.0,
-            max_displacement: 0.01,
-            max_lateral_speed: 0.01,
-            depth_gain: 0.1,
-            min_pivot_speed: 0.02,
-            filter_cutoff_hz: 5.0,
-            axial_damping: 50.0,
-            axial_deadband: 2.0,
-            axial_still_deadband: 5.0,
-            axial_max_speed: 0.02,
-        }
-    }
-}
+crate::shipped_defaults!(FulcrumParams, crate::control::params::SHIPPED, ["scope", "fulcrum"]);
 
 impl FulcrumParams {
     /// Check every range; the error names the field.

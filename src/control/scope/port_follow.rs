@@ -37,7 +37,7 @@ use crate::validate::in_range;
 
 /// Parameters (`scope.breathing` in `config/controller.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct PortFollowParams {
     /// Follow the estimated port along the docking axis (false: the port stays where DONE
     /// found it, as before).
@@ -61,19 +61,11 @@ pub struct PortFollowParams {
     pub max_jump: f64,
 }
 
-impl Default for PortFollowParams {
-    fn default() -> Self {
-        Self {
-            follow: true,
-            cutoff_hz: 4.0,
-            gain: 1.0,
-            max_offset: 0.015,
-            max_speed: 0.02,
-            max_age: 0.2,
-            max_jump: 0.005,
-        }
-    }
-}
+crate::shipped_defaults!(
+    PortFollowParams,
+    crate::control::params::SHIPPED,
+    ["scope", "breathing"]
+);
 
 impl PortFollowParams {
     /// Check every range; the error names the field.

@@ -51,7 +51,7 @@ use crate::kinematics::{JointVector, Kinematics, N_JOINTS};
 
 /// Settings of the SQP.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct SqpSettings {
     /// Largest number of QPs per control step (1 = real-time iteration).
     pub max_iterations: usize,
@@ -76,19 +76,7 @@ pub struct SqpSettings {
     pub active_set_warm_start: bool,
 }
 
-impl Default for SqpSettings {
-    fn default() -> Self {
-        Self {
-            max_iterations: 3,
-            tolerance: 1e-5,
-            regularization: 1e-6,
-            qp_max_iterations: 30,
-            max_total_qp_iterations: 60,
-            time_budget_us: 0.0,
-            active_set_warm_start: true,
-        }
-    }
-}
+crate::shipped_defaults!(SqpSettings, crate::control::params::SHIPPED, ["sqp"]);
 
 impl SqpSettings {
     /// Real-time-iteration settings: one QP per step.

@@ -5,16 +5,15 @@
 
 use crate::control::ControllerParams;
 use crate::kinematics::lbr::LbrModel;
-use crate::kinematics::TIP_LINK;
 use crate::preflight::Limits;
 use crate::ros::markers::MarkerStyle;
 use crate::ros::node::{CommandType, NodeError};
-use crate::ros::topics;
 use crate::validate;
 
-/// Parameters of the node (its private namespace; `config/docking_controller.yaml`).
+/// Parameters of the node (its private namespace; `config/docking_controller.yaml`, whose
+/// values, built in, are the defaults: [`crate::config::DOCKING_CONTROLLER_NODE`]).
 #[derive(Debug, Clone, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct ControllerNodeParams {
     /// Control rate, Hz.
     pub rate_hz: f64,
@@ -87,48 +86,18 @@ pub struct ControllerNodeParams {
     /// The preflight's settings (`~preflight`).
     pub preflight: PreflightParams,
     /// Parameters of the optimal controller (`config/controller.yaml`, loaded under
-    /// `~controller`); its `dt` is set from `rate_hz` and `force_feedback` from the node's.
+    /// `~controller`; its defaults when absent); its `dt` is set from `rate_hz` and
+    /// `force_feedback` from the node's.
+    #[serde(default)]
     pub controller: ControllerParams,
 }
 
-impl Default for ControllerNodeParams {
-    fn default() -> Self {
-        Self {
-            rate_hz: 100.0,
-            model: LbrModel::Med7,
-            urdf_file: String::new(),
-            joint_names: crate::kinematics::joint_names(),
-            base_frame: crate::kinematics::BASE_LINK.into(),
-            trocar_frame: "trocar".into(),
-            goal_frame: "docking_goal".into(),
-            joint_states_topic: topics::JOINT_STATES.into(),
-            lbr_state_topic: topics::LBR_STATE.into(),
-            trocar_pose_topic: topics::TROCAR_POSE.into(),
-            scope_command_topic: topics::SCOPE_COMMAND.into(),
-            tip_frame: TIP_LINK.into(),
-            command_topic: topics::COMMAND.into(),
-            command_type: CommandType::Trajectory,
-            dry_run: false,
-            preview_topic: "~preview".into(),
-            preview_joint_states_topic: "~preview_joint_states".into(),
-            command_lookahead_periods: 2.0,
-            driver_restart_gap_s: 0.5,
-            status_topic: topics::DOCKING_STATUS.into(),
-            f_ext_topic: topics::DOCKING_F_EXT.into(),
-            markers_topic: topics::DOCKING_MARKERS.into(),
-            status_rate_hz: 0.0,
-            markers_rate_hz: 20.0,
-            autostart: false,
-            force_feedback: true,
-            latency_samples: 5000,
-            realtime_priority: 0,
-            markers: MarkerStyle::default(),
-            preflight_on_start: true,
-            preflight: PreflightParams::default(),
-            controller: ControllerParams::default(),
-        }
-    }
-}
+crate::shipped_defaults!(
+    ControllerNodeParams,
+    crate::config::DOCKING_CONTROLLER_NODE,
+    [],
+    deserialize_only
+);
 
 impl ControllerNodeParams {
     /// Check every rate, count and name; the error names the key.
@@ -163,7 +132,7 @@ impl ControllerNodeParams {
 /// Settings of the preflight (the `preflight` node's private parameters; the controller's
 /// `~preflight`).
 #[derive(Debug, Clone, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct PreflightParams {
     /// How long the streams are watched, s (wall time).
     pub window_s: f64,
@@ -179,18 +148,12 @@ pub struct PreflightParams {
     pub limits: Limits,
 }
 
-impl Default for PreflightParams {
-    fn default() -> Self {
-        Self {
-            window_s: 1.0,
-            wait_s: 5.0,
-            controller_node: "/docking_controller".into(),
-            estimator_node: "/trocar_estimator".into(),
-            simulator_node: "/lbr_med_sim".into(),
-            limits: Limits::default(),
-        }
-    }
-}
+crate::shipped_defaults!(
+    PreflightParams,
+    crate::config::DOCKING_CONTROLLER_NODE,
+    ["preflight"],
+    deserialize_only
+);
 
 impl PreflightParams {
     /// Check every value; the error names the key.
@@ -199,5 +162,45 @@ impl PreflightParams {
         crate::validate::positive_at_most("wait_s", self.wait_s, 600.0)?;
         self.limits.validate()?;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_built_in_file_is_the_defaults_and_a_partial_tree_takes_the_rest_from_it() {
+        let text = include_str!("../../../config/docking_controller.yaml");
+        let p: ControllerNodeParams = crate::config::from_yaml_str("docking_controller.yaml", text).unwrap();
+        p.validate().unwrap();
+        let d = ControllerNodeParams::default();
+        assert_eq!(format!("{p:?}"), format!("{d:?}"));
+        // Figures of the file itself.
+        assert_eq!((d.rate_hz, d.latency_samples, d.preflight.window_s), (100.0, 5000, 1.0));
+        assert_eq!((d.preflight.limits.min_image_hz, d.markers.force_scale), (5.0, 0.2));
+        assert_eq!(d.preflight.limits, Limits::default());
+        // As the parameter server hands it over: partial, with the controller under `controller`.
+        let tree = serde_json::json!({
+            "rate_hz": 1000,
+            "preflight": {"limits": {"min_image_hz": 10}},
+            "controller": {"guard": {"force_stop": 15}},
+        });
+        let p: ControllerNodeParams = crate::ros::params::from_value("/docking_controller", tree).unwrap();
+        assert_eq!((p.rate_hz, p.preflight.limits.min_image_hz), (1000.0, 10.0));
+        assert_eq!(p.preflight.limits.min_marker_hz, d.preflight.limits.min_marker_hz);
+        assert_eq!(p.controller.guard.force_stop, 15.0);
+        assert_eq!(p.controller.guard.velocity_scale, d.controller.guard.velocity_scale);
+        assert_eq!(p.command_topic, d.command_topic);
+        let e = crate::ros::params::from_value::<ControllerNodeParams>(
+            "/docking_controller",
+            serde_json::json!({"preflight": {"limits": {"min_image_fps": 10}}}),
+        )
+        .unwrap_err();
+        assert_eq!(e.what, "/docking_controller");
+        assert!(
+            e.message.contains("`preflight.limits.min_image_fps`: unknown key"),
+            "{e}"
+        );
     }
 }
