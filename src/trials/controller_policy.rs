@@ -10,26 +10,18 @@ use crate::kinematics::{JointLimits, Kinematics};
 /// The controller driving a simulated trial.
 pub struct ControllerPolicy {
     ctrl: Controller,
-    torque_filter: f64,
 }
 
 impl ControllerPolicy {
     /// A controller with `params` for an arm with `limits`.
     pub fn new(params: &ControllerParams, limits: &JointLimits) -> Result<Self, String> {
         Controller::new(params.clone(), limits.clone())
-            .map(|ctrl| Self {
-                ctrl,
-                torque_filter: params.torque_filter_time_constant,
-            })
+            .map(|ctrl| Self { ctrl })
             .map_err(|e| e.to_string())
     }
 }
 
 impl Policy for ControllerPolicy {
-    fn torque_filter_time_constant(&self) -> f64 {
-        self.torque_filter
-    }
-
     fn start(&mut self, _kin: &dyn Kinematics) {
         self.ctrl.reset();
         // From IDLE, start cannot fail; a failure would show as the phase staying IDLE.
@@ -121,9 +113,6 @@ mod tests {
     }
 
     impl Policy for Counted {
-        fn torque_filter_time_constant(&self) -> f64 {
-            self.inner.torque_filter_time_constant()
-        }
         fn start(&mut self, kin: &dyn Kinematics) {
             self.inner.start(kin);
         }

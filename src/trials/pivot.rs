@@ -335,7 +335,7 @@ impl PivotSession {
         let ctrl = Controller::new(params.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
         let period = 1.0 / trial.control_rate_hz;
         let mut lp = Self {
-            plant: ClosedLoop::new(&world, trial.control_rate_hz, params.torque_filter_time_constant),
+            plant: ClosedLoop::new(&world, trial.control_rate_hz),
             world,
             ctrl,
             kin,

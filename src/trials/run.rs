@@ -47,11 +47,6 @@ pub trait Policy {
     fn start(&mut self, kin: &dyn Kinematics);
     /// One control tick.
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action;
-    /// The time constant of the low-pass its torques pass at the plant's rate before each
-    /// tick, s ([`crate::signal::StreamLowPass`]; 0, the default: the newest sample).
-    fn torque_filter_time_constant(&self) -> f64 {
-        0.0
-    }
 }
 
 /// Parameters of a trial (the `trial:` section of `config/sim.yaml`).
@@ -387,7 +382,7 @@ fn drive(
 ) -> Result<String, SimError> {
     p.validate()?;
     policy.start(world.kinematics());
-    let mut plant = ClosedLoop::new(world, p.control_rate_hz, policy.torque_filter_time_constant());
+    let mut plant = ClosedLoop::new(world, p.control_rate_hz);
     // The true tip's last position and velocity (finite differences at the control rate).
     let mut last_tip: Option<(f64, Vector3<f64>, Option<Vector3<f64>>)> = None;
     loop {
