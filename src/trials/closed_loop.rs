@@ -70,10 +70,9 @@ pub struct ClosedLoop {
 }
 
 impl ClosedLoop {
-    /// The loop for a controller at `control_rate_hz` in `world` (fresh, or reset for a new
-    /// run); the world's torques now are the first sample.
-    pub fn new(world: &SimWorld, control_rate_hz: f64) -> Self {
-        let period = 1.0 / control_rate_hz;
+    /// The loop for a controller of control period `period` s in `world` (fresh, or reset
+    /// for a new run); the world's torques now are the first sample.
+    pub fn new(world: &SimWorld, period: f64) -> Self {
         let tau_ext = world.external_torques();
         let mut samples = TorqueSamples::default();
         samples.push(world.time(), tau_ext);
@@ -171,7 +170,7 @@ mod tests {
     /// ticks (if ever): the result, the ticks run and the world.
     fn period(rate_hz: f64, stop_at: usize) -> (Result<ControlFlow<usize>, PlantError>, usize, SimWorld) {
         let mut w = world();
-        let mut lp = ClosedLoop::new(&w, rate_hz);
+        let mut lp = ClosedLoop::new(&w, 1.0 / rate_hz);
         let mut ticks = 0;
         let r = lp.advance_until(&mut w, None, |_| {
             ticks += 1;
@@ -190,7 +189,7 @@ mod tests {
         assert!(matches!(r, Ok(ControlFlow::Continue(()))));
         assert_eq!(ticks, (w.params().physics_rate_hz / 100.0).round() as usize);
         assert!((w.time() - 0.01).abs() < 1e-9, "{}", w.time());
-        let obs = ClosedLoop::new(&w, 100.0).observe(&w);
+        let obs = ClosedLoop::new(&w, 0.01).observe(&w);
         assert_eq!(obs.t, w.time());
         assert_eq!(obs.q, w.joint_positions());
     }
@@ -198,7 +197,7 @@ mod tests {
     #[test]
     fn an_observation_hands_over_every_physics_ticks_raw_torques_once() {
         let mut w = world();
-        let mut lp = ClosedLoop::new(&w, 100.0);
+        let mut lp = ClosedLoop::new(&w, 0.01);
         let first = lp.observe(&w);
         assert_eq!(first.torque_samples.len(), 1, "the torques at the start");
         assert_eq!(first.torque_samples.last(), Some(&(w.time(), first.tau_ext)));
@@ -222,7 +221,7 @@ mod tests {
     #[test]
     fn a_bad_command_is_the_commands_error() {
         let mut w = world();
-        let mut lp = ClosedLoop::new(&w, 100.0);
+        let mut lp = ClosedLoop::new(&w, 0.01);
         let bad = JointVector::from_element(f64::NAN);
         let r = lp.advance(&mut w, Some(&bad));
         assert!(matches!(r, Err(PlantError::Command(_))), "{r:?}");
@@ -232,7 +231,7 @@ mod tests {
     #[test]
     fn the_input_stamps_joints_and_torques_now_and_the_pose_at_capture() {
         let w = world();
-        let obs = ClosedLoop::new(&w, 100.0).observe(&w);
+        let obs = ClosedLoop::new(&w, 0.01).observe(&w);
         let input = control_input(&obs, None);
         assert_eq!(input.now, obs.t);
         assert_eq!(input.joints.unwrap().value, obs.q);

@@ -40,6 +40,10 @@ impl Policy for ControllerPolicy {
             latched: self.ctrl.hold_latched(),
         }
     }
+
+    fn period(&self) -> f64 {
+        self.ctrl.params().dt
+    }
 }
 
 #[cfg(test)]
@@ -113,6 +117,9 @@ mod tests {
     }
 
     impl Policy for Counted {
+        fn period(&self) -> f64 {
+            self.inner.period()
+        }
         fn start(&mut self, kin: &dyn Kinematics) {
             self.inner.start(kin);
         }
@@ -168,8 +175,7 @@ mod tests {
             Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap());
         let shipped = load_controller(None).unwrap();
         for (params, poison_every) in [(&shipped, 7)] {
-            let mut p = params.clone();
-            p.dt = 1.0 / cfg.trial.control_rate_hz;
+            let p = params.clone();
             let mut policy = Counted {
                 inner: ControllerPolicy::new(&p, kin.limits()).unwrap(),
                 poison_every,
