@@ -4,7 +4,7 @@
 
 use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
 use trocar_docking::control::docking::geometry::InsertionAxis;
-use trocar_docking::control::{ControlInput, Controller, ControllerParams, Phase, Stamped};
+use trocar_docking::control::{ControlInput, Controller, ControllerParams, Phase, Stamped, TorqueSamples};
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 
@@ -38,6 +38,7 @@ fn fresh_input(now: f64, q: JointVector, trocar: Isometry3<f64>) -> ControlInput
             stamp: now,
             value: JointVector::zeros(),
         }),
+        torque_samples: Default::default(),
         trocar: Some(Stamped {
             stamp: now,
             value: trocar,
@@ -63,6 +64,7 @@ fn run(
             stamp: 0.0,
             value: JointVector::zeros(),
         }),
+        torque_samples: Default::default(),
         trocar: Some(Stamped {
             stamp: 0.0,
             value: trocar,
@@ -205,6 +207,7 @@ fn insert_in_contact(params: ControllerParams, bias: f64) -> ContactRun {
             now,
             joints: Some(Stamped { stamp: now, value: q }),
             tau_ext: Some(Stamped { stamp: now, value: tau }),
+            torque_samples: Default::default(),
             trocar: Some(Stamped {
                 stamp: now,
                 value: seen,
@@ -290,4 +293,89 @@ fn a_scope_seated_beside_a_biased_estimate_is_done_and_says_so() {
     };
     let stuck = insert_in_contact(off, 0.0025);
     assert_eq!(stuck.phase, Phase::Insert, "the failure the seated test is for");
+}
+
+/// The force estimate after each of the first `steps` control steps (100 Hz) while the raw
+/// torques step from 0 to `tau` at 0.05 s; at `fri_hz` samples a second, all handed to each
+/// step (`every_sample`) or the newest alone. No tare or offset tracking, no dead-band, no
+/// force low-pass: the estimate is a linear map of the controller's own low-passed torques.
+fn force_after_a_torque_step(
+    torque_filter_s: f64,
+    tau: JointVector,
+    fri_hz: u32,
+    every_sample: bool,
+    steps: u32,
+) -> Vec<Vector3<f64>> {
+    let kin = kin();
+    let (q, trocar) = scenario(&kin, 20.0, Vector3::new(0.3, 1.0, 0.0));
+    let mut p = ControllerParams {
+        torque_filter_time_constant: torque_filter_s,
+        ..Default::default()
+    };
+    p.tare.window_s = 0.0;
+    p.tare.track_time_constant_s = 0.0;
+    p.admittance.filter_cutoff_hz = 0.0;
+    p.admittance.torque_deadband = 0.0;
+    let mut c = Controller::new(p, kin.limits().clone()).unwrap();
+    c.start().unwrap();
+    let raw = |t: f64| if t >= 0.05 - 1e-9 { tau } else { JointVector::zeros() };
+    let per_step = fri_hz / 100;
+    (1..=steps)
+        .map(|k| {
+            let at = |sample: u32| f64::from(sample) / f64::from(fri_hz);
+            let now = at(k * per_step);
+            let mut input = fresh_input(now, q, trocar);
+            input.tau_ext = Some(Stamped {
+                stamp: now,
+                value: raw(now),
+            });
+            if every_sample {
+                let mut samples = TorqueSamples::default();
+                for i in 1..=per_step {
+                    let t = at((k - 1) * per_step + i);
+                    samples.push(t, raw(t));
+                }
+                input.torque_samples = samples;
+            }
+            let out = c.step(&kin, &input);
+            assert_ne!(out.phase, Phase::Hold, "step {k}: {:?}", out.hold);
+            out.f_ext
+        })
+        .collect()
+}
+
+/// The controller low-passes the raw torque samples it is handed, every one since the last
+/// step at its own rate, with its own `torque_filter_time_constant`: a step of the raw
+/// torques at 1 kHz reaches the force estimate as 1 - exp(-n ms / tau) after n samples.
+#[test]
+fn the_controller_low_passes_every_raw_torque_sample() {
+    let tau = JointVector::from_column_slice(&[0.0, 0.0, 0.0, 3.0, 0.0, 2.0, 0.0]);
+    let steps = 9;
+    let unfiltered = force_after_a_torque_step(0.0, tau, 1000, true, steps);
+    let full = unfiltered[steps as usize - 1];
+    assert!(full.norm() > 0.5, "{full:?}");
+    assert_eq!(unfiltered[3], Vector3::zeros(), "no force before the step");
+    assert_eq!(unfiltered[4], full, "without the filter the step is there at once");
+    for time_constant in [0.005, 0.02] {
+        let f = force_after_a_torque_step(time_constant, tau, 1000, true, steps);
+        assert_eq!(f[3], Vector3::zeros());
+        for (k, f) in f.iter().enumerate().skip(4) {
+            // Samples of the new torque by step k + 1: the one at 0.05 s and those after.
+            let n = (k as f64 - 4.0) * 10.0 + 1.0;
+            let expected = full * (1.0 - (-n * 1e-3 / time_constant).exp());
+            assert!(
+                (f - expected).norm() < 1e-9 * full.norm(),
+                "tau {time_constant} s, step {}: {f:?} != {expected:?}",
+                k + 1
+            );
+        }
+    }
+    // The newest sample alone (one per step) is another filter: the samples in between count.
+    let newest = force_after_a_torque_step(0.005, tau, 1000, false, steps);
+    let every = force_after_a_torque_step(0.005, tau, 1000, true, steps);
+    // The step's first sample, 10 ms after the last one: 1 - exp(-2) of it (1 - exp(-0.2)
+    // with every sample, one of them 1 ms after the last).
+    let expected = full * (1.0 - (-0.01_f64 / 0.005).exp());
+    assert!((newest[4] - expected).norm() < 1e-9 * full.norm(), "{:?}", newest[4]);
+    assert!((newest[4] - every[4]).norm() > 0.5 * full.norm());
 }

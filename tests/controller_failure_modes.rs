@@ -50,6 +50,7 @@ impl Rig {
             now: t,
             joints: s(self.q),
             tau_ext: s(JointVector::zeros()),
+            torque_samples: Default::default(),
             trocar: Some(Stamped {
                 stamp: t,
                 value: self.trocar,

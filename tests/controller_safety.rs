@@ -18,6 +18,7 @@ fn input(now: f64, q: JointVector, tau: JointVector, trocar: Isometry3<f64>) -> 
         now,
         joints: Some(Stamped { stamp: now, value: q }),
         tau_ext: Some(Stamped { stamp: now, value: tau }),
+        torque_samples: Default::default(),
         trocar: Some(Stamped {
             stamp: now,
             value: trocar,

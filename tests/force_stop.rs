@@ -55,7 +55,7 @@ struct Jammed {
 /// the pivot targets' pan, or withdrawing) for `for_s`.
 fn jam(controller: &ControllerParams, seed: u64, retract: bool, stiffness: f64, for_s: f64) -> Jammed {
     let cfg = SimConfig::load_default().unwrap().with_protocol("realistic").unwrap();
-    let mut s = PivotSession::dock(&cfg.sim, &cfg.trial, controller, kin(), seed, 20.0)
+    let mut s = PivotSession::dock(&cfg.sim, controller, kin(), seed, 20.0)
         .unwrap()
         .unwrap();
     let pan = ScopeCommand {

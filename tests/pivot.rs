@@ -32,7 +32,6 @@ fn shipped() -> ControllerParams {
 fn run(cfg: &SimConfig, controller: &ControllerParams, seed: u64) -> PivotResult {
     let r = run_pivot(
         &cfg.sim,
-        &cfg.trial,
         controller,
         kin(),
         seed,
@@ -228,7 +227,7 @@ fn a_biased_trocar_estimate_biases_the_fulcrum_at_most_half_as_much() {
 
 fn docked(seed: u64) -> PivotSession {
     let cfg = realistic();
-    PivotSession::dock(&cfg.sim, &cfg.trial, &shipped(), kin(), seed, 20.0)
+    PivotSession::dock(&cfg.sim, &shipped(), kin(), seed, 20.0)
         .unwrap()
         .unwrap()
 }
@@ -337,7 +336,7 @@ fn the_fulcrum_follows_a_breathing_port() {
     let (mut adapted, mut fixed, mut wall_a, mut wall_f) = (0.0, 0.0, 0.0, 0.0);
     for seed in SEEDS {
         let go = |c: &ControllerParams| {
-            let r = run_pivot(&cfg.sim, &cfg.trial, c, kin(), seed, &hold, &PivotTiming::default()).unwrap();
+            let r = run_pivot(&cfg.sim, c, kin(), seed, &hold, &PivotTiming::default()).unwrap();
             eprintln!("{}", serde_json::to_string(&r).unwrap());
             assert!(r.docked && r.held_steps == 0, "seed {seed}: {}", r.reason);
             r
@@ -404,7 +403,7 @@ fn pivoting_and_retract_keep_the_tip_motion_limits() {
             _ => break,
         }
     }
-    let dt = 1.0 / realistic().trial.control_rate_hz;
+    let dt = shipped().dt;
     let poses: Vec<_> = commands.iter().map(|q| kin.fk(q).unwrap()).collect();
     let diff = |x: &[nalgebra::Vector3<f64>]| -> Vec<nalgebra::Vector3<f64>> {
         x.windows(2).map(|w| (w[1] - w[0]) / dt).collect()
@@ -440,7 +439,7 @@ fn pivoting_and_retract_keep_the_tip_motion_limits() {
 /// cone stopped the pan.
 fn pan_to_the_cone(controller: &ControllerParams, seed: u64) -> (f64, bool) {
     let cfg = realistic();
-    let mut s = PivotSession::dock(&cfg.sim, &cfg.trial, controller, kin(), seed, 20.0)
+    let mut s = PivotSession::dock(&cfg.sim, controller, kin(), seed, 20.0)
         .unwrap()
         .unwrap();
     let pan = ScopeCommand {
@@ -502,7 +501,7 @@ fn zooming_out_stops_at_the_docked_depth_and_keeps_the_port() {
     for seed in [7, 10] {
         let script = random_script(seed, 6, 10f64.to_radians());
         let go = |c: &ControllerParams| {
-            let r = run_pivot(&cfg.sim, &cfg.trial, c, kin(), seed, &script, &PivotTiming::default()).unwrap();
+            let r = run_pivot(&cfg.sim, c, kin(), seed, &script, &PivotTiming::default()).unwrap();
             assert!(r.docked, "seed {seed}: {}", r.reason);
             r
         };

@@ -9,10 +9,16 @@ use trocar_docking::sim::noise::NoiseModel;
 use trocar_docking::sim::{SimParams, SimWorld};
 use trocar_docking::trials::baseline::Baseline;
 use trocar_docking::trials::closed_loop::Observation;
+use trocar_docking::trials::config::load_controller;
 use trocar_docking::trials::run::{run_trial, Action, Outcome, Policy, TrialParams};
 
 fn kin() -> Arc<dyn Kinematics> {
     Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("model"))
+}
+
+/// The control period the trials run: the shipped controller's `dt`.
+fn shipped_period() -> f64 {
+    load_controller(None).unwrap().dt
 }
 
 #[test]
@@ -55,7 +61,7 @@ fn baseline_docks_without_noise_and_runs_are_reproducible() {
     let (p, tp) = noiseless();
     let run = |seed| {
         let mut w = SimWorld::new(&p, kin.clone(), seed).unwrap();
-        let mut b = Baseline::new(&Default::default(), tp.goal_depth_m, 1.0 / tp.control_rate_hz, false);
+        let mut b = Baseline::new(&Default::default(), tp.goal_depth_m, shipped_period(), false);
         run_trial(&mut w, &mut b, &tp, seed)
     };
     let a = run(3);
@@ -81,12 +87,7 @@ fn a_done_short_of_the_goal_is_a_false_done() {
     let kin = kin();
     let (p, tp) = noiseless();
     let mut w = SimWorld::new(&p, kin, 3).unwrap();
-    let mut short = Baseline::new(
-        &Default::default(),
-        tp.goal_depth_m - 0.003,
-        1.0 / tp.control_rate_hz,
-        false,
-    );
+    let mut short = Baseline::new(&Default::default(), tp.goal_depth_m - 0.003, shipped_period(), false);
     let r = run_trial(&mut w, &mut short, &tp, 3);
     assert_eq!(r.outcome, Outcome::FalseDone, "{}", r.reason);
     assert!(
@@ -108,6 +109,9 @@ fn a_done_short_of_the_goal_is_a_false_done() {
 fn a_latched_hold_ends_the_trial() {
     struct Jammed(Baseline);
     impl Policy for Jammed {
+        fn period(&self) -> f64 {
+            self.0.period()
+        }
         fn start(&mut self, kin: &dyn Kinematics) {
             self.0.start(kin);
         }

@@ -134,6 +134,7 @@ pub fn run_scenario(
             t: now,
             q,
             tau_ext: JointVector::zeros(),
+            torque_samples: Default::default(),
             trocar: Some(TrocarMeasurement {
                 stamp: now,
                 pose: trocar,

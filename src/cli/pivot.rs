@@ -245,17 +245,7 @@ pub fn run(a: &PivotArgs) -> CliResult {
     let arm = |name: &'static str, c: &ControllerParams| -> Result<ArmPivot, String> {
         let runs = seeds
             .par_iter()
-            .map(|&s| {
-                run_pivot(
-                    &cfg.sim,
-                    &cfg.trial,
-                    c,
-                    kin.clone(),
-                    s,
-                    &script(s),
-                    &PivotTiming::default(),
-                )
-            })
+            .map(|&s| run_pivot(&cfg.sim, c, kin.clone(), s, &script(s), &PivotTiming::default()))
             .collect::<Result<Vec<_>, String>>()?;
         Ok(ArmPivot::of(name, runs))
     };

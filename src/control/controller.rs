@@ -32,7 +32,7 @@ use super::docking::metrics::ForceMetric;
 use super::docking::seated::{SeatedCheck, TipState};
 use super::force::admittance::Admittance;
 use super::force::tare::{Tare, TareStep};
-use super::io::{ControlInput, ControlOutput, SolveReport};
+use super::io::{ControlInput, ControlOutput, SolveReport, Stamped};
 use super::live::{self, LiveValues};
 pub use super::params::{ControllerParams, ParamError};
 use super::safety::guard::{CommandGuard, HoldReason};
@@ -42,6 +42,7 @@ use super::scope::pivot::{live_command, Pivot, PivotParams};
 use super::sqp::{CostWeights, LimitAvoidance, PivotCost, SqpSolver, Targets};
 use super::supervisor::{Phase, Supervisor};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
+use crate::signal::StreamLowPass;
 
 /// Retreat after a force stop: the current target depth and the final depth, m.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -158,12 +159,53 @@ impl Guarded<OptimalController> {
     }
 }
 
+/// The controller's low-pass of the raw external torques (`torque_filter_time_constant`,
+/// [`StreamLowPass`]): applied to every sample in the order they arrived, at their own rate
+/// (every FRI cycle, 1-2 ms), not once per control period, so it keeps the noise of the
+/// samples between two steps out of the estimate. It belongs to the torque stream, not to a
+/// run: a start or a reset keeps it, and a stamp that goes back (a new world, a driver
+/// restart) starts it again at that sample.
+#[derive(Debug, Clone)]
+struct TorqueFilter {
+    low_pass: StreamLowPass<7>,
+    /// The newest sample fed: its stamp and the filter's output there.
+    last: Option<(f64, JointVector)>,
+}
+
+impl TorqueFilter {
+    fn new(time_constant: f64) -> Self {
+        Self {
+            low_pass: StreamLowPass::new(time_constant),
+            last: None,
+        }
+    }
+
+    /// Feed the step's new samples (`tau_ext` too when they did not carry it: a caller
+    /// that hands the newest sample alone); the filtered torques at `tau_ext`'s stamp.
+    fn feed(&mut self, input: &ControlInput) -> Option<Stamped<JointVector>> {
+        for (stamp, x) in input.torque_samples.iter() {
+            self.last = Some((*stamp, self.low_pass.update(*stamp, x)));
+        }
+        let t = input.tau_ext?;
+        let value = match self.last {
+            Some((stamp, y)) if stamp == t.stamp => y,
+            _ => {
+                let y = self.low_pass.update(t.stamp, &t.value);
+                self.last = Some((t.stamp, y));
+                y
+            }
+        };
+        Some(Stamped { stamp: t.stamp, value })
+    }
+}
+
 /// The paper's optimal control law with its phases (unguarded: run it as [`Controller`]).
 #[derive(Debug)]
 pub struct OptimalController {
     params: ControllerParams,
     sqp: SqpSolver,
     run: RunState,
+    torques: TorqueFilter,
 }
 
 impl Controller {
@@ -186,6 +228,7 @@ impl OptimalController {
         params.validate().map_err(|e| ParamError::new(super::params::WHAT, e))?;
         let sqp = SqpSolver::new(params.sqp.clone()).map_err(|e| ParamError::new(super::params::WHAT, e))?;
         Ok(Self {
+            torques: TorqueFilter::new(params.torque_filter_time_constant),
             params,
             sqp,
             run: RunState::default(),
@@ -826,7 +869,12 @@ impl CommandSource for OptimalController {
     }
 
     fn step(&mut self, kin: &dyn Kinematics, input: &ControlInput, ctx: &StepContext<'_>) -> ControlOutput {
-        self.step_checked(kin, input, ctx)
+        // Every step filters its torque samples first, whatever the step does with them.
+        let input = ControlInput {
+            tau_ext: self.torques.feed(input),
+            ..*input
+        };
+        self.step_checked(kin, &input, ctx)
             .unwrap_or_else(|e| self.hold_or_idle(e))
     }
 

@@ -20,6 +20,60 @@ pub struct Stamped<T> {
     pub value: T,
 }
 
+/// How many raw torque samples a [`ControlInput`] carries at most: 64 ms of the LBR's
+/// 1 kHz FRI stream, six periods of the 100 Hz controller.
+pub const TORQUE_SAMPLES: usize = 64;
+
+/// The raw external joint torques that arrived since the last control step, oldest first,
+/// each with its stamp (s). Fixed capacity ([`TORQUE_SAMPLES`]), no allocation: a push into
+/// a full buffer drops the oldest sample and counts it.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct TorqueSamples {
+    samples: tinyvec::ArrayVec<[(f64, JointVector); TORQUE_SAMPLES]>,
+    dropped: u64,
+}
+
+impl TorqueSamples {
+    /// Append the sample `value` stamped `stamp`; when full, the oldest goes (counted).
+    pub fn push(&mut self, stamp: f64, value: JointVector) {
+        if self.samples.len() == TORQUE_SAMPLES {
+            self.samples.remove(0);
+            self.dropped += 1;
+        }
+        self.samples.push((stamp, value));
+    }
+
+    /// The samples, oldest first.
+    pub fn iter(&self) -> impl Iterator<Item = &(f64, JointVector)> {
+        self.samples.iter()
+    }
+
+    /// The newest sample.
+    pub fn last(&self) -> Option<&(f64, JointVector)> {
+        self.samples.last()
+    }
+
+    /// How many samples it holds.
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// Whether it holds none.
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// Samples dropped because the buffer was full (since it was made).
+    pub fn dropped(&self) -> u64 {
+        self.dropped
+    }
+
+    /// Empty it, for the next step (the count of dropped samples stays).
+    pub fn clear(&mut self) {
+        self.samples.clear();
+    }
+}
+
 /// The inputs of one control step; `None` where missing or rejected.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct ControlInput {
@@ -27,8 +81,14 @@ pub struct ControlInput {
     pub now: f64,
     /// Measured joint positions.
     pub joints: Option<Stamped<JointVector>>,
-    /// External joint torques, Nm.
+    /// The newest raw external joint torques, Nm (`None`: missing, or the newest message
+    /// rejected). The controller low-passes the stream itself
+    /// (`torque_filter_time_constant`, over [`ControlInput::torque_samples`]).
     pub tau_ext: Option<Stamped<JointVector>>,
+    /// Every raw torque sample that arrived since the last step, in order, `tau_ext` the
+    /// newest of them. A caller that hands only the newest sample may leave it empty: the
+    /// controller then takes `tau_ext` as the one new sample.
+    pub torque_samples: TorqueSamples,
     /// Trocar pose in the base frame (origin = port, z = insertion direction into the body).
     pub trocar: Option<Stamped<Isometry3<f64>>>,
     /// The surgeon's newest scope command (after DONE), stamped when it was sent.
@@ -117,5 +177,31 @@ impl ControlOutput {
             (None, Some(_)) => "SEATED",
             (None, None) => "",
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn torque_samples_keep_the_newest_in_order_and_count_the_dropped() {
+        let mut s = TorqueSamples::default();
+        assert!(s.is_empty() && s.last().is_none());
+        let n = TORQUE_SAMPLES + 3;
+        for k in 0..n {
+            s.push(k as f64, JointVector::repeat(k as f64));
+        }
+        assert_eq!((s.len(), s.dropped()), (TORQUE_SAMPLES, 3));
+        let stamps: Vec<f64> = s.iter().map(|(t, _)| *t).collect();
+        let expected: Vec<f64> = (3..n).map(|k| k as f64).collect();
+        assert_eq!(stamps, expected, "the oldest went, the rest in order");
+        assert_eq!(
+            s.last().map(|(t, v)| (*t, v[0])),
+            Some(((n - 1) as f64, (n - 1) as f64))
+        );
+        s.clear();
+        assert!(s.is_empty());
+        assert_eq!(s.dropped(), 3, "the count outlives a step");
     }
 }

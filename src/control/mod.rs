@@ -21,7 +21,7 @@ pub mod sqp;
 pub mod supervisor;
 
 pub use controller::{Controller, OptimalController};
-pub use io::{ControlInput, ControlOutput, SolveReport, Stamped};
+pub use io::{ControlInput, ControlOutput, SolveReport, Stamped, TorqueSamples};
 pub use params::{ControllerParams, ParamError};
 pub use safety::guard::HoldReason;
 pub use safety::guarded::{CommandSource, Guarded, StepContext};

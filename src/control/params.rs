@@ -64,10 +64,9 @@ pub struct ControllerParams {
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant: f64,
     /// Time constant of the first-order low-pass on the external torques at the rate they
-    /// arrive (each FRI cycle), before the controller reads them once per period, s (0 =
-    /// the newest sample alone); see [`crate::signal::StreamLowPass`]. Applied by whoever
-    /// feeds the controller (the node's torque subscriber, the trial runners), not in
-    /// [`super::Controller::step`], which sees one sample per period.
+    /// arrive (each FRI cycle), s (0 = the newest sample alone); see
+    /// [`crate::signal::StreamLowPass`]. Applied by the controller itself, in each step, to
+    /// every raw sample since the last ([`crate::control::ControlInput::torque_samples`]).
     pub torque_filter_time_constant: f64,
     /// Hold when external torques are missing or stale (force monitoring blind).
     pub require_torques: bool,

@@ -81,6 +81,10 @@ impl Baseline {
 }
 
 impl Policy for Baseline {
+    fn period(&self) -> f64 {
+        self.period_s
+    }
+
     fn start(&mut self, _kin: &dyn Kinematics) {
         self.inserting = false;
         self.at_goal_s = 0.0;

@@ -5,14 +5,14 @@
 //! measured joints, the external torques, the newest trocar pose), the experiment steps its
 //! controller on it ([`control_input`] turns the observation into the controller's input),
 //! and [`ClosedLoop::advance`] sends the command and steps the physics up to the next
-//! control tick, the torques low-passed at the plant's rate on the way
-//! ([`crate::signal::StreamLowPass`], the controller's `torque_filter_time_constant`).
+//! control tick, keeping the raw external torques of every physics tick on the way: the
+//! observation hands all of them to the controller, which low-passes them itself
+//! (`torque_filter_time_constant`), as the ROS node hands it every FRI cycle's torques.
 
 use std::ops::ControlFlow;
 
-use crate::control::{ControlInput, ScopeCommand, Stamped};
+use crate::control::{ControlInput, ScopeCommand, Stamped, TorqueSamples};
 use crate::kinematics::JointVector;
-use crate::signal::StreamLowPass;
 use crate::sim::noise::TrocarMeasurement;
 use crate::sim::{SimError, SimWorld};
 
@@ -23,8 +23,11 @@ pub struct Observation {
     pub t: f64,
     /// Measured joint positions, rad.
     pub q: JointVector,
-    /// Measured external joint torques, Nm.
+    /// Measured external joint torques, Nm: the newest raw sample.
     pub tau_ext: JointVector,
+    /// Every raw torque sample since the last observation (one per physics tick), oldest
+    /// first, `tau_ext` the newest.
+    pub torque_samples: TorqueSamples,
     /// Newest trocar pose measurement, if any.
     pub trocar: Option<TrocarMeasurement>,
 }
@@ -55,43 +58,48 @@ impl std::fmt::Display for PlantError {
     }
 }
 
-/// The plant side of the loop: the physics ticks per control period and the torque
-/// low-pass at the plant's rate, for one run in one world.
+/// The plant side of the loop: the physics ticks per control period and the raw torque
+/// samples since the last observation, for one run in one world. A control period holds at
+/// most [`crate::control::io::TORQUE_SAMPLES`] physics ticks before the oldest samples are
+/// dropped (64 at 1 kHz: a control rate of 16 Hz or more).
 #[derive(Debug, Clone)]
 pub struct ClosedLoop {
     physics_per_tick: usize,
-    torques: StreamLowPass<7>,
+    samples: TorqueSamples,
     tau_ext: JointVector,
 }
 
 impl ClosedLoop {
-    /// The loop for a controller at `control_rate_hz` in `world` (fresh, or reset for a new
-    /// run), its torques low-passed with time constant `torque_filter_s` (0: the newest
-    /// sample).
-    pub fn new(world: &SimWorld, control_rate_hz: f64, torque_filter_s: f64) -> Self {
-        let period = 1.0 / control_rate_hz;
-        let mut torques = StreamLowPass::new(torque_filter_s);
-        let tau_ext = torques.update(world.time(), &world.external_torques());
+    /// The loop for a controller of control period `period` s in `world` (fresh, or reset
+    /// for a new run); the world's torques now are the first sample.
+    pub fn new(world: &SimWorld, period: f64) -> Self {
+        let tau_ext = world.external_torques();
+        let mut samples = TorqueSamples::default();
+        samples.push(world.time(), tau_ext);
         Self {
             physics_per_tick: (period * world.params().physics_rate_hz).round().max(1.0) as usize,
-            torques,
+            samples,
             tau_ext,
         }
     }
 
-    /// What the controller sees now.
-    pub fn observe(&self, world: &SimWorld) -> Observation {
+    /// What the controller sees now; the torque samples are handed over (the next
+    /// observation carries the ones that come after).
+    pub fn observe(&mut self, world: &SimWorld) -> Observation {
         let t = world.time();
+        let torque_samples = self.samples;
+        self.samples.clear();
         Observation {
             t,
             q: world.joint_positions(),
             tau_ext: self.tau_ext,
+            torque_samples,
             trocar: world.measure_trocar(t),
         }
     }
 
     /// Send `command` (if any), then step the physics to the next control tick, the torques
-    /// filtered after each physics tick.
+    /// sampled after each physics tick.
     pub fn advance(&mut self, world: &mut SimWorld, command: Option<&JointVector>) -> Result<(), PlantError> {
         self.advance_until(world, command, |_| ControlFlow::<()>::Continue(()))
             .map(|_| ())
@@ -110,7 +118,8 @@ impl ClosedLoop {
         }
         for _ in 0..self.physics_per_tick {
             world.step_physics().map_err(PlantError::Physics)?;
-            self.tau_ext = self.torques.update(world.time(), &world.external_torques());
+            self.tau_ext = world.external_torques();
+            self.samples.push(world.time(), self.tau_ext);
             if let ControlFlow::Break(b) = after_physics(world) {
                 return Ok(ControlFlow::Break(b));
             }
@@ -119,8 +128,9 @@ impl ClosedLoop {
     }
 }
 
-/// The docking controller's input from an observation: joints and torques stamped now, the
-/// trocar pose stamped at capture, and the surgeon's `scope` command if any.
+/// The docking controller's input from an observation: joints and the newest torques stamped
+/// now with every raw torque sample since the last, the trocar pose stamped at capture, and
+/// the surgeon's `scope` command if any.
 pub fn control_input(obs: &Observation, scope: Option<Stamped<ScopeCommand>>) -> ControlInput {
     ControlInput {
         scope,
@@ -133,6 +143,7 @@ pub fn control_input(obs: &Observation, scope: Option<Stamped<ScopeCommand>>) ->
             stamp: obs.t,
             value: obs.tau_ext,
         }),
+        torque_samples: obs.torque_samples,
         trocar: obs.trocar.map(|m| Stamped {
             stamp: m.stamp,
             value: m.pose,
@@ -159,7 +170,7 @@ mod tests {
     /// ticks (if ever): the result, the ticks run and the world.
     fn period(rate_hz: f64, stop_at: usize) -> (Result<ControlFlow<usize>, PlantError>, usize, SimWorld) {
         let mut w = world();
-        let mut lp = ClosedLoop::new(&w, rate_hz, 0.005);
+        let mut lp = ClosedLoop::new(&w, 1.0 / rate_hz);
         let mut ticks = 0;
         let r = lp.advance_until(&mut w, None, |_| {
             ticks += 1;
@@ -178,9 +189,26 @@ mod tests {
         assert!(matches!(r, Ok(ControlFlow::Continue(()))));
         assert_eq!(ticks, (w.params().physics_rate_hz / 100.0).round() as usize);
         assert!((w.time() - 0.01).abs() < 1e-9, "{}", w.time());
-        let obs = ClosedLoop::new(&w, 100.0, 0.0).observe(&w);
+        let obs = ClosedLoop::new(&w, 0.01).observe(&w);
         assert_eq!(obs.t, w.time());
         assert_eq!(obs.q, w.joint_positions());
+    }
+
+    #[test]
+    fn an_observation_hands_over_every_physics_ticks_raw_torques_once() {
+        let mut w = world();
+        let mut lp = ClosedLoop::new(&w, 0.01);
+        let first = lp.observe(&w);
+        assert_eq!(first.torque_samples.len(), 1, "the torques at the start");
+        assert_eq!(first.torque_samples.last(), Some(&(w.time(), first.tau_ext)));
+        lp.advance(&mut w, None).unwrap();
+        let obs = lp.observe(&w);
+        let stamps: Vec<f64> = obs.torque_samples.iter().map(|(t, _)| *t).collect();
+        assert_eq!(stamps.len(), lp.physics_per_tick);
+        assert!(stamps.windows(2).all(|p| p[1] > p[0]) && stamps[0] > first.t);
+        assert_eq!(obs.torque_samples.last(), Some(&(obs.t, w.external_torques())));
+        assert_eq!(obs.tau_ext, w.external_torques(), "the newest sample, raw");
+        assert!(lp.observe(&w).torque_samples.is_empty(), "handed over once");
     }
 
     #[test]
@@ -193,7 +221,7 @@ mod tests {
     #[test]
     fn a_bad_command_is_the_commands_error() {
         let mut w = world();
-        let mut lp = ClosedLoop::new(&w, 100.0, 0.0);
+        let mut lp = ClosedLoop::new(&w, 0.01);
         let bad = JointVector::from_element(f64::NAN);
         let r = lp.advance(&mut w, Some(&bad));
         assert!(matches!(r, Err(PlantError::Command(_))), "{r:?}");
@@ -203,7 +231,7 @@ mod tests {
     #[test]
     fn the_input_stamps_joints_and_torques_now_and_the_pose_at_capture() {
         let w = world();
-        let obs = ClosedLoop::new(&w, 100.0, 0.0).observe(&w);
+        let obs = ClosedLoop::new(&w, 0.01).observe(&w);
         let input = control_input(&obs, None);
         assert_eq!(input.now, obs.t);
         assert_eq!(input.joints.unwrap().value, obs.q);

@@ -201,6 +201,22 @@ mod tests {
         assert!(SimConfig::from_yaml_str("trial: {timeout_s: -1}").is_err());
     }
 
+    /// The trials run at the controller's `dt`: the old `trial.control_rate_hz` is an error
+    /// that names its replacement, at the top level and in a protocol.
+    #[test]
+    fn the_old_trial_control_rate_names_the_controllers_dt() {
+        let top = SimConfig::from_yaml_str("trial: {control_rate_hz: 100.0}")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            top.contains("trial.control_rate_hz") && top.contains("`dt` in config/controller.yaml"),
+            "{top}"
+        );
+        let c = SimConfig::from_yaml_str("protocols: {p: {trial: {control_rate_hz: 1000}}}");
+        let e = c.and_then(|c| c.with_protocol("p")).unwrap_err().to_string();
+        assert!(e.contains("`dt` in config/controller.yaml"), "{e}");
+    }
+
     #[test]
     fn the_markerless_protocol_is_the_realistic_plant_with_the_markerless_pose_error() {
         let c = shipped();

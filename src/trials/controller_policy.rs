@@ -10,26 +10,18 @@ use crate::kinematics::{JointLimits, Kinematics};
 /// The controller driving a simulated trial.
 pub struct ControllerPolicy {
     ctrl: Controller,
-    torque_filter: f64,
 }
 
 impl ControllerPolicy {
     /// A controller with `params` for an arm with `limits`.
     pub fn new(params: &ControllerParams, limits: &JointLimits) -> Result<Self, String> {
         Controller::new(params.clone(), limits.clone())
-            .map(|ctrl| Self {
-                ctrl,
-                torque_filter: params.torque_filter_time_constant,
-            })
+            .map(|ctrl| Self { ctrl })
             .map_err(|e| e.to_string())
     }
 }
 
 impl Policy for ControllerPolicy {
-    fn torque_filter_time_constant(&self) -> f64 {
-        self.torque_filter
-    }
-
     fn start(&mut self, _kin: &dyn Kinematics) {
         self.ctrl.reset();
         // From IDLE, start cannot fail; a failure would show as the phase staying IDLE.
@@ -47,6 +39,10 @@ impl Policy for ControllerPolicy {
             aborted: (out.phase == Phase::Aborted).then(|| out.reason_text().unwrap_or_else(|| "aborted".into())),
             latched: self.ctrl.hold_latched(),
         }
+    }
+
+    fn period(&self) -> f64 {
+        self.ctrl.params().dt
     }
 }
 
@@ -121,8 +117,8 @@ mod tests {
     }
 
     impl Policy for Counted {
-        fn torque_filter_time_constant(&self) -> f64 {
-            self.inner.torque_filter_time_constant()
+        fn period(&self) -> f64 {
+            self.inner.period()
         }
         fn start(&mut self, kin: &dyn Kinematics) {
             self.inner.start(kin);
@@ -179,8 +175,7 @@ mod tests {
             Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap());
         let shipped = load_controller(None).unwrap();
         for (params, poison_every) in [(&shipped, 7)] {
-            let mut p = params.clone();
-            p.dt = 1.0 / cfg.trial.control_rate_hz;
+            let p = params.clone();
             let mut policy = Counted {
                 inner: ControllerPolicy::new(&p, kin.limits()).unwrap(),
                 poison_every,

@@ -21,7 +21,6 @@ use rand::{RngExt, SeedableRng};
 use serde::Serialize;
 
 use super::closed_loop::{control_input, ClosedLoop, PlantError};
-use super::run::TrialParams;
 use crate::control::docking::geometry::{across, distance_to_line};
 use crate::control::{Controller, ControllerParams, Phase, ScopeCommand, Stamped};
 use crate::kinematics::Kinematics;
@@ -317,25 +316,20 @@ pub struct PivotSession {
 }
 
 impl PivotSession {
-    /// A fresh world of `seed` and a started controller (`controller` with its `dt` from
-    /// the trial's control rate); steps until DONE or `timeout_s`. `Ok(Err(why))`: not DONE.
+    /// A fresh world of `seed` and a started controller (`controller`, stepped at its `dt`);
+    /// steps until DONE or `timeout_s`. `Ok(Err(why))`: not DONE.
     pub fn dock(
         sim: &SimParams,
-        trial: &TrialParams,
         controller: &ControllerParams,
         kin: Arc<dyn Kinematics>,
         seed: u64,
         timeout_s: f64,
     ) -> Result<Result<Self, String>, String> {
-        let params = ControllerParams {
-            dt: 1.0 / trial.control_rate_hz,
-            ..controller.clone()
-        };
         let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
-        let ctrl = Controller::new(params.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
-        let period = 1.0 / trial.control_rate_hz;
+        let ctrl = Controller::new(controller.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
+        let period = controller.dt;
         let mut lp = Self {
-            plant: ClosedLoop::new(&world, trial.control_rate_hz, params.torque_filter_time_constant),
+            plant: ClosedLoop::new(&world, period),
             world,
             ctrl,
             kin,
@@ -415,10 +409,9 @@ impl PivotSession {
 }
 
 /// Dock in a fresh world of `seed`, then play `script` and measure (see the module doc).
-/// `controller` runs as the trials run it (its `dt` from the trial's control rate).
+/// `controller` runs as the trials run it (stepped at its `dt`).
 pub fn run_pivot(
     sim: &SimParams,
-    trial: &TrialParams,
     controller: &ControllerParams,
     kin: Arc<dyn Kinematics>,
     seed: u64,
@@ -426,7 +419,7 @@ pub fn run_pivot(
     timing: &PivotTiming,
 ) -> Result<PivotResult, String> {
     let mut result = empty(seed);
-    let mut lp = match PivotSession::dock(sim, trial, controller, kin, seed, timing.dock_timeout_s)? {
+    let mut lp = match PivotSession::dock(sim, controller, kin, seed, timing.dock_timeout_s)? {
         Ok(lp) => lp,
         Err(why) => {
             result.reason = why;

@@ -9,28 +9,27 @@ use crate::control::ControllerParams;
 use crate::kinematics::JointLimits;
 
 /// The controller's parameters for one arm: `controller` (normally `config/controller.yaml`)
-/// unchanged but for `dt` (from the trial's control rate) and `force_feedback`.
-pub fn controller_params(c: &SimConfig, controller: &ControllerParams, ff: bool) -> ControllerParams {
+/// unchanged but for `force_feedback`.
+pub fn controller_params(controller: &ControllerParams, ff: bool) -> ControllerParams {
     ControllerParams {
-        dt: 1.0 / c.trial.control_rate_hz,
         force_feedback: ff,
         ..controller.clone()
     }
 }
 
 /// The policy factory of one arm: with (`ff`) or without force feedback, everything else
-/// equal. `controller` is the controller's configuration; `limits` are the arm's joint
-/// limits (for the controller's guard).
+/// equal. `controller` is the controller's configuration (its `dt` the control period of
+/// either arm); `limits` are the arm's joint limits (for the controller's guard).
 pub fn factory(c: &SimConfig, controller: &ControllerParams, ff: bool, limits: &JointLimits) -> Box<PolicyFactory> {
     let depth = c.trial.goal_depth_m;
-    let period = 1.0 / c.trial.control_rate_hz;
+    let period = controller.dt;
     match c.policy {
         PolicyKind::Baseline => {
             let params = c.baseline.clone();
             Box::new(move |_seed| Ok(Box::new(Baseline::new(&params, depth, period, ff)) as Box<dyn Policy>))
         }
         PolicyKind::Controller => {
-            let params = controller_params(c, controller, ff);
+            let params = controller_params(controller, ff);
             let limits = limits.clone();
             Box::new(move |_seed| ControllerPolicy::new(&params, &limits).map(|p| Box::new(p) as Box<dyn Policy>))
         }

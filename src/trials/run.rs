@@ -47,11 +47,9 @@ pub trait Policy {
     fn start(&mut self, kin: &dyn Kinematics);
     /// One control tick.
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action;
-    /// The time constant of the low-pass its torques pass at the plant's rate before each
-    /// tick, s ([`crate::signal::StreamLowPass`]; 0, the default: the newest sample).
-    fn torque_filter_time_constant(&self) -> f64 {
-        0.0
-    }
+    /// Its control period, s (the controller's `dt`, `config/controller.yaml`): the trial
+    /// steps it at this period.
+    fn period(&self) -> f64;
 }
 
 /// Parameters of a trial (the `trial:` section of `config/sim.yaml`).
@@ -71,8 +69,11 @@ pub struct TrialParams {
     pub timeout_s: f64,
     /// Abort when the true contact force exceeds this, N.
     pub abort_force_n: f64,
-    /// Controller rate, Hz.
-    pub control_rate_hz: f64,
+    /// A key that went: the control rate is the controller's `dt` (`config/controller.yaml`).
+    /// Set, it fails [`TrialParams::validate`] with a message that says so.
+    #[serde(default, skip_serializing)]
+    #[doc(hidden)]
+    pub control_rate_hz: Option<serde::de::IgnoredAny>,
 }
 
 impl Default for TrialParams {
@@ -84,7 +85,7 @@ impl Default for TrialParams {
             done_angle_tolerance_deg: 2.0,
             timeout_s: 30.0,
             abort_force_n: 60.0,
-            control_rate_hz: 100.0,
+            control_rate_hz: None,
         }
     }
 }
@@ -103,7 +104,15 @@ impl TrialParams {
         )?;
         check_range("trial.timeout_s", self.timeout_s, 0.01, 3600.0)?;
         check_range("trial.abort_force_n", self.abort_force_n, 0.1, 1e4)?;
-        check_range("trial.control_rate_hz", self.control_rate_hz, 1.0, 1000.0)
+        if self.control_rate_hz.is_some() {
+            return Err(SimError::Param {
+                name: "trial.control_rate_hz",
+                why: "the key is gone: the trials run at the controller's rate, `dt` in config/controller.yaml \
+                      (0.01 s: 100 Hz)"
+                    .into(),
+            });
+        }
+        Ok(())
     }
 }
 
@@ -274,7 +283,7 @@ struct RunEnd {
 
 /// Run one trial of `policy` in `world` (fresh from [`SimWorld::new`]).
 pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams, seed: u64) -> TrialResult {
-    let mut samples = Vec::with_capacity((p.timeout_s * p.control_rate_hz).ceil() as usize + 2);
+    let mut samples = Vec::with_capacity((p.timeout_s / policy.period()).ceil() as usize + 2);
     let mut end = RunEnd {
         outcome: Outcome::SimError,
         paper_time_s: None,
@@ -387,7 +396,7 @@ fn drive(
 ) -> Result<String, SimError> {
     p.validate()?;
     policy.start(world.kinematics());
-    let mut plant = ClosedLoop::new(world, p.control_rate_hz, policy.torque_filter_time_constant());
+    let mut plant = ClosedLoop::new(world, policy.period());
     // The true tip's last position and velocity (finite differences at the control rate).
     let mut last_tip: Option<(f64, Vector3<f64>, Option<Vector3<f64>>)> = None;
     loop {

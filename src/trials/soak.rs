@@ -296,7 +296,7 @@ fn run_cycle(
     let mut out_phase = ctrl.phase();
     let (mut hold_code, mut latched) = ("", false);
     let mut checksum = 0u64;
-    let mut plant = ClosedLoop::new(world, a.rate, ctrl.params().torque_filter_time_constant);
+    let mut plant = ClosedLoop::new(world, ctrl.params().dt);
     while world.time() < a.cycle_timeout {
         let input = control_input(&plant.observe(world), None);
         let (started, cpu0) = (Instant::now(), thread_cpu_time());

@@ -475,6 +475,7 @@ mod tests {
                 value: joints,
             }),
             tau_ext: None,
+            torque_samples: Default::default(),
             trocar: None,
         };
         let out = g.step(&kin, &input);
@@ -540,6 +541,7 @@ mod tests {
                 now,
                 joints: Some(Stamped { stamp, value: q }),
                 tau_ext: None,
+                torque_samples: Default::default(),
                 trocar: None,
             };
             let out = g.step(&kin, &input);

@@ -63,6 +63,7 @@ mod tests {
             now: stamp,
             joints: q.map(|value| Stamped { stamp, value }),
             tau_ext: None,
+            torque_samples: Default::default(),
             trocar: None,
             scope: None,
         }

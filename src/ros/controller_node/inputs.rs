@@ -4,6 +4,14 @@
 //! without a lock. A clock that goes back (a bag that loops, a simulator restart) bumps
 //! an epoch that tells each callback to start its stamp order afresh.
 //!
+//! The external torques also reach the loop as a stream: every LBRState message's raw
+//! torques go into a bounded lock-free queue (`crossbeam_queue::ArrayQueue`, the oldest
+//! dropped when the loop falls behind, with a throttled warning), which the loop empties
+//! into its [`ControlInput::torque_samples`] each step; the controller low-passes them
+//! itself (`torque_filter_time_constant`). The queue is emptied before the torque slot is
+//! read and the callback writes the slot before it queues the sample, so the slot's
+//! newest sample is never older than the newest sample the loop took.
+//!
 //! The driver's two streams (joint states, LBRState) may restart under the controller: a
 //! stamp that goes back there starts the stamp order afresh instead of rejecting every
 //! message until the old stamps are passed, and the joint-state stream's restarts (stamps
@@ -24,16 +32,17 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
+use crossbeam_queue::ArrayQueue;
 use nalgebra::Isometry3;
 
 use super::ControllerNodeParams;
-use crate::control::{ControlInput, ScopeCommand, Stamped};
+use crate::control::io::TORQUE_SAMPLES;
+use crate::control::{ControlInput, ScopeCommand, Stamped, TorqueSamples};
 use crate::kinematics::JointVector;
 use crate::ros::convert::{self, InputError, StampOrder};
 use crate::ros::handover::{latest, FaultText, SlotReader, SlotWriter};
 use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs};
 use crate::ros::node::{lock, ros_err, NodeError, Throttle};
-use crate::signal::StreamLowPass;
 
 /// One input as the loop sees it: the newest valid value and the last fault.
 type Slot<T> = Option<Stamped<T>>;
@@ -42,6 +51,8 @@ type Slot<T> = Option<Stamped<T>>;
 pub struct InputReaders {
     joints: SlotReader<Slot<JointVector>>,
     tau_ext: SlotReader<Slot<JointVector>>,
+    /// Every raw torque sample since the last step, stamped, oldest first.
+    torque_queue: Arc<ArrayQueue<(f64, JointVector)>>,
     trocar: SlotReader<Slot<Isometry3<f64>>>,
     scope: SlotReader<Slot<ScopeCommand>>,
     faults: [SlotReader<Option<FaultText>>; 3],
@@ -103,11 +114,17 @@ impl JointStream {
 impl InputReaders {
     /// The inputs of a control step at `now`, and the first input fault, if any.
     pub fn read(&mut self, now: f64) -> (ControlInput, Option<FaultText>) {
+        // The queue first, then the slot (see the module doc).
+        let mut torque_samples = TorqueSamples::default();
+        while let Some((stamp, tau)) = self.torque_queue.pop() {
+            torque_samples.push(stamp, tau);
+        }
         let input = ControlInput {
             scope: self.scope.read(),
             now,
             joints: self.joints.read(),
             tau_ext: self.tau_ext.read(),
+            torque_samples,
             trocar: self.trocar.read(),
         };
         let fault = self.faults.iter_mut().find_map(SlotReader::read);
@@ -259,7 +276,10 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
     let (restart_w, restarts) = latest(None);
     let stream = Mutex::new(JointStream::new(p.driver_restart_gap_s));
     let names = p.joint_names.clone();
-    let torque_filter = Mutex::new(StreamLowPass::new(p.controller.torque_filter_time_constant));
+    let torque_queue = Arc::new(ArrayQueue::new(TORQUE_SAMPLES));
+    let torque_feed = torque_queue.clone();
+    let behind = Throttle::new(SCOPE_LOG_PERIOD);
+    let dropped = AtomicU64::new(0);
     let frame = p.base_frame.clone();
     // Queues of one: the loop only ever wants the newest message, and a flood is dropped
     // in the transport instead of queued.
@@ -281,12 +301,21 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
             }
         })
         .map_err(ros_err)?,
-        // Every FRI cycle's torques pass the low-pass; the loop reads the newest output once
-        // per period (the filter's mutex is this callback's alone).
+        // Every FRI cycle's raw torques go to the controller's low-pass, in order: the
+        // newest (or the rejection) into the slot first, then the sample into the queue.
         rosrust::subscribe(&p.lbr_state_topic, 1, move |m: lbr_msgs::LBRState| {
             let stamp = convert::seconds(m.stamp.data);
-            let t = convert::external_torques(&tf.topic, &m).map(|v| lock(&torque_filter).update(stamp, &v));
+            let t = convert::external_torques(&tf.topic, &m);
+            let sample = t.as_ref().ok().copied();
             tf.accept(stamp, t);
+            if let Some(tau) = sample {
+                if torque_feed.force_push((stamp, tau)).is_some() {
+                    let n = dropped.fetch_add(1, Ordering::Relaxed) + 1;
+                    if behind.ready() {
+                        rosrust::ros_warn!("{}: the control loop fell behind, {n} torque samples dropped", tf.topic);
+                    }
+                }
+            }
         })
         .map_err(ros_err)?,
         rosrust::subscribe(&p.trocar_pose_topic, 1, move |m: geometry_msgs::PoseStamped| {
@@ -303,6 +332,7 @@ pub fn subscribe(p: &ControllerNodeParams) -> Result<(InputReaders, Vec<rosrust:
     let readers = InputReaders {
         joints,
         tau_ext,
+        torque_queue,
         trocar,
         scope,
         faults: [jfault, tfault, pfault],
