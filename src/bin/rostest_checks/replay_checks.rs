@@ -262,13 +262,8 @@ pub fn replay_controller(p: &CheckParams) -> Result<String, String> {
         .get::<serde_json::Value>()
         .map_err(|e| format!("{prefix}: {e}"))
         .and_then(|v| params::from_value(&prefix, v).map_err(|e| e.to_string()))?;
-    let rate_key = format!("{}/rate_hz", p.controller);
-    let rate_hz: f64 = rosrust::param(&rate_key)
-        .ok_or_else(|| format!("bad name {rate_key}"))?
-        .get()
-        .map_err(|e| format!("{rate_key}: {e}"))?;
     let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
-    let audit = Arc::new(Mutex::new(CommandAudit::new(kin.limits().clone(), &cp, rate_hz)));
+    let audit = Arc::new(Mutex::new(CommandAudit::new(kin.limits().clone(), &cp, 1.0 / cp.dt)));
     let _commands = {
         let (audit, names) = (audit.clone(), names.clone());
         rosrust::subscribe(&p.command_topic, 1000, move |m: trajectory_msgs::JointTrajectory| {

@@ -129,7 +129,7 @@ impl LoopState {
     fn new(p: &ControllerNodeParams) -> Self {
         let period = |hz: f64, never: f64| if hz > 0.0 { 1.0 / hz } else { never };
         Self {
-            stats: LoopStats::new(1.0, p.latency_samples).with_nominal_period(Duration::from_secs_f64(1.0 / p.rate_hz)),
+            stats: LoopStats::new(1.0, p.latency_samples).with_nominal_period(Duration::from_secs_f64(p.controller.dt)),
             start_time: None,
             last_now: f64::NEG_INFINITY,
             last_latency_stamp: f64::NEG_INFINITY,
@@ -184,7 +184,7 @@ fn control_loop(
     records: &OutputSender<StepRecord>,
     started_at: Option<f64>,
 ) {
-    let mut pace = Pacer::new(p.rate_hz);
+    let mut pace = Pacer::new(1.0 / p.controller.dt);
     let mut st = LoopState::new(p);
     st.start_time = started_at;
     while rosrust::is_ok() {
@@ -259,7 +259,6 @@ pub fn run() -> Result<(), NodeError> {
     p.validate()?;
     let kin = Arc::new(LbrKinematics::from_model_or_file(p.model, &p.urdf_file, TIP_LINK)?);
     let mut cp = p.controller.clone();
-    cp.dt = 1.0 / p.rate_hz;
     cp.force_feedback = p.force_feedback;
     let mut controller = Controller::new(cp.clone(), kin.limits().clone())
         .map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
@@ -286,9 +285,9 @@ pub fn run() -> Result<(), NodeError> {
     }
     if p.dry_run {
         rosrust::ros_warn!(
-            "docking_controller: DRY RUN at {} Hz: commands {:?} on {} (not {}), the controller steers a ghost arm \
+            "docking_controller: DRY RUN at {:.0} Hz: commands {:?} on {} (not {}), the controller steers a ghost arm \
              (joints on {}); waiting for ~start",
-            p.rate_hz,
+            1.0 / p.controller.dt,
             p.command_type,
             p.preview_topic,
             p.command_topic,
@@ -296,8 +295,8 @@ pub fn run() -> Result<(), NodeError> {
         );
     } else {
         rosrust::ros_info!(
-            "docking_controller: {} Hz, command {:?} on {}, waiting for ~start",
-            p.rate_hz,
+            "docking_controller: {:.0} Hz, command {:?} on {}, waiting for ~start",
+            1.0 / p.controller.dt,
             p.command_type,
             p.command_topic
         );

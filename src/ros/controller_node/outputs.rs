@@ -114,7 +114,7 @@ impl Outputs {
                 stamp,
                 &p.joint_names,
                 q,
-                p.command_lookahead_periods / p.rate_hz,
+                p.command_lookahead_periods * p.controller.dt,
             )),
             (_, Some(m)) => m.send(convert::multiarray_command(q)),
             _ => Ok(()),
