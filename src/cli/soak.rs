@@ -12,10 +12,10 @@ pub struct SoakArgs {
     /// Wall-clock duration of the run, minutes.
     #[arg(long, default_value_t = 60.0)]
     pub minutes: f64,
-    /// Control rate, Hz (the physics runs at its own rate, 1 kHz). The default is the
-    /// shipped rate (`config/controller.yaml` dt 0.01, `robot.launch`'s `rate`).
-    #[arg(long, default_value_t = 100.0)]
-    pub rate: f64,
+    /// Control rate, Hz (the physics runs at its own rate, 1 kHz). Default: the controller
+    /// configuration's period (`dt`; the shipped 0.01 s, 100 Hz).
+    #[arg(long)]
+    pub rate: Option<f64>,
     /// World protocol of `config/sim.yaml`.
     #[arg(long, value_enum, default_value_t = Protocol::Realistic)]
     pub protocol: Protocol,

@@ -27,8 +27,9 @@ use crate::sim::SimWorld;
 pub struct SoakOptions {
     /// Wall-clock duration of the run, minutes.
     pub minutes: f64,
-    /// Control rate, Hz (the physics runs at its own rate, 1 kHz).
-    pub rate: f64,
+    /// Control rate, Hz (the physics runs at its own rate, 1 kHz); `None`: the controller
+    /// configuration's own (`dt`).
+    pub rate: Option<f64>,
     /// World protocol of `config/sim.yaml`.
     pub protocol: Protocol,
     /// First seed: cycle k runs the world drawn with seed + k (every cycle a new draw).
@@ -396,7 +397,9 @@ impl Setup {
         let cfg = SimConfig::load_default()?.with_protocol(a.protocol.name())?;
         let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())?;
         let mut params = load_controller(a.controller_config.as_deref())?;
-        params.dt = 1.0 / a.rate;
+        if let Some(rate) = a.rate {
+            params.dt = 1.0 / rate;
+        }
         params.force_feedback = true;
         Ok(Self {
             sim: cfg.sim,
@@ -487,7 +490,9 @@ fn run_cycles(a: &SoakOptions, setup: &Setup, deadline: Duration) -> Result<(Cyc
 
 /// Run the soak; the report.
 pub fn soak(a: &SoakOptions) -> Result<SoakReport, Box<dyn std::error::Error + Send + Sync>> {
-    crate::validate::positive_at_most("rate", a.rate, 1000.0)?;
+    if let Some(rate) = a.rate {
+        crate::validate::positive_at_most("rate", rate, 1000.0)?;
+    }
     crate::validate::positive("minutes", a.minutes)?;
     crate::validate::positive("cycle_timeout", a.cycle_timeout)?;
     crate::validate::non_negative("reference_seconds", a.reference_seconds)?;
@@ -503,7 +508,7 @@ pub fn soak(a: &SoakOptions) -> Result<SoakReport, Box<dyn std::error::Error + S
         seeds: [a.seed, a.seed.wrapping_add(c.count as u64 - 1)],
         wall_s: t0.elapsed().as_secs_f64(),
         sim_s: c.sim_s,
-        rate_hz: a.rate,
+        rate_hz: 1.0 / setup.params.dt,
         cycles: c.count,
         docked: c.docked,
         false_done: c.false_done,
@@ -537,7 +542,7 @@ mod tests {
     fn args() -> SoakOptions {
         SoakOptions {
             minutes: 0.001,
-            rate: 1000.0,
+            rate: Some(1000.0),
             protocol: Protocol::Realistic,
             seed: 1,
             cycle_timeout: 30.0,
@@ -564,7 +569,7 @@ mod tests {
 
     #[test]
     fn every_cycle_is_a_new_world_and_every_step_is_counted() {
-        let a = SoakOptions { rate: 100.0, ..args() };
+        let a = SoakOptions { rate: None, ..args() };
         let r = soak(&a).unwrap();
         assert!(r.cycles >= 1 && r.seeds == [1, r.cycles as u64]);
         assert_eq!(r.outcomes.values().sum::<usize>(), r.cycles);
