@@ -3,86 +3,28 @@
 //! between step starts, its jitter, the duration of a step).
 //!
 //! Real-time safe: every buffer is allocated once in [`LoopStats::new`]. Recording a sample
-//! is a few integer operations into a fixed log-linear histogram ([`WindowHistogram`]) and a
-//! fixed ring that remembers which bucket each of the last `capacity` samples went to, so the
-//! oldest can be taken out again; reading p50/p99/max walks the per-octave counts and the
-//! buckets of the octaves that hold them (no copy, no sort, no allocation: about 2 µs
-//! against 74 µs for the former copy-and-sort of 5000 samples) and is cached until the next
-//! sample. The histogram keeps 3 significant digits (a bucket is at most 0.2 % of its value
-//! wide, reported at its middle) from 1 ns to 17 s.
-//!
-//! Why not the `hdrhistogram` crate: it keeps the same kind of buckets, but it cannot take a
-//! single value out again, so it cannot keep the "last `capacity` samples" window the status
-//! reports; and its quantile walks every bucket below the quantile. The offline statistics (benchmarks) use
-//! [`crate::bench::percentile`] on sorted samples instead.
+//! is a few integer operations into the project's fixed log-linear histogram
+//! ([`crate::stats::LogHistogram`]) and a fixed ring that remembers which bucket each of the
+//! last `capacity` samples went to, so the oldest can be taken out again
+//! ([`WindowHistogram`]); reading p50/p99/max walks the per-octave counts and the buckets of
+//! the octave that holds each rank (no copy, no sort, no allocation) and is cached until the
+//! next sample. The percentiles follow the one quantile rule of [`crate::stats`], within the
+//! histogram's resolution (3 significant digits, 1 ns to 17 s).
 
 use std::time::{Duration, Instant};
 
-/// Sub-buckets per power of two: 2^10, so a bucket is at most 1/512 of its value wide.
-const SUB_BITS: u32 = 10;
-const SUB: u64 = 1 << SUB_BITS;
-const HALF: u64 = SUB / 2;
-/// Values are nanoseconds below 2^34 ns (17.2 s); larger ones count in the last bucket.
-const TOP_BITS: u32 = 34;
-/// Number of buckets: the first `SUB` are exact, each further octave adds `HALF`.
-const BUCKETS: usize = (SUB + (TOP_BITS - SUB_BITS) as u64 * HALF) as usize;
-/// Groups of buckets counted apart, so a percentile skips whole octaves: the exact range
-/// below `SUB`, then one group per octave.
-const GROUPS: usize = 1 + (TOP_BITS - SUB_BITS) as usize;
-
-fn group_of(b: usize) -> usize {
-    if b < SUB as usize {
-        0
-    } else {
-        1 + (b - SUB as usize) / HALF as usize
-    }
-}
-
-/// The buckets of group `g`.
-fn group_range(g: usize) -> std::ops::Range<usize> {
-    if g == 0 {
-        0..SUB as usize
-    } else {
-        let start = SUB as usize + (g - 1) * HALF as usize;
-        start..start + HALF as usize
-    }
-}
-
-fn bucket_of(ns: u64) -> u16 {
-    let v = ns.min((1 << TOP_BITS) - 1);
-    if v < SUB {
-        return v as u16;
-    }
-    let octave = 63 - v.leading_zeros(); // >= SUB_BITS
-    let shift = octave - (SUB_BITS - 1);
-    let mantissa = v >> shift; // in [HALF, SUB)
-    (SUB + u64::from(octave - SUB_BITS) * HALF + (mantissa - HALF)) as u16
-}
-
-/// The middle of bucket `b`, ns.
-fn value_of(b: usize) -> f64 {
-    let b = b as u64;
-    if b < SUB {
-        return b as f64;
-    }
-    let octave = (b - SUB) / HALF + u64::from(SUB_BITS);
-    let shift = octave - u64::from(SUB_BITS - 1);
-    let mantissa = (b - SUB) % HALF + HALF;
-    let low = mantissa << shift;
-    low as f64 + ((1u64 << shift) as f64 - 1.0) / 2.0
-}
+use crate::stats::LogHistogram;
 
 /// A histogram of the last `capacity` values in milliseconds (kept to 1 ns below 1 µs and
-/// 3 significant digits above, up to 17 s), with fixed buckets. Recording and reading allocate
-/// nothing; the buffers (about 27 KB plus 2 bytes per sample of the window) are allocated
-/// once at construction.
+/// 3 significant digits above, up to 17 s): a [`LogHistogram`] of nanoseconds and a ring that
+/// remembers the bucket of each value in the window, so the oldest can be taken out again.
+/// Recording and reading allocate nothing; the buffers (about 27 KB plus 2 bytes per sample
+/// of the window) are allocated once at construction.
 #[derive(Debug, Clone)]
 pub struct WindowHistogram {
-    counts: Vec<u32>,
-    groups: [u32; GROUPS],
+    histogram: LogHistogram,
     ring: Vec<u16>,
     next: usize,
-    filled: usize,
     cache: Option<Percentiles>,
 }
 
@@ -90,11 +32,9 @@ impl WindowHistogram {
     /// A window of the last `capacity` values (at least 1).
     pub fn new(capacity: usize) -> Self {
         Self {
-            counts: vec![0; BUCKETS],
-            groups: [0; GROUPS],
+            histogram: LogHistogram::new(),
             ring: vec![0; capacity.max(1)],
             next: 0,
-            filled: 0,
             cache: None,
         }
     }
@@ -106,12 +46,12 @@ impl WindowHistogram {
 
     /// Values in the window.
     pub fn len(&self) -> usize {
-        self.filled
+        self.histogram.len() as usize
     }
 
     /// Whether the window is empty.
     pub fn is_empty(&self) -> bool {
-        self.filled == 0
+        self.histogram.is_empty()
     }
 
     /// Record `value`; the oldest value leaves a full window. Non-finite values are
@@ -120,84 +60,39 @@ impl WindowHistogram {
         if !value.is_finite() {
             return;
         }
-        let b = bucket_of((value.max(0.0) * 1e6).round() as u64);
-        if self.filled == self.ring.len() {
-            let old = self.ring[self.next] as usize;
-            self.counts[old] -= 1;
-            self.groups[group_of(old)] -= 1;
-        } else {
-            self.filled += 1;
+        if self.len() == self.ring.len() {
+            self.histogram.remove(self.ring[self.next]);
         }
-        self.ring[self.next] = b;
-        self.counts[b as usize] += 1;
-        self.groups[group_of(b as usize)] += 1;
+        self.ring[self.next] = self.histogram.record((value.max(0.0) * 1e6).round() as u64);
         self.next = (self.next + 1) % self.ring.len();
         self.cache = None;
     }
 
-    /// p50, p99 and max of the window (zeros when empty), each within the histogram's
-    /// resolution of the sample of rank `round((n - 1) p)`. One walk over the octaves and,
-    /// within the octaves that hold the ranks, their buckets (a few µs at most); cached until
-    /// the next [`WindowHistogram::record`].
+    /// p50, p99 and max of the window (zeros when empty), by the rule of [`crate::stats`]
+    /// within the histogram's resolution; cached until the next [`WindowHistogram::record`].
     pub fn percentiles(&mut self) -> Percentiles {
         if let Some(p) = self.cache {
             return p;
         }
-        let p = self.compute();
+        let q = |p: f64| self.histogram.quantile(p) * 1e-6;
+        let p = Percentiles {
+            p50: q(0.5),
+            p99: q(0.99),
+            max: q(1.0),
+        };
         self.cache = Some(p);
         p
     }
 
-    fn compute(&self) -> Percentiles {
-        let n = self.filled;
-        if n == 0 {
-            return Percentiles::default();
-        }
-        let rank = |p: f64| ((n - 1) as f64 * p).round() as usize;
-        let ranks = [rank(0.5), rank(0.99), n - 1];
-        let mut out = [0.0; 3];
-        let mut k = 0;
-        let mut seen = 0usize;
-        'groups: for (g, &in_group) in self.groups.iter().enumerate() {
-            if seen + in_group as usize <= ranks[k] {
-                seen += in_group as usize; // the next rank lies beyond this octave
-                continue;
-            }
-            for b in group_range(g) {
-                seen += self.counts[b] as usize;
-                while k < 3 && seen > ranks[k] {
-                    out[k] = value_of(b) * 1e-6;
-                    k += 1;
-                }
-                if k == 3 {
-                    break 'groups;
-                }
-            }
-        }
-        Percentiles {
-            p50: out[0],
-            p99: out[1],
-            max: out[2],
-        }
-    }
-
     /// The smallest value in the window (0 when empty), within the resolution.
     pub fn min(&self) -> f64 {
-        if self.filled == 0 {
-            return 0.0;
-        }
-        self.counts
-            .iter()
-            .position(|&c| c > 0)
-            .map_or(0.0, |b| value_of(b) * 1e-6)
+        self.histogram.min() * 1e-6
     }
 
     /// Forget every value (the buffers stay).
     pub fn clear(&mut self) {
-        self.counts.fill(0);
-        self.groups = [0; GROUPS];
+        self.histogram.clear();
         self.next = 0;
-        self.filled = 0;
         self.cache = None;
     }
 }
@@ -386,30 +281,6 @@ mod tests {
     }
 
     #[test]
-    fn buckets_cover_the_range_in_order_and_values_fall_in_their_bucket() {
-        let mut last = 0;
-        for ns in (0..40).map(|k| 1u64 << k).flat_map(|v| [v, v + v / 3, v * 2 - 1]) {
-            let b = bucket_of(ns);
-            assert!(b >= last && (b as usize) < BUCKETS, "{ns} -> {b}");
-            last = b;
-            if ns < 1 << TOP_BITS {
-                let mid = value_of(b as usize);
-                assert!((mid - ns as f64).abs() <= ns as f64 / 1024.0 + 0.5, "{ns} -> {mid}");
-            }
-        }
-        assert_eq!(bucket_of(u64::MAX) as usize, BUCKETS - 1);
-        // The groups tile the buckets.
-        let mut next = 0;
-        for g in 0..GROUPS {
-            let r = group_range(g);
-            assert_eq!(r.start, next);
-            assert!(r.clone().all(|b| group_of(b) == g));
-            next = r.end;
-        }
-        assert_eq!(next, BUCKETS);
-    }
-
-    #[test]
     fn rate_is_measured_per_window() {
         let mut s = LoopStats::new(1.0, 10);
         for k in 0..=2000 {
@@ -429,7 +300,10 @@ mod tests {
             s.latency(k as f64);
         }
         let p = s.percentiles();
-        assert!(close(p.p50, 51.0) && close(p.p99, 99.0) && close(p.max, 100.0), "{p:?}");
+        assert!(
+            close(p.p50, 50.5) && close(p.p99, 99.01) && close(p.max, 100.0),
+            "{p:?}"
+        );
         for _ in 0..100 {
             s.latency(1.0);
         }

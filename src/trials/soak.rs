@@ -21,6 +21,7 @@ use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{Kinematics, LbrKinematics};
 use crate::realtime::thread_cpu_time;
 use crate::sim::SimWorld;
+use crate::stats::LogHistogram;
 
 /// What a soak runs: its duration, rate, world, seeds and controller.
 #[derive(Debug, Clone)]
@@ -55,7 +56,7 @@ pub struct Failure {
     pub hold_code: &'static str,
 }
 
-/// Percentiles of a time over every step (nearest rank on 1 µs bins; the maximum exact), µs.
+/// Percentiles of a time over every step (the rule of [`crate::stats`] within 0.2 %; the maximum exact), µs.
 #[derive(Debug, Clone, Copy, Default, Serialize)]
 pub struct StepTimes {
     /// Median.
@@ -128,53 +129,35 @@ pub struct SoakReport {
 /// At most this many failed cycles are listed one by one.
 pub const MAX_LISTED: usize = 100;
 
-/// Durations in 1 µs bins up to 20 ms (longer ones in the last bin), with the exact maximum:
-/// percentiles over millions of steps without keeping them.
+/// Step durations in the project's log-linear histogram (nanoseconds, 3 significant digits,
+/// [`crate::stats::LogHistogram`]) with the exact maximum: percentiles over millions of steps
+/// by the one quantile rule of [`crate::stats`] without keeping the steps.
 #[derive(Debug, Clone)]
 struct Histogram {
-    bins: Vec<u64>,
-    count: u64,
+    counts: LogHistogram,
     max: Duration,
 }
 
 impl Histogram {
-    const BINS: usize = 20_001;
-
     fn new() -> Self {
         Self {
-            bins: vec![0; Self::BINS],
-            count: 0,
+            counts: LogHistogram::new(),
             max: Duration::ZERO,
         }
     }
 
     fn add(&mut self, d: Duration) {
-        self.bins[(d.as_micros() as usize).min(Self::BINS - 1)] += 1;
-        self.count += 1;
+        self.counts.record(u64::try_from(d.as_nanos()).unwrap_or(u64::MAX));
         self.max = self.max.max(d);
     }
 
-    /// The `q` quantile by the nearest rank (the smallest bin holding at least q of the
-    /// values), µs; the exact maximum for the last bin.
+    /// The `q` quantile, µs (0 when empty).
     fn quantile_us(&self, q: f64) -> f64 {
-        if self.count == 0 {
-            return 0.0;
-        }
-        let rank = ((q * self.count as f64).ceil() as u64).clamp(1, self.count);
-        let mut seen = 0;
-        let bin = self
-            .bins
-            .iter()
-            .position(|&n| {
-                seen += n;
-                seen >= rank
-            })
-            .unwrap_or(Self::BINS - 1);
-        if bin == Self::BINS - 1 {
-            self.max.as_secs_f64() * 1e6
-        } else {
-            bin as f64
-        }
+        self.counts.quantile(q) * 1e-3
+    }
+
+    fn count(&self) -> u64 {
+        self.counts.len()
     }
 
     fn times(&self) -> StepTimes {
@@ -374,7 +357,7 @@ fn reference(seconds: f64) -> Reference {
         total += c;
         h.add(c);
     }
-    r.chunks = h.count;
+    r.chunks = h.count();
     r.median_us = h.quantile_us(0.5);
     r.max_us = h.max.as_secs_f64() * 1e6;
     r.cpu_s = total.as_secs_f64();
@@ -515,7 +498,7 @@ pub fn soak(a: &SoakOptions) -> Result<SoakReport, Box<dyn std::error::Error + S
         every_cycle_docked: c.docked == c.count,
         outcomes: c.outcomes,
         failures: c.failures,
-        steps: t.wall.count,
+        steps: t.wall.count(),
         step_wall: t.wall.times(),
         step_cpu: t.cpu.times(),
         steps_over_1ms: t.over_1ms,
@@ -585,16 +568,18 @@ mod tests {
     }
 
     #[test]
-    fn the_histogram_quantile_is_the_nearest_rank() {
+    fn step_times_follow_the_one_quantile_rule() {
         let mut h = Histogram::new();
         for us in 1..=100u64 {
             h.add(Duration::from_micros(us));
         }
-        assert_eq!(h.quantile_us(0.5), 50.0);
-        assert_eq!(h.quantile_us(0.99), 99.0);
-        assert_eq!(h.quantile_us(1.0), 100.0);
+        let close = |got: f64, want: f64| (got - want).abs() <= want / 512.0;
+        // Interpolated between the closest ranks, as crate::stats::quantile_sorted.
+        assert!(close(h.quantile_us(0.5), 50.5), "{}", h.quantile_us(0.5));
+        assert!(close(h.quantile_us(0.99), 99.01), "{}", h.quantile_us(0.99));
+        assert!(close(h.quantile_us(1.0), 100.0));
         h.add(Duration::from_millis(50));
-        assert_eq!(h.times().max_us, 50_000.0, "beyond the bins the maximum is exact");
+        assert_eq!(h.times().max_us, 50_000.0, "the maximum is exact");
         assert_eq!(Histogram::new().quantile_us(0.5), 0.0);
     }
 
