@@ -1,6 +1,6 @@
 //! Small signal-processing helpers shared by the controller and the simulated sensors: the
 //! dead-band, the two first-order low-pass rules ([`exp_smoothing`] for stamped streams,
-//! [`rc_smoothing`] at a fixed step) and the stream low-pass built on the first.
+//! [`rc_smoothing`] / [`rc_weight`] at a fixed step) and the stream low-pass built on the first.
 
 /// Dead-band: values within ±`band` become 0, others shrink towards 0 by `band`.
 pub fn deadband(x: f64, band: f64) -> f64 {
@@ -29,8 +29,18 @@ pub fn exp_smoothing(dt: f64, tau: f64) -> f64 {
 /// a fixed `dt` s: the discrete RC filter's `dt / (RC + dt)`, `RC = 1 / (2 pi cutoff)` (a
 /// cut-off or `dt` of 0 or less: 1, no filter). The rule of the force estimates' filters.
 pub fn rc_smoothing(cutoff_hz: f64, dt: f64) -> f64 {
-    if cutoff_hz > 0.0 && dt > 0.0 {
-        let rc = 1.0 / (2.0 * std::f64::consts::PI * cutoff_hz);
+    if cutoff_hz > 0.0 {
+        rc_weight(dt, 1.0 / (2.0 * std::f64::consts::PI * cutoff_hz))
+    } else {
+        1.0
+    }
+}
+
+/// The discrete RC filter's weight `dt / (rc + dt)` for a time constant `rc` s stepped at a
+/// fixed `dt` s (a `dt` of 0 or less, or an `rc` below 0: 1, no filter): the rule of
+/// [`rc_smoothing`] given the time constant, as the tare's offset tracking is.
+pub fn rc_weight(dt: f64, rc: f64) -> f64 {
+    if dt > 0.0 && rc >= 0.0 {
         dt / (rc + dt)
     } else {
         1.0
@@ -127,6 +137,13 @@ mod tests {
         assert!((rc_smoothing(1.0, rc) - 0.5).abs() < 1e-15);
         assert_eq!(rc_smoothing(0.0, 0.01), 1.0);
         assert_eq!(rc_smoothing(5.0, 0.0), 1.0);
+        // Given the time constant: dt / (rc + dt), the same weight.
+        assert_eq!(rc_weight(0.01, 0.3), 0.01 / 0.31);
+        assert!((rc_weight(rc, rc) - 0.5).abs() < 1e-15);
+        assert_eq!(
+            (rc_weight(0.0, 0.3), rc_weight(0.01, 0.0), rc_weight(0.01, -1.0)),
+            (1.0, 1.0, 1.0)
+        );
     }
 
     #[test]

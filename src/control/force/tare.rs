@@ -177,8 +177,7 @@ impl Tare {
         if !self.done || tc <= 0.0 || tip_depth.is_nan() || tip_depth >= -p.track_clearance_m || dt <= 0.0 {
             return;
         }
-        let a = dt / (tc + dt);
-        self.offset += (tau - self.offset) * a;
+        self.offset += (tau - self.offset) * crate::signal::rc_weight(dt, tc);
         self.payload.add(pose.0, pose.1, tau, dt);
     }
 
