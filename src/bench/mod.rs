@@ -129,8 +129,8 @@ mod tests {
         assert!(wall >= 5_000.0, "{wall}");
         // The same unit as the wall time (a ns/µs mix-up is 1000x off). Not `<= wall`: on a
         // virtual machine the thread CPU clock counts time the vCPU did not run
-        // (docs/simulation.md, Soak) and once read more than the wall time under a parallel
-        // `cargo test` (2026-12-02).
+        // (docs/simulation.md, Soak) and has read more than the wall time under a parallel
+        // `cargo test`.
         assert!(cpu > 0.0 && cpu <= 2.0 * wall, "cpu {cpu} wall {wall}");
     }
 }
