@@ -131,7 +131,38 @@ pub static SCOPE_JOY: Shipped = Shipped::new("config/scope_joy.yaml", include_st
 pub struct Shipped {
     name: &'static str,
     text: &'static str,
+    renamed: &'static [Renamed],
     tree: OnceLock<Value>,
+}
+
+/// A key of a shipped file that was renamed or removed: given under its old name, it is
+/// refused with an error that names its replacement, rather than as merely unknown (a lab's
+/// old launch file or YAML must not be half-read).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Renamed {
+    /// The old key's dotted path in the file (e.g. `guard.force_stop`).
+    pub old: &'static str,
+    /// The dotted path that replaced it (empty: removed).
+    pub new: &'static str,
+    /// Why, or what to do instead (may be empty).
+    pub note: &'static str,
+}
+
+impl Renamed {
+    /// The refusal's text, naming the old path and the replacement.
+    fn message(&self) -> String {
+        let mut m = if self.new.is_empty() {
+            format!("`{}`: the key is gone", self.old)
+        } else {
+            format!("`{}`: the key is now `{}`", self.old, self.new)
+        };
+        if !self.note.is_empty() {
+            m.push_str(" (");
+            m.push_str(self.note);
+            m.push(')');
+        }
+        m
+    }
 }
 
 impl Shipped {
@@ -140,8 +171,25 @@ impl Shipped {
         Self {
             name,
             text,
+            renamed: &[],
             tree: OnceLock::new(),
         }
+    }
+
+    /// The file `name` with its text and the table of its renamed and removed keys (see
+    /// [`Renamed`]).
+    pub const fn with_renamed(name: &'static str, text: &'static str, renamed: &'static [Renamed]) -> Self {
+        Self {
+            name,
+            text,
+            renamed,
+            tree: OnceLock::new(),
+        }
+    }
+
+    /// The renamed or removed key at dotted path `old`, if the file lists it.
+    pub fn renamed(&self, old: &str) -> Option<&'static Renamed> {
+        self.renamed.iter().find(|r| r.old == old)
     }
 
     /// The file's name, as in `config/`.
@@ -174,13 +222,14 @@ impl Shipped {
 pub fn deserialize_over<'de, D, T>(
     d: D,
     path: &[&str],
-    shipped: &Value,
+    file: &Shipped,
     derived: impl FnOnce(Value) -> Result<T, serde_yaml_ng::Error>,
 ) -> Result<T, D::Error>
 where
     D: Deserializer<'de>,
 {
     let given = Value::deserialize(d)?;
+    let shipped = file.section(path);
     let mut tree = shipped.clone();
     if !given.is_null() {
         merge(&mut tree, &given);
@@ -192,7 +241,7 @@ where
             return D::Error::custom(e);
         }
         let mut at: Vec<String> = path.iter().map(|k| k.to_string()).collect();
-        if let Some(unknown) = unknown_key(&given, shipped, &mut at) {
+        if let Some(unknown) = unknown_key(&given, shipped, file, &mut at) {
             D::Error::custom(unknown)
         } else if path.is_empty() {
             D::Error::custom(e)
@@ -203,8 +252,9 @@ where
 }
 
 /// The first key of `given` that `shipped` lacks, as an error naming its dotted path (under
-/// `path`) and the keys that exist there.
-fn unknown_key(given: &Value, shipped: &Value, path: &mut Vec<String>) -> Option<String> {
+/// `path`) and either its replacement (a key the file lists as renamed or removed) or the
+/// keys that exist there.
+fn unknown_key(given: &Value, shipped: &Value, file: &Shipped, path: &mut Vec<String>) -> Option<String> {
     let (Value::Mapping(g), Value::Mapping(s)) = (given, shipped) else {
         return None;
     };
@@ -214,6 +264,9 @@ fn unknown_key(given: &Value, shipped: &Value, path: &mut Vec<String>) -> Option
             None => {
                 let known: Vec<_> = s.keys().filter_map(Value::as_str).collect();
                 path.push(name);
+                if let Some(r) = file.renamed(&path.join(".")) {
+                    return Some(r.message());
+                }
                 return Some(format!(
                     "`{}`: unknown key (expected one of: {})",
                     path.join("."),
@@ -222,7 +275,7 @@ fn unknown_key(given: &Value, shipped: &Value, path: &mut Vec<String>) -> Option
             }
             Some(sv) => {
                 path.push(name);
-                if let Some(e) = unknown_key(v, sv, path) {
+                if let Some(e) = unknown_key(v, sv, file, path) {
                     return Some(e);
                 }
                 path.pop();
@@ -275,7 +328,7 @@ macro_rules! shipped_defaults {
         impl<'de> ::serde::Deserialize<'de> for $ty {
             fn deserialize<D: ::serde::Deserializer<'de>>(d: D) -> ::std::result::Result<Self, D::Error> {
                 let path: &[&str] = &[$($key),*];
-                $crate::config::deserialize_over(d, path, $file.section(path), |v| <$ty>::deserialize(v))
+                $crate::config::deserialize_over(d, path, &$file, |v| <$ty>::deserialize(v))
             }
         }
     };
@@ -327,5 +380,55 @@ mod tests {
         let e = from_yaml_file::<S>(Path::new("/nonexistent/cfg.yaml")).unwrap_err();
         assert_eq!(e.what, "/nonexistent/cfg.yaml");
         assert!(e.message.starts_with("cannot read: "), "{e}");
+    }
+
+    static RENAMED_FILE: Shipped = Shipped::with_renamed(
+        "t.yaml",
+        "speed_m_per_s: 0.5\ninner: {gain: 2.0}\n",
+        &[
+            Renamed {
+                old: "speed",
+                new: "speed_m_per_s",
+                note: "",
+            },
+            Renamed {
+                old: "inner.rate_hz",
+                new: "",
+                note: "the rate is the controller's dt",
+            },
+        ],
+    );
+
+    #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+    #[serde(remote = "Self", deny_unknown_fields)]
+    struct Inner {
+        gain: f64,
+    }
+    crate::shipped_defaults!(Inner, RENAMED_FILE, ["inner"]);
+
+    #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+    #[serde(remote = "Self", deny_unknown_fields)]
+    struct Outer {
+        speed_m_per_s: f64,
+        inner: Inner,
+    }
+    crate::shipped_defaults!(Outer, RENAMED_FILE, []);
+
+    #[test]
+    fn a_renamed_or_removed_key_is_refused_naming_its_replacement() {
+        let d = Outer::default();
+        assert_eq!((d.speed_m_per_s, d.inner.gain), (0.5, 2.0));
+        let p: Outer = from_yaml_str("cfg.yaml", "inner: {gain: 3}\n").unwrap();
+        assert_eq!((p.speed_m_per_s, p.inner.gain), (0.5, 3.0));
+        let e = from_yaml_str::<Outer>("cfg.yaml", "speed: 0.2\n").unwrap_err();
+        assert!(e.message.contains("`speed`: the key is now `speed_m_per_s`"), "{e}");
+        let e = from_yaml_str::<Outer>("cfg.yaml", "inner: {rate_hz: 100}\n").unwrap_err();
+        assert!(
+            e.message.contains("`inner.rate_hz`: the key is gone (the rate is the controller's dt)"),
+            "{e}"
+        );
+        // A key that was never there is still unknown, with the keys that exist.
+        let e = from_yaml_str::<Outer>("cfg.yaml", "sped: 0.2\n").unwrap_err();
+        assert!(e.message.contains("`sped`: unknown key (expected one of: speed_m_per_s, inner)"), "{e}");
     }
 }
