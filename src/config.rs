@@ -424,11 +424,16 @@ mod tests {
         assert!(e.message.contains("`speed`: the key is now `speed_m_per_s`"), "{e}");
         let e = from_yaml_str::<Outer>("cfg.yaml", "inner: {rate_hz: 100}\n").unwrap_err();
         assert!(
-            e.message.contains("`inner.rate_hz`: the key is gone (the rate is the controller's dt)"),
+            e.message
+                .contains("`inner.rate_hz`: the key is gone (the rate is the controller's dt)"),
             "{e}"
         );
         // A key that was never there is still unknown, with the keys that exist.
         let e = from_yaml_str::<Outer>("cfg.yaml", "sped: 0.2\n").unwrap_err();
-        assert!(e.message.contains("`sped`: unknown key (expected one of: speed_m_per_s, inner)"), "{e}");
+        assert!(
+            e.message
+                .contains("`sped`: unknown key (expected one of: speed_m_per_s, inner)"),
+            "{e}"
+        );
     }
 }
