@@ -201,7 +201,7 @@ mod tests {
         assert!(SimConfig::from_yaml_str("trial: {timeout_s: -1}").is_err());
     }
 
-    /// The trials run at the controller's `dt`: the old `trial.control_rate_hz` is an error
+    /// The trials run at the controller's `dt_s`: the old `trial.control_rate_hz` is an error
     /// that names its replacement, at the top level and in a protocol.
     #[test]
     fn the_old_trial_control_rate_names_the_controllers_dt() {
@@ -209,12 +209,12 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            top.contains("trial.control_rate_hz") && top.contains("`dt` in config/controller.yaml"),
+            top.contains("trial.control_rate_hz") && top.contains("`dt_s` in config/controller.yaml"),
             "{top}"
         );
         let c = SimConfig::from_yaml_str("protocols: {p: {trial: {control_rate_hz: 1000}}}");
         let e = c.and_then(|c| c.with_protocol("p")).unwrap_err().to_string();
-        assert!(e.contains("`dt` in config/controller.yaml"), "{e}");
+        assert!(e.contains("`dt_s` in config/controller.yaml"), "{e}");
     }
 
     #[test]

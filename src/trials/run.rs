@@ -47,7 +47,7 @@ pub trait Policy {
     fn start(&mut self, kin: &dyn Kinematics);
     /// One control tick.
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action;
-    /// Its control period, s (the controller's `dt`, `config/controller.yaml`): the trial
+    /// Its control period, s (the controller's `dt_s`, `config/controller.yaml`): the trial
     /// steps it at this period.
     fn period(&self) -> f64;
 }
@@ -69,7 +69,7 @@ pub struct TrialParams {
     pub timeout_s: f64,
     /// Abort when the true contact force exceeds this, N.
     pub abort_force_n: f64,
-    /// A key that went: the control rate is the controller's `dt` (`config/controller.yaml`).
+    /// A key that went: the control rate is the controller's `dt_s` (`config/controller.yaml`).
     /// Set, it fails [`TrialParams::validate`] with a message that says so.
     #[serde(default, skip_serializing)]
     #[doc(hidden)]
@@ -107,7 +107,7 @@ impl TrialParams {
         if self.control_rate_hz.is_some() {
             return Err(SimError::Param {
                 name: "trial.control_rate_hz",
-                why: "the key is gone: the trials run at the controller's rate, `dt` in config/controller.yaml \
+                why: "the key is gone: the trials run at the controller's rate, `dt_s` in config/controller.yaml \
                       (0.01 s: 100 Hz)"
                     .into(),
             });
