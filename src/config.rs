@@ -125,7 +125,8 @@ pub static DOCKING_CONTROLLER_NODE: Shipped = Shipped::new(
 pub static SCOPE_JOY: Shipped = Shipped::new("config/scope_joy.yaml", include_str!("../config/scope_joy.yaml"));
 
 /// `config/lbr_med_sim.yaml` (the `lbr_med_sim` node's private parameters) as built into the
-/// binary: the defaults of `ros::sim_node::SimNodeParams` and of its simulated camera.
+/// binary: the defaults of `ros::sim_node::SimNodeParams` and of its simulated camera (whose
+/// `marker` is laid over the estimator's, [`TROCAR_ESTIMATOR`], and refused by its table).
 pub static LBR_MED_SIM: Shipped = Shipped::with_renamed(
     "config/lbr_med_sim.yaml",
     include_str!("../config/lbr_med_sim.yaml"),
@@ -143,11 +144,6 @@ pub static LBR_MED_SIM: Shipped = Shipped::with_renamed(
         Renamed {
             old: "camera.wall_step",
             new: "camera.wall_step_px",
-            note: "",
-        },
-        Renamed {
-            old: "camera.marker.size",
-            new: "camera.marker.size_m",
             note: "",
         },
     ],
