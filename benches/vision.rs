@@ -18,7 +18,7 @@ fn bench(c: &mut Criterion) {
         let spec = MarkerSpec {
             family: fam.parse().expect("family"),
             id: Some(3),
-            size: 0.05,
+            size_m: 0.05,
         };
         let opts = RenderOptions {
             noise_sigma: noise,

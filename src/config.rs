@@ -153,6 +153,69 @@ pub static SCOPE_JOY: Shipped = Shipped::with_renamed(
     ],
 );
 
+/// `config/lbr_med_sim.yaml` (the `lbr_med_sim` node's private parameters) as built into the
+/// binary: the defaults of `ros::sim_node::SimNodeParams` and of its simulated camera (whose
+/// `marker` is laid over the estimator's, [`TROCAR_ESTIMATOR`], and refused by its table).
+pub static LBR_MED_SIM: Shipped = Shipped::with_renamed(
+    "config/lbr_med_sim.yaml",
+    include_str!("../config/lbr_med_sim.yaml"),
+    &[
+        Renamed {
+            old: "trocar_dropout_after",
+            new: "trocar_dropout_after_s",
+            note: "",
+        },
+        Renamed {
+            old: "camera.blur_sigma",
+            new: "camera.blur_sigma_px",
+            note: "",
+        },
+        Renamed {
+            old: "camera.wall_step",
+            new: "camera.wall_step_px",
+            note: "",
+        },
+    ],
+);
+
+/// `config/trocar_estimator.yaml` (the `trocar_estimator` node's private parameters) as built
+/// into the binary: the defaults of `ros::estimator_node::EstimatorNodeParams`, and of its
+/// sections: the estimator (`vision::EstimatorParams`), the marker (`vision::MarkerSpec`) and
+/// the markerless measurement (`vision::markerless::MarkerlessParams`).
+pub static TROCAR_ESTIMATOR: Shipped = Shipped::with_renamed(
+    "config/trocar_estimator.yaml",
+    include_str!("../config/trocar_estimator.yaml"),
+    &[Renamed {
+        old: "marker.size",
+        new: "marker.size_m",
+        note: "",
+    }],
+);
+
+/// `config/hand_eye_calibration.yaml` (the `hand_eye_calibration` node's private parameters)
+/// as built into the binary: the defaults of `ros::hand_eye_node::HandEyeNodeParams`.
+pub static HAND_EYE_CALIBRATION: Shipped = Shipped::with_renamed(
+    "config/hand_eye_calibration.yaml",
+    include_str!("../config/hand_eye_calibration.yaml"),
+    &[
+        Renamed {
+            old: "marker_size",
+            new: "marker_size_m",
+            note: "",
+        },
+        Renamed {
+            old: "max_joint_speed",
+            new: "max_joint_speed_rad_s",
+            note: "",
+        },
+        Renamed {
+            old: "max_tracking_error",
+            new: "max_tracking_error_rad",
+            note: "",
+        },
+    ],
+);
+
 /// A YAML file shipped in `config/` and built into the binary (`include_str!`), parsed once
 /// on first use; its sections are the defaults of the types declared with
 /// [`shipped_defaults!`](crate::shipped_defaults). A unit test of each file proves that it

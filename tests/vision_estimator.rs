@@ -141,10 +141,31 @@ fn bad_measurements_are_refused() {
 }
 
 #[test]
-fn shipped_config_parses() {
-    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/estimator.yaml");
+fn a_file_of_the_estimator_section_takes_the_shipped_values_for_what_it_leaves_out() {
+    let dir = std::env::temp_dir().join(format!("trocar_docking_estimator_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("estimator.yaml");
+    std::fs::write(&path, "gate_translation_m: 0.05\n").unwrap();
     let p = EstimatorParams::from_yaml_file(&path).unwrap();
-    assert_eq!(p, EstimatorParams::default());
+    // The shipped section: `estimator:` in config/trocar_estimator.yaml.
+    let d = EstimatorParams::default();
+    assert_eq!(
+        (d.time_constant_s, d.gate_translation_m, d.reinit_after),
+        (0.15, 0.02, 5)
+    );
+    assert_eq!(
+        p,
+        EstimatorParams {
+            gate_translation_m: 0.05,
+            ..d
+        }
+    );
+    std::fs::write(&path, "gate_translation: 0.05\n").unwrap();
+    let e = EstimatorParams::from_yaml_file(&path).unwrap_err().to_string();
+    assert!(e.contains("`estimator.gate_translation`: unknown key"), "{e}");
+    std::fs::write(&path, "stale_after_s: -1\n").unwrap();
+    assert!(EstimatorParams::from_yaml_file(&path).is_err());
+    std::fs::remove_dir_all(&dir).unwrap();
 }
 
 #[test]

@@ -9,17 +9,16 @@ use rand::{RngExt, SeedableRng};
 use std::path::Path;
 use trocar_docking::kinematics::lbr::LbrModel;
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
+use trocar_docking::ros::hand_eye_node::HandEyeNodeParams;
 use trocar_docking::vision::estimator::PoseYaml;
 use trocar_docking::vision::hand_eye::poses::{plan, PlanParams};
 use trocar_docking::vision::hand_eye::quality::{conditioning, conditioning_warnings, rotation_angle_mismatch};
-use trocar_docking::vision::hand_eye::{
-    calibrate_samples, AcceptanceRules, ObservationModel, Refusal, Sample, SampleSet, Stillness,
-};
+use trocar_docking::vision::hand_eye::{calibrate_samples, ObservationModel, Refusal, Sample, SampleSet, Stillness};
 use trocar_docking::vision::{
     facing_pose, render_marker_image, CameraModel, MarkerDetector, MarkerFamily, MarkerSpec, RenderOptions,
 };
 
-/// The marker's side (config/lbr_med_sim.yaml `camera.marker.size`).
+/// The marker's side (config/lbr_med_sim.yaml `camera.marker.size_m`).
 const MARKER_SIZE_M: f64 = 0.04;
 /// The goal: the computed mount within these of the true one.
 const GOAL_MM: f64 = 0.5;
@@ -27,6 +26,12 @@ const GOAL_DEG: f64 = 0.2;
 
 fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// The calibration node's shipped parameters (config/hand_eye_calibration.yaml): its sample
+/// rules and its automatic mode's plan.
+fn node() -> HandEyeNodeParams {
+    HandEyeNodeParams::default()
 }
 
 fn camera() -> CameraModel {
@@ -97,10 +102,10 @@ fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
     let spec = MarkerSpec {
         family: MarkerFamily::Aruco("DICT_4X4_50".into()),
         id: Some(7),
-        size: MARKER_SIZE_M,
+        size_m: MARKER_SIZE_M,
     };
     let told = MarkerSpec {
-        size: configured,
+        size_m: configured,
         ..spec.clone()
     };
     let mut detector = MarkerDetector::new(told, &cam).unwrap();
@@ -122,12 +127,12 @@ fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
         &cam,
         &PlanParams {
             marker_size: configured,
-            ..PlanParams::default()
+            ..node().plan_params()
         },
     )
     .unwrap();
     assert_eq!(poses.len(), 12, "every orbit is reachable from the nominal start");
-    let (lim, margin) = (kin.limits(), PlanParams::default().joint_margin_rad);
+    let (lim, margin) = (kin.limits(), node().plan_params().joint_margin_rad);
     for q in &poses {
         for i in 0..7 {
             assert!(
@@ -136,7 +141,7 @@ fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
             );
         }
     }
-    let mut set = SampleSet::new(AcceptanceRules::default());
+    let mut set = SampleSet::new(node().rules());
     for (i, q) in poses.iter().enumerate() {
         let img = render_marker_image(&spec, &cam, &see(q), &opts(i as u64 + 1)).unwrap();
         let d = detector.detect(&img.view()).unwrap().remove(0);
@@ -339,7 +344,7 @@ fn robot_poses_in_another_frame_are_detected_as_a_frame_mismatch() {
 
 #[test]
 fn samples_are_taken_only_when_still_in_view_and_adding_rotation() {
-    let rules = AcceptanceRules::default();
+    let rules = node().rules();
     let mut still = Stillness::default();
     let q = [0.0, 0.45, 0.0, -1.15, 0.0, 1.54, 0.0];
     let marker = facing_pose(0.3, 0.0, 0.0, 0.0, 0.0, 0.0);
@@ -396,7 +401,7 @@ fn detected_corners_follow_the_projection_the_refinement_uses() {
     let spec = MarkerSpec {
         family: MarkerFamily::Aruco("DICT_4X4_50".into()),
         id: Some(7),
-        size: MARKER_SIZE_M,
+        size_m: MARKER_SIZE_M,
     };
     let pose = facing_pose(0.3, 0.03, -0.02, 0.2, -0.15, 0.5);
     let img = render_marker_image(&spec, &cam, &pose, &RenderOptions::default()).unwrap();

@@ -15,7 +15,7 @@ fn spec(id: Option<u32>) -> MarkerSpec {
     MarkerSpec {
         family: "DICT_4X4_50".parse().unwrap(),
         id,
-        size: 0.05,
+        size_m: 0.05,
     }
 }
 
@@ -70,7 +70,7 @@ fn absurd_intrinsics_and_specs_are_rejected_before_cpp() {
     c.distortion = vec![0.1, 0.2, 0.3];
     assert!(MarkerDetector::new(spec(None), &c).is_err());
     let bad = MarkerSpec {
-        size: 0.0,
+        size_m: 0.0,
         ..spec(None)
     };
     assert!(MarkerDetector::new(bad.clone(), &cam()).is_err());

@@ -17,7 +17,7 @@ use trocar_docking::vision::CameraModel;
 /// The tip frame in the flange frame: the endoscope is 0.25 m long along the flange's z
 /// (urdf/lbr_med7_r800_endoscope.urdf, `endoscope_tip_joint`).
 const TOOL_LENGTH_M: f64 = 0.25;
-/// The marker's side (config/trocar_estimator.yaml, `marker.size`).
+/// The marker's side (config/trocar_estimator.yaml, `marker.size_m`).
 const MARKER_SIZE_M: f64 = 0.04;
 /// Corners closer than this to the border count as out of view (the estimator's
 /// `border_margin_px` is 4; this keeps room for breathing and a lateral offset).

@@ -93,7 +93,7 @@ pub fn synthetic_frames(cfg: &SweepConfig) -> Result<Vec<SyntheticFrame>, Vision
         let spec = MarkerSpec {
             family: cfg.family.clone(),
             id: Some(id),
-            size,
+            size_m: size,
         };
         let opts = RenderOptions {
             noise_sigma: cfg.noise_sigma,
@@ -183,7 +183,7 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
     let spec = MarkerSpec {
         family: "DICT_4X4_50".parse()?,
         id: Some(0),
-        size: 0.05,
+        size_m: 0.05,
     };
     let poses: Vec<Isometry3<f64>> = (0..n.clamp(1, 200))
         .map(|i| facing_pose(0.3 + 0.002 * (i % 100) as f64, 0.01, 0.0, 0.3, 0.2, 0.1))

@@ -31,7 +31,7 @@ impl MarkerArgs {
         let spec = MarkerSpec {
             family,
             id: self.id,
-            size: self.size,
+            size_m: self.size,
         };
         spec.validate()?;
         Ok(spec)
@@ -182,7 +182,7 @@ pub fn run_render(a: &RenderArgs) -> super::CliResult {
     img.write(&a.out)?;
     if a.json {
         let v = serde_json::json!({
-            "out": a.out, "family": spec.family.name(), "id": spec.id, "size_m": spec.size,
+            "out": a.out, "family": spec.family.name(), "id": spec.id, "size_m": spec.size_m,
             "width": img.width, "height": img.height, "pose_camera_marker": pose_json(&truth),
         });
         println!("{}", serde_json::to_string_pretty(&v)?);

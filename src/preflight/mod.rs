@@ -497,7 +497,7 @@ fn camera(obs: &Observations, lim: &Limits) -> Vec<Check> {
 
 fn marker(obs: &Observations, lim: &Limits) -> Check {
     let m = &obs.marker;
-    let fix = "put the marker in the camera's view, lit, uncovered; its size (marker.size) must be the printed one";
+    let fix = "put the marker in the camera's view, lit, uncovered; its size (marker.size_m) must be the printed one";
     let r = m.stream.rate_hz();
     if m.last.is_none() {
         return check("MARKER", false, "no trocar pose (marker not seen)".into(), fix);

@@ -30,7 +30,6 @@ use super::msgs::{geometry_msgs, sensor_msgs, std_msgs};
 use super::node::{lock, ros_err, NodeError, Throttle};
 use super::params;
 use super::stats::LoopStats;
-use super::topics;
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::validate;
@@ -43,9 +42,10 @@ use crate::vision::{
     TrackingDetector, TrocarEstimator,
 };
 
-/// Parameters of the node (its private namespace; `config/trocar_estimator.yaml`).
+/// Parameters of the node (its private namespace; `config/trocar_estimator.yaml`, whose
+/// values, built in, are the defaults: [`crate::config::TROCAR_ESTIMATOR`]).
 #[derive(Debug, Clone, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct EstimatorNodeParams {
     /// Arm model when `urdf_file` is empty.
     pub model: LbrModel,
@@ -106,37 +106,12 @@ pub struct EstimatorNodeParams {
     pub realtime_priority: i32,
 }
 
-impl Default for EstimatorNodeParams {
-    fn default() -> Self {
-        Self {
-            model: LbrModel::Med7,
-            urdf_file: String::new(),
-            joint_names: crate::kinematics::joint_names(),
-            base_frame: crate::kinematics::BASE_LINK.into(),
-            image_topic: topics::CAMERA_IMAGE.into(),
-            camera_info_topic: topics::CAMERA_INFO.into(),
-            joint_states_topic: topics::JOINT_STATES.into(),
-            trocar_pose_topic: topics::TROCAR_POSE.into(),
-            marker_pose_topic: "~marker_pose".into(),
-            debug_image_topic: "~debug_image".into(),
-            status_topic: "~status".into(),
-            pose_covariance_topic: "~pose_with_covariance".into(),
-            method: EstimatorMethod::Marker,
-            trocar_model_file: String::new(),
-            markerless: MarkerlessParams::default(),
-            hand_eye_file: String::new(),
-            marker: MarkerSpec::default(),
-            estimator: EstimatorParams::default(),
-            search_margin: 1.5,
-            border_margin_px: 4.0,
-            joint_history_s: 1.0,
-            max_joint_gap_s: 0.05,
-            max_joint_extrapolation_s: 0.02,
-            report_period_s: 10.0,
-            realtime_priority: 0,
-        }
-    }
-}
+crate::shipped_defaults!(
+    EstimatorNodeParams,
+    crate::config::TROCAR_ESTIMATOR,
+    [],
+    deserialize_only
+);
 
 /// The hand-eye result file: only `flange_t_camera` is read.
 #[derive(Debug, serde::Deserialize)]
@@ -641,7 +616,7 @@ pub fn run() -> Result<(), NodeError> {
         p.camera_info_topic,
         p.marker.family,
         p.marker.id,
-        p.marker.size,
+        p.marker.size_m,
         p.trocar_pose_topic
     );
     // The images are processed in their callback; this thread only reports.
@@ -665,23 +640,53 @@ mod tests {
     }
 
     #[test]
-    fn defaults_and_the_shipped_config_are_valid() {
-        assert!(EstimatorNodeParams::default().validate().is_ok());
-        let text =
-            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/trocar_estimator.yaml")).unwrap();
-        with(&text).unwrap();
-        // The YAML spells the same defaults as the code (topics::*, the joint names).
-        let shipped: EstimatorNodeParams = params::from_yaml_str("t", &text).unwrap();
+    fn the_built_in_file_is_the_defaults_and_a_partial_tree_takes_the_rest_from_it() {
+        let text = include_str!("../../config/trocar_estimator.yaml");
+        with(text).unwrap();
+        let p: EstimatorNodeParams = params::from_yaml_str("trocar_estimator.yaml", text).unwrap();
         let d = EstimatorNodeParams::default();
-        assert_eq!(shipped.joint_names, d.joint_names);
+        d.validate().unwrap();
+        assert_eq!(format!("{p:?}"), format!("{d:?}"));
+        // Its sections are the defaults of the estimator, the marker and the markerless gate.
+        assert_eq!(d.estimator, EstimatorParams::default());
+        assert_eq!(d.marker, MarkerSpec::default());
+        assert_eq!(d.markerless, MarkerlessParams::default());
+        assert_eq!(
+            (d.marker.size_m, d.marker.id, d.estimator.reinit_after),
+            (0.04, Some(7), 5)
+        );
+        // The topics the rest of the stack assumes.
+        use crate::ros::topics;
+        assert_eq!(d.joint_names, crate::kinematics::joint_names());
         for (a, b) in [
-            (&shipped.image_topic, &d.image_topic),
-            (&shipped.camera_info_topic, &d.camera_info_topic),
-            (&shipped.joint_states_topic, &d.joint_states_topic),
-            (&shipped.trocar_pose_topic, &d.trocar_pose_topic),
+            (&d.image_topic, topics::CAMERA_IMAGE),
+            (&d.camera_info_topic, topics::CAMERA_INFO),
+            (&d.joint_states_topic, topics::JOINT_STATES),
+            (&d.trocar_pose_topic, topics::TROCAR_POSE),
         ] {
             assert_eq!(a, b);
         }
+        // As the parameter server hands it over: partial; the rest is the file's.
+        let p: EstimatorNodeParams = params::from_value(
+            "/trocar_estimator",
+            serde_json::json!({"marker": {"id": 3}, "estimator": {"gate_translation_m": 0.05}}),
+        )
+        .unwrap();
+        assert_eq!((p.marker.id, p.marker.size_m), (Some(3), 0.04));
+        assert_eq!(p.estimator.gate_translation_m, 0.05);
+        assert_eq!(p.estimator.stale_after_s, d.estimator.stale_after_s);
+        assert_eq!(p.estimator.flange_t_camera, d.estimator.flange_t_camera);
+        assert_eq!((p.search_margin, p.border_margin_px), (1.5, 4.0));
+        // The old key is refused, naming the new one.
+        let e = params::from_value::<EstimatorNodeParams>(
+            "/trocar_estimator",
+            serde_json::json!({"marker": {"size": 0.05}}),
+        )
+        .unwrap_err();
+        assert!(
+            e.message.contains("`marker.size`: the key is now `marker.size_m`"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -16,9 +16,8 @@ use super::convert;
 use super::msgs::{geometry_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs};
 use super::node::{lock, reply_service, ros_err, CommandType, NodeError, Reply};
 use super::params;
-use super::topics;
 use crate::kinematics::lbr::LbrModel;
-use crate::kinematics::{joint_names, JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
+use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::validate;
 use crate::vision::estimator::PoseYaml;
 use crate::vision::hand_eye::poses::{border_distance_px, plan, projected_corners, PlanParams};
@@ -28,9 +27,10 @@ use crate::vision::hand_eye::{
 };
 use crate::vision::CameraModel;
 
-/// Parameters of the node (its private namespace; `config/hand_eye_calibration.yaml`).
+/// Parameters of the node (its private namespace; `config/hand_eye_calibration.yaml`, whose
+/// values, built in, are the defaults: [`crate::config::HAND_EYE_CALIBRATION`]).
 #[derive(Debug, Clone, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct HandEyeNodeParams {
     /// Arm model when `urdf_file` is empty.
     pub model: LbrModel,
@@ -55,15 +55,15 @@ pub struct HandEyeNodeParams {
     /// Where `~save` writes ('' = the package's `config/hand_eye.yaml`).
     pub output_file: String,
     /// The marker's side, m.
-    pub marker_size: f64,
+    pub marker_size_m: f64,
     /// `~auto`: the fastest joint speed, rad/s.
-    pub max_joint_speed: f64,
+    pub max_joint_speed_rad_s: f64,
     /// `~auto`: command rate, Hz.
     pub command_rate_hz: f64,
     /// `~auto`: at each pose, wait at most this long for the arm and the detection to be still, s.
     pub settle_timeout_s: f64,
     /// `~auto`: stop when a joint lags its command by more than this, rad.
-    pub max_tracking_error: f64,
+    pub max_tracking_error_rad: f64,
     /// Joint states or detections older than this are stale, s.
     pub stale_after_s: f64,
     /// The acceptance rules' still period, s.
@@ -76,42 +76,21 @@ pub struct HandEyeNodeParams {
     pub auto_roll_deg: f64,
 }
 
-impl Default for HandEyeNodeParams {
-    fn default() -> Self {
-        Self {
-            model: LbrModel::Med7,
-            urdf_file: String::new(),
-            joint_names: joint_names(),
-            base_frame: "lbr_link_0".into(),
-            joint_states_topic: topics::JOINT_STATES.into(),
-            marker_pose_topic: "/trocar_estimator/marker_pose".into(),
-            camera_info_topic: topics::CAMERA_INFO.into(),
-            command_topic: topics::COMMAND.into(),
-            command_type: CommandType::Trajectory,
-            hand_eye_file: String::new(),
-            output_file: String::new(),
-            marker_size: 0.04,
-            max_joint_speed: 0.3,
-            command_rate_hz: 50.0,
-            settle_timeout_s: 4.0,
-            max_tracking_error: 0.05,
-            stale_after_s: 0.3,
-            still_for_s: 0.5,
-            border_margin_px: 10.0,
-            auto_tilt_deg: 20.0,
-            auto_roll_deg: 25.0,
-        }
-    }
-}
+crate::shipped_defaults!(
+    HandEyeNodeParams,
+    crate::config::HAND_EYE_CALIBRATION,
+    [],
+    deserialize_only
+);
 
 impl HandEyeNodeParams {
     /// Range checks, each naming its key.
     pub fn validate(&self) -> Result<(), NodeError> {
-        validate::in_range("marker_size", self.marker_size, 0.005, 1.0)?;
-        validate::in_range("max_joint_speed", self.max_joint_speed, 0.01, 1.0)?;
+        validate::in_range("marker_size_m", self.marker_size_m, 0.005, 1.0)?;
+        validate::in_range("max_joint_speed_rad_s", self.max_joint_speed_rad_s, 0.01, 1.0)?;
         validate::in_range("command_rate_hz", self.command_rate_hz, 10.0, 1000.0)?;
         validate::in_range("settle_timeout_s", self.settle_timeout_s, 0.5, 60.0)?;
-        validate::in_range("max_tracking_error", self.max_tracking_error, 0.001, 0.5)?;
+        validate::in_range("max_tracking_error_rad", self.max_tracking_error_rad, 0.001, 0.5)?;
         validate::in_range("stale_after_s", self.stale_after_s, 0.01, 5.0)?;
         validate::in_range("still_for_s", self.still_for_s, 0.0, 10.0)?;
         validate::in_range("border_margin_px", self.border_margin_px, 0.0, 200.0)?;
@@ -126,12 +105,18 @@ impl HandEyeNodeParams {
         Ok(())
     }
 
-    fn rules(&self) -> AcceptanceRules {
-        AcceptanceRules {
-            still_for_s: self.still_for_s,
-            border_margin_px: self.border_margin_px,
-            ..AcceptanceRules::default()
-        }
+    /// The sample rules of these parameters.
+    pub fn rules(&self) -> AcceptanceRules {
+        AcceptanceRules::new(self.still_for_s, self.border_margin_px)
+    }
+
+    /// The automatic mode's pose plan of these parameters.
+    pub fn plan_params(&self) -> PlanParams {
+        PlanParams::new(
+            self.auto_tilt_deg.to_radians(),
+            self.auto_roll_deg.to_radians(),
+            self.marker_size_m,
+        )
     }
 
     fn output_path(&self) -> String {
@@ -184,7 +169,7 @@ impl Node {
     fn model(&self, st: &State) -> ObservationModel {
         ObservationModel {
             camera: st.camera.clone(),
-            marker_size: self.p.marker_size,
+            marker_size: self.p.marker_size_m,
         }
     }
 
@@ -201,11 +186,11 @@ impl Node {
             .fresh(st.marker, t)
             .ok_or("no marker detection (none fresh from the estimator)")?;
         let base_t_flange = self.kin.fk(&q).map_err(|e| e.to_string())?;
-        let border = border_distance_px(&camera, &marker, self.p.marker_size).unwrap_or(-1.0);
+        let border = border_distance_px(&camera, &marker, self.p.marker_size_m).unwrap_or(-1.0);
         let sample = Sample {
             base_t_flange,
             camera_t_marker: marker,
-            corners: projected_corners(&camera, &marker, self.p.marker_size),
+            corners: projected_corners(&camera, &marker, self.p.marker_size_m),
         };
         let still = st.stillness.still_for(t, self.p.stale_after_s);
         let i = st.set.try_add(sample, still, border).map_err(|e| e.to_string())?;
@@ -298,13 +283,13 @@ impl Node {
         }
     }
 
-    /// Move to `target` on a cosine profile at most `max_joint_speed` fast, streaming
+    /// Move to `target` on a cosine profile at most `max_joint_speed_rad_s` fast, streaming
     /// commands; on stale joint states or an arm lagging its command, hold where the arm is
     /// and stop with the reason.
     fn move_to(&self, target: &JointVector) -> Result<(), String> {
         let start = self.fresh(lock(&self.state).q, now()).ok_or("no fresh joint state")?;
         let delta = target - start;
-        let duration = (delta.amax() * PI / (2.0 * self.p.max_joint_speed)).max(0.2);
+        let duration = (delta.amax() * PI / (2.0 * self.p.max_joint_speed_rad_s)).max(0.2);
         let dt = 1.0 / self.p.command_rate_hz;
         let steps = (duration / dt).ceil() as usize;
         for k in 1..=steps + (0.5 / dt) as usize {
@@ -313,7 +298,7 @@ impl Node {
             let measured = self.fresh(lock(&self.state).q, now());
             let fault = match measured {
                 None => Some("joint states stale".to_string()),
-                Some(q) if (q - q_cmd).amax() > self.p.max_tracking_error + delta.amax() * dt * 2.0 => {
+                Some(q) if (q - q_cmd).amax() > self.p.max_tracking_error_rad + delta.amax() * dt * 2.0 => {
                     Some(format!("the arm lags its command by {:.3} rad", (q - q_cmd).amax()))
                 }
                 _ => None,
@@ -375,12 +360,7 @@ impl Node {
                     .ok_or_else(|| camera_info_warning(None).unwrap_or_default())?,
             )
         };
-        let plan_params = PlanParams {
-            tilt_rad: self.p.auto_tilt_deg.to_radians(),
-            roll_rad: self.p.auto_roll_deg.to_radians(),
-            marker_size: self.p.marker_size,
-            ..PlanParams::default()
-        };
+        let plan_params = self.p.plan_params();
         let poses = plan(&self.kin, &q0, &self.guess, &marker, &camera, &plan_params).map_err(|e| e.to_string())?;
         let mut notes = Vec::new();
         for (i, q) in poses.iter().enumerate() {
@@ -421,7 +401,7 @@ impl Node {
                 stamp,
                 &self.p.base_frame,
                 &m,
-                self.p.marker_size,
+                self.p.marker_size_m,
                 10 + i as i32,
             ));
         }
@@ -643,15 +623,28 @@ mod tests {
     use nalgebra::UnitQuaternion;
 
     #[test]
-    fn defaults_and_the_shipped_config_are_valid_and_bad_values_name_their_key() {
-        HandEyeNodeParams::default().validate().unwrap();
-        let text =
-            std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/hand_eye_calibration.yaml")).unwrap();
-        let p: HandEyeNodeParams = params::from_yaml_str("t", &text).unwrap();
+    fn the_built_in_file_is_the_defaults_and_bad_values_name_their_key() {
+        let text = include_str!("../../config/hand_eye_calibration.yaml");
+        let p: HandEyeNodeParams = params::from_yaml_str("hand_eye_calibration.yaml", text).unwrap();
         p.validate().unwrap();
+        let d = HandEyeNodeParams::default();
+        assert_eq!(format!("{p:?}"), format!("{d:?}"));
+        assert_eq!(
+            (d.marker_size_m, d.max_joint_speed_rad_s, d.max_tracking_error_rad),
+            (0.04, 0.3, 0.05)
+        );
+        // The marker is the estimator's.
+        assert_eq!(d.marker_size_m, crate::vision::MarkerSpec::default().size_m);
+        // Partial: the rest is the file's.
+        let p: HandEyeNodeParams =
+            params::from_value("/hand_eye_calibration", serde_json::json!({"auto_tilt_deg": 10})).unwrap();
+        assert_eq!(
+            (p.auto_tilt_deg, p.auto_roll_deg, p.command_rate_hz),
+            (10.0, 25.0, 50.0)
+        );
         for (yaml, key) in [
-            ("max_joint_speed: 3", "max_joint_speed"),
-            ("marker_size: 0", "marker_size"),
+            ("max_joint_speed_rad_s: 3", "max_joint_speed_rad_s"),
+            ("marker_size_m: 0", "marker_size_m"),
             ("auto_tilt_deg: 60", "auto_tilt_deg"),
         ] {
             let e = params::from_yaml_str::<HandEyeNodeParams>("t", yaml)
@@ -662,6 +655,15 @@ mod tests {
             assert!(e.contains(&format!("`{key}`")), "{yaml}: {e}");
         }
         assert!(params::from_yaml_str::<HandEyeNodeParams>("t", "max_speed: 1").is_err());
+        // The old keys are refused, naming the new ones.
+        for (old, new) in [
+            ("marker_size", "marker_size_m"),
+            ("max_joint_speed", "max_joint_speed_rad_s"),
+            ("max_tracking_error", "max_tracking_error_rad"),
+        ] {
+            let e = params::from_yaml_str::<HandEyeNodeParams>("t", &format!("{old}: 0.1\n")).unwrap_err();
+            assert!(e.message.contains(&format!("`{old}`: the key is now `{new}`")), "{e}");
+        }
     }
 
     #[test]

@@ -283,10 +283,10 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         marker: preflight::Marker {
             stream: s.poses.stream(),
             last: s.pose,
-            configured_size_m: if estimator { param(&est("marker/size")) } else { None },
+            configured_size_m: if estimator { param(&est("marker/size_m")) } else { None },
             simulated_size_m: simulator
                 .filter(|s| s.camera)
-                .and_then(|_| param(&format!("{}/camera/marker/size", p.simulator_node))),
+                .and_then(|_| param(&format!("{}/camera/marker/size_m", p.simulator_node))),
         },
         hand_eye: hand_eye(p, estimator, camera),
         command_subscribers,

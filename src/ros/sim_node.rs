@@ -27,9 +27,10 @@ use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions,
 
 use super::node::{ros_err, CommandType, NodeError};
 
-/// Parameters of the node (`config/lbr_med_sim.yaml`).
+/// Parameters of the node (its private namespace; `config/lbr_med_sim.yaml`, whose values,
+/// built in, are the defaults: [`crate::config::LBR_MED_SIM`]).
 #[derive(Debug, Clone, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct SimNodeParams {
     /// Arm model.
     pub model: LbrModel,
@@ -72,22 +73,40 @@ pub struct SimNodeParams {
     /// Base frame.
     pub base_frame: String,
     /// Stop camera and direct pose after this many simulated seconds (negative: never).
-    pub trocar_dropout_after: f64,
+    pub trocar_dropout_after_s: f64,
     /// The simulated camera: its model, mount and the marker it sees.
     pub camera: SimCameraParams,
     /// The simulator's own parameters (`config/sim.yaml`, loaded under `~world`; its
-    /// `sim:` section, with the protocol `world_protocol` applied, is used).
+    /// `sim:` section, with the protocol `world_protocol` applied, is used; its built-in
+    /// values when absent). Read apart from the rest by [`Self::from_tree`].
+    #[serde(skip)]
     pub world: SimConfig,
     /// The protocol of `world` the plant runs (`realistic`: seal, breathing, torque
     /// errors, elastic joints; `paper`; '' = the base `sim:` section).
     pub world_protocol: String,
 }
 
+crate::shipped_defaults!(SimNodeParams, crate::config::LBR_MED_SIM, [], deserialize_only);
+
+impl SimNodeParams {
+    /// The parameters from the node's namespace `ns` as the parameter server hands it over:
+    /// the simulator's own tree `world` (`config/sim.yaml`) read as a [`SimConfig`] (its
+    /// errors named under `ns/world`), the rest laid over the shipped file.
+    pub fn from_tree(ns: &str, mut tree: serde_json::Value) -> Result<Self, params::ParamError> {
+        let world = tree.as_object_mut().and_then(|m| m.remove("world"));
+        let mut p: Self = params::from_value(ns, tree)?;
+        if let Some(w) = world {
+            p.world = params::from_value(&format!("{ns}/world"), w)?;
+        }
+        Ok(p)
+    }
+}
+
 /// The simulated camera (`camera:` in `config/lbr_med_sim.yaml`): a marker on the trocar
 /// rendered from the true arm pose through the true camera mount, published as the real
 /// camera's topics with the capture time as stamp.
 #[derive(Debug, Clone, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct SimCameraParams {
     /// ROS camera calibration YAML of the simulated camera (required with `camera_enabled`).
     pub calibration_file: String,
@@ -98,7 +117,7 @@ pub struct SimCameraParams {
     /// Gaussian pixel noise, grey levels.
     pub noise_sigma: f64,
     /// Optical blur, px.
-    pub blur_sigma: f64,
+    pub blur_sigma_px: f64,
     /// Side of the textured plate around the marker, in marker sizes (>= 1.25; a smaller
     /// plate renders faster).
     pub plane_scale: f64,
@@ -117,28 +136,15 @@ pub struct SimCameraParams {
     pub trocar_model_file: String,
     /// Without the marker: the wall's radiance is traced every this many pixels and
     /// interpolated (1 = every pixel; the trocar and every edge are always per pixel).
-    pub wall_step: usize,
+    pub wall_step_px: usize,
 }
 
-impl Default for SimCameraParams {
-    fn default() -> Self {
-        let nominal = crate::vision::EstimatorParams::default();
-        Self {
-            calibration_file: String::new(),
-            frame: "camera_optical_frame".into(),
-            encoding: "mono8".into(),
-            noise_sigma: 2.0,
-            blur_sigma: 0.6,
-            plane_scale: 1.6,
-            flange_t_camera: nominal.flange_t_camera,
-            marker: MarkerSpec::default(),
-            marker_t_trocar: nominal.marker_t_trocar,
-            show_marker: true,
-            trocar_model_file: String::new(),
-            wall_step: 4,
-        }
-    }
-}
+crate::shipped_defaults!(
+    SimCameraParams,
+    crate::config::LBR_MED_SIM,
+    ["camera"],
+    deserialize_only
+);
 
 /// One frame to render: the trocar's port in the camera at the capture time.
 struct CameraJob {
@@ -177,7 +183,7 @@ impl SimScene {
             return Ok(Self::Marker {
                 spec: c.marker.clone(),
                 opts: RenderOptions {
-                    blur_sigma: c.blur_sigma,
+                    blur_sigma: c.blur_sigma_px,
                     plane_scale: c.plane_scale,
                     ..RenderOptions::default()
                 },
@@ -192,12 +198,12 @@ impl SimScene {
         };
         // Noise is added per frame by the camera thread.
         let mut scene = Scene::random(seed, 0.0);
-        scene.blur_sigma = c.blur_sigma;
+        scene.blur_sigma = c.blur_sigma_px;
         Ok(Self::Trocar {
             renderer: Box::new(
                 TrocarRenderer::new(model)
                     .map_err(|e| invalid("calibration_file", &e))?
-                    .with_wall_step(c.wall_step),
+                    .with_wall_step(c.wall_step_px),
             ),
             model: trocar,
             scene: Box::new(scene),
@@ -384,36 +390,6 @@ fn lower_priority() {
     unsafe {
         let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
         libc::setpriority(libc::PRIO_PROCESS, tid, 10);
-    }
-}
-
-impl Default for SimNodeParams {
-    fn default() -> Self {
-        Self {
-            model: LbrModel::Med7,
-            joint_names: (1..=7).map(|i| format!("lbr_joint_{i}")).collect(),
-            fri_rate_hz: 500.0,
-            real_time_factor: 1.0,
-            publish_clock: false,
-            seed: 1,
-            joint_states_topic: "/lbr/joint_states".into(),
-            lbr_state_topic: "/lbr/states".into(),
-            command_topic: "/lbr/PositionJointInterface_trajectory_controller/command".into(),
-            command_type: CommandType::Trajectory,
-            camera_enabled: true,
-            camera_rate_hz: 15.0,
-            image_topic: "/zedm/zed_node/left/image_rect_color".into(),
-            camera_info_topic: "/zedm/zed_node/left/camera_info".into(),
-            direct_pose_enabled: false,
-            trocar_pose_topic: "/trocar/pose".into(),
-            trocar_true_topic: super::topics::TROCAR_POSE_TRUE.into(),
-            trocar_fulcrum_true_topic: super::topics::TROCAR_FULCRUM_TRUE.into(),
-            base_frame: crate::kinematics::BASE_LINK.into(),
-            trocar_dropout_after: -1.0,
-            camera: SimCameraParams::default(),
-            world: SimConfig::default(),
-            world_protocol: "realistic".into(),
-        }
     }
 }
 
@@ -624,7 +600,7 @@ impl ArmCommand {
 
 /// Run the node until shutdown. Call after `rosrust::init`.
 pub fn run() -> Result<(), NodeError> {
-    let p: SimNodeParams = params::load_private()?;
+    let p = SimNodeParams::from_tree(&rosrust::name(), params::load_private()?)?;
     if !(p.real_time_factor > 0.0 && p.real_time_factor.is_finite()) {
         return Err(NodeError::Invalid(format!("real_time_factor = {}", p.real_time_factor)));
     }
@@ -683,7 +659,7 @@ pub fn run() -> Result<(), NodeError> {
         if fri.due(t) {
             out.driver(&p, &world, stamp, sample_time);
         }
-        let live = p.trocar_dropout_after < 0.0 || world.time() < p.trocar_dropout_after;
+        let live = p.trocar_dropout_after_s < 0.0 || world.time() < p.trocar_dropout_after_s;
         if let (true, Some(cam)) = (live, camera.as_mut()) {
             if frames.due(t) {
                 cam.capture(&world, stamp);
@@ -722,7 +698,7 @@ mod tests {
         let read = |f: &str| -> serde_json::Value { crate::config::from_yaml_file(&dir.join(f)).unwrap() };
         let mut tree = read("lbr_med_sim.yaml");
         tree["world"] = read("sim.yaml");
-        params::from_value("lbr_med_sim", tree).unwrap()
+        SimNodeParams::from_tree("lbr_med_sim", tree).unwrap()
     }
 
     #[test]
@@ -776,6 +752,54 @@ mod tests {
             "{:?}",
             e.axis
         );
+    }
+
+    #[test]
+    fn the_built_in_file_is_the_defaults_and_a_partial_tree_takes_the_rest_from_it() {
+        let text = include_str!("../../config/lbr_med_sim.yaml");
+        let p: SimNodeParams = params::from_yaml_str("lbr_med_sim.yaml", text).unwrap();
+        let d = SimNodeParams::default();
+        assert_eq!(format!("{p:?}"), format!("{d:?}"));
+        // Figures of the file itself.
+        assert_eq!(
+            (d.fri_rate_hz, d.camera_rate_hz, d.trocar_dropout_after_s),
+            (500.0, 15.0, -1.0)
+        );
+        assert_eq!(
+            (d.camera.blur_sigma_px, d.camera.wall_step_px, d.camera.marker.size_m),
+            (0.6, 4, 0.04)
+        );
+        // As the parameter server hands it over: partial; the rest is the file's.
+        let p: SimNodeParams = params::from_value(
+            "/lbr_med_sim",
+            serde_json::json!({"seed": 9, "camera": {"noise_sigma": 0, "marker": {"id": 3}}}),
+        )
+        .unwrap();
+        assert_eq!((p.seed, p.camera.noise_sigma, p.camera.marker.id), (9, 0.0, Some(3)));
+        assert_eq!((p.camera.blur_sigma_px, p.camera.marker.size_m), (0.6, 0.04));
+        assert_eq!(
+            (p.camera.frame.as_str(), p.fri_rate_hz),
+            ("camera_optical_frame", 500.0)
+        );
+        // The old keys are refused, naming the new ones.
+        for (old, new) in [
+            (serde_json::json!({"trocar_dropout_after": 2}), "trocar_dropout_after_s"),
+            (serde_json::json!({"camera": {"blur_sigma": 1}}), "camera.blur_sigma_px"),
+            (serde_json::json!({"camera": {"wall_step": 2}}), "camera.wall_step_px"),
+            (
+                serde_json::json!({"camera": {"marker": {"size": 0.05}}}),
+                "marker.size_m",
+            ),
+        ] {
+            let e = params::from_value::<SimNodeParams>("/lbr_med_sim", old).unwrap_err();
+            assert!(e.message.contains(&format!("is now `{new}`")), "{e}");
+        }
+        // An error inside the simulator's own tree is named under `world`.
+        let e = SimNodeParams::from_tree("/lbr_med_sim", serde_json::json!({"seed": 2, "world": {"simm": {}}}))
+            .unwrap_err();
+        assert!(e.what == "/lbr_med_sim/world" && e.message.contains("simm"), "{e}");
+        let p = SimNodeParams::from_tree("/lbr_med_sim", serde_json::json!({"seed": 2})).unwrap();
+        assert_eq!((p.seed, &p.world), (2, &SimConfig::default()));
     }
 
     #[test]

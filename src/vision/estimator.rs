@@ -53,9 +53,10 @@ impl PoseYaml {
     }
 }
 
-/// Estimator parameters (`config/estimator.yaml`).
+/// Estimator parameters (`estimator:` in `config/trocar_estimator.yaml`, whose values, built
+/// in, are the defaults: [`crate::config::TROCAR_ESTIMATOR`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct EstimatorParams {
     /// Camera pose in the flange frame (hand-eye, eMc).
     pub flange_t_camera: PoseYaml,
@@ -76,29 +77,11 @@ pub struct EstimatorParams {
     pub stale_after_s: f64,
 }
 
-impl Default for EstimatorParams {
-    fn default() -> Self {
-        Self {
-            flange_t_camera: PoseYaml {
-                translation: [0.0, 0.07, 0.04],
-                quaternion_xyzw: [0.130_526, 0.0, 0.0, 0.991_445],
-            },
-            marker_t_trocar: PoseYaml {
-                translation: [0.0, 0.0, 0.0],
-                quaternion_xyzw: [1.0, 0.0, 0.0, 0.0],
-            },
-            time_constant_s: 0.15,
-            gate_translation_m: 0.02,
-            gate_rotation_rad: 0.2,
-            reinit_after: 5,
-            max_reprojection_error_px: 3.0,
-            stale_after_s: 0.5,
-        }
-    }
-}
+crate::shipped_defaults!(EstimatorParams, crate::config::TROCAR_ESTIMATOR, ["estimator"]);
 
 impl EstimatorParams {
-    /// Read from YAML (missing fields take defaults), validated.
+    /// Read from a YAML file of the `estimator:` section's keys (missing keys take the shipped
+    /// values), validated.
     pub fn from_yaml_file(path: &Path) -> Result<Self, VisionError> {
         let p: Self = crate::config::from_yaml_file(path).map_err(|e| VisionError::Io(e.to_string()))?;
         p.validate()?;

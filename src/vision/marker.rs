@@ -103,33 +103,26 @@ impl fmt::Display for MarkerFamily {
 }
 
 /// Which marker to look for.
+///
+/// Its defaults are the marker the simulator shows and the launch files expect: `marker:` in
+/// `config/trocar_estimator.yaml`, built in ([`crate::config::TROCAR_ESTIMATOR`]).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct MarkerSpec {
     /// Family.
     pub family: MarkerFamily,
     /// Id to keep; `None` keeps every id of the family.
     pub id: Option<u32>,
     /// Side of the black square, m.
-    pub size: f64,
+    pub size_m: f64,
 }
 
-impl Default for MarkerSpec {
-    /// The marker the simulator shows and the launch files expect: ArUco DICT_4X4_50, id 7,
-    /// 40 mm.
-    fn default() -> Self {
-        Self {
-            family: MarkerFamily::Aruco("DICT_4X4_50".into()),
-            id: Some(7),
-            size: 0.04,
-        }
-    }
-}
+crate::shipped_defaults!(MarkerSpec, crate::config::TROCAR_ESTIMATOR, ["marker"]);
 
 impl MarkerSpec {
     /// Check size and id.
     pub fn validate(&self) -> Result<(), VisionError> {
-        crate::validate::between("marker size", self.size, 1e-4, 10.0)?;
+        crate::validate::between("size_m", self.size_m, 1e-4, 10.0)?;
         if let Some(id) = self.id {
             if id >= self.family.id_count() {
                 return Err(VisionError::InvalidInput(format!(
@@ -255,7 +248,7 @@ impl MarkerDetector {
             image.height as i32,
             image.channels as i32,
             id,
-            self.spec.size,
+            self.spec.size_m,
             &window,
         )?;
         Ok(rec
@@ -394,26 +387,43 @@ mod tests {
     }
 
     #[test]
+    fn the_default_is_the_shipped_marker_and_a_partial_spec_takes_the_rest_from_it() {
+        let d = MarkerSpec::default();
+        assert_eq!((d.family.name(), d.id, d.size_m), ("DICT_4X4_50", Some(7), 0.04));
+        d.validate().unwrap();
+        let p: MarkerSpec = crate::config::from_yaml_str("t", "id: 3\n").unwrap();
+        assert_eq!((p.family, p.id, p.size_m), (d.family.clone(), Some(3), 0.04));
+        // `id: null` keeps every id of the family.
+        let p: MarkerSpec = crate::config::from_yaml_str("t", "id: null\n").unwrap();
+        assert_eq!(p.id, None);
+        let e = crate::config::from_yaml_str::<MarkerSpec>("t", "size: 0.05\n").unwrap_err();
+        assert!(
+            e.message.contains("`marker.size`: the key is now `marker.size_m`"),
+            "{e}"
+        );
+    }
+
+    #[test]
     fn specs_are_validated() {
         let fam = MarkerFamily::Aruco("DICT_4X4_50".into());
         assert!(MarkerSpec {
             family: fam.clone(),
             id: Some(49),
-            size: 0.05
+            size_m: 0.05
         }
         .validate()
         .is_ok());
         assert!(MarkerSpec {
             family: fam.clone(),
             id: Some(50),
-            size: 0.05
+            size_m: 0.05
         }
         .validate()
         .is_err());
         assert!(MarkerSpec {
             family: fam,
             id: None,
-            size: f64::NAN
+            size_m: f64::NAN
         }
         .validate()
         .is_err());

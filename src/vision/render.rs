@@ -59,8 +59,8 @@ pub fn render_marker_image(
     let mut data = ffi::render_marker(
         spec.family.name(),
         spec.id.unwrap_or(0) as i32,
-        spec.size,
-        spec.size * opts.plane_scale,
+        spec.size_m,
+        spec.size_m * opts.plane_scale,
         &rt,
         &camera.intrinsics(),
         &camera.distortion,

@@ -44,9 +44,11 @@ pub(crate) fn camera_frame(camera: &CameraModel, q0: &JointVector) -> Result<Vec
     let marker_t_trocar = nominal.marker_t_trocar.to_isometry().map_err(|e| e.to_string())?;
     let base_t_flange = flange_kin.fk(q0).map_err(|e| e.to_string())?;
     let camera_t_marker = marker_in_camera(&base_t_flange, &flange_t_camera, &trocar, &marker_t_trocar);
+    // The simulated camera's plate and pixel noise (config/lbr_med_sim.yaml), without its blur.
+    let sim = ::trocar_docking::ros::sim_node::SimCameraParams::default();
     let opts = RenderOptions {
-        plane_scale: 1.6,
-        noise_sigma: 2.0,
+        plane_scale: sim.plane_scale,
+        noise_sigma: sim.noise_sigma,
         ..RenderOptions::default()
     };
     render_marker_image(&MarkerSpec::default(), camera, &camera_t_marker, &opts)

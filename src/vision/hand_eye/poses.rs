@@ -12,7 +12,9 @@ use super::refine::marker_corners;
 use crate::kinematics::{JointVector, Kinematics};
 use crate::vision::{CameraModel, VisionError};
 
-/// Parameters of the pose plan.
+/// Parameters of the pose plan. The orbit's tilt and roll and the marker's side are the
+/// calibration node's parameters (`config/hand_eye_calibration.yaml`: [`PlanParams::new`]);
+/// the margins and the approach are the plan's own.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct PlanParams {
     /// Tilt of the orbit about the image's axes, rad.
@@ -29,14 +31,18 @@ pub struct PlanParams {
     pub approach_fraction: f64,
 }
 
-impl Default for PlanParams {
-    fn default() -> Self {
+impl PlanParams {
+    /// The plan of an orbit tilted by `tilt_rad` and rolled by `roll_rad` about a marker of
+    /// side `marker_size` (m), with the plan's own margins: the joints 5 deg inside their
+    /// limits, every corner 30 px inside the image, and the approach poses 20 % of the
+    /// distance in and out.
+    pub fn new(tilt_rad: f64, roll_rad: f64, marker_size: f64) -> Self {
         Self {
-            tilt_rad: 20f64.to_radians(),
-            roll_rad: 25f64.to_radians(),
+            tilt_rad,
+            roll_rad,
             joint_margin_rad: 5f64.to_radians(),
             border_margin_px: 30.0,
-            marker_size: 0.04,
+            marker_size,
             approach_fraction: 0.2,
         }
     }

@@ -23,14 +23,18 @@ pub struct AcceptanceRules {
     pub min_rotation_rad: f64,
 }
 
-impl Default for AcceptanceRules {
-    fn default() -> Self {
+impl AcceptanceRules {
+    /// The rules with the calibration node's still period `still_for_s` (s) and border
+    /// margin `border_margin_px` (its parameters, `config/hand_eye_calibration.yaml`), and
+    /// the rules' own tolerances: still within 0.2 deg a joint, 0.5 mm and 0.3 deg the
+    /// marker; at least 3 deg of rotation from the nearest sample.
+    pub fn new(still_for_s: f64, border_margin_px: f64) -> Self {
         Self {
-            still_for_s: 0.5,
+            still_for_s,
             joint_tolerance_rad: 0.2_f64.to_radians(),
             marker_tolerance_m: 0.5e-3,
             marker_tolerance_rad: 0.3_f64.to_radians(),
-            border_margin_px: 10.0,
+            border_margin_px,
             min_rotation_rad: 3.0_f64.to_radians(),
         }
     }
@@ -134,7 +138,7 @@ pub enum Refusal {
 }
 
 /// The samples taken so far.
-#[derive(Debug, Clone, Default)]
+#[derive(Debug, Clone)]
 pub struct SampleSet {
     /// The rules.
     pub rules: AcceptanceRules,

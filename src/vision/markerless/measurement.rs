@@ -54,9 +54,10 @@ impl std::fmt::Display for EstimatorMethod {
     }
 }
 
-/// Parameters of the markerless measurement (`markerless:` in `config/trocar_estimator.yaml`).
+/// Parameters of the markerless measurement (`markerless:` in `config/trocar_estimator.yaml`,
+/// whose values, built in, are the defaults: [`crate::config::TROCAR_ESTIMATOR`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct MarkerlessParams {
     /// Estimates below this confidence publish nothing (the frame's reason says why).
     pub min_confidence: f64,
@@ -66,15 +67,7 @@ pub struct MarkerlessParams {
     pub sigma_direction_rad: f64,
 }
 
-impl Default for MarkerlessParams {
-    fn default() -> Self {
-        Self {
-            min_confidence: super::HIGH_CONFIDENCE,
-            sigma_position_m: 0.001,
-            sigma_direction_rad: 1f64.to_radians(),
-        }
-    }
-}
+crate::shipped_defaults!(MarkerlessParams, crate::config::TROCAR_ESTIMATOR, ["markerless"]);
 
 impl MarkerlessParams {
     /// Check the values (the confidence gate in (0, 1], the sigmas positive).
