@@ -68,11 +68,7 @@ pub enum SimError {
 /// `config/sim.yaml` as built into the binary: the defaults of [`SimParams`] and its sections
 /// (`sim:`), and of the trials' sections (`trial:`, `policy:`, `baseline:`, `pivot:`,
 /// `protocols:`; [`crate::trials::config::SimConfig`]), each value written once, in the file.
-pub static SHIPPED: Shipped = Shipped::with_renamed(
-    "config/sim.yaml",
-    include_str!("../../config/sim.yaml"),
-    RENAMED,
-);
+pub static SHIPPED: Shipped = Shipped::with_renamed("config/sim.yaml", include_str!("../../config/sim.yaml"), RENAMED);
 
 /// The keys of `config/sim.yaml` that were renamed or removed: given under the old name (in a
 /// file, a protocol's overrides or the node's `~world` namespace), they are refused naming the

@@ -256,7 +256,12 @@ mod tests {
         );
         // Figures of the file itself, so that the defaults are read, not made up.
         assert_eq!(
-            (d.substeps, d.contact.stiffness_n_per_m, c.trial.abort_force_n, c.pivot.dock_timeout_s),
+            (
+                d.substeps,
+                d.contact.stiffness_n_per_m,
+                c.trial.abort_force_n,
+                c.pivot.dock_timeout_s
+            ),
             (10, 1e6, 60.0, 20.0)
         );
         assert_eq!(c.policy, PolicyKind::Controller);
@@ -324,8 +329,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            top.contains("`trial.control_rate_hz`: the key is gone")
-                && top.contains("`dt` in config/controller.yaml"),
+            top.contains("`trial.control_rate_hz`: the key is gone") && top.contains("`dt` in config/controller.yaml"),
             "{top}"
         );
         let c = SimConfig::from_yaml_str("protocols: {p: {trial: {control_rate_hz: 1000}}}");
@@ -346,11 +350,9 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains(renamed), "{e}");
-        let e = SimConfig::from_yaml_str(&format!(
-            "protocols: {{p: {{sim: {{scenario: {{q_nominal: {q}}}}}}}}}"
-        ))
-        .unwrap_err()
-        .to_string();
+        let e = SimConfig::from_yaml_str(&format!("protocols: {{p: {{sim: {{scenario: {{q_nominal: {q}}}}}}}}}"))
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("protocol 'p'") && e.contains(renamed), "{e}");
         let zeros = [0.0; 7];
         let tree = serde_json::json!({"sim": {"scenario": {"q_nominal": zeros}}});
