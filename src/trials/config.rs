@@ -321,23 +321,24 @@ mod tests {
         assert!(SimConfig::from_yaml_str("policy: nope").is_err());
     }
 
+    /// The error of `text` as a file, or else of its protocol `p` applied.
+    fn refusal(text: &str) -> String {
+        let e = SimConfig::from_yaml_str(text).and_then(|c| c.with_protocol("p"));
+        e.unwrap_err().to_string()
+    }
+
     /// The trials run at the controller's `dt`: the old `trial.control_rate_hz` is an error
     /// that names its replacement, at the top level and in a protocol.
     #[test]
     fn the_old_trial_control_rate_names_the_controllers_dt() {
-        let top = SimConfig::from_yaml_str("trial: {control_rate_hz: 100.0}")
-            .unwrap_err()
-            .to_string();
+        let gone = "`trial.control_rate_hz`: the key is gone";
+        let top = refusal("trial: {control_rate_hz: 100.0}");
         assert!(
-            top.contains("`trial.control_rate_hz`: the key is gone") && top.contains("`dt` in config/controller.yaml"),
+            top.contains(gone) && top.contains("`dt` in config/controller.yaml"),
             "{top}"
         );
-        let c = SimConfig::from_yaml_str("protocols: {p: {trial: {control_rate_hz: 1000}}}");
-        let e = c.and_then(|c| c.with_protocol("p")).unwrap_err().to_string();
-        assert!(
-            e.contains("protocol 'p'") && e.contains("`trial.control_rate_hz`: the key is gone"),
-            "{e}"
-        );
+        let e = refusal("protocols: {p: {trial: {control_rate_hz: 1000}}}");
+        assert!(e.contains("protocol 'p'") && e.contains(gone), "{e}");
     }
 
     /// A renamed key is refused naming the new one, and an unknown key naming its path, at
@@ -346,25 +347,17 @@ mod tests {
     fn renamed_and_unknown_keys_are_refused_with_their_path_everywhere() {
         let renamed = "`sim.scenario.q_nominal`: the key is now `sim.scenario.q_nominal_rad`";
         let q = "[0, 0.45, 0, -1.15, 0, 1.54, 0]";
-        let e = SimConfig::from_yaml_str(&format!("sim: {{scenario: {{q_nominal: {q}}}}}"))
-            .unwrap_err()
-            .to_string();
+        let e = refusal(&format!("sim: {{scenario: {{q_nominal: {q}}}}}"));
         assert!(e.contains(renamed), "{e}");
-        let e = SimConfig::from_yaml_str(&format!("protocols: {{p: {{sim: {{scenario: {{q_nominal: {q}}}}}}}}}"))
-            .unwrap_err()
-            .to_string();
+        let e = refusal(&format!("protocols: {{p: {{sim: {{scenario: {{q_nominal: {q}}}}}}}}}"));
         assert!(e.contains("protocol 'p'") && e.contains(renamed), "{e}");
         let zeros = [0.0; 7];
         let tree = serde_json::json!({"sim": {"scenario": {"q_nominal": zeros}}});
-        let e = crate::config::from_tree::<SimConfig, _>("~world", &tree)
-            .unwrap_err()
-            .to_string();
-        assert!(e.contains(renamed), "{e}");
+        let e = crate::config::from_tree::<SimConfig, _>("~world", &tree).unwrap_err();
+        assert!(e.to_string().contains(renamed), "{e}");
         let ok = SimConfig::from_yaml_str(&format!("sim: {{scenario: {{q_nominal_rad: {q}}}}}")).unwrap();
         assert_eq!(ok.sim.scenario.q_nominal_rad[1], 0.45);
-        let e = SimConfig::from_yaml_str("protocols: {p: {sim: {trocar: {typo: 1}}}}")
-            .unwrap_err()
-            .to_string();
+        let e = refusal("protocols: {p: {sim: {trocar: {typo: 1}}}}");
         assert!(
             e.contains("protocol 'p'") && e.contains("`sim.trocar.typo`: unknown key"),
             "{e}"
