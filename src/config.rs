@@ -115,14 +115,43 @@ pub fn merge(base: &mut Value, over: &Value) {
 /// `config/docking_controller.yaml` (the docking controller node's private parameters, and
 /// the preflight's) as built into the binary: the defaults of the node's settings
 /// (`ros::controller_node::node_params`) and of the preflight's limits.
-pub static DOCKING_CONTROLLER_NODE: Shipped = Shipped::new(
+pub static DOCKING_CONTROLLER_NODE: Shipped = Shipped::with_renamed(
     "config/docking_controller.yaml",
     include_str!("../config/docking_controller.yaml"),
+    DOCKING_CONTROLLER_NODE_RENAMED,
 );
+
+/// The renamed and removed keys of `config/docking_controller.yaml`.
+const DOCKING_CONTROLLER_NODE_RENAMED: &[Renamed] = &[
+    Renamed {
+        old: "rate_hz",
+        new: "",
+        note: "the control rate is the controller's period, `dt_s` in config/controller.yaml (~controller/dt_s; \
+               the launch files' rate:=HZ sets it)",
+    },
+    Renamed::key("markers.axis_length", "markers.axis_length_m"),
+    Renamed::key("markers.optical_axis_length", "markers.optical_axis_length_m"),
+    Renamed::key("markers.force_scale", "markers.force_scale_m_per_n"),
+    Renamed::key("markers.force_max_length", "markers.force_max_length_m"),
+    Renamed::key("markers.sphere", "markers.sphere_diameter_m"),
+    Renamed::key("markers.trocar_diameter", "markers.trocar_diameter_m"),
+    Renamed::key("markers.trocar_length", "markers.trocar_length_m"),
+    Renamed::key("markers.cone_length", "markers.cone_length_m"),
+];
 
 /// `config/scope_joy.yaml` (the `scope_joy` node's private parameters: a common gamepad in its
 /// Xbox layout) as built into the binary: the defaults of `ros::joy::JoyParams`.
-pub static SCOPE_JOY: Shipped = Shipped::new("config/scope_joy.yaml", include_str!("../config/scope_joy.yaml"));
+pub static SCOPE_JOY: Shipped = Shipped::with_renamed(
+    "config/scope_joy.yaml",
+    include_str!("../config/scope_joy.yaml"),
+    &[
+        Renamed::key("joy_timeout", "joy_timeout_s"),
+        Renamed::key("pan.scale", "pan.scale_rad_s"),
+        Renamed::key("tilt.scale", "tilt.scale_rad_s"),
+        Renamed::key("roll.scale", "roll.scale_rad_s"),
+        Renamed::key("zoom.scale", "zoom.scale_m_s"),
+    ],
+);
 
 /// A YAML file shipped in `config/` and built into the binary (`include_str!`), parsed once
 /// on first use; its sections are the defaults of the types declared with
@@ -149,6 +178,11 @@ pub struct Renamed {
 }
 
 impl Renamed {
+    /// The key `old` renamed `new`, with no note.
+    pub const fn key(old: &'static str, new: &'static str) -> Self {
+        Self { old, new, note: "" }
+    }
+
     /// The refusal's text, naming the old path and the replacement.
     fn message(&self) -> String {
         let mut m = if self.new.is_empty() {

@@ -53,7 +53,7 @@ fn run(
 ) -> (Controller, Vec<JointVector>, f64, LbrKinematics, Isometry3<f64>) {
     let kin = kin();
     let (mut q, trocar) = scenario(&kin, misalign_deg, Vector3::new(0.3, 1.0, 0.0));
-    let dt = params.dt;
+    let dt = params.dt_s;
     let mut c = Controller::new(params, kin.limits().clone()).unwrap();
     // Nothing moves before start.
     let idle = ControlInput {
@@ -101,7 +101,7 @@ fn check_docked(with_ff: bool) {
     let q = cmds.last().unwrap();
     let tip = kin.fk(q).unwrap();
     let axis = InsertionAxis::from_pose(&trocar);
-    let goal = axis.point_at(params.insertion_depth);
+    let goal = axis.point_at(params.insertion_depth_m);
     let err = (Point3::from(tip.translation.vector) - goal).norm();
     let ang = axis.alignment_error(&(tip.rotation * Vector3::z())).to_degrees();
     assert!(err < 0.001, "position error {err} m");
@@ -116,7 +116,7 @@ fn check_docked(with_ff: bool) {
     for w in cmds.windows(2) {
         for i in 0..7 {
             assert!(w[1][i] >= lim.lower[i] && w[1][i] <= lim.upper[i]);
-            assert!((w[1][i] - w[0][i]).abs() <= vmax[i] * params.dt + 1e-9);
+            assert!((w[1][i] - w[0][i]).abs() <= vmax[i] * params.dt_s + 1e-9);
         }
     }
 }
@@ -141,7 +141,7 @@ fn never_crosses_the_port_before_alignment() {
     let mut c = Controller::new(params.clone(), kin.limits().clone()).unwrap();
     c.start().unwrap();
     for k in 1..=500 {
-        let now = k as f64 * params.dt;
+        let now = k as f64 * params.dt_s;
         let input = fresh_input(now, q, trocar);
         let out = c.step(&kin, &input);
         q = out.command.unwrap();
@@ -192,7 +192,7 @@ fn insert_in_contact(params: ControllerParams, bias: f64) -> ContactRun {
     let mut held = false;
     let mut last = None;
     for k in 1..=800 {
-        let now = k as f64 * params.dt;
+        let now = k as f64 * params.dt_s;
         let (tip, jac) = kin.fk_jacobian(&q).unwrap();
         let p = Point3::from(tip.translation.vector);
         let f = if truth.depth_of(&p) > 0.0 {
@@ -242,7 +242,7 @@ fn with_ff(force_feedback: bool) -> ControllerParams {
 
 #[test]
 fn keeps_inserting_while_yielding_across_the_axis() {
-    let depth = ControllerParams::default().insertion_depth;
+    let depth = ControllerParams::default().insertion_depth_m;
     let ff = insert_in_contact(with_ff(true), 0.0015);
     let no = insert_in_contact(with_ff(false), 0.0015);
     let (d_ff, off_ff, f_ff, held_ff) = (ff.depth, ff.off_true, ff.f_max, ff.held);
@@ -272,7 +272,7 @@ fn keeps_inserting_while_yielding_across_the_axis() {
 /// DONE, saying how far off the scope sat; without it the run stays in INSERT.
 #[test]
 fn a_scope_seated_beside_a_biased_estimate_is_done_and_says_so() {
-    let depth = ControllerParams::default().insertion_depth;
+    let depth = ControllerParams::default().insertion_depth_m;
     let run = insert_in_contact(with_ff(true), 0.0025);
     eprintln!("seated: {:?} {:?}", run.phase, run.reason);
     assert!(!run.held);
@@ -286,7 +286,7 @@ fn a_scope_seated_beside_a_biased_estimate_is_done_and_says_so() {
     assert!(run.f_max < 10.0, "{} N", run.f_max);
     let off = ControllerParams {
         seated: trocar_docking::control::docking::seated::SeatedParams {
-            lateral_tolerance: 0.0,
+            lateral_tolerance_m: 0.0,
             ..Default::default()
         },
         ..with_ff(true)
@@ -309,13 +309,13 @@ fn force_after_a_torque_step(
     let kin = kin();
     let (q, trocar) = scenario(&kin, 20.0, Vector3::new(0.3, 1.0, 0.0));
     let mut p = ControllerParams {
-        torque_filter_time_constant: torque_filter_s,
+        torque_filter_time_constant_s: torque_filter_s,
         ..Default::default()
     };
     p.tare.window_s = 0.0;
     p.tare.track_time_constant_s = 0.0;
     p.admittance.filter_cutoff_hz = 0.0;
-    p.admittance.torque_deadband = 0.0;
+    p.admittance.torque_deadband_nm = 0.0;
     let mut c = Controller::new(p, kin.limits().clone()).unwrap();
     c.start().unwrap();
     let raw = |t: f64| if t >= 0.05 - 1e-9 { tau } else { JointVector::zeros() };
@@ -345,7 +345,7 @@ fn force_after_a_torque_step(
 }
 
 /// The controller low-passes the raw torque samples it is handed, every one since the last
-/// step at its own rate, with its own `torque_filter_time_constant`: a step of the raw
+/// step at its own rate, with its own `torque_filter_time_constant_s`: a step of the raw
 /// torques at 1 kHz reaches the force estimate as 1 - exp(-n ms / tau) after n samples.
 #[test]
 fn the_controller_low_passes_every_raw_torque_sample() {

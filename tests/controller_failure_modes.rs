@@ -1,6 +1,6 @@
 //! A real robot's failure modes against the guarded controller, in closed loop with an ideal
 //! plant (the measured joints are the last command) that can be blocked: the command never
-//! leads the arm by more than `guard.max_command_lead`; a blocked arm holds
+//! leads the arm by more than `guard.max_command_lead_rad`; a blocked arm holds
 //! (`ARM_NOT_FOLLOWING`) within 0.2 s of the lead reaching its bound, where the arm is; the
 //! clock going back or jumping forward holds with its reason; an input restart
 //! (`Controller::interrupt`) holds; every such hold is latched, walks to where it stands
@@ -90,7 +90,7 @@ fn lead(cmd: &JointVector, q: &JointVector) -> f64 {
 #[test]
 fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
     let mut r = Rig::new();
-    let bound = r.c.params().guard.max_command_lead;
+    let bound = r.c.params().guard.max_command_lead_rad;
     assert!((bound - 2f64.to_radians()).abs() < 1e-12, "2 deg by default");
     r.start_moving(20);
     r.blocked = true;
@@ -170,7 +170,7 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
 fn the_command_never_leads_a_lagging_arm_by_more_than_the_bound_in_any_phase() {
     // The arm follows at a fifth of the commanded speed: the command waits for it.
     let mut r = Rig::new();
-    let bound = r.c.params().guard.max_command_lead;
+    let bound = r.c.params().guard.max_command_lead_rad;
     r.c.start().unwrap();
     let mut phases = Vec::new();
     for _ in 0..600 {

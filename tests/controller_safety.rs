@@ -65,7 +65,7 @@ fn assert_safe(out: &ControlOutput, prev: &JointVector, kin: &LbrKinematics, p: 
             // Inside the limits, or not moving further out of them.
             assert!(c[i] >= lim.lower[i].min(prev[i]) - 1e-12 && c[i] <= lim.upper[i].max(prev[i]) + 1e-12);
             assert!(
-                (c[i] - prev[i]).abs() <= lim.velocity[i] * p.guard.velocity_scale * p.dt + 1e-9,
+                (c[i] - prev[i]).abs() <= lim.velocity[i] * p.guard.velocity_scale * p.dt_s + 1e-9,
                 "joint {i} jumps"
             );
         }
@@ -177,7 +177,7 @@ fn run_hostile(kin: &LbrKinematics, case: &HostileCase) -> Reached {
     let pose = if case.at_tip {
         // The port `standoff` ahead of the tip along its optical axis (z).
         let tip = kin.fk(&q0).unwrap();
-        let port = tip.translation.vector + tip.rotation * Vector3::z() * p.standoff;
+        let port = tip.translation.vector + tip.rotation * Vector3::z() * p.standoff_m;
         Isometry3::from_parts(Translation3::from(port), tip.rotation)
     } else {
         let (pos, rot) = (&case.pos, &case.rot);
@@ -377,7 +377,7 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
         });
         let o = c.step(&kin, &inp);
         q = o.command.unwrap();
-        if now > 0.1 + p.guard.trocar_timeout + 0.011 {
+        if now > 0.1 + p.guard.trocar_timeout_s + 0.011 {
             assert_eq!(o.phase, Phase::Hold, "at {now}");
             assert_eq!(o.reason_code(), "STALE_TROCAR_POSE");
             assert_eq!(q, last, "holding means not moving");
@@ -465,7 +465,7 @@ fn retreats_along_the_axis_after_a_force_stop() {
     let troc = trocar(&kin);
     let axis = InsertionAxis::from_pose(&troc);
     let p = ControllerParams {
-        retreat_distance: 0.02,
+        retreat_distance_m: 0.02,
         ..Default::default()
     };
     let mut c = Controller::new(p.clone(), kin.limits().clone()).unwrap();
@@ -495,17 +495,18 @@ fn retreats_along_the_axis_after_a_force_stop() {
 
 #[test]
 fn params_from_yaml() {
-    let p = ControllerParams::from_yaml_str("dt: 0.001\nforce_feedback: false\nguard:\n  force_stop: 15.0\n").unwrap();
-    assert_eq!(p.dt, 0.001);
+    let p =
+        ControllerParams::from_yaml_str("dt_s: 0.001\nforce_feedback: false\nguard:\n  force_stop_n: 15.0\n").unwrap();
+    assert_eq!(p.dt_s, 0.001);
     assert!(!p.force_feedback);
-    assert_eq!(p.guard.force_stop, 15.0);
-    assert_eq!(p.insertion_depth, ControllerParams::default().insertion_depth);
-    assert!(ControllerParams::from_yaml_str("dt: -1")
+    assert_eq!(p.guard.force_stop_n, 15.0);
+    assert_eq!(p.insertion_depth_m, ControllerParams::default().insertion_depth_m);
+    assert!(ControllerParams::from_yaml_str("dt_s: -1")
         .unwrap_err()
         .to_string()
-        .contains("dt"));
+        .contains("dt_s"));
     assert!(ControllerParams::from_yaml_str("no_such_field: 1").is_err());
-    assert!(ControllerParams::from_yaml_str("dt: [").is_err());
+    assert!(ControllerParams::from_yaml_str("dt_s: [").is_err());
     let shipped = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/controller.yaml")).unwrap();
     let p = ControllerParams::from_yaml_str(&shipped).unwrap();
     assert_eq!(
@@ -530,7 +531,7 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
         let last = out.command.unwrap();
         for i in 0..7 {
-            assert!((last[i] - frozen[i]).abs() <= p.guard.max_command_lead + 1e-9);
+            assert!((last[i] - frozen[i]).abs() <= p.guard.max_command_lead_rad + 1e-9);
         }
         if out.phase == Phase::Hold {
             assert_eq!(out.reason_code(), "ARM_NOT_FOLLOWING", "{:?}", out.hold);
@@ -558,7 +559,7 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     // Pushed off its command by more than the tracking tolerance for one step: hold at the
     // last command; back within the follow timeout: docking resumes by itself.
     let mut pushed = q;
-    pushed[3] += p.guard.max_tracking_error * 1.2;
+    pushed[3] += p.guard.max_tracking_error_rad * 1.2;
     t += 0.01;
     let out = c.step(&kin, &input(t, pushed, JointVector::zeros(), troc));
     assert_eq!(out.phase, Phase::Hold);

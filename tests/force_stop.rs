@@ -28,8 +28,8 @@ fn shipped() -> ControllerParams {
 /// The shipped controller with both force stops at the largest values allowed: no stop.
 fn without_stop() -> ControllerParams {
     let mut c = shipped();
-    c.guard.force_stop = 200.0;
-    c.scope.retract_force_stop = 200.0;
+    c.guard.force_stop_n = 200.0;
+    c.scope.retract_force_stop_n = 200.0;
     c
 }
 
@@ -102,9 +102,9 @@ fn jam(controller: &ControllerParams, seed: u64, retract: bool, stiffness: f64, 
         "{} seed {seed}, {stiffness} N/m, stop at {} N: true peak {peak:.2} N, {held} steps held, {code}",
         if retract { "withdrawal" } else { "pan" },
         if retract {
-            controller.scope.retract_force_stop
+            controller.scope.retract_force_stop_n
         } else {
-            controller.guard.force_stop
+            controller.guard.force_stop_n
         },
     );
     Jammed {
@@ -145,7 +145,7 @@ fn start_while_caught(s: &mut PivotSession, limit: f64, seed: u64) {
 /// config/sim.yaml) to stiff (50 000 N/m, the order of the arm's own stiffness at the tip).
 const STIFFNESSES: [f64; 4] = [5000.0, 8000.0, 20_000.0, 50_000.0];
 
-/// A withdrawal into a stiff obstacle brakes at `scope.retract_force_stop` and holds, the
+/// A withdrawal into a stiff obstacle brakes at `scope.retract_force_stop_n` and holds, the
 /// tip still. The true force stays under that stop + 20 % in a jam of 5000 N/m (measured
 /// 10.5-12.0 N, seeds 1-3; 15.3-17.6 N before the stop acted on its prediction) and under
 /// the guard's stop + 20 % at 20 000 N/m (11.1-15.2 N); without the stop it goes on
@@ -163,10 +163,10 @@ fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
             j.held
         );
         assert!(
-            j.peak_n < 1.2 * c.scope.retract_force_stop,
+            j.peak_n < 1.2 * c.scope.retract_force_stop_n,
             "seed {seed}: true force {:.1} N, over the {} N retract stop + 20 %",
             j.peak_n,
-            c.scope.retract_force_stop
+            c.scope.retract_force_stop_n
         );
         assert!(
             j.moved_while_held_m < 0.0002,
@@ -176,7 +176,7 @@ fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
         let mut j = jam(&c, seed, true, 20_000.0, 1.0);
         assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}");
         assert!(
-            j.peak_n < 1.2 * c.guard.force_stop,
+            j.peak_n < 1.2 * c.guard.force_stop_n,
             "seed {seed}: 20 000 N/m: true force {:.1} N",
             j.peak_n
         );
@@ -184,7 +184,7 @@ fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
         // taken (the stop acted on the predicted force) meets the stop again, under the
         // guard's stop + 20 % (the bound at this stiffness).
         let s = &mut j.session;
-        start_while_caught(s, c.guard.force_stop, seed);
+        start_while_caught(s, c.guard.force_stop_n, seed);
         // Freed: once the estimate is under the limit a start goes on withdrawing, to IDLE.
         s.world_mut().set_jam(None);
         let t = s.world().time();
@@ -206,7 +206,7 @@ fn a_jammed_withdrawal_brakes_and_holds_until_the_operator_starts_it_again() {
         assert_eq!(phase, Phase::Idle, "seed {seed}");
         let without = jam(&without_stop(), seed, true, 5000.0, 2.0);
         assert!(
-            without.peak_n > 1.2 * c.guard.force_stop,
+            without.peak_n > 1.2 * c.guard.force_stop_n,
             "seed {seed}: without the stop only {:.1} N",
             without.peak_n
         );
@@ -229,7 +229,7 @@ fn a_jammed_pan_stays_under_the_stop_and_holds_with_the_scope_where_it_stopped()
         for k in STIFFNESSES {
             let j = jam(&c, seed, false, k, 3.0);
             assert!(
-                j.peak_n < 1.2 * c.guard.force_stop,
+                j.peak_n < 1.2 * c.guard.force_stop_n,
                 "seed {seed}, {k} N/m: true force {:.1} N",
                 j.peak_n
             );
@@ -265,7 +265,7 @@ fn a_jammed_pan_stays_under_the_stop_and_holds_with_the_scope_where_it_stopped()
         }
     }
     assert!(
-        worst_without > 1.2 * c.guard.force_stop,
+        worst_without > 1.2 * c.guard.force_stop_n,
         "without the stop only {worst_without:.1} N"
     );
 }

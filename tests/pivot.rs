@@ -125,10 +125,10 @@ fn the_torques_low_pass_lowers_the_wall_drag_and_the_force_across_the_shaft() {
     // The shipped 5 ms low-pass at the plant's 1 kHz against the newest sample alone (the
     // controller's read once per 10 ms period), everything else equal.
     let raw = ControllerParams {
-        torque_filter_time_constant: 0.0,
+        torque_filter_time_constant_s: 0.0,
         ..shipped()
     };
-    assert!(shipped().torque_filter_time_constant > 0.0);
+    assert!(shipped().torque_filter_time_constant_s > 0.0);
     let [(wall, wall_raw), (force, force_raw)] = sums(
         &shipped(),
         &raw,
@@ -167,7 +167,7 @@ fn a_wrong_prior_depth_is_corrected_while_pivoting() {
     let truth = cfg.sim.trocar.pivot_depth_m;
     for prior in [0.0, 0.045] {
         let mut c = shipped();
-        c.scope.fulcrum.prior_depth = prior;
+        c.scope.fulcrum.prior_depth_m = prior;
         let r = run(&cfg, &c, 2);
         assert!(
             (r.fulcrum_depth_m - truth).abs() < 0.6 * (prior - truth).abs(),
@@ -310,7 +310,7 @@ fn retract_withdraws_to_the_stand_off_point_then_idles() {
     // which breathing moves by up to 4 mm and the hand-eye error biases), and out of the
     // real trocar.
     assert!(
-        (depth + c.standoff).abs() < 0.002,
+        (depth + c.standoff_m).abs() < 0.002,
         "tip {:.1} mm past the port",
         depth * 1e3
     );
@@ -403,7 +403,7 @@ fn pivoting_and_retract_keep_the_tip_motion_limits() {
             _ => break,
         }
     }
-    let dt = shipped().dt;
+    let dt = shipped().dt_s;
     let poses: Vec<_> = commands.iter().map(|q| kin.fk(q).unwrap()).collect();
     let diff = |x: &[nalgebra::Vector3<f64>]| -> Vec<nalgebra::Vector3<f64>> {
         x.windows(2).map(|w| (w[1] - w[0]) / dt).collect()
@@ -420,12 +420,12 @@ fn pivoting_and_retract_keep_the_tip_motion_limits() {
     let (a, al) = (diff(&v), diff(&w));
     let (j, jl) = (diff(&a), diff(&al));
     let got = [
-        ("speed", max(&v), lim.max_speed),
-        ("accel", max(&a), lim.max_accel),
-        ("jerk", max(&j), lim.max_jerk),
-        ("angular speed", max(&w), lim.max_angular_speed),
-        ("angular accel", max(&al), lim.max_angular_accel),
-        ("angular jerk", max(&jl), lim.max_angular_jerk),
+        ("speed", max(&v), lim.max_speed_m_s),
+        ("accel", max(&a), lim.max_accel_m_s2),
+        ("jerk", max(&j), lim.max_jerk_m_s3),
+        ("angular speed", max(&w), lim.max_angular_speed_rad_s),
+        ("angular accel", max(&al), lim.max_angular_accel_rad_s2),
+        ("angular jerk", max(&jl), lim.max_angular_jerk_rad_s3),
     ];
     eprintln!("{got:?}");
     for (what, value, bound) in got {
@@ -461,12 +461,12 @@ fn pan_to_the_cone(controller: &ControllerParams, seed: u64) -> (f64, bool) {
 
 /// A shaft pivoted far tilts the trocar and wedges in its bore; with the breathing, the
 /// trocar then pulls or pushes it along its axis. The target depth yields to that force
-/// (`scope.fulcrum.axial_damping`): without it, 8-10 N along the shaft on seeds 1 and 2.
+/// (`scope.fulcrum.axial_damping_ns_per_m`): without it, 8-10 N along the shaft on seeds 1 and 2.
 #[test]
 fn pivoting_to_the_cone_does_not_push_the_trocar_along_its_axis() {
     let shipped = shipped();
     let mut rigid = shipped.clone();
-    rigid.scope.fulcrum.axial_damping = 0.0;
+    rigid.scope.fulcrum.axial_damping_ns_per_m = 0.0;
     let mut before: f64 = 0.0;
     for seed in 1..=3 {
         let (along, cone) = pan_to_the_cone(&shipped, seed);
@@ -492,7 +492,7 @@ fn zooming_out_stops_at_the_docked_depth_and_keeps_the_port() {
     let cfg = realistic();
     let shallow = ControllerParams {
         scope: trocar_docking::control::ScopeParams {
-            min_depth: 0.015,
+            min_depth_m: 0.015,
             ..shipped().scope
         },
         ..shipped()

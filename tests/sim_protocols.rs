@@ -167,7 +167,7 @@ fn trials_json_records_protocol_controller_and_per_arm_figures() {
         serde_json::to_value(shipped.insert_weights).unwrap()
     );
     assert_eq!(ctrl["admittance"], serde_json::to_value(&shipped.admittance).unwrap());
-    assert!((ctrl["dt"].as_f64().unwrap() - 0.01).abs() < 1e-12);
+    assert!((ctrl["dt_s"].as_f64().unwrap() - 0.01).abs() < 1e-12);
     for arm in ["ff", "no_ff"] {
         let a = &v["arms"][arm];
         for key in [

@@ -16,9 +16,9 @@ fn kin() -> Arc<dyn Kinematics> {
     Arc::new(LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).expect("model"))
 }
 
-/// The control period the trials run: the shipped controller's `dt`.
+/// The control period the trials run: the shipped controller's `dt_s`.
 fn shipped_period() -> f64 {
-    load_controller(None).unwrap().dt
+    load_controller(None).unwrap().dt_s
 }
 
 #[test]

@@ -127,7 +127,7 @@ pub fn run_scenario(
     let mut now = 0.0;
     let mut restarts = 0usize;
     while s.wall_us.len() < steps {
-        now += params.dt;
+        now += params.dt_s;
         let (_, trocar) = scenario_trocar(kin, scenario, now).map_err(|e| e.to_string())?;
         // An ideal arm (at its command, no contact): the controller's own time alone.
         let seen = Observation {
@@ -270,7 +270,7 @@ pub fn report(name: &str, params: &ControllerParams, s: &ScenarioSamples) -> Opt
     );
     put("steps_run", serde_json::json!(s.wall_us.len() + s.excluded.total()));
     put("scheduler", serde_json::json!(scheduler_name()));
-    put("dt_s", serde_json::json!(params.dt));
+    put("dt_s", serde_json::json!(params.dt_s));
     put("sqp_time_budget_us", serde_json::json!(params.sqp.time_budget_us));
     put(
         "sqp_max_total_qp_iterations",
@@ -323,7 +323,7 @@ mod tests {
             // Every step run is sampled or excluded in a counted class: 200 steps of an
             // approach (no docking ends) after one tare of 0.3 s.
             let ex = &r.extra["excluded_steps"];
-            let tare_steps = (params.tare.window_s / params.dt).round() as u64;
+            let tare_steps = (params.tare.window_s / params.dt_s).round() as u64;
             assert_eq!(ex["ended_docking"].as_u64(), Some(0), "{ex}");
             assert_eq!(ex["moving_without_solve"].as_u64(), Some(1), "{ex}");
             let tare = ex["tare"].as_u64().unwrap();

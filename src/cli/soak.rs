@@ -13,7 +13,7 @@ pub struct SoakArgs {
     #[arg(long, default_value_t = 60.0)]
     pub minutes: f64,
     /// Control rate, Hz (the physics runs at its own rate, 1 kHz). Default: the controller
-    /// configuration's period (`dt`; the shipped 0.01 s, 100 Hz).
+    /// configuration's period (`dt_s`; the shipped 0.01 s, 100 Hz).
     #[arg(long)]
     pub rate: Option<f64>,
     /// World protocol of `config/sim.yaml`.

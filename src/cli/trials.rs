@@ -1,7 +1,7 @@
 //! `trocar_docking trials`: the paper's experiment at scale. N closed-loop trials per arm
 //! (with and without force feedback) on the same seeds, under one protocol of
 //! `config/sim.yaml` (`paper` or `realistic`), with the controller of
-//! `config/controller.yaml` unchanged but for `force_feedback` (its `dt` is the trials' period); in parallel, with a
+//! `config/controller.yaml` unchanged but for `force_feedback` (its `dt_s` is the trials' period); in parallel, with a
 //! progress bar on stderr; prints a summary and a per-trial table (JSON with `--json`) and
 //! writes to `--out`: `summary.json`, `trials.csv`, `series/<arm>_<seed>.csv` and the
 //! plots `force_<protocol>.png`, `m_box_<protocol>.png`.
@@ -53,7 +53,7 @@ pub struct TrialsArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Controller configuration (default: config/controller.yaml when present, else the
-    /// copy built into the binary): run unchanged but for `force_feedback` (its `dt` is the control period).
+    /// copy built into the binary): run unchanged but for `force_feedback` (its `dt_s` is the control period).
     #[arg(long)]
     pub controller_config: Option<PathBuf>,
     /// Output directory for CSV, JSON and PNG.

@@ -21,7 +21,7 @@
 //! position: the command is what the position-controlled arm tracks, the velocity box is
 //! relative to it, and a lagging measurement then never causes a jump. Because commands
 //! advance from the last command, the controller also holds while a measured joint is more
-//! than `guard.max_tracking_error` from it (the arm stopped following); the hold clears
+//! than `guard.max_tracking_error_rad` from it (the arm stopped following); the hold clears
 //! once the arm has caught up.
 
 use nalgebra::{Isometry3, Point3, Vector3};
@@ -122,10 +122,10 @@ struct AxisTargets {
 
 /// How far ahead the force stop after docking looks, s: how long a force that rises at a
 /// steady rate goes on rising after the estimate showed it, i.e. the lag of the estimate
-/// behind the true force (the torques' low-pass `torque_filter_time_constant` plus the
+/// behind the true force (the torques' low-pass `torque_filter_time_constant_s` plus the
 /// estimate's first-order low-pass at `admittance.filter_cutoff_hz`, 1 / (2 pi f_c): each
 /// first-order lag delays a ramp by its time constant), plus one control period (the
-/// step whose command brakes), plus the arm's tracking lag `scope.arm_lag` (a position-mode
+/// step whose command brakes), plus the arm's tracking lag `scope.arm_lag_s` (a position-mode
 /// joint servo reaches a stopped command about that late). With the shipped values
 /// 5 + 8 + 10 + 20 = 43 ms.
 fn force_stop_lead(p: &ControllerParams) -> f64 {
@@ -135,7 +135,7 @@ fn force_stop_lead(p: &ControllerParams) -> f64 {
     } else {
         0.0
     };
-    p.torque_filter_time_constant + estimate + p.dt + p.scope.arm_lag
+    p.torque_filter_time_constant_s + estimate + p.dt_s + p.scope.arm_lag_s
 }
 
 /// The docking controller, guarded: what the nodes, the trials and the tests run.
@@ -159,7 +159,7 @@ impl Guarded<OptimalController> {
     }
 }
 
-/// The controller's low-pass of the raw external torques (`torque_filter_time_constant`,
+/// The controller's low-pass of the raw external torques (`torque_filter_time_constant_s`,
 /// [`StreamLowPass`]): applied to every sample in the order they arrived, at their own rate
 /// (every FRI cycle, 1-2 ms), not once per control period, so it keeps the noise of the
 /// samples between two steps out of the estimate. It belongs to the torque stream, not to a
@@ -217,7 +217,7 @@ impl Controller {
         let (law, guard) = self.parts_mut();
         live::check_phase(phase, &LiveValues::of(&law.params), values)?;
         values.write_to(&mut law.params);
-        guard.set_force_stop(law.params.guard.force_stop);
+        guard.set_force_stop(law.params.guard.force_stop_n);
         Ok(())
     }
 }
@@ -228,7 +228,7 @@ impl OptimalController {
         params.validate().map_err(|e| ParamError::new(super::params::WHAT, e))?;
         let sqp = SqpSolver::new(params.sqp.clone()).map_err(|e| ParamError::new(super::params::WHAT, e))?;
         Ok(Self {
-            torques: TorqueFilter::new(params.torque_filter_time_constant),
+            torques: TorqueFilter::new(params.torque_filter_time_constant_s),
             params,
             sqp,
             run: RunState::default(),
@@ -258,7 +258,7 @@ impl OptimalController {
     }
 
     fn filtered_trocar(&mut self, pose: Isometry3<f64>, stamp: f64) -> Isometry3<f64> {
-        let tc = self.params.trocar_filter_time_constant;
+        let tc = self.params.trocar_filter_time_constant_s;
         let out = match self.run.trocar_filtered {
             Some((prev, t_prev)) if tc > 0.0 && stamp > t_prev => {
                 let a = ((stamp - t_prev) / (tc + stamp - t_prev)).clamp(0.0, 1.0);
@@ -305,7 +305,7 @@ impl OptimalController {
             Some(j) if !j.value.iter().all(|x| x.is_finite()) => {
                 return Err(early(HoldReason::NonFiniteJointState, None, None))
             }
-            Some(j) if !CommandGuard::fresh(input.now - j.stamp, guard.params().joint_timeout) => {
+            Some(j) if !CommandGuard::fresh(input.now - j.stamp, guard.params().joint_timeout_s) => {
                 return Err(early(
                     HoldReason::StaleJointState {
                         age: input.now - j.stamp,
@@ -351,7 +351,7 @@ impl OptimalController {
         match input.tau_ext {
             Some(t)
                 if t.value.iter().all(|x| x.is_finite())
-                    && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout) =>
+                    && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout_s) =>
             {
                 let tau = self.run.tare.correct(&t.value);
                 self.run
@@ -375,7 +375,7 @@ impl OptimalController {
         if let Err(r) = guard.check_force(f.norm()) {
             if moving {
                 self.run.supervisor.hold(r, true);
-                if self.params.retreat_distance > 0.0 {
+                if self.params.retreat_distance_m > 0.0 {
                     self.run.retreat = RetreatState::Due;
                 }
                 return Ok(());
@@ -385,8 +385,8 @@ impl OptimalController {
         Ok(())
     }
 
-    /// The force stop after docking: in DONE over the guard's `force_stop`, in RETRACT over
-    /// `scope.retract_force_stop` (lower: the withdrawal must brake before the stop), hold,
+    /// The force stop after docking: in DONE over the guard's `force_stop_n`, in RETRACT over
+    /// `scope.retract_force_stop_n` (lower: the withdrawal must brake before the stop), hold,
     /// latched, `FORCE_LIMIT`; the law brakes its rates to rest within the motion limits and
     /// then stands still ([`Pivot::hold`]): the scope stays where it stopped, neither
     /// pulled out nor pushed in. Only the operator's start resumes (DONE re-anchored at the
@@ -398,8 +398,8 @@ impl OptimalController {
     /// estimate lags it and the arm brakes and catches up with its command.
     fn pivot_force_stop(&mut self, phase: Phase, force: f64, rate: f64) {
         let limit = match phase {
-            Phase::Done => self.params.guard.force_stop,
-            Phase::Retract => self.params.scope.retract_force_stop,
+            Phase::Done => self.params.guard.force_stop_n,
+            Phase::Retract => self.params.scope.retract_force_stop_n,
             _ => return,
         };
         let ahead = if rate.is_finite() {
@@ -434,7 +434,7 @@ impl OptimalController {
         match input.trocar {
             None => Err(early(HoldReason::NoTrocarPose)),
             Some(p) if !pose_is_finite(&p.value) => Err(early(HoldReason::BadTrocarPose)),
-            Some(p) if !CommandGuard::fresh(input.now - p.stamp, guard.params().trocar_timeout) => {
+            Some(p) if !CommandGuard::fresh(input.now - p.stamp, guard.params().trocar_timeout_s) => {
                 Err(early(HoldReason::StaleTrocarPose {
                     age: input.now - p.stamp,
                 }))
@@ -460,36 +460,36 @@ impl OptimalController {
                     let s_now = axis.depth_of(&tip);
                     Retreat {
                         depth: s_now,
-                        end: s_now - p.retreat_distance,
+                        end: s_now - p.retreat_distance_m,
                     }
                 }
             };
-            let depth = (r.depth - p.insert_speed * dt).max(r.end);
+            let depth = (r.depth - p.insert_speed_m_s * dt).max(r.end);
             self.run.retreat = RetreatState::Backing(Retreat { depth, ..r });
             let mut w = p.insert_weights;
             w.reference = 0.0;
             (w, axis.point_at(depth))
         } else if self.run.supervisor.phase() == Phase::Approach {
-            let standoff = axis.point_at(-p.standoff);
+            let standoff = axis.point_at(-p.standoff_m);
             let from = self.run.target.unwrap_or(tip);
             let d = standoff - from;
-            let step = p.approach_speed * dt;
+            let step = p.approach_speed_m_s * dt;
             let t = if d.norm() > step {
                 from + d * (step / d.norm())
             } else {
                 standoff
             };
             self.run.target = Some(t);
-            self.run.insert_depth = -p.standoff;
+            self.run.insert_depth = -p.standoff_m;
             (p.approach_weights, t)
         } else {
             let f_axial_resisting = -f.dot(&axis.direction);
-            let speed = p.insert_speed * p.admittance.insert_speed_ratio(f_axial_resisting);
+            let speed = p.insert_speed_m_s * p.admittance.insert_speed_ratio(f_axial_resisting);
             // Never run ahead of the tip by more than a few millimetres.
             let s_tip = axis.depth_of(&tip);
             let r = &mut self.run;
             r.insert_depth = (r.insert_depth + speed * dt)
-                .min(p.insertion_depth)
+                .min(p.insertion_depth_m)
                 .min(s_tip.max(r.insert_depth) + 0.005);
             let t = axis.point_at(r.insert_depth);
             r.target = Some(t);
@@ -577,17 +577,17 @@ impl OptimalController {
         let r = &mut self.run;
         let phase = r.supervisor.phase();
         match phase {
-            Phase::Approach if (tip_p - axis.point_at(-p.standoff)).norm() < p.approach_tolerance => {
+            Phase::Approach if (tip_p - axis.point_at(-p.standoff_m)).norm() < p.approach_tolerance_m => {
                 if angle < p.approach_angle_tolerance_deg.to_radians() {
                     r.stalled_for = 0.0;
                     r.supervisor.approach_reached();
                 } else {
                     r.stalled_for += dt;
-                    if r.stalled_for > p.approach_stall_timeout {
+                    if r.stalled_for > p.approach_stall_timeout_s {
                         r.stalled_for = 0.0;
                         let why = HoldReason::AlignmentStall {
                             angle_deg: angle.to_degrees(),
-                            after_s: p.approach_stall_timeout,
+                            after_s: p.approach_stall_timeout_s,
                         };
                         r.supervisor.hold(why, true);
                     }
@@ -598,8 +598,8 @@ impl OptimalController {
                 // lucky sample of a noisy trocar estimate never ends the docking.
                 let at_goal = r
                     .goal_window
-                    .add(p.goal_window, tip_p - goal, angle, dt)
-                    .is_some_and(|(e, g)| e < p.goal_tolerance && g < p.goal_angle_tolerance_deg.to_radians());
+                    .add(p.goal_window_s, tip_p - goal, angle, dt)
+                    .is_some_and(|(e, g)| e < p.goal_tolerance_m && g < p.goal_angle_tolerance_deg.to_radians());
                 if at_goal {
                     r.supervisor.goal_reached(None);
                 } else {
@@ -608,7 +608,7 @@ impl OptimalController {
                         optical_axis,
                         force: f,
                     };
-                    let seated = r.seated.update(&p.seated, axis, p.insertion_depth, &state, dt);
+                    let seated = r.seated.update(&p.seated, axis, p.insertion_depth_m, &state, dt);
                     if let Some(s) = seated {
                         r.supervisor.goal_reached(Some(s));
                     }
@@ -630,7 +630,7 @@ impl OptimalController {
         let p = &self.params;
         let tau = input.tau_ext.filter(|t| {
             t.value.iter().all(|x| x.is_finite())
-                && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout)
+                && CommandGuard::fresh(input.now - t.stamp, guard.params().torque_timeout_s)
         });
         let r = &mut self.run;
         match tau {
@@ -706,7 +706,7 @@ impl OptimalController {
             pivot.observe_port(sp, &t.value, t.stamp, input.now);
         }
         if self.run.supervisor.phase() == Phase::Retract && !pivot.retracting() && !held {
-            pivot.retract_to(-self.params.standoff);
+            pivot.retract_to(-self.params.standoff_m);
         }
         // The torques less the tare's offset but not its per-joint dead-band (2 sigma of the
         // tare window's noise, 0.6 Nm in the realistic world): a few newtons across the shaft
@@ -740,7 +740,7 @@ impl OptimalController {
         self.run.last_command = Some(cmd);
         let pivot = self.run.pivot.as_ref()?;
         let back =
-            nalgebra::distance(&Point3::from(arm.tip.translation.vector), &t.point) < self.params.approach_tolerance;
+            nalgebra::distance(&Point3::from(arm.tip.translation.vector), &t.point) < self.params.approach_tolerance_m;
         let status = pivot.report(&self.params.scope, &arm.tip, &f);
         if pivot.retracted() && back {
             self.run.supervisor.retract_done();
@@ -777,7 +777,7 @@ impl OptimalController {
         }
         let trocar = self.trocar_pose(input, &arm, ctx.guard)?;
         let axis = InsertionAxis::from_pose(&trocar);
-        let goal = axis.point_at(self.params.insertion_depth);
+        let goal = axis.point_at(self.params.insertion_depth_m);
         let tip_p = Point3::from(arm.tip.translation.vector);
         if let (Phase::Approach, Some(t)) = (self.run.supervisor.phase(), input.tau_ext) {
             let pose = (&arm.jac, &arm.tip.rotation);
@@ -814,7 +814,7 @@ impl OptimalController {
 
 impl CommandSource for OptimalController {
     fn period(&self) -> f64 {
-        self.params.dt
+        self.params.dt_s
     }
 
     fn phase(&self) -> Phase {

@@ -83,7 +83,7 @@ pub struct ControlInput {
     pub joints: Option<Stamped<JointVector>>,
     /// The newest raw external joint torques, Nm (`None`: missing, or the newest message
     /// rejected). The controller low-passes the stream itself
-    /// (`torque_filter_time_constant`, over [`ControlInput::torque_samples`]).
+    /// (`torque_filter_time_constant_s`, over [`ControlInput::torque_samples`]).
     pub tau_ext: Option<Stamped<JointVector>>,
     /// Every raw torque sample that arrived since the last step, in order, `tau_ext` the
     /// newest of them. A caller that hands only the newest sample may leave it empty: the

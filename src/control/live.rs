@@ -14,6 +14,7 @@
 //!   contact; a change mid-contact would change the response the surgeon is watching. They
 //!   change only in IDLE (before a start: they apply from the next start).
 
+use crate::config::Renamed;
 use crate::control::supervisor::Phase;
 use crate::control::ControllerParams;
 
@@ -147,76 +148,76 @@ pub const LIVE_PARAMS: [LiveParam; N_LIVE] = [
         insert_weights.reference
     ),
     live!(
-        "approach_speed",
+        "approach_speed_m_s",
         "speed of the approach target point, m/s",
         0.005,
         0.1,
         LowerLive,
-        approach_speed
+        approach_speed_m_s
     ),
     live!(
-        "insert_speed",
+        "insert_speed_m_s",
         "speed of the insertion target point, m/s",
         0.001,
         0.05,
         LowerLive,
-        insert_speed
+        insert_speed_m_s
     ),
     live!(
-        "force_stop",
+        "force_stop_n",
         "force stop: hold over this force estimate, N",
         1.0,
         60.0,
         LowerLive,
-        guard.force_stop
+        guard.force_stop_n
     ),
     live!(
-        "retract_force_stop",
-        "retract's force stop, N (at most force_stop)",
+        "retract_force_stop_n",
+        "retract's force stop, N (at most force_stop_n)",
         1.0,
         60.0,
         LowerLive,
-        scope.retract_force_stop
+        scope.retract_force_stop_n
     ),
     live!(
-        "max_tip_speed",
+        "max_tip_speed_m_s",
         "the commanded tip's speed limit, m/s",
         0.005,
         0.25,
         LowerLive,
-        motion.max_speed
+        motion.max_speed_m_s
     ),
     live!(
-        "max_tip_angular_speed",
+        "max_tip_angular_speed_rad_s",
         "the commanded tip's angular speed limit, rad/s",
         0.05,
         2.0,
         LowerLive,
-        motion.max_angular_speed
+        motion.max_angular_speed_rad_s
     ),
     live!(
-        "admittance_mass",
+        "admittance_mass_kg",
         "admittance mass, kg",
         0.01,
         10.0,
         Idle,
-        admittance.mass
+        admittance.mass_kg
     ),
     live!(
-        "admittance_damping",
+        "admittance_damping_ns_per_m",
         "admittance damping, N s/m",
         0.0,
         1000.0,
         Idle,
-        admittance.damping
+        admittance.damping_ns_per_m
     ),
     live!(
-        "admittance_stiffness",
+        "admittance_stiffness_n_per_m",
         "admittance stiffness, N/m",
         0.0,
         5000.0,
         Idle,
-        admittance.stiffness
+        admittance.stiffness_n_per_m
     ),
     live!(
         "pivot_rcm_weight",
@@ -227,21 +228,37 @@ pub const LIVE_PARAMS: [LiveParam; N_LIVE] = [
         scope.rcm_weight
     ),
     live!(
-        "pivot_max_angular_speed",
+        "pivot_max_angular_speed_rad_s",
         "after DONE: pan and tilt speed limit, rad/s",
         0.01,
         1.0,
         LowerLive,
-        scope.max_angular_speed
+        scope.max_angular_speed_rad_s
     ),
     live!(
-        "pivot_max_zoom_speed",
+        "pivot_max_zoom_speed_m_s",
         "after DONE: in and out speed limit, m/s",
         0.001,
         0.05,
         LowerLive,
-        scope.max_zoom_speed
+        scope.max_zoom_speed_m_s
     ),
+];
+
+/// The tunable parameters renamed (each now named with its unit, as its key in
+/// `config/controller.yaml`): a request with an old name is refused naming the new one.
+pub const RENAMED: &[Renamed] = &[
+    Renamed::key("approach_speed", "approach_speed_m_s"),
+    Renamed::key("insert_speed", "insert_speed_m_s"),
+    Renamed::key("force_stop", "force_stop_n"),
+    Renamed::key("retract_force_stop", "retract_force_stop_n"),
+    Renamed::key("max_tip_speed", "max_tip_speed_m_s"),
+    Renamed::key("max_tip_angular_speed", "max_tip_angular_speed_rad_s"),
+    Renamed::key("admittance_mass", "admittance_mass_kg"),
+    Renamed::key("admittance_damping", "admittance_damping_ns_per_m"),
+    Renamed::key("admittance_stiffness", "admittance_stiffness_n_per_m"),
+    Renamed::key("pivot_max_angular_speed", "pivot_max_angular_speed_rad_s"),
+    Renamed::key("pivot_max_zoom_speed", "pivot_max_zoom_speed_m_s"),
 ];
 
 /// A value for every tunable parameter, in [`LIVE_PARAMS`] order.
@@ -305,10 +322,12 @@ pub fn check_phase(phase: Phase, old: &LiveValues, new: &LiveValues) -> Result<(
 pub fn propose(params: &ControllerParams, changes: &[(String, f64)]) -> Result<LiveValues, String> {
     let mut v = LiveValues::of(params);
     for (name, value) in changes {
-        let i = LIVE_PARAMS
-            .iter()
-            .position(|d| d.name == name)
-            .ok_or_else(|| format!("{name} is not a tunable parameter"))?;
+        let i = LIVE_PARAMS.iter().position(|d| d.name == name).ok_or_else(|| {
+            match RENAMED.iter().find(|r| r.old == name) {
+                Some(r) => format!("{name} is not a tunable parameter: it is now {}", r.new),
+                None => format!("{name} is not a tunable parameter"),
+            }
+        })?;
         let d = &LIVE_PARAMS[i];
         if !(value.is_finite() && (d.min..=d.max).contains(value)) {
             return Err(format!("{name} must be in [{}, {}], got {value}", d.min, d.max));
@@ -343,8 +362,8 @@ mod tests {
                 d.max
             );
         }
-        assert_eq!(v.0[12], p.guard.force_stop);
-        assert_eq!(v.0[17], p.admittance.damping);
+        assert_eq!(v.0[12], p.guard.force_stop_n);
+        assert_eq!(v.0[17], p.admittance.damping_ns_per_m);
         let mut names: Vec<_> = LIVE_PARAMS.iter().map(|d| d.name).collect();
         names.sort_unstable();
         names.dedup();
@@ -354,18 +373,24 @@ mod tests {
     #[test]
     fn a_proposal_is_checked_by_name_range_and_validation() {
         let p = shipped();
-        let v = propose(&p, &[("insert_speed".into(), 0.02)]).unwrap();
+        let v = propose(&p, &[("insert_speed_m_s".into(), 0.02)]).unwrap();
         let mut q = p.clone();
         v.write_to(&mut q);
-        assert_eq!(q.insert_speed, 0.02);
-        assert_eq!(q.guard.force_stop, p.guard.force_stop, "the others unchanged");
+        assert_eq!(q.insert_speed_m_s, 0.02);
+        assert_eq!(q.guard.force_stop_n, p.guard.force_stop_n, "the others unchanged");
         let e = propose(&p, &[("gain".into(), 1.0)]).unwrap_err();
         assert!(e.contains("gain is not a tunable"), "{e}");
-        let e = propose(&p, &[("insert_speed".into(), 0.5)]).unwrap_err();
-        assert!(e.contains("insert_speed must be in"), "{e}");
-        assert!(propose(&p, &[("force_stop".into(), f64::NAN)]).is_err());
+        let e = propose(&p, &[("insert_speed_m_s".into(), 0.5)]).unwrap_err();
+        assert!(e.contains("insert_speed_m_s must be in"), "{e}");
+        assert!(propose(&p, &[("force_stop_n".into(), f64::NAN)]).is_err());
+        // An old name is refused naming the new one.
+        let e = propose(&p, &[("force_stop".into(), 15.0)]).unwrap_err();
+        assert!(
+            e.contains("force_stop is not a tunable parameter: it is now force_stop_n"),
+            "{e}"
+        );
         // In range, but the whole set is invalid: the retract stop above the force stop.
-        let e = propose(&p, &[("force_stop".into(), 5.0)]).unwrap_err();
+        let e = propose(&p, &[("force_stop_n".into(), 5.0)]).unwrap_err();
         assert!(e.contains("retract_force_stop"), "{e}");
     }
 
@@ -377,10 +402,10 @@ mod tests {
             v.0[i] = x;
             v
         };
-        let force = LIVE_PARAMS.iter().position(|d| d.name == "force_stop").unwrap();
+        let force = LIVE_PARAMS.iter().position(|d| d.name == "force_stop_n").unwrap();
         let k = LIVE_PARAMS
             .iter()
-            .position(|d| d.name == "admittance_stiffness")
+            .position(|d| d.name == "admittance_stiffness_n_per_m")
             .unwrap();
         let w = LIVE_PARAMS.iter().position(|d| d.name == "insert_w_axis").unwrap();
         for phase in [Phase::Insert, Phase::Done, Phase::Retract, Phase::Hold, Phase::Aborted] {
@@ -389,7 +414,7 @@ mod tests {
                 "lowering in {phase}"
             );
             let e = check_phase(phase, &old, &with(force, 30.0)).unwrap_err();
-            assert!(e.contains("force_stop may only be lowered"), "{e}");
+            assert!(e.contains("force_stop_n may only be lowered"), "{e}");
             assert!(
                 check_phase(phase, &old, &with(k, 50.0)).is_err(),
                 "admittance in {phase}"

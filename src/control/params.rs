@@ -10,7 +10,7 @@ use super::safety::guard::GuardParams;
 use super::safety::motion::MotionLimits;
 use super::scope::command::ScopeParams;
 use super::sqp::{CostWeights, SqpSettings};
-use crate::config::Shipped;
+use crate::config::{Renamed, Shipped};
 use crate::validate;
 
 /// The text of `config/controller.yaml` as built into the binary.
@@ -18,7 +18,84 @@ pub const SHIPPED_YAML: &str = include_str!("../../config/controller.yaml");
 
 /// `config/controller.yaml` as built into the binary: every default of [`ControllerParams`]
 /// and of its sections is its value there (written once, with its comment and source).
-pub static SHIPPED: Shipped = Shipped::new("config/controller.yaml", SHIPPED_YAML);
+pub static SHIPPED: Shipped = Shipped::with_renamed("config/controller.yaml", SHIPPED_YAML, RENAMED);
+
+/// The renamed keys of `config/controller.yaml` (each now named with its unit): an old key is
+/// refused naming the new one.
+const RENAMED: &[Renamed] = &[
+    Renamed::key("dt", "dt_s"),
+    Renamed::key("insertion_depth", "insertion_depth_m"),
+    Renamed::key("standoff", "standoff_m"),
+    Renamed::key("approach_speed", "approach_speed_m_s"),
+    Renamed::key("insert_speed", "insert_speed_m_s"),
+    Renamed::key("approach_tolerance", "approach_tolerance_m"),
+    Renamed::key("goal_tolerance", "goal_tolerance_m"),
+    Renamed::key("goal_window", "goal_window_s"),
+    Renamed::key("trocar_filter_time_constant", "trocar_filter_time_constant_s"),
+    Renamed::key("torque_filter_time_constant", "torque_filter_time_constant_s"),
+    Renamed::key("retreat_distance", "retreat_distance_m"),
+    Renamed::key("approach_stall_timeout", "approach_stall_timeout_s"),
+    Renamed::key("seated.lateral_tolerance", "seated.lateral_tolerance_m"),
+    Renamed::key("seated.depth_tolerance", "seated.depth_tolerance_m"),
+    Renamed::key("seated.min_lateral_force", "seated.min_lateral_force_n"),
+    Renamed::key("seated.max_motion", "seated.max_motion_m"),
+    Renamed::key("seated.settle_time", "seated.settle_time_s"),
+    Renamed::key("admittance.torque_deadband", "admittance.torque_deadband_nm"),
+    Renamed::key("admittance.force_deadband", "admittance.force_deadband_n"),
+    Renamed::key("admittance.mass", "admittance.mass_kg"),
+    Renamed::key("admittance.damping", "admittance.damping_ns_per_m"),
+    Renamed::key("admittance.stiffness", "admittance.stiffness_n_per_m"),
+    Renamed::key("admittance.max_displacement", "admittance.max_displacement_m"),
+    Renamed::key("admittance.axial_force_full_stop", "admittance.axial_force_full_stop_n"),
+    Renamed::key("guard.position_margin", "guard.position_margin_rad"),
+    Renamed::key("guard.force_stop", "guard.force_stop_n"),
+    Renamed::key("guard.joint_timeout", "guard.joint_timeout_s"),
+    Renamed::key("guard.trocar_timeout", "guard.trocar_timeout_s"),
+    Renamed::key("guard.torque_timeout", "guard.torque_timeout_s"),
+    Renamed::key("guard.max_tracking_error", "guard.max_tracking_error_rad"),
+    Renamed::key("guard.max_command_lead", "guard.max_command_lead_rad"),
+    Renamed::key("guard.follow_timeout", "guard.follow_timeout_s"),
+    Renamed::key("guard.max_clock_jump", "guard.max_clock_jump_s"),
+    Renamed::key("motion.max_speed", "motion.max_speed_m_s"),
+    Renamed::key("motion.max_accel", "motion.max_accel_m_s2"),
+    Renamed::key("motion.max_jerk", "motion.max_jerk_m_s3"),
+    Renamed::key("motion.max_angular_speed", "motion.max_angular_speed_rad_s"),
+    Renamed::key("motion.max_angular_accel", "motion.max_angular_accel_rad_s2"),
+    Renamed::key("motion.max_angular_jerk", "motion.max_angular_jerk_rad_s3"),
+    Renamed::key("sqp.tolerance", "sqp.tolerance_rad"),
+    Renamed::key("scope.command_timeout", "scope.command_timeout_s"),
+    Renamed::key("scope.max_angular_speed", "scope.max_angular_speed_rad_s"),
+    Renamed::key("scope.max_roll_speed", "scope.max_roll_speed_rad_s"),
+    Renamed::key("scope.max_zoom_speed", "scope.max_zoom_speed_m_s"),
+    Renamed::key("scope.min_depth", "scope.min_depth_m"),
+    Renamed::key("scope.max_depth", "scope.max_depth_m"),
+    Renamed::key("scope.retract_speed", "scope.retract_speed_m_s"),
+    Renamed::key("scope.retract_force_stop", "scope.retract_force_stop_n"),
+    Renamed::key("scope.arm_lag", "scope.arm_lag_s"),
+    Renamed::key("scope.breathing.max_offset", "scope.breathing.max_offset_m"),
+    Renamed::key("scope.breathing.max_speed", "scope.breathing.max_speed_m_s"),
+    Renamed::key("scope.breathing.max_age", "scope.breathing.max_age_s"),
+    Renamed::key("scope.breathing.max_jump", "scope.breathing.max_jump_m"),
+    Renamed::key("scope.fulcrum.prior_depth", "scope.fulcrum.prior_depth_m"),
+    Renamed::key("scope.fulcrum.stiffness", "scope.fulcrum.stiffness_n_per_m"),
+    Renamed::key("scope.fulcrum.damping", "scope.fulcrum.damping_ns_per_m"),
+    Renamed::key("scope.fulcrum.force_deadband", "scope.fulcrum.force_deadband_n"),
+    Renamed::key(
+        "scope.fulcrum.still_force_deadband",
+        "scope.fulcrum.still_force_deadband_n",
+    ),
+    Renamed::key("scope.fulcrum.max_displacement", "scope.fulcrum.max_displacement_m"),
+    Renamed::key("scope.fulcrum.max_lateral_speed", "scope.fulcrum.max_lateral_speed_m_s"),
+    Renamed::key("scope.fulcrum.depth_gain", "scope.fulcrum.depth_gain_m_per_ns"),
+    Renamed::key("scope.fulcrum.min_pivot_speed", "scope.fulcrum.min_pivot_speed_rad_s"),
+    Renamed::key("scope.fulcrum.axial_damping", "scope.fulcrum.axial_damping_ns_per_m"),
+    Renamed::key("scope.fulcrum.axial_deadband", "scope.fulcrum.axial_deadband_n"),
+    Renamed::key(
+        "scope.fulcrum.axial_still_deadband",
+        "scope.fulcrum.axial_still_deadband_n",
+    ),
+    Renamed::key("scope.fulcrum.axial_max_speed", "scope.fulcrum.axial_max_speed_m_s"),
+];
 
 pub use crate::config::ParamError;
 
@@ -31,7 +108,7 @@ pub const WHAT: &str = "controller parameter";
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct ControllerParams {
     /// Control period, s.
-    pub dt: f64,
+    pub dt_s: f64,
     /// Force feedback on (c5 active with the weights below) or off (w5 = 0).
     pub force_feedback: bool,
     /// Weights during APPROACH.
@@ -39,46 +116,46 @@ pub struct ControllerParams {
     /// Weights during INSERT.
     pub insert_weights: CostWeights,
     /// Goal depth past the port along the axis, m.
-    pub insertion_depth: f64,
+    pub insertion_depth_m: f64,
     /// Stand-off distance of the approach point before the port, m.
-    pub standoff: f64,
+    pub standoff_m: f64,
     /// Speed of the approach target point, m/s.
-    pub approach_speed: f64,
+    pub approach_speed_m_s: f64,
     /// Speed of the insertion target point, m/s.
-    pub insert_speed: f64,
+    pub insert_speed_m_s: f64,
     /// APPROACH -> INSERT when the tip is this close to the stand-off point, m.
-    pub approach_tolerance: f64,
+    pub approach_tolerance_m: f64,
     /// ... and the optical axis within this angle of the insertion axis, deg.
     pub approach_angle_tolerance_deg: f64,
     /// DONE when the tip is this close to the goal, m.
-    pub goal_tolerance: f64,
+    pub goal_tolerance_m: f64,
     /// ... and the optical axis within this angle, deg.
     pub goal_angle_tolerance_deg: f64,
     /// DONE is judged on the tip-to-goal error and the angle averaged over windows of this
     /// length, s, so that one lucky sample of a noisy trocar estimate does not end the
     /// docking (0 = judged on each sample); see [`super::docking::goal_window`].
-    pub goal_window: f64,
+    pub goal_window_s: f64,
     /// DONE also for a scope seated in the port beside a biased trocar estimate; see
     /// [`super::docking::seated`].
     pub seated: SeatedParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
-    pub trocar_filter_time_constant: f64,
+    pub trocar_filter_time_constant_s: f64,
     /// Time constant of the first-order low-pass on the external torques at the rate they
     /// arrive (each FRI cycle), s (0 = the newest sample alone); see
     /// [`crate::signal::StreamLowPass`]. Applied by the controller itself, in each step, to
     /// every raw sample since the last ([`crate::control::ControlInput::torque_samples`]).
-    pub torque_filter_time_constant: f64,
+    pub torque_filter_time_constant_s: f64,
     /// Hold when external torques are missing or stale (force monitoring blind).
     pub require_torques: bool,
     /// After a force stop, back out along the axis by this distance, m (0 = stay).
-    pub retreat_distance: f64,
+    pub retreat_distance_m: f64,
     /// Weight of the joint-limit avoidance cost (0 = off); see [`super::sqp::LimitAvoidance`].
     pub limit_avoidance_weight: f64,
     /// Fraction of each joint's half range (inside the guard's margin) where it starts.
     pub limit_avoidance_zone: f64,
     /// Hold (latched) when the tip has sat at the stand-off point this long without
     /// reaching the alignment tolerance (e.g. a joint limit in the way), s.
-    pub approach_stall_timeout: f64,
+    pub approach_stall_timeout_s: f64,
     /// Taring the external torques at start, and tracking their offset out of contact.
     pub tare: TareParams,
     /// Force estimate and admittance law.
@@ -105,24 +182,24 @@ impl ControllerParams {
 
     /// Check every range; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        validate::positive_at_most("dt", self.dt, 0.1)?;
+        validate::positive_at_most("dt_s", self.dt_s, 0.1)?;
         self.approach_weights.validate("approach_weights")?;
         self.insert_weights.validate("insert_weights")?;
-        validate::positive("insertion_depth", self.insertion_depth)?;
-        validate::non_negative("standoff", self.standoff)?;
-        validate::positive("approach_speed", self.approach_speed)?;
-        validate::positive("insert_speed", self.insert_speed)?;
-        validate::positive("approach_tolerance", self.approach_tolerance)?;
+        validate::positive("insertion_depth_m", self.insertion_depth_m)?;
+        validate::non_negative("standoff_m", self.standoff_m)?;
+        validate::positive("approach_speed_m_s", self.approach_speed_m_s)?;
+        validate::positive("insert_speed_m_s", self.insert_speed_m_s)?;
+        validate::positive("approach_tolerance_m", self.approach_tolerance_m)?;
         validate::positive("approach_angle_tolerance_deg", self.approach_angle_tolerance_deg)?;
-        validate::positive("goal_tolerance", self.goal_tolerance)?;
+        validate::positive("goal_tolerance_m", self.goal_tolerance_m)?;
         validate::positive("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
-        validate::non_negative("goal_window", self.goal_window)?;
+        validate::non_negative("goal_window_s", self.goal_window_s)?;
         self.seated.validate()?;
-        validate::non_negative("trocar_filter_time_constant", self.trocar_filter_time_constant)?;
-        validate::non_negative("torque_filter_time_constant", self.torque_filter_time_constant)?;
-        validate::non_negative("retreat_distance", self.retreat_distance)?;
+        validate::non_negative("trocar_filter_time_constant_s", self.trocar_filter_time_constant_s)?;
+        validate::non_negative("torque_filter_time_constant_s", self.torque_filter_time_constant_s)?;
+        validate::non_negative("retreat_distance_m", self.retreat_distance_m)?;
         validate::non_negative("limit_avoidance_weight", self.limit_avoidance_weight)?;
-        validate::positive("approach_stall_timeout", self.approach_stall_timeout)?;
+        validate::positive("approach_stall_timeout_s", self.approach_stall_timeout_s)?;
         if !(0.0..1.0).contains(&self.limit_avoidance_zone) {
             return Err(format!(
                 "limit_avoidance_zone must be in [0, 1), got {}",
@@ -134,10 +211,10 @@ impl ControllerParams {
         self.guard.validate()?;
         self.motion.validate()?;
         self.scope.validate()?;
-        if self.scope.retract_force_stop > self.guard.force_stop {
+        if self.scope.retract_force_stop_n > self.guard.force_stop_n {
             return Err(format!(
-                "scope.retract_force_stop ({} N) must not be above guard.force_stop ({} N)",
-                self.scope.retract_force_stop, self.guard.force_stop
+                "scope.retract_force_stop_n ({} N) must not be above guard.force_stop_n ({} N)",
+                self.scope.retract_force_stop_n, self.guard.force_stop_n
             ));
         }
         self.sqp.validate()
@@ -167,7 +244,7 @@ mod tests {
         );
         // Figures of the file itself, so that the defaults are read, not made up.
         assert_eq!(
-            (p.dt, p.guard.force_stop, p.scope.fulcrum.prior_depth),
+            (p.dt_s, p.guard.force_stop_n, p.scope.fulcrum.prior_depth_m),
             (0.01, 20.0, 0.02)
         );
     }
@@ -178,12 +255,14 @@ mod tests {
         for empty in ["", "# nothing\n", "guard: ~\n", "scope: {fulcrum: {}}\n"] {
             assert_eq!(ControllerParams::from_yaml_str(empty).unwrap(), d, "{empty:?}");
         }
-        let p = ControllerParams::from_yaml_str("guard: {force_stop: 15}\nscope: {fulcrum: {stiffness: 7}}\n").unwrap();
-        assert_eq!(p.guard.force_stop, 15.0);
-        assert_eq!(p.scope.fulcrum.stiffness, 7.0);
+        let p =
+            ControllerParams::from_yaml_str("guard: {force_stop_n: 15}\nscope: {fulcrum: {stiffness_n_per_m: 7}}\n")
+                .unwrap();
+        assert_eq!(p.guard.force_stop_n, 15.0);
+        assert_eq!(p.scope.fulcrum.stiffness_n_per_m, 7.0);
         let same_rest = ControllerParams {
             guard: GuardParams {
-                force_stop: d.guard.force_stop,
+                force_stop_n: d.guard.force_stop_n,
                 ..p.guard.clone()
             },
             scope: ScopeParams {
@@ -201,11 +280,11 @@ mod tests {
             let e = ControllerParams::from_yaml_str(text).unwrap_err().to_string();
             assert!(e.contains(&format!("`{key}`: unknown key")), "{e}");
         }
-        let e = ControllerParams::from_yaml_str("guard: {force_stop: fast}\n")
+        let e = ControllerParams::from_yaml_str("guard: {force_stop_n: fast}\n")
             .unwrap_err()
             .to_string();
         assert!(e.contains("`guard`: invalid type"), "{e}");
-        let e = ControllerParams::from_yaml_str("scope: {fulcrum: {stiffness: []}}\n")
+        let e = ControllerParams::from_yaml_str("scope: {fulcrum: {stiffness_n_per_m: []}}\n")
             .unwrap_err()
             .to_string();
         assert!(e.contains("`scope.fulcrum`: invalid type"), "{e}");
@@ -215,8 +294,40 @@ mod tests {
             .to_string();
         assert!(e.contains("`guard.force_stp`: unknown key"), "{e}");
         // The same from a parameter tree (what the ROS parameter server gives), integers as floats.
-        let p: ControllerParams = serde_json::from_value(serde_json::json!({"guard": {"force_stop": 15}})).unwrap();
-        assert_eq!(p.guard.force_stop, 15.0);
+        let p: ControllerParams = serde_json::from_value(serde_json::json!({"guard": {"force_stop_n": 15}})).unwrap();
+        assert_eq!(p.guard.force_stop_n, 15.0);
         assert_eq!(p.guard.velocity_scale, d.guard.velocity_scale);
+    }
+
+    #[test]
+    fn an_old_key_is_refused_naming_its_new_name() {
+        for (text, message) in [
+            ("dt: 0.001\n", "`dt`: the key is now `dt_s`"),
+            (
+                "guard: {force_stop: 15}\n",
+                "`guard.force_stop`: the key is now `guard.force_stop_n`",
+            ),
+            (
+                "scope: {breathing: {max_speed: 0.01}}\n",
+                "`scope.breathing.max_speed`: the key is now `scope.breathing.max_speed_m_s`",
+            ),
+        ] {
+            let e = ControllerParams::from_yaml_str(text).unwrap_err().to_string();
+            assert!(e.contains(message), "{e}");
+        }
+        // A section read on its own names the same path.
+        let e = crate::config::from_yaml_str::<MotionLimits>("m", "max_accel: 1\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("`motion.max_accel`: the key is now `motion.max_accel_m_s2`"),
+            "{e}"
+        );
+        // Every old key is gone from the file, every new one is in it.
+        let shipped = SHIPPED.section(&[]);
+        for r in RENAMED {
+            let at = |path: &str| path.split('.').try_fold(shipped, |node, key| node.get(key)).is_some();
+            assert!(!at(r.old) && at(r.new), "{} -> {}", r.old, r.new);
+        }
     }
 }

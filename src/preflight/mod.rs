@@ -107,7 +107,7 @@ pub struct Limits {
     pub rate_tolerance: f64,
     /// Lowest camera image rate, Hz: at 5 Hz a frame comes every 0.2 s, so with the
     /// pipeline's ~40 ms and one frame lost the pose is still younger than the controller's
-    /// 0.5 s `trocar_timeout`; below it the docking would hold on stale poses.
+    /// 0.5 s `guard.trocar_timeout_s`; below it the docking would hold on stale poses.
     pub min_image_hz: f64,
     /// Lowest trocar pose rate, Hz (the same reasoning).
     pub min_marker_hz: f64,
@@ -119,7 +119,7 @@ pub struct Limits {
     /// Largest accepted hand-eye rotation residual (the file's max), rad.
     pub hand_eye_max_residual_rad: f64,
     /// The trocar must be reachable with every joint this far inside its limits, deg (the
-    /// guard's margin, `guard.position_margin` of config/controller.yaml).
+    /// guard's margin, `guard.position_margin_rad` of config/controller.yaml).
     pub reach_margin_deg: f64,
 }
 

@@ -7,21 +7,30 @@
 //! zero at its edge). Nothing moves unless the dead-man button is held: while it is, a
 //! command goes out at every tick; when it is released (or the Joy stream stops, or a Joy
 //! is malformed) one zero command stops the scope at once and then the node falls silent,
-//! and the controller's own dead-man (`scope.command_timeout`) holds the scope still.
+//! and the controller's own dead-man (`scope.command_timeout_s`) holds the scope still.
 
 use crate::control::ScopeCommand;
 use crate::ros::msgs::sensor_msgs;
 use crate::validate;
 
-/// One scope motion driven by a joystick axis.
+/// A rotation of the scope (pan, tilt, roll) driven by a joystick axis.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
-pub struct AxisMap {
+pub struct AngularAxis {
     /// Index into `Joy.axes` (-1: this motion is not mapped).
     pub axis: i32,
-    /// Command at full deflection (rad/s for pan, tilt and roll; m/s for zoom); negative
-    /// flips the direction.
-    pub scale: f64,
+    /// Command at full deflection, rad/s; negative flips the direction.
+    pub scale_rad_s: f64,
+}
+
+/// A translation of the scope (zoom) driven by a joystick axis.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LinearAxis {
+    /// Index into `Joy.axes` (-1: this motion is not mapped).
+    pub axis: i32,
+    /// Command at full deflection, m/s; negative flips the direction.
+    pub scale_m_s: f64,
 }
 
 /// Parameters of the `scope_joy` node (its private namespace; `config/scope_joy.yaml`, whose
@@ -36,18 +45,18 @@ pub struct JoyParams {
     /// Frame of the commands.
     pub frame_id: String,
     /// Commands per second while the dead-man is held, 10..=1000 Hz (well above 1 / the
-    /// controller's `scope.command_timeout` of 0.2 s, so that a held stick never times out).
+    /// controller's `scope.command_timeout_s` of 0.2 s, so that a held stick never times out).
     pub rate_hz: f64,
     /// A Joy older than this counts as none (the joystick node stopped), s.
-    pub joy_timeout: f64,
+    pub joy_timeout_s: f64,
     /// Pan about the fulcrum (angular.x).
-    pub pan: AxisMap,
+    pub pan: AngularAxis,
     /// Tilt about the fulcrum (angular.y).
-    pub tilt: AxisMap,
+    pub tilt: AngularAxis,
     /// Roll about the shaft (angular.z).
-    pub roll: AxisMap,
+    pub roll: AngularAxis,
     /// In and out along the shaft (linear.z).
-    pub zoom: AxisMap,
+    pub zoom: LinearAxis,
     /// Dead zone about the centre of every axis, as a fraction of full deflection, [0, 0.9].
     pub dead_zone: f64,
     /// Index into `Joy.buttons` of the dead-man button.
@@ -81,24 +90,24 @@ impl JoyParams {
     /// Check every range; the error names the key.
     pub fn validate(&self) -> Result<(), validate::RangeError> {
         validate::in_range("rate_hz", self.rate_hz, 10.0, 1000.0)?;
-        validate::positive_at_most("joy_timeout", self.joy_timeout, 10.0)?;
+        validate::positive_at_most("joy_timeout_s", self.joy_timeout_s, 10.0)?;
         validate::integer_in_range("deadman_button", i64::from(self.deadman_button), 0, 255)?;
         validate::in_range("dead_zone", self.dead_zone, 0.0, 0.9)?;
-        for (name, a) in [
-            ("pan", &self.pan),
-            ("tilt", &self.tilt),
-            ("roll", &self.roll),
-            ("zoom", &self.zoom),
+        for (name, axis, scale) in [
+            ("pan", self.pan.axis, ("scale_rad_s", self.pan.scale_rad_s)),
+            ("tilt", self.tilt.axis, ("scale_rad_s", self.tilt.scale_rad_s)),
+            ("roll", self.roll.axis, ("scale_rad_s", self.roll.scale_rad_s)),
+            ("zoom", self.zoom.axis, ("scale_m_s", self.zoom.scale_m_s)),
         ] {
-            validate::integer_in_range(&format!("{name}/axis"), i64::from(a.axis), -1, 255)?;
-            validate::in_range(&format!("{name}/scale"), a.scale, -10.0, 10.0)?;
+            validate::integer_in_range(&format!("{name}/axis"), i64::from(axis), -1, 255)?;
+            validate::in_range(&format!("{name}/{}", scale.0), scale.1, -10.0, 10.0)?;
         }
         Ok(())
     }
 
-    /// The value of the axis `a` maps, dead zone applied, times its scale (0 if unmapped).
-    fn axis(&self, joy: &sensor_msgs::Joy, a: &AxisMap) -> Result<f64, JoyError> {
-        let Ok(index) = usize::try_from(a.axis) else {
+    /// The value of Joy axis `axis`, dead zone applied, times `scale` (0 if unmapped).
+    fn axis(&self, joy: &sensor_msgs::Joy, axis: i32, scale: f64) -> Result<f64, JoyError> {
+        let Ok(index) = usize::try_from(axis) else {
             return Ok(0.0);
         };
         let v = f64::from(*joy.axes.get(index).ok_or(JoyError::Missing {
@@ -111,7 +120,7 @@ impl JoyParams {
         }
         let v = v.clamp(-1.0, 1.0);
         let beyond = (v.abs() - self.dead_zone).max(0.0) / (1.0 - self.dead_zone);
-        Ok(v.signum() * beyond * a.scale)
+        Ok(v.signum() * beyond * scale)
     }
 
     /// Whether the dead-man button is held.
@@ -127,10 +136,10 @@ impl JoyParams {
     /// The command of `joy`: `None` while the dead-man button is released.
     pub fn command(&self, joy: &sensor_msgs::Joy) -> Result<Option<ScopeCommand>, JoyError> {
         let cmd = ScopeCommand {
-            pan: self.axis(joy, &self.pan)?,
-            tilt: self.axis(joy, &self.tilt)?,
-            roll: self.axis(joy, &self.roll)?,
-            zoom: self.axis(joy, &self.zoom)?,
+            pan: self.axis(joy, self.pan.axis, self.pan.scale_rad_s)?,
+            tilt: self.axis(joy, self.tilt.axis, self.tilt.scale_rad_s)?,
+            roll: self.axis(joy, self.roll.axis, self.roll.scale_rad_s)?,
+            zoom: self.axis(joy, self.zoom.axis, self.zoom.scale_m_s)?,
         };
         Ok(self.deadman(joy)?.then_some(cmd))
     }
@@ -152,7 +161,7 @@ impl ScopeJoy {
         p: &JoyParams,
         joy: Option<(&sensor_msgs::Joy, f64)>,
     ) -> (Option<ScopeCommand>, Option<JoyError>) {
-        let fresh = joy.filter(|(_, age)| *age <= p.joy_timeout);
+        let fresh = joy.filter(|(_, age)| *age <= p.joy_timeout_s);
         let (cmd, err) = match fresh.map(|(j, _)| p.command(j)) {
             Some(Ok(c)) => (c, None),
             Some(Err(e)) => (None, Some(e)),
@@ -202,8 +211,14 @@ mod tests {
         assert!((c.zoom - 0.01).abs() < 1e-12);
         // A negative scale flips, an unmapped motion is zero.
         let q = JoyParams {
-            pan: AxisMap { axis: 2, scale: -0.1 },
-            roll: AxisMap { axis: -1, scale: 1.0 },
+            pan: AngularAxis {
+                axis: 2,
+                scale_rad_s: -0.1,
+            },
+            roll: AngularAxis {
+                axis: -1,
+                scale_rad_s: 1.0,
+            },
             ..p
         };
         let c = q.command(&joy(&[0.0, 0.0, 1.0, 1.0, 0.0], true)).unwrap().unwrap();
@@ -252,8 +267,8 @@ mod tests {
         assert_eq!(s.tick(&p, Some((&released, 0.05))).0, None, "then silence");
         // The Joy stream stops while held.
         assert!(s.tick(&p, Some((&held, 0.0))).0.is_some());
-        assert_eq!(s.tick(&p, Some((&held, p.joy_timeout + 0.01))).0, stop);
-        assert_eq!(s.tick(&p, Some((&held, p.joy_timeout + 0.05))).0, None);
+        assert_eq!(s.tick(&p, Some((&held, p.joy_timeout_s + 0.01))).0, stop);
+        assert_eq!(s.tick(&p, Some((&held, p.joy_timeout_s + 0.05))).0, None);
         // A malformed Joy while held: a stop and the reason.
         assert!(s.tick(&p, Some((&held, 0.0))).0.is_some());
         let bad = joy(&[f32::NAN, 0.0, 0.0, 0.0, 0.0], true);
@@ -269,17 +284,30 @@ mod tests {
         let p: JoyParams = crate::ros::params::from_yaml_file(&path).unwrap();
         p.validate().unwrap();
         assert_eq!(p, JoyParams::default(), "the built-in file is the defaults");
-        assert_eq!((p.rate_hz, p.zoom.scale, p.deadman_button), (30.0, 0.01, 4));
+        assert_eq!((p.rate_hz, p.zoom.scale_m_s, p.deadman_button), (30.0, 0.01, 4));
         let partial: JoyParams =
-            crate::config::from_yaml_str("t", "rate_hz: 20\nzoom: {axis: 5, scale: 0.02}\n").unwrap();
+            crate::config::from_yaml_str("t", "rate_hz: 20\nzoom: {axis: 5, scale_m_s: 0.02}\n").unwrap();
         let expected = JoyParams {
             rate_hz: 20.0,
-            zoom: AxisMap { axis: 5, scale: 0.02 },
+            zoom: LinearAxis {
+                axis: 5,
+                scale_m_s: 0.02,
+            },
             ..p.clone()
         };
         assert_eq!(partial, expected, "a partial file takes the rest from the built-in one");
         let e = crate::config::from_yaml_str::<JoyParams>("t", "rate: 20\n").unwrap_err();
         assert!(e.message.contains("`rate`: unknown key"), "{e}");
+        for (text, message) in [
+            ("joy_timeout: 1\n", "`joy_timeout`: the key is now `joy_timeout_s`"),
+            (
+                "pan: {axis: 0, scale: 0.1}\n",
+                "`pan.scale`: the key is now `pan.scale_rad_s`",
+            ),
+        ] {
+            let e = crate::config::from_yaml_str::<JoyParams>("t", text).unwrap_err();
+            assert!(e.message.contains(message), "{e}");
+        }
         let bad = [
             (
                 "rate_hz",
@@ -303,11 +331,11 @@ mod tests {
                 },
             ),
             (
-                "zoom/scale",
+                "zoom/scale_m_s",
                 JoyParams {
-                    zoom: AxisMap {
+                    zoom: LinearAxis {
                         axis: 4,
-                        scale: f64::NAN,
+                        scale_m_s: f64::NAN,
                     },
                     ..p.clone()
                 },
@@ -315,7 +343,10 @@ mod tests {
             (
                 "tilt/axis",
                 JoyParams {
-                    tilt: AxisMap { axis: -2, scale: 0.1 },
+                    tilt: AngularAxis {
+                        axis: -2,
+                        scale_rad_s: 0.1,
+                    },
                     ..p.clone()
                 },
             ),

@@ -32,21 +32,21 @@ pub struct Scene {
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct MarkerStyle {
     /// Length of the drawn insertion axis (beyond and before the port), m.
-    pub axis_length: f64,
+    pub axis_length_m: f64,
     /// Length of the drawn optical axis, m.
-    pub optical_axis_length: f64,
+    pub optical_axis_length_m: f64,
     /// Force arrow length per newton, m/N.
-    pub force_scale: f64,
+    pub force_scale_m_per_n: f64,
     /// Longest force arrow, m (larger forces are drawn this long; the label gives the value).
-    pub force_max_length: f64,
+    pub force_max_length_m: f64,
     /// Diameter of the spheres, m.
-    pub sphere: f64,
+    pub sphere_diameter_m: f64,
     /// Drawn trocar cannula: outer diameter and length below the port, m.
-    pub trocar_diameter: f64,
+    pub trocar_diameter_m: f64,
     /// Length of the drawn cannula, m.
-    pub trocar_length: f64,
+    pub trocar_length_m: f64,
     /// Length of each nappe of the drawn cone of the shaft, from the fulcrum, m.
-    pub cone_length: f64,
+    pub cone_length_m: f64,
 }
 
 crate::shipped_defaults!(
@@ -162,7 +162,14 @@ pub fn docking_markers(
         }
     }
     match scene.goal {
-        Some(g) => markers.push(sphere(stamp, frame, Id::Goal, g, style.sphere, color(0.1, 1.0, 0.2))),
+        Some(g) => markers.push(sphere(
+            stamp,
+            frame,
+            Id::Goal,
+            g,
+            style.sphere_diameter_m,
+            color(0.1, 1.0, 0.2),
+        )),
         None => markers.push(delete(stamp, frame, Id::Goal)),
     }
     match &scene.tip {
@@ -179,7 +186,7 @@ pub fn docking_markers(
             frame,
             Id::Reference,
             r,
-            style.sphere * 0.8,
+            style.sphere_diameter_m * 0.8,
             color(0.9, 0.2, 0.9),
         )),
         None => markers.push(delete(stamp, frame, Id::Reference)),
@@ -191,10 +198,10 @@ pub fn docking_markers(
                 frame,
                 Id::Fulcrum,
                 p.fulcrum,
-                style.sphere * 1.2,
+                style.sphere_diameter_m * 1.2,
                 color(1.0, 0.2, 0.6),
             ),
-            cone(stamp, frame, p, style.cone_length),
+            cone(stamp, frame, p, style.cone_length_m),
         ],
         None => [delete(stamp, frame, Id::Fulcrum), delete(stamp, frame, Id::Cone)],
     };
@@ -254,15 +261,15 @@ fn trocar_markers(
 ) {
     let port = Point3::from(t.translation.vector);
     let dir = t.rotation * Vector3::z();
-    let from = port - dir * style.axis_length;
-    let to = port + dir * style.axis_length;
+    let from = port - dir * style.axis_length_m;
+    let to = port + dir * style.axis_length_m;
     markers.push(arrow(stamp, frame, Id::Axis, from, to, color(0.1, 0.8, 1.0)));
     markers.push(sphere(
         stamp,
         frame,
         Id::Port,
         port,
-        style.sphere * 1.5,
+        style.sphere_diameter_m * 1.5,
         color(1.0, 0.6, 0.0),
     ));
     // The cannula: a translucent cylinder from the port into the body along z.
@@ -272,11 +279,11 @@ fn trocar_markers(
         Id::TrocarBody,
         visualization_msgs::Marker::CYLINDER as i32,
     );
-    let centre = t * Point3::new(0.0, 0.0, style.trocar_length / 2.0);
+    let centre = t * Point3::new(0.0, 0.0, style.trocar_length_m / 2.0);
     body.pose = pose_msg(&Isometry3::from_parts(centre.coords.into(), t.rotation));
-    body.scale.x = style.trocar_diameter;
-    body.scale.y = style.trocar_diameter;
-    body.scale.z = style.trocar_length;
+    body.scale.x = style.trocar_diameter_m;
+    body.scale.y = style.trocar_diameter_m;
+    body.scale.z = style.trocar_length_m;
     body.color = std_msgs::ColorRGBA {
         r: 0.6,
         g: 0.6,
@@ -301,7 +308,7 @@ pub fn tip_path<'a>(
         m.points.clear();
         m.action = visualization_msgs::Marker::DELETE as i32;
     }
-    m.scale.x = style.sphere / 6.0;
+    m.scale.x = style.sphere_diameter_m / 6.0;
     m.color = color(0.2, 0.8, 1.0);
     m
 }
@@ -317,8 +324,15 @@ fn tip_markers(
     style: &MarkerStyle,
 ) {
     let at = Point3::from(tip.translation.vector);
-    markers.push(sphere(stamp, frame, Id::Tip, at, style.sphere, color(1.0, 1.0, 1.0)));
-    let axis = tip.rotation * Vector3::z() * style.optical_axis_length;
+    markers.push(sphere(
+        stamp,
+        frame,
+        Id::Tip,
+        at,
+        style.sphere_diameter_m,
+        color(1.0, 1.0, 1.0),
+    ));
+    let axis = tip.rotation * Vector3::z() * style.optical_axis_length_m;
     markers.push(arrow(
         stamp,
         frame,
@@ -327,7 +341,7 @@ fn tip_markers(
         at + axis,
         color(1.0, 1.0, 0.2),
     ));
-    let len = (f.norm() * style.force_scale).min(style.force_max_length);
+    let len = (f.norm() * style.force_scale_m_per_n).min(style.force_max_length_m);
     if !(f.iter().all(|x| x.is_finite()) && len > 1e-3) {
         markers.push(delete(stamp, frame, Id::Force));
         markers.push(delete(stamp, frame, Id::ForceLabel));
@@ -381,7 +395,7 @@ mod tests {
             .filter(|m| m.id <= Id::ForceLabel as i32)
             .all(|m| m.action == add && m.header.frame_id == "lbr_link_0"));
         let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
-        assert!((force.points[1].z - (0.2 - 0.5 * style.force_scale)).abs() < 1e-12);
+        assert!((force.points[1].z - (0.2 - 0.5 * style.force_scale_m_per_n)).abs() < 1e-12);
         let label = a.markers.iter().find(|m| m.id == Id::ForceLabel as i32).unwrap();
         assert_eq!(label.text, "|f_ext| 0.50 N");
         // A large force is drawn at the longest length, pointing the same way.
@@ -391,9 +405,9 @@ mod tests {
         };
         let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &big, &style);
         let force = a.markers.iter().find(|m| m.id == Id::Force as i32).unwrap();
-        assert!((force.points[1].z - (0.2 - style.force_max_length)).abs() < 1e-12);
+        assert!((force.points[1].z - (0.2 - style.force_max_length_m)).abs() < 1e-12);
         let axis = a.markers.iter().find(|m| m.id == Id::Axis as i32).unwrap();
-        assert!((axis.points[1].z - (0.3 + style.axis_length)).abs() < 1e-12);
+        assert!((axis.points[1].z - (0.3 + style.axis_length_m)).abs() < 1e-12);
     }
 
     /// A scene that knows nothing.
@@ -484,7 +498,7 @@ mod tests {
             if d.norm() < 1e-12 {
                 continue;
             }
-            assert!((d.norm() - style.cone_length).abs() < 1e-9);
+            assert!((d.norm() - style.cone_length_m).abs() < 1e-9);
             let angle = d.angle(&axis);
             if angle < std::f64::consts::FRAC_PI_2 {
                 assert!((angle - half).abs() < 1e-9, "{angle}");

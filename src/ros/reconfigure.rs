@@ -156,9 +156,9 @@ mod tests {
         assert_eq!(d.groups[0].parameters.len(), LIVE_PARAMS.len());
         assert!(d.groups[0].parameters.iter().all(|x| x.type_ == "double"));
         let find = |c: &dr::Config, n: &str| c.doubles.iter().find(|x| x.name == n).map(|x| x.value);
-        assert_eq!(find(&d.dflt, "force_stop"), Some(p.guard.force_stop));
-        assert_eq!(find(&d.max, "force_stop"), Some(60.0));
-        assert_eq!(find(&d.min, "insert_speed"), Some(0.001));
+        assert_eq!(find(&d.dflt, "force_stop_n"), Some(p.guard.force_stop_n));
+        assert_eq!(find(&d.max, "force_stop_n"), Some(60.0));
+        assert_eq!(find(&d.min, "insert_speed_m_s"), Some(0.001));
         assert_eq!(d.dflt.groups[0].name, "Default");
     }
 
@@ -166,10 +166,10 @@ mod tests {
     fn a_request_of_another_type_is_refused() {
         let mut req = dr::Config::default();
         req.doubles.push(dr::DoubleParameter {
-            name: "insert_speed".into(),
+            name: "insert_speed_m_s".into(),
             value: 0.02,
         });
-        assert_eq!(changes(&req).unwrap(), vec![("insert_speed".to_string(), 0.02)]);
+        assert_eq!(changes(&req).unwrap(), vec![("insert_speed_m_s".to_string(), 0.02)]);
         req.bools.push(dr::BoolParameter {
             name: "force_feedback".into(),
             value: false,

@@ -82,7 +82,7 @@ const RENAMED: &[Renamed] = &[
     Renamed {
         old: "trial.control_rate_hz",
         new: "",
-        note: "the trials run at the controller's period, `dt` in config/controller.yaml",
+        note: "the trials run at the controller's period, `dt_s` in config/controller.yaml",
     },
 ];
 

@@ -7,7 +7,7 @@
 //! and [`ClosedLoop::advance`] sends the command and steps the physics up to the next
 //! control tick, keeping the raw external torques of every physics tick on the way: the
 //! observation hands all of them to the controller, which low-passes them itself
-//! (`torque_filter_time_constant`), as the ROS node hands it every FRI cycle's torques.
+//! (`torque_filter_time_constant_s`), as the ROS node hands it every FRI cycle's torques.
 
 use std::ops::ControlFlow;
 

@@ -327,14 +327,14 @@ mod tests {
         e.unwrap_err().to_string()
     }
 
-    /// The trials run at the controller's `dt`: the old `trial.control_rate_hz` is an error
+    /// The trials run at the controller's `dt_s`: the old `trial.control_rate_hz` is an error
     /// that names its replacement, at the top level and in a protocol.
     #[test]
     fn the_old_trial_control_rate_names_the_controllers_dt() {
         let gone = "`trial.control_rate_hz`: the key is gone";
         let top = refusal("trial: {control_rate_hz: 100.0}");
         assert!(
-            top.contains(gone) && top.contains("`dt` in config/controller.yaml"),
+            top.contains(gone) && top.contains("`dt_s` in config/controller.yaml"),
             "{top}"
         );
         let e = refusal("protocols: {p: {trial: {control_rate_hz: 1000}}}");

@@ -42,7 +42,7 @@ impl Policy for ControllerPolicy {
     }
 
     fn period(&self) -> f64 {
-        self.ctrl.params().dt
+        self.ctrl.params().dt_s
     }
 }
 

@@ -238,8 +238,8 @@ impl PivotTiming {
 /// benchmark's reference arm.
 pub fn fixed_fulcrum(c: &ControllerParams) -> ControllerParams {
     let mut c = c.clone();
-    c.scope.fulcrum.depth_gain = 0.0;
-    c.scope.fulcrum.max_displacement = 0.0;
+    c.scope.fulcrum.depth_gain_m_per_ns = 0.0;
+    c.scope.fulcrum.max_displacement_m = 0.0;
     c.scope.breathing.follow = false;
     c
 }
@@ -319,7 +319,7 @@ pub struct PivotSession {
 }
 
 impl PivotSession {
-    /// A fresh world of `seed` and a started controller (`controller`, stepped at its `dt`);
+    /// A fresh world of `seed` and a started controller (`controller`, stepped at its `dt_s`);
     /// steps until DONE or `timeout_s`. `Ok(Err(why))`: not DONE.
     pub fn dock(
         sim: &SimParams,
@@ -330,7 +330,7 @@ impl PivotSession {
     ) -> Result<Result<Self, String>, String> {
         let world = SimWorld::new(sim, kin.clone(), seed).map_err(|e| e.to_string())?;
         let ctrl = Controller::new(controller.clone(), kin.limits().clone()).map_err(|e| e.to_string())?;
-        let period = controller.dt;
+        let period = controller.dt_s;
         let mut lp = Self {
             plant: ClosedLoop::new(&world, period),
             world,
@@ -412,7 +412,7 @@ impl PivotSession {
 }
 
 /// Dock in a fresh world of `seed`, then play `script` and measure (see the module doc).
-/// `controller` runs as the trials run it (stepped at its `dt`).
+/// `controller` runs as the trials run it (stepped at its `dt_s`).
 pub fn run_pivot(
     sim: &SimParams,
     controller: &ControllerParams,

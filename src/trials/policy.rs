@@ -18,11 +18,11 @@ pub fn controller_params(controller: &ControllerParams, ff: bool) -> ControllerP
 }
 
 /// The policy factory of one arm: with (`ff`) or without force feedback, everything else
-/// equal. `controller` is the controller's configuration (its `dt` the control period of
+/// equal. `controller` is the controller's configuration (its `dt_s` the control period of
 /// either arm); `limits` are the arm's joint limits (for the controller's guard).
 pub fn factory(c: &SimConfig, controller: &ControllerParams, ff: bool, limits: &JointLimits) -> Box<PolicyFactory> {
     let depth = c.trial.goal_depth_m;
-    let period = controller.dt;
+    let period = controller.dt_s;
     match c.policy {
         PolicyKind::Baseline => {
             let params = c.baseline.clone();

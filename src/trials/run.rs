@@ -47,7 +47,7 @@ pub trait Policy {
     fn start(&mut self, kin: &dyn Kinematics);
     /// One control tick.
     fn tick(&mut self, kin: &dyn Kinematics, obs: &Observation) -> Action;
-    /// Its control period, s (the controller's `dt`, `config/controller.yaml`): the trial
+    /// Its control period, s (the controller's `dt_s`, `config/controller.yaml`): the trial
     /// steps it at this period.
     fn period(&self) -> f64;
 }

@@ -29,7 +29,7 @@ pub struct SoakOptions {
     /// Wall-clock duration of the run, minutes.
     pub minutes: f64,
     /// Control rate, Hz (the physics runs at its own rate, 1 kHz); `None`: the controller
-    /// configuration's own (`dt`).
+    /// configuration's own (`dt_s`).
     pub rate: Option<f64>,
     /// World protocol of `config/sim.yaml`.
     pub protocol: Protocol,
@@ -114,7 +114,7 @@ pub struct SoakReport {
     /// The machine's share: a fixed workload timed the same way, before the run.
     pub reference: Reference,
     /// Largest lead of a command over the measured joints, deg (bound:
-    /// `guard.max_command_lead`).
+    /// `guard.max_command_lead_rad`).
     pub max_command_lead_deg: f64,
     /// RSS after the first cycle (the baseline), kB.
     pub rss_start_kb: u64,
@@ -280,7 +280,7 @@ fn run_cycle(
     let mut out_phase = ctrl.phase();
     let (mut hold_code, mut latched) = ("", false);
     let mut checksum = 0u64;
-    let mut plant = ClosedLoop::new(world, ctrl.params().dt);
+    let mut plant = ClosedLoop::new(world, ctrl.params().dt_s);
     while world.time() < a.cycle_timeout {
         let input = control_input(&plant.observe(world), None);
         let (started, cpu0) = (Instant::now(), thread_cpu_time());
@@ -381,7 +381,7 @@ impl Setup {
         let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())?;
         let mut params = load_controller(a.controller_config.as_deref())?;
         if let Some(rate) = a.rate {
-            params.dt = 1.0 / rate;
+            params.dt_s = 1.0 / rate;
         }
         params.force_feedback = true;
         Ok(Self {
@@ -491,7 +491,7 @@ pub fn soak(a: &SoakOptions) -> Result<SoakReport, Box<dyn std::error::Error + S
         seeds: [a.seed, a.seed.wrapping_add(c.count as u64 - 1)],
         wall_s: t0.elapsed().as_secs_f64(),
         sim_s: c.sim_s,
-        rate_hz: 1.0 / setup.params.dt,
+        rate_hz: 1.0 / setup.params.dt_s,
         cycles: c.count,
         docked: c.docked,
         false_done: c.false_done,

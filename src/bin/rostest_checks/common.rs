@@ -117,7 +117,7 @@ pub struct CheckParams {
     /// `scope_pivot`: the largest accepted mean of the status `lateral_force` (the force
     /// estimate across the shaft) while commanded, N.
     pub max_mean_force: f64,
-    /// `scope_pivot`: the controller's dead-man timeout (`scope.command_timeout`), s.
+    /// `scope_pivot`: the controller's dead-man timeout (`scope.command_timeout_s`), s.
     pub command_timeout: f64,
     /// `scope_pivot`: time past the dead-man timeout for the scope to stop, s.
     pub dead_man_margin_s: f64,

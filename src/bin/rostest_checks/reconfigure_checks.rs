@@ -44,26 +44,26 @@ pub fn reconfigure(p: &CheckParams) -> Result<String, String> {
     let (status, _s1) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
     let (updates, _s2) = subscribe_latest::<dr::Config>(&format!("{node}/parameter_updates"))?;
     wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
-    let shipped = wait_for(p.startup_timeout, || updated(&updates, "force_stop")).ok_or("no parameter_updates")?;
-    let retract = updated(&updates, "retract_force_stop").ok_or("no retract_force_stop")?;
+    let shipped = wait_for(p.startup_timeout, || updated(&updates, "force_stop_n")).ok_or("no parameter_updates")?;
+    let retract = updated(&updates, "retract_force_stop_n").ok_or("no retract_force_stop_n")?;
     let (ok, got) = dynparam(&["get", node])?;
-    if !ok || !got.contains(&format!("'force_stop': {shipped:?}")) {
-        return Err(format!("dynparam get does not show force_stop {shipped}: {got}"));
+    if !ok || !got.contains(&format!("'force_stop_n': {shipped:?}")) {
+        return Err(format!("dynparam get does not show force_stop_n {shipped}: {got}"));
     }
     let stop = p.reconfigure_force_stop;
     let (ok, out) = dynparam(&[
         "set",
         node,
-        &format!("{{force_stop: {stop}, retract_force_stop: {stop}}}"),
+        &format!("{{force_stop_n: {stop}, retract_force_stop_n: {stop}}}"),
     ])?;
     if !ok {
         return Err(format!("dynparam set refused in IDLE: {out}"));
     }
-    wait_for(5.0, || updated(&updates, "force_stop").filter(|v| *v == stop))
-        .ok_or_else(|| format!("parameter_updates does not show force_stop {stop}"))?;
+    wait_for(5.0, || updated(&updates, "force_stop_n").filter(|v| *v == stop))
+        .ok_or_else(|| format!("parameter_updates does not show force_stop_n {stop}"))?;
     let (_, got) = dynparam(&["get", node])?;
-    if !got.contains(&format!("'force_stop': {stop:?}")) {
-        return Err(format!("dynparam get does not show the new force_stop {stop}: {got}"));
+    if !got.contains(&format!("'force_stop_n': {stop:?}")) {
+        return Err(format!("dynparam get does not show the new force_stop_n {stop}: {got}"));
     }
     trigger(&format!("{node}/start"), p.startup_timeout)?;
     let held = wait_for(p.time_limit, || status.get().filter(|s| s.phase == "HOLD")).ok_or_else(|| {
@@ -79,14 +79,14 @@ pub fn reconfigure(p: &CheckParams) -> Result<String, String> {
             held.hold_code, held.hold_reason
         ));
     }
-    let (ok, out) = dynparam(&["set", node, "force_stop", "30.0"])?;
-    if ok || !out.contains("force_stop may only be lowered") {
+    let (ok, out) = dynparam(&["set", node, "force_stop_n", "30.0"])?;
+    if ok || !out.contains("force_stop_n may only be lowered") {
         return Err(format!("raising the force stop while held was not refused: {out}"));
     }
-    if updated(&updates, "force_stop") != Some(stop) {
+    if updated(&updates, "force_stop_n") != Some(stop) {
         return Err("a refused change reached parameter_updates".into());
     }
-    let stops = format!("{{force_stop: {shipped}, retract_force_stop: {retract}}}");
+    let stops = format!("{{force_stop_n: {shipped}, retract_force_stop_n: {retract}}}");
     let slow = reduced_speed(p, &status, &stops)?;
     let (ok, out) = dynparam(&["set", node, "insert_w_axis", "500.0"])?;
     if !ok {
@@ -95,7 +95,7 @@ pub fn reconfigure(p: &CheckParams) -> Result<String, String> {
     wait_for(5.0, || updated(&updates, "insert_w_axis").filter(|v| *v == 500.0))
         .ok_or("parameter_updates does not show insert_w_axis 500")?;
     Ok(format!(
-        "dynparam set force_stop {shipped} -> {stop} N in IDLE; the docking held: {} ({}); \
+        "dynparam set force_stop_n {shipped} -> {stop} N in IDLE; the docking held: {} ({}); \
          raising it while held refused; {slow}; insert_w_axis 500 applied live in DONE",
         held.hold_code, held.hold_reason
     ))
@@ -144,7 +144,7 @@ impl TipSpeed {
 
 /// A lab's first docking at reduced speed: `~reset`, the force stops back to `stops` (the
 /// shipped values), the speeds down with the `dynparam set` of docs/lab.md, start, DONE; the tip's measured
-/// speed stays within the reduced `max_tip_speed` (+10 % for the speed's estimate over 50 ms
+/// speed stays within the reduced `max_tip_speed_m_s` (+10 % for the speed's estimate over 50 ms
 /// of joint states).
 fn reduced_speed(
     p: &CheckParams,
@@ -170,13 +170,13 @@ fn reduced_speed(
     let v = speed.max();
     if v.is_nan() || v > REDUCED_TIP_SPEED * 1.1 {
         return Err(format!(
-            "the tip moved at {:.1} mm/s with max_tip_speed {:.0} mm/s",
+            "the tip moved at {:.1} mm/s with max_tip_speed_m_s {:.0} mm/s",
             v * 1e3,
             REDUCED_TIP_SPEED * 1e3
         ));
     }
     Ok(format!(
-        "at reduced speed DONE in {:.1} s, the tip at most {:.1} mm/s (max_tip_speed {:.0} mm/s)",
+        "at reduced speed DONE in {:.1} s, the tip at most {:.1} mm/s (max_tip_speed_m_s {:.0} mm/s)",
         done.elapsed,
         v * 1e3,
         REDUCED_TIP_SPEED * 1e3
@@ -185,5 +185,5 @@ fn reduced_speed(
 
 /// The reduced speeds of a first docking (docs/lab.md), and its tip speed limit, m/s.
 const REDUCED: &str =
-    "{force_stop: 20.0, retract_force_stop: 12.0, approach_speed: 0.02, insert_speed: 0.01, max_tip_speed: 0.03}";
+    "{force_stop_n: 20.0, retract_force_stop_n: 12.0, approach_speed_m_s: 0.02, insert_speed_m_s: 0.01, max_tip_speed_m_s: 0.03}";
 const REDUCED_TIP_SPEED: f64 = 0.03;

@@ -263,7 +263,7 @@ pub fn replay_controller(p: &CheckParams) -> Result<String, String> {
         .map_err(|e| format!("{prefix}: {e}"))
         .and_then(|v| params::from_value(&prefix, v).map_err(|e| e.to_string()))?;
     let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
-    let audit = Arc::new(Mutex::new(CommandAudit::new(kin.limits().clone(), &cp, 1.0 / cp.dt)));
+    let audit = Arc::new(Mutex::new(CommandAudit::new(kin.limits().clone(), &cp, 1.0 / cp.dt_s)));
     let _commands = {
         let (audit, names) = (audit.clone(), names.clone());
         rosrust::subscribe(&p.command_topic, 1000, move |m: trajectory_msgs::JointTrajectory| {

@@ -14,7 +14,7 @@
 //! `max_mean_force` while commanded (the whole `f_ext_norm`, which adds the seal's friction
 //! along the shaft while zooming, is reported beside); the phase DONE throughout (no HOLD);
 //! the dead-man: after the last command (a zoom out, never followed by a stop) the tip
-//! travels at most the zoom speed times `command_timeout + dead_man_margin_s`, and from
+//! travels at most the zoom speed times `scope.command_timeout_s + dead_man_margin_s`, and from
 //! then on stays within `max_still_motion` over `still_window_s`; bad commands (a pan in
 //! the base frame, then a NaN pan, 0.5 s each) turn the shaft by no more than
 //! `max_bad_turn_deg` (obeyed, the pan turns it by about 4 deg), move the tip by no more
@@ -36,7 +36,7 @@
 //! 20 Hz) and reads `/docking/scope_command`. Held: commands at the node's rate, each the
 //! pure mapping's ([`::trocar_docking::ros::joy`]) of the played Joy under the same YAML, in
 //! the tip's frame, stamped; released: one zero command, then silence; a joystick that stops
-//! while held: one zero command within `joy_timeout` and a tick, then silence.
+//! while held: one zero command within `joy_timeout_s` and a tick, then silence.
 
 use std::sync::{Arc, Mutex};
 
@@ -577,9 +577,9 @@ pub fn scope_joy(p: &CheckParams) -> Result<String, String> {
     let released = arrived(&got, released_from + in_flight(&got, released_from, &expected));
     play_joy(&publ, &j, &axes, true, 0.5);
     let stopped_from = lock(&got).len();
-    std::thread::sleep(std::time::Duration::from_secs_f64(j.joy_timeout + 1.0));
+    std::thread::sleep(std::time::Duration::from_secs_f64(j.joy_timeout_s + 1.0));
     let (n_after, zeros_after) = arrived(&got, stopped_from);
-    let ticks_timeout = (j.joy_timeout * j.rate_hz).ceil() as usize + 2;
+    let ticks_timeout = (j.joy_timeout_s * j.rate_hz).ceil() as usize + 2;
     let rate = n_held as f64 / 2.0;
     let mut failures = Vec::new();
     if silent_released != 0 {

@@ -1,5 +1,5 @@
 //! DONE over a window: the tip-to-goal error and the alignment angle are averaged over
-//! consecutive windows of `goal_window` seconds in INSERT, and the goal test is judged on
+//! consecutive windows of `goal_window_s` seconds in INSERT, and the goal test is judged on
 //! each complete window's mean, so that one lucky sample of a noisy trocar estimate never
 //! ends the docking. The means of uniform ±5 mm pose noise at 100 Hz over 0.3 s have a
 //! standard deviation of about 0.5 mm per axis, against 2.9 mm for one sample.

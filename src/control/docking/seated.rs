@@ -1,22 +1,22 @@
 //! Completion for a scope seated in the port beside a biased trocar estimate.
 //!
-//! DONE normally needs the tip within `goal_tolerance` (1 mm) and `goal_angle_tolerance_deg`
+//! DONE normally needs the tip within `goal_tolerance_m` (1 mm) and `goal_angle_tolerance_deg`
 //! (0.5°) of the goal on the *estimated* axis. A trocar estimate off by more than the port's
 //! clearance (a hand-eye calibration 2 mm or 0.5° out is common) makes that unreachable: the
 //! real port holds the shaft on the real axis, the controller yields to it, and the run would
 //! stay in INSERT for ever with the scope in place.
 //!
 //! The seated test accepts that case, and only with evidence that the port is what holds the
-//! tip off the estimated axis. For [`SeatedParams::settle_time`] without a break:
-//! - the tip is at the goal depth, to within [`SeatedParams::depth_tolerance`];
-//! - it is within [`SeatedParams::lateral_tolerance`] of the estimated axis;
+//! tip off the estimated axis. For [`SeatedParams::settle_time_s`] without a break:
+//! - the tip is at the goal depth, to within [`SeatedParams::depth_tolerance_m`];
+//! - it is within [`SeatedParams::lateral_tolerance_m`] of the estimated axis;
 //! - the optical axis is within [`SeatedParams::angle_tolerance_deg`] of it;
-//! - the tip stays within [`SeatedParams::max_motion`] of where it was, relative to the
+//! - the tip stays within [`SeatedParams::max_motion_m`] of where it was, relative to the
 //!   estimated port, when the window began. A position range over the window, not a speed
 //!   per step: the estimate comes at the camera's rate (15 Hz) with its latency while the port
 //!   moves with breathing, so the tip seen from the estimated port jumps by a few tenths of a
 //!   millimetre at each new pose even when it sits still in the real port;
-//! - when [`SeatedParams::min_lateral_force`] is above 0, the measured force across the axis
+//! - when [`SeatedParams::min_lateral_force_n`] is above 0, the measured force across the axis
 //!   pushes the tip away from the estimated axis by at least that much.
 //!
 //! The controller pulls towards the estimated axis, and in free space closes a lateral gap of
@@ -24,7 +24,7 @@
 //! goal depth, for the settle time is held there by the port. With force feedback the scope
 //! yields to the wall, so the force that holds it is small (the admittance stiffness times the
 //! part of the offset the axis term asks back: about 0.1 N for 3 mm with the shipped gains),
-//! below the force estimate's noise, and the shipped `min_lateral_force` is 0: stillness off
+//! below the force estimate's noise, and the shipped `min_lateral_force_n` is 0: stillness off
 //! the axis at depth is the evidence.
 //!
 //! The DONE reason then says how far off the estimated axis the scope sat, so that the
@@ -40,18 +40,18 @@ use crate::control::docking::geometry::InsertionAxis;
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct SeatedParams {
     /// Largest distance of the tip from the estimated axis, m (0 = the test is off).
-    pub lateral_tolerance: f64,
+    pub lateral_tolerance_m: f64,
     /// Largest distance of the tip from the goal depth along the estimated axis, m.
-    pub depth_tolerance: f64,
+    pub depth_tolerance_m: f64,
     /// Largest angle between the optical axis and the estimated axis, deg.
     pub angle_tolerance_deg: f64,
     /// Smallest force across the axis pushing the tip away from the estimated axis, N
     /// (0 = none needed; a force pulling towards the axis still vetoes).
-    pub min_lateral_force: f64,
+    pub min_lateral_force_n: f64,
     /// Largest displacement of the tip relative to the estimated port over the window, m.
-    pub max_motion: f64,
+    pub max_motion_m: f64,
     /// How long all of it must hold without a break, s.
-    pub settle_time: f64,
+    pub settle_time_s: f64,
 }
 
 crate::shipped_defaults!(SeatedParams, crate::control::params::SHIPPED, ["seated"]);
@@ -67,9 +67,9 @@ impl SeatedParams {
             }
         };
         check(
-            "lateral_tolerance",
-            self.lateral_tolerance,
-            self.lateral_tolerance >= 0.0,
+            "lateral_tolerance_m",
+            self.lateral_tolerance_m,
+            self.lateral_tolerance_m >= 0.0,
         )?;
         check(
             "angle_tolerance_deg",
@@ -77,13 +77,17 @@ impl SeatedParams {
             self.angle_tolerance_deg > 0.0 && self.angle_tolerance_deg < 90.0,
         )?;
         check(
-            "min_lateral_force",
-            self.min_lateral_force,
-            self.min_lateral_force >= 0.0,
+            "min_lateral_force_n",
+            self.min_lateral_force_n,
+            self.min_lateral_force_n >= 0.0,
         )?;
-        check("depth_tolerance", self.depth_tolerance, self.depth_tolerance > 0.0)?;
-        check("max_motion", self.max_motion, self.max_motion > 0.0)?;
-        check("settle_time", self.settle_time, self.settle_time > 0.0)
+        check(
+            "depth_tolerance_m",
+            self.depth_tolerance_m,
+            self.depth_tolerance_m > 0.0,
+        )?;
+        check("max_motion_m", self.max_motion_m, self.max_motion_m > 0.0)?;
+        check("settle_time_s", self.settle_time_s, self.settle_time_s > 0.0)
     }
 }
 
@@ -156,10 +160,10 @@ impl SeatedCheck {
         } else {
             0.0
         };
-        let force_ok = p.min_lateral_force <= 0.0 || lateral_force >= p.min_lateral_force;
-        let placed = p.lateral_tolerance > 0.0
-            && (depth - goal_depth).abs() <= p.depth_tolerance
-            && offset <= p.lateral_tolerance
+        let force_ok = p.min_lateral_force_n <= 0.0 || lateral_force >= p.min_lateral_force_n;
+        let placed = p.lateral_tolerance_m > 0.0
+            && (depth - goal_depth).abs() <= p.depth_tolerance_m
+            && offset <= p.lateral_tolerance_m
             && angle_deg <= p.angle_tolerance_deg
             && force_ok
             && s.force.iter().all(|v| v.is_finite());
@@ -170,14 +174,14 @@ impl SeatedCheck {
         // Relative to the port (which moves with breathing): seated means still in it.
         let rel = s.tip - axis.port;
         match self.anchor {
-            Some(a) if (rel - a).norm() <= p.max_motion => self.held_for += dt,
+            Some(a) if (rel - a).norm() <= p.max_motion_m => self.held_for += dt,
             _ => {
                 // A new window starts here.
                 self.anchor = Some(rel);
                 self.held_for = 0.0;
             }
         }
-        (self.held_for >= p.settle_time - 1e-9).then_some(Seated {
+        (self.held_for >= p.settle_time_s - 1e-9).then_some(Seated {
             offset,
             angle_deg,
             lateral_force,
@@ -280,7 +284,7 @@ mod tests {
         // With a floor of 0.3 N: no force, too little force, or a force towards the axis
         // (the controller's own pull), never.
         let floor = SeatedParams {
-            min_lateral_force: 0.3,
+            min_lateral_force_n: 0.3,
             ..p
         };
         for fx in [0.0, 0.2, -1.0] {
@@ -339,7 +343,7 @@ mod tests {
         );
         // Off: never.
         let off = SeatedParams {
-            lateral_tolerance: 0.0,
+            lateral_tolerance_m: 0.0,
             ..p
         };
         assert!(run(&off, &vec![seated_tip(1.0); 200]).iter().all(Option::is_none));
@@ -348,15 +352,15 @@ mod tests {
     #[test]
     fn bad_parameters_are_named() {
         let bad = SeatedParams {
-            max_motion: f64::NAN,
+            max_motion_m: f64::NAN,
             ..Default::default()
         };
-        assert!(bad.validate().unwrap_err().contains("max_motion"));
+        assert!(bad.validate().unwrap_err().contains("max_motion_m"));
         assert!(SeatedParams::default().validate().is_ok());
         let neg = SeatedParams {
-            lateral_tolerance: -1.0,
+            lateral_tolerance_m: -1.0,
             ..Default::default()
         };
-        assert!(neg.validate().unwrap_err().contains("lateral_tolerance"));
+        assert!(neg.validate().unwrap_err().contains("lateral_tolerance_m"));
     }
 }

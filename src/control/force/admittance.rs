@@ -10,7 +10,7 @@
 //! axis): M ẍ + D ẋ + K x = f_⊥, integrated semi-implicitly; r = e(q) + x, the current tip
 //! displaced by the compliance. Only the lateral force drives it, so the tip yields sideways
 //! to contact while the insertion keeps progressing along the axis; the axial force instead
-//! slows the insertion (see [`AdmittanceParams::axial_force_full_stop`]) and the safety guard
+//! slows the insertion (see [`AdmittanceParams::axial_force_full_stop_n`]) and the safety guard
 //! stops on a force above its threshold.
 
 use nalgebra::{Matrix3, Point3, Vector3};
@@ -24,24 +24,24 @@ use crate::validate;
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct AdmittanceParams {
     /// Per-joint torque dead-band, Nm.
-    pub torque_deadband: f64,
+    pub torque_deadband_nm: f64,
     /// Damping λ of the pseudo-inverse, m (units of the Jacobian's linear rows).
     pub pinv_damping: f64,
     /// Cut-off of the force low-pass filter, Hz (0 = no filter).
     pub filter_cutoff_hz: f64,
     /// Forces below this norm are ignored by the admittance, N.
-    pub force_deadband: f64,
+    pub force_deadband_n: f64,
     /// Virtual mass, kg.
-    pub mass: f64,
+    pub mass_kg: f64,
     /// Virtual damping, N s/m.
-    pub damping: f64,
+    pub damping_ns_per_m: f64,
     /// Virtual stiffness, N/m.
-    pub stiffness: f64,
+    pub stiffness_n_per_m: f64,
     /// Largest displacement of r from the tip, m.
-    pub max_displacement: f64,
+    pub max_displacement_m: f64,
     /// Axial force (resisting insertion) at which insertion stops advancing, N; the advance
     /// speed falls linearly from full at 0 N to [`Self::min_insert_speed_ratio`] here.
-    pub axial_force_full_stop: f64,
+    pub axial_force_full_stop_n: f64,
     /// Fraction of the insertion speed kept at the largest axial force, so insertion never
     /// stalls while yielding (0..1).
     pub min_insert_speed_ratio: f64,
@@ -52,15 +52,15 @@ crate::shipped_defaults!(AdmittanceParams, crate::control::params::SHIPPED, ["ad
 impl AdmittanceParams {
     /// Check ranges; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
-        validate::non_negative("admittance.torque_deadband", self.torque_deadband)?;
+        validate::non_negative("admittance.torque_deadband_nm", self.torque_deadband_nm)?;
         validate::positive("admittance.pinv_damping", self.pinv_damping)?;
         validate::non_negative("admittance.filter_cutoff_hz", self.filter_cutoff_hz)?;
-        validate::non_negative("admittance.force_deadband", self.force_deadband)?;
-        validate::positive("admittance.mass", self.mass)?;
-        validate::non_negative("admittance.damping", self.damping)?;
-        validate::non_negative("admittance.stiffness", self.stiffness)?;
-        validate::positive("admittance.max_displacement", self.max_displacement)?;
-        validate::positive("admittance.axial_force_full_stop", self.axial_force_full_stop)?;
+        validate::non_negative("admittance.force_deadband_n", self.force_deadband_n)?;
+        validate::positive("admittance.mass_kg", self.mass_kg)?;
+        validate::non_negative("admittance.damping_ns_per_m", self.damping_ns_per_m)?;
+        validate::non_negative("admittance.stiffness_n_per_m", self.stiffness_n_per_m)?;
+        validate::positive("admittance.max_displacement_m", self.max_displacement_m)?;
+        validate::positive("admittance.axial_force_full_stop_n", self.axial_force_full_stop_n)?;
         validate::in_range(
             "admittance.min_insert_speed_ratio",
             self.min_insert_speed_ratio,
@@ -100,7 +100,7 @@ impl Admittance {
     /// Feed a torque measurement (already known finite) and update the filtered force.
     /// Returns the filtered force; a non-finite estimate leaves the filter unchanged.
     pub fn update_force(&mut self, p: &AdmittanceParams, jac: &Jacobian, tau: &JointVector, dt: f64) -> Vector3<f64> {
-        if let Some(f) = tip_force(jac, tau, p.torque_deadband, p.pinv_damping) {
+        if let Some(f) = tip_force(jac, tau, p.torque_deadband_nm, p.pinv_damping) {
             self.force += (f - self.force) * rc_smoothing(p.filter_cutoff_hz, dt);
         }
         self.force
@@ -115,19 +115,19 @@ impl Admittance {
     /// return the displacement x of the reference from the tip.
     pub fn step(&mut self, p: &AdmittanceParams, lateral_force: Vector3<f64>, dt: f64) -> Vector3<f64> {
         let n = lateral_force.norm();
-        let f = if n > p.force_deadband && n.is_finite() {
-            lateral_force * ((n - p.force_deadband) / n)
+        let f = if n > p.force_deadband_n && n.is_finite() {
+            lateral_force * ((n - p.force_deadband_n) / n)
         } else {
             Vector3::zeros()
         };
         if dt > 0.0 && dt.is_finite() {
             // Semi-implicit Euler; stable for dt * (D / M) well beyond our rates.
-            let a = (f - self.v * p.damping - self.x * p.stiffness) / p.mass;
+            let a = (f - self.v * p.damping_ns_per_m - self.x * p.stiffness_n_per_m) / p.mass_kg;
             self.v += a * dt;
             self.x += self.v * dt;
             let xn = self.x.norm();
-            if xn > p.max_displacement {
-                self.x *= p.max_displacement / xn;
+            if xn > p.max_displacement_m {
+                self.x *= p.max_displacement_m / xn;
                 self.v = Vector3::zeros();
             }
         }
@@ -148,7 +148,7 @@ impl AdmittanceParams {
             return self.min_insert_speed_ratio;
         }
         let f = f_axial_resisting.max(0.0);
-        (1.0 - f / self.axial_force_full_stop).clamp(self.min_insert_speed_ratio, 1.0)
+        (1.0 - f / self.axial_force_full_stop_n).clamp(self.min_insert_speed_ratio, 1.0)
     }
 }
 
@@ -187,10 +187,10 @@ mod tests {
     #[test]
     fn admittance_settles_at_force_over_stiffness() {
         let p = AdmittanceParams {
-            force_deadband: 0.0,
+            force_deadband_n: 0.0,
             ..Default::default()
         };
-        let k = p.stiffness;
+        let k = p.stiffness_n_per_m;
         let mut a = Admittance::default();
         let f = Vector3::new(1.0, 0.0, -0.5);
         // The slow pole is about k / D: settle over many of its time constants.
@@ -203,7 +203,7 @@ mod tests {
         for _ in 0..100 {
             a.step(&p, big, 0.01);
         }
-        assert!(a.step(&p, big, 0.01).norm() <= p.max_displacement + 1e-12);
+        assert!(a.step(&p, big, 0.01).norm() <= p.max_displacement_m + 1e-12);
         a = Admittance::default();
         assert_eq!(a.step(&p, Vector3::zeros(), 0.01), Vector3::zeros());
     }
@@ -216,7 +216,7 @@ mod tests {
         assert_eq!(a.insert_speed_ratio(100.0), a.min_insert_speed_ratio);
         assert_eq!(a.insert_speed_ratio(f64::NAN), a.min_insert_speed_ratio);
         assert!(AdmittanceParams {
-            mass: 0.0,
+            mass_kg: 0.0,
             ..Default::default()
         }
         .validate()

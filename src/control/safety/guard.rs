@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 pub use crate::control::safety::hold::HoldReason;
 use crate::kinematics::{JointLimits, JointVector};
 
-/// The share of `max_command_lead` from which the command counts as waiting for the arm
+/// The share of `max_command_lead_rad` from which the command counts as waiting for the arm
 /// (the not-following watch of [`crate::control::safety::guarded`] runs from there).
 pub const LEAD_WATCH_FRACTION: f64 = 0.25;
 
@@ -22,31 +22,31 @@ pub const LEAD_WATCH_FRACTION: f64 = 0.25;
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct GuardParams {
     /// Margin inside each position limit, rad.
-    pub position_margin: f64,
+    pub position_margin_rad: f64,
     /// Fraction of each joint's velocity limit the controller may use (0..1].
     pub velocity_scale: f64,
     /// Tip force that stops the docking, N.
-    pub force_stop: f64,
+    pub force_stop_n: f64,
     /// Joint state older than this holds, s.
-    pub joint_timeout: f64,
+    pub joint_timeout_s: f64,
     /// Trocar pose older than this holds, s.
-    pub trocar_timeout: f64,
+    pub trocar_timeout_s: f64,
     /// External torques older than this hold (only with force feedback on), s.
-    pub torque_timeout: f64,
+    pub torque_timeout_s: f64,
     /// Hold while a measured joint is further than this from the last command, rad. The
     /// commands advance from the last command (not the measurement), so without this check
     /// an arm that stopped following would, on resuming, chase a command far ahead of it.
-    pub max_tracking_error: f64,
+    pub max_tracking_error_rad: f64,
     /// The command never leads the measured joints by more than this on any joint, rad (the
     /// step box is cut to it, in every phase): on a blocked arm the command waits instead of
     /// winding up.
-    pub max_command_lead: f64,
+    pub max_command_lead_rad: f64,
     /// Hold (latched, `ARM_NOT_FOLLOWING`, where the arm is) once the command has sat on its
     /// lead bound this long with the arm not moving on that joint, s.
-    pub follow_timeout: f64,
+    pub follow_timeout_s: f64,
     /// A step whose clock advanced by more than this is a clock jump (or a stalled loop):
     /// hold, latched (`CLOCK_FORWARD`), s. Any step back in time holds too (`CLOCK_BACK`).
-    pub max_clock_jump: f64,
+    pub max_clock_jump_s: f64,
 }
 
 crate::shipped_defaults!(GuardParams, crate::control::params::SHIPPED, ["guard"]);
@@ -61,16 +61,16 @@ impl GuardParams {
                 Err(format!("guard.{n} must be in ({lo}, {hi}], got {v}"))
             }
         };
-        check("position_margin", self.position_margin + 1e-12, 0.0, 0.5)?;
+        check("position_margin_rad", self.position_margin_rad + 1e-12, 0.0, 0.5)?;
         check("velocity_scale", self.velocity_scale, 0.0, 1.0)?;
-        check("force_stop", self.force_stop, 0.0, 200.0)?;
-        check("joint_timeout", self.joint_timeout, 0.0, 10.0)?;
-        check("trocar_timeout", self.trocar_timeout, 0.0, 60.0)?;
-        check("torque_timeout", self.torque_timeout, 0.0, 10.0)?;
-        check("max_tracking_error", self.max_tracking_error, 0.0, 1.0)?;
-        check("max_command_lead", self.max_command_lead, 0.0, 0.5)?;
-        check("follow_timeout", self.follow_timeout, 0.0, 10.0)?;
-        check("max_clock_jump", self.max_clock_jump, 0.0, 60.0)
+        check("force_stop_n", self.force_stop_n, 0.0, 200.0)?;
+        check("joint_timeout_s", self.joint_timeout_s, 0.0, 10.0)?;
+        check("trocar_timeout_s", self.trocar_timeout_s, 0.0, 60.0)?;
+        check("torque_timeout_s", self.torque_timeout_s, 0.0, 10.0)?;
+        check("max_tracking_error_rad", self.max_tracking_error_rad, 0.0, 1.0)?;
+        check("max_command_lead_rad", self.max_command_lead_rad, 0.0, 0.5)?;
+        check("follow_timeout_s", self.follow_timeout_s, 0.0, 10.0)?;
+        check("max_clock_jump_s", self.max_clock_jump_s, 0.0, 60.0)
     }
 }
 
@@ -82,14 +82,14 @@ pub struct CommandGuard {
     upper: JointVector,
     vmax: JointVector,
     /// The measured joints of this step, when known: commands stay within
-    /// `max_command_lead` of them.
+    /// `max_command_lead_rad` of them.
     measured: Option<JointVector>,
 }
 
 impl CommandGuard {
     /// A guard for `limits`.
     pub fn new(params: GuardParams, limits: &JointLimits) -> Self {
-        let m = params.position_margin;
+        let m = params.position_margin_rad;
         let lower = limits.lower.map(|l| l + m);
         let upper = limits.upper.map(|u| u - m);
         let vmax = limits.velocity * params.velocity_scale;
@@ -103,7 +103,7 @@ impl CommandGuard {
     }
 
     /// The measured joints of the coming step (`None`: unknown or not finite); the step box
-    /// and the command check then keep the command within `max_command_lead` of them.
+    /// and the command check then keep the command within `max_command_lead_rad` of them.
     pub fn set_measured(&mut self, measured: Option<JointVector>) {
         self.measured = measured.filter(|q| q.iter().all(|x| x.is_finite()));
     }
@@ -119,7 +119,7 @@ impl CommandGuard {
     /// blocked arm's command creeps towards it without ever sitting on it.
     pub fn lead_saturated(&self, cmd: &JointVector) -> Option<(usize, f64)> {
         let q = self.measured.as_ref()?;
-        let bound = self.params.max_command_lead * LEAD_WATCH_FRACTION;
+        let bound = self.params.max_command_lead_rad * LEAD_WATCH_FRACTION;
         (0..cmd.len())
             .map(|i| (i, cmd[i] - q[i]))
             .find(|(_, lead)| lead.abs() >= bound)
@@ -144,7 +144,7 @@ impl CommandGuard {
 
     /// The box a command for a step of `dt` from `prev` must lie in: the position limits
     /// (with margin) intersected with the velocity limit and, when the measured joints are
-    /// known, with `max_command_lead` around them. When `prev` is itself outside these
+    /// known, with `max_command_lead_rad` around them. When `prev` is itself outside these
     /// bounds, the box still contains `prev`'s nearest feasible motion, never a jump.
     pub fn step_box(&self, prev: &JointVector, dt: f64) -> (JointVector, JointVector) {
         let mut lo = JointVector::zeros();
@@ -163,7 +163,7 @@ impl CommandGuard {
 
     /// The lead bounds of joint `i` (infinite without measured joints).
     fn lead_bounds(&self, i: usize) -> (f64, f64) {
-        let lead = self.params.max_command_lead;
+        let lead = self.params.max_command_lead_rad;
         self.measured
             .as_ref()
             .map_or((f64::NEG_INFINITY, f64::INFINITY), |q| (q[i] - lead, q[i] + lead))
@@ -194,12 +194,12 @@ impl CommandGuard {
         Ok(())
     }
 
-    /// Hold if the measured joints are further than `max_tracking_error` from the last
+    /// Hold if the measured joints are further than `max_tracking_error_rad` from the last
     /// command (NaN counts as too far).
     pub fn check_tracking(&self, measured: &JointVector, commanded: &JointVector) -> Result<(), HoldReason> {
         for i in 0..measured.len() {
             let error = (measured[i] - commanded[i]).abs();
-            if error.is_nan() || error > self.params.max_tracking_error {
+            if error.is_nan() || error > self.params.max_tracking_error_rad {
                 return Err(HoldReason::TrackingError { joint: i, error });
             }
         }
@@ -208,17 +208,17 @@ impl CommandGuard {
 
     /// A new force stop (live tuning, [`crate::control::live`]; checked there), N.
     pub fn set_force_stop(&mut self, force_stop: f64) {
-        self.params.force_stop = force_stop;
+        self.params.force_stop_n = force_stop;
     }
 
     /// Hold if the force norm is over the stop threshold.
     pub fn check_force(&self, force: f64) -> Result<(), HoldReason> {
-        if force.is_finite() && force <= self.params.force_stop {
+        if force.is_finite() && force <= self.params.force_stop_n {
             Ok(())
         } else {
             Err(HoldReason::ForceLimit {
                 force,
-                limit: self.params.force_stop,
+                limit: self.params.force_stop_n,
             })
         }
     }
@@ -263,9 +263,9 @@ mod tests {
         let g = guard();
         let cmd = JointVector::zeros();
         let mut q = cmd;
-        q[3] = g.params().max_tracking_error * 0.9;
+        q[3] = g.params().max_tracking_error_rad * 0.9;
         assert!(g.check_tracking(&q, &cmd).is_ok());
-        q[3] = -g.params().max_tracking_error * 1.1;
+        q[3] = -g.params().max_tracking_error_rad * 1.1;
         assert!(matches!(
             g.check_tracking(&q, &cmd),
             Err(HoldReason::TrackingError { joint: 3, .. })

@@ -2,7 +2,7 @@
 //! commands (the optimal controller, or another law standing in), its commands leave
 //! through [`Guarded::step`], which checks each one with the [`CommandGuard`] (finite,
 //! inside the joint limits less the margin, within the per-step velocity limit from the
-//! previous command, within `max_command_lead` of the measured joints) before it can be
+//! previous command, within `max_command_lead_rad` of the measured joints) before it can be
 //! published. A rejected command is never sent: the source is told to hold at its previous
 //! command, latched, with the reason.
 //!
@@ -11,11 +11,11 @@
 //! failure modes that only the wrapper sees, each a latched hold with its reason (a new
 //! start is needed, and it begins from the measured joints):
 //! - **the arm does not follow**: the command led the arm by a quarter of its lead bound or
-//!   more for `follow_timeout` while the arm moved less than [`MIN_PROGRESS`] of the bound
+//!   more for `follow_timeout_s` while the arm moved less than [`MIN_PROGRESS`] of the bound
 //!   (`ARM_NOT_FOLLOWING`); an arm that lags but moves (a fast joint behind its trajectory
 //!   controller) only slows the command down. The hold is at the measured joints, so a
 //!   blocked arm that frees itself does not jump to a command ahead of it;
-//! - **the clock jumps**: back (`CLOCK_BACK`), or forward by more than `max_clock_jump`
+//! - **the clock jumps**: back (`CLOCK_BACK`), or forward by more than `max_clock_jump_s`
 //!   (`CLOCK_FORWARD`); never a silent freeze;
 //! - **an input restarts** (the node's call to [`Guarded::interrupt`], e.g. a driver restart).
 //!
@@ -71,7 +71,7 @@ pub trait CommandSource {
 }
 
 /// The least an arm must move on a joint whose command sits on the lead bound, over
-/// `follow_timeout`, as a fraction of `max_command_lead`, to count as following.
+/// `follow_timeout_s`, as a fraction of `max_command_lead_rad`, to count as following.
 pub const MIN_PROGRESS: f64 = 0.1;
 
 /// Where a hold of the wrapper's stands. Either way it gets there from the last published
@@ -86,7 +86,7 @@ pub enum HoldTarget {
     Still,
     /// Walk to these measured joints, within the speed limits, and stand there. For
     /// `ARM_NOT_FOLLOWING` the arm is blocked behind the command: standing at the last
-    /// command would go on pushing it with the lead (up to `max_command_lead`), and jumping
+    /// command would go on pushing it with the lead (up to `max_command_lead_rad`), and jumping
     /// to the measured joints (as a hold once did) stepped the command back by the whole
     /// lead in one period, twice the speed limit; walking there releases the push without
     /// a jump, and an arm that frees itself then has nothing ahead of it to leap to. For
@@ -173,7 +173,7 @@ impl<S: CommandSource> Guarded<S> {
     /// the last published command (the measured joints when none was published), so that
     /// its first command is one step of the speed limits from it: re-anchoring at the
     /// measured joints stepped the command back by the whole lead (up to
-    /// `max_command_lead`) in one period. Where the arm was blocked behind the command or
+    /// `max_command_lead_rad`) in one period. Where the arm was blocked behind the command or
     /// the driver restarted, the hold has already walked the command to the arm
     /// ([`HoldTarget::Arm`]); elsewhere the arm follows the command it tracks, and the
     /// source's lead bound and tracking check keep its commands with the arm.
@@ -278,7 +278,7 @@ impl<S: CommandSource> Guarded<S> {
         self.last_now = Some(now);
         if now < t {
             (0.0, Some(HoldReason::ClockBack { by_s: t - now }))
-        } else if now - t > self.guard.params().max_clock_jump {
+        } else if now - t > self.guard.params().max_clock_jump_s {
             (0.0, Some(HoldReason::ClockForward { by_s: now - t }))
         } else {
             ((now - t).min(period), None)
@@ -315,10 +315,10 @@ impl<S: CommandSource> Guarded<S> {
                 let q0 = *self.behind_from.get_or_insert(q);
                 self.behind_for += dt;
                 let p = self.guard.params();
-                if self.behind_for <= p.follow_timeout {
+                if self.behind_for <= p.follow_timeout_s {
                     return None;
                 }
-                if (q - q0).amax() > MIN_PROGRESS * p.max_command_lead {
+                if (q - q0).amax() > MIN_PROGRESS * p.max_command_lead_rad {
                     // Lagging, but moving: a new window from here.
                     self.behind_for = 0.0;
                     self.behind_from = Some(q);
@@ -370,7 +370,7 @@ impl<S: CommandSource> Guarded<S> {
             // unknown, and the stale-data hold speaks for it.
             let fresh = input
                 .joints
-                .is_some_and(|j| CommandGuard::fresh(input.now - j.stamp, self.guard.params().joint_timeout));
+                .is_some_and(|j| CommandGuard::fresh(input.now - j.stamp, self.guard.params().joint_timeout_s));
             let command = out.command.as_ref().filter(|_| fresh && measured.is_some());
             let measured_for = self.measured_time(input, dt);
             if let Some(why) = self.watch_lead(command, measured_for) {
@@ -499,7 +499,7 @@ mod tests {
         nan[4] = f64::NAN;
         // At the upper limit less the margin, one small step further out.
         let mut at_limit = q;
-        at_limit[1] = JointLimits::of_model(LbrModel::Med7).upper[1] - GuardParams::default().position_margin;
+        at_limit[1] = JointLimits::of_model(LbrModel::Med7).upper[1] - GuardParams::default().position_margin_rad;
         let mut beyond = at_limit;
         beyond[1] += 1e-4;
         for (bad, measured, code) in [
@@ -658,7 +658,7 @@ mod walk_tests {
             last: None,
             phase: Phase::Approach,
         };
-        let max_jump = guard.params().max_clock_jump;
+        let max_jump = guard.params().max_clock_jump_s;
         let mut g = Guarded::wrap(source, guard);
         let mut now = 10.0;
         let mut last_now: Option<f64> = None;
@@ -743,7 +743,7 @@ mod walk_tests {
             lead in proptest::collection::vec(-1.0f64..1.0, 7),
             which in 0usize..4,
         ) {
-            let bound = GuardParams::default().max_command_lead;
+            let bound = GuardParams::default().max_command_lead_rad;
             let mut lead = JointVector::from_column_slice(&lead) * bound;
             // Leading by a quarter of the bound or more on one joint, so that the arm's
             // not-following watch runs.
@@ -776,7 +776,7 @@ mod walk_tests {
 
     #[test]
     fn a_blocked_arms_hold_walks_to_it_and_a_clock_jumps_hold_stands() {
-        let bound = GuardParams::default().max_command_lead;
+        let bound = GuardParams::default().max_command_lead_rad;
         let lead = JointVector::from_column_slice(&[0.0, bound, 0.0, -0.6 * bound, 0.0, 0.0, 0.0]);
         let q = JointVector::from_column_slice(&[0.1, 0.5, -0.2, -1.2, 0.3, 1.0, -0.4]);
         let (sent, code, before) = play(Fault::Blocked, &lead);

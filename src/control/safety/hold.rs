@@ -87,8 +87,8 @@ pub enum HoldReason {
         /// Its standard deviation over the window, Nm.
         sigma_nm: f64,
     },
-    /// The command sat on its lead bound (`guard.max_command_lead` ahead of the measured
-    /// joints) for `guard.follow_timeout` with the arm not moving on that joint: the arm does
+    /// The command sat on its lead bound (`guard.max_command_lead_rad` ahead of the measured
+    /// joints) for `guard.follow_timeout_s` with the arm not moving on that joint: the arm does
     /// not follow (blocked, stopped by its own controller, or the commands do not reach it). Latched; the hold is where the arm
     /// is, so nothing moves when it frees itself, and a new start begins from there.
     ArmNotFollowing {
@@ -102,7 +102,7 @@ pub enum HoldReason {
         /// How far back, s.
         by_s: f64,
     },
-    /// The clock jumped forward by more than `guard.max_clock_jump` in one step (or the
+    /// The clock jumped forward by more than `guard.max_clock_jump_s` in one step (or the
     /// loop stalled that long). Latched.
     ClockForward {
         /// How far forward, s.

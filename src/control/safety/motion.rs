@@ -36,17 +36,17 @@ use crate::kinematics::{Jacobian, JointVector};
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct MotionLimits {
     /// Largest tip speed, m/s.
-    pub max_speed: f64,
+    pub max_speed_m_s: f64,
     /// Largest tip acceleration, m/s².
-    pub max_accel: f64,
+    pub max_accel_m_s2: f64,
     /// Largest tip jerk, m/s³.
-    pub max_jerk: f64,
+    pub max_jerk_m_s3: f64,
     /// Largest angular speed of the scope, rad/s.
-    pub max_angular_speed: f64,
+    pub max_angular_speed_rad_s: f64,
     /// Largest angular acceleration, rad/s².
-    pub max_angular_accel: f64,
+    pub max_angular_accel_rad_s2: f64,
     /// Largest angular jerk, rad/s³.
-    pub max_angular_jerk: f64,
+    pub max_angular_jerk_rad_s3: f64,
 }
 
 crate::shipped_defaults!(MotionLimits, crate::control::params::SHIPPED, ["motion"]);
@@ -55,12 +55,12 @@ impl MotionLimits {
     /// Check every range; the error names the field.
     pub fn validate(&self) -> Result<(), String> {
         for (n, v) in [
-            ("max_speed", self.max_speed),
-            ("max_accel", self.max_accel),
-            ("max_jerk", self.max_jerk),
-            ("max_angular_speed", self.max_angular_speed),
-            ("max_angular_accel", self.max_angular_accel),
-            ("max_angular_jerk", self.max_angular_jerk),
+            ("max_speed_m_s", self.max_speed_m_s),
+            ("max_accel_m_s2", self.max_accel_m_s2),
+            ("max_jerk_m_s3", self.max_jerk_m_s3),
+            ("max_angular_speed_rad_s", self.max_angular_speed_rad_s),
+            ("max_angular_accel_rad_s2", self.max_angular_accel_rad_s2),
+            ("max_angular_jerk_rad_s3", self.max_angular_jerk_rad_s3),
         ] {
             if !(v.is_finite() && v > 0.0) {
                 return Err(format!("motion.{n} must be > 0, got {v}"));
@@ -74,18 +74,18 @@ impl MotionLimits {
     /// The linear block.
     fn linear(&self) -> Block {
         Block {
-            speed: self.max_speed,
-            accel: self.max_accel,
-            jerk: self.max_jerk,
+            speed: self.max_speed_m_s,
+            accel: self.max_accel_m_s2,
+            jerk: self.max_jerk_m_s3,
         }
     }
 
     /// The angular block.
     fn angular(&self) -> Block {
         Block {
-            speed: self.max_angular_speed,
-            accel: self.max_angular_accel,
-            jerk: self.max_angular_jerk,
+            speed: self.max_angular_speed_rad_s,
+            accel: self.max_angular_accel_rad_s2,
+            jerk: self.max_angular_jerk_rad_s3,
         }
     }
 }
@@ -347,9 +347,9 @@ mod tests {
             let v = Vector3::new(d[0], d[1], d[2]) / dt;
             let a = (v - v0) / dt;
             let jerk = (a - a0) / dt;
-            assert!(v.norm() <= lim.max_speed * 1.001, "speed {}", v.norm());
-            assert!(a.norm() <= lim.max_accel * 1.01, "accel {}", a.norm());
-            assert!(jerk.norm() <= lim.max_jerk * 1.01, "jerk {}", jerk.norm());
+            assert!(v.norm() <= lim.max_speed_m_s * 1.001, "speed {}", v.norm());
+            assert!(a.norm() <= lim.max_accel_m_s2 * 1.01, "accel {}", a.norm());
+            assert!(jerk.norm() <= lim.max_jerk_m_s3 * 1.01, "jerk {}", jerk.norm());
             sum_v2 += v.norm_squared();
             (v0, a0, q) = (v, a, out);
         }
@@ -381,7 +381,7 @@ mod tests {
         assert!((x - 0.02).abs() < 1e-5, "ends at {x}");
         assert!(max_x < 0.02 + 2e-4, "overshoot to {max_x}");
         assert!(
-            top > 0.5 * lim.max_speed && top <= lim.max_speed * 1.001,
+            top > 0.5 * lim.max_speed_m_s && top <= lim.max_speed_m_s * 1.001,
             "top speed {top}"
         );
     }
@@ -434,10 +434,10 @@ mod tests {
     fn limits_are_validated() {
         let mut l = MotionLimits::default();
         assert!(l.validate().is_ok());
-        l.max_jerk = f64::NAN;
-        assert!(l.validate().unwrap_err().contains("motion.max_jerk"));
-        l.max_jerk = 1.0;
-        l.max_speed = 0.0;
-        assert!(l.validate().unwrap_err().contains("motion.max_speed"));
+        l.max_jerk_m_s3 = f64::NAN;
+        assert!(l.validate().unwrap_err().contains("motion.max_jerk_m_s3"));
+        l.max_jerk_m_s3 = 1.0;
+        l.max_speed_m_s = 0.0;
+        assert!(l.validate().unwrap_err().contains("motion.max_speed_m_s"));
     }
 }

@@ -77,18 +77,18 @@ impl std::fmt::Display for ScopeLimit {
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct ScopeParams {
     /// A command older than this counts as none (dead-man), s.
-    pub command_timeout: f64,
+    pub command_timeout_s: f64,
     /// Largest pan and tilt speed about the fulcrum, rad/s.
-    pub max_angular_speed: f64,
+    pub max_angular_speed_rad_s: f64,
     /// Largest roll speed about the shaft, rad/s.
-    pub max_roll_speed: f64,
+    pub max_roll_speed_rad_s: f64,
     /// Largest speed along the shaft, m/s.
-    pub max_zoom_speed: f64,
+    pub max_zoom_speed_m_s: f64,
     /// Insertion depth of the tip past the port (the trocar's entry face, where the
     /// docking measured its insertion) along the shaft: minimum, m.
-    pub min_depth: f64,
+    pub min_depth_m: f64,
     /// ... and maximum, m.
-    pub max_depth: f64,
+    pub max_depth_m: f64,
     /// Half angle of the cone about the docking axis the shaft stays in, deg.
     pub cone_half_angle_deg: f64,
     /// Weights of c1..c5 while the port is held: c1 tip to the target shaft line, c2 tip
@@ -100,16 +100,16 @@ pub struct ScopeParams {
     /// Weight of the roll term |x - x_target|² (the tip's x axis).
     pub roll_weight: f64,
     /// Speed of the withdrawal along the shaft (`~retract`), m/s.
-    pub retract_speed: f64,
+    pub retract_speed_m_s: f64,
     /// Force estimate at which a withdrawal brakes to a stop (within the `motion:` limits)
-    /// and holds, `FORCE_LIMIT`, N: below the guard's `force_stop`, by what the force grows
+    /// and holds, `FORCE_LIMIT`, N: below the guard's `force_stop_n`, by what the force grows
     /// while the estimate lags and the withdrawal brakes against a stiff obstacle.
-    pub retract_force_stop: f64,
+    pub retract_force_stop_n: f64,
     /// The arm's tracking lag in position mode, s: after a force stop the arm goes on
     /// towards its last command for about this long, and the force with it. The stop after
     /// docking acts on the force this lag, the estimate's low-passes and one control period
     /// ahead ([`ScopeParams::force_stop_lead`]).
-    pub arm_lag: f64,
+    pub arm_lag_s: f64,
     /// The fulcrum's adaptation from the force across the shaft.
     pub fulcrum: FulcrumParams,
     /// The port's breathing along the docking axis, followed from the trocar estimate.
@@ -126,24 +126,24 @@ impl ScopeParams {
                 .map(|_| ())
                 .map_err(|e| e.to_string())
         };
-        pos("command_timeout", self.command_timeout)?;
-        pos("max_angular_speed", self.max_angular_speed)?;
-        pos("max_roll_speed", self.max_roll_speed)?;
-        pos("max_zoom_speed", self.max_zoom_speed)?;
-        pos("retract_speed", self.retract_speed)?;
-        in_range("scope.retract_force_stop", self.retract_force_stop, 1.0, 200.0).map_err(|e| e.to_string())?;
-        in_range("scope.arm_lag", self.arm_lag, 0.0, 1.0).map_err(|e| e.to_string())?;
+        pos("command_timeout_s", self.command_timeout_s)?;
+        pos("max_angular_speed_rad_s", self.max_angular_speed_rad_s)?;
+        pos("max_roll_speed_rad_s", self.max_roll_speed_rad_s)?;
+        pos("max_zoom_speed_m_s", self.max_zoom_speed_m_s)?;
+        pos("retract_speed_m_s", self.retract_speed_m_s)?;
+        in_range("scope.retract_force_stop_n", self.retract_force_stop_n, 1.0, 200.0).map_err(|e| e.to_string())?;
+        in_range("scope.arm_lag_s", self.arm_lag_s, 0.0, 1.0).map_err(|e| e.to_string())?;
         self.weights.validate("scope.weights")?;
         non_negative("scope.rcm_weight", self.rcm_weight).map_err(|e| e.to_string())?;
         non_negative("scope.roll_weight", self.roll_weight).map_err(|e| e.to_string())?;
         self.fulcrum.validate()?;
         self.breathing.validate()?;
-        pos("min_depth", self.min_depth)?;
-        pos("max_depth", self.max_depth)?;
-        if self.max_depth <= self.min_depth {
+        pos("min_depth_m", self.min_depth_m)?;
+        pos("max_depth_m", self.max_depth_m)?;
+        if self.max_depth_m <= self.min_depth_m {
             return Err(format!(
-                "scope.max_depth ({}) must be above scope.min_depth ({})",
-                self.max_depth, self.min_depth
+                "scope.max_depth_m ({}) must be above scope.min_depth_m ({})",
+                self.max_depth_m, self.min_depth_m
             ));
         }
         let c = self.cone_half_angle_deg;

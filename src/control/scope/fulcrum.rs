@@ -38,8 +38,8 @@
 //! moves slowly: across the shaft at most about 5 mm/s (breathing 3 mm across at 0.25 Hz,
 //! p95 in the realistic world: 4.7 mm/s) plus what pivoting about a wrong depth needs
 //! (10 mm off at the benchmark's 10 deg/s: 1.7 mm/s), so the lateral motion is bounded
-//! at `max_lateral_speed` 10 mm/s; along the shaft the yield must undo the fastest zoom's
-//! drag on a wedged trocar (`max_zoom_speed` 20 mm/s), so `axial_max_speed` is 20 mm/s.
+//! at `max_lateral_speed_m_s` 10 mm/s; along the shaft the yield must undo the fastest zoom's
+//! drag on a wedged trocar (`scope.max_zoom_speed_m_s` 20 mm/s), so `axial_max_speed_m_s` is 20 mm/s.
 //! The force a caught tip then gains from the laws in one step is at most k v dt (50 000
 //! N/m x 20 mm/s x 10 ms = 10 N), which the controller's force stop, acting on the force
 //! predicted past its lags, catches (`tests/force_stop.rs`); on a compliant wall the laws
@@ -66,39 +66,39 @@ use crate::signal::deadband;
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct FulcrumParams {
     /// Prior depth of the fulcrum past the port (the trocar's face) along the shaft, m.
-    pub prior_depth: f64,
+    pub prior_depth_m: f64,
     /// Stiffness K of the fulcrum's admittance across the shaft, N/m.
-    pub stiffness: f64,
+    pub stiffness_n_per_m: f64,
     /// Damping D of the same, N s/m.
-    pub damping: f64,
+    pub damping_ns_per_m: f64,
     /// Forces across the shaft below this are ignored while the surgeon steers, N.
-    pub force_deadband: f64,
+    pub force_deadband_n: f64,
     /// ... and below this while no command comes, N: the scope then holds still against
     /// the small forces (the estimate's drift, the wall settling after a motion) and
     /// yields only to a wall that pushes harder.
-    pub still_force_deadband: f64,
+    pub still_force_deadband_n: f64,
     /// Largest displacement of the fulcrum across the shaft, m.
-    pub max_displacement: f64,
+    pub max_displacement_m: f64,
     /// Largest speed of the fulcrum across the shaft, m/s (module doc: the rate bound).
-    pub max_lateral_speed: f64,
+    pub max_lateral_speed_m_s: f64,
     /// Gain γ of the depth's adaptation, m/(N s) (0 = the depth stays at the prior).
-    pub depth_gain: f64,
+    pub depth_gain_m_per_ns: f64,
     /// The depth adapts only while the scope pivots faster than this, rad/s.
-    pub min_pivot_speed: f64,
+    pub min_pivot_speed_rad_s: f64,
     /// Cut-off of the force's first-order low-pass, Hz (0: none).
     pub filter_cutoff_hz: f64,
     /// Damping of the tip's target depth against the force along the shaft, N s/m (0: the
     /// depth does not yield): the scope gives way along the shaft to a trocar that pushes
     /// or drags it (breathing, or a shaft wedged in the bore), as the fulcrum does across.
-    pub axial_damping: f64,
+    pub axial_damping_ns_per_m: f64,
     /// Forces along the shaft below this are ignored while the surgeon steers, N: the
     /// seal's sliding friction while zooming is not a reason to move ...
-    pub axial_deadband: f64,
+    pub axial_deadband_n: f64,
     /// ... and below this while no command comes, N: the scope then holds still against
     /// the breathing trocar's pull through the seal, and yields only to more.
-    pub axial_still_deadband: f64,
+    pub axial_still_deadband_n: f64,
     /// Largest speed of that yield, m/s (module doc: the rate bound).
-    pub axial_max_speed: f64,
+    pub axial_max_speed_m_s: f64,
 }
 
 crate::shipped_defaults!(FulcrumParams, crate::control::params::SHIPPED, ["scope", "fulcrum"]);
@@ -113,35 +113,35 @@ impl FulcrumParams {
                 Err(format!("scope.fulcrum.{n} must be in [{lo}, {hi}], got {v}"))
             }
         };
-        check("prior_depth", self.prior_depth, 0.0, 0.2)?;
-        check("stiffness", self.stiffness, 0.0, 1e5)?;
-        check("damping", self.damping, 1e-3, 1e5)?;
-        check("force_deadband", self.force_deadband, 0.0, 50.0)?;
-        check("still_force_deadband", self.still_force_deadband, 0.0, 50.0)?;
-        check("max_displacement", self.max_displacement, 0.0, 0.05)?;
-        check("max_lateral_speed", self.max_lateral_speed, 1e-4, 1.0)?;
-        check("depth_gain", self.depth_gain, 0.0, 1.0)?;
-        check("min_pivot_speed", self.min_pivot_speed, 0.0, 10.0)?;
+        check("prior_depth_m", self.prior_depth_m, 0.0, 0.2)?;
+        check("stiffness_n_per_m", self.stiffness_n_per_m, 0.0, 1e5)?;
+        check("damping_ns_per_m", self.damping_ns_per_m, 1e-3, 1e5)?;
+        check("force_deadband_n", self.force_deadband_n, 0.0, 50.0)?;
+        check("still_force_deadband_n", self.still_force_deadband_n, 0.0, 50.0)?;
+        check("max_displacement_m", self.max_displacement_m, 0.0, 0.05)?;
+        check("max_lateral_speed_m_s", self.max_lateral_speed_m_s, 1e-4, 1.0)?;
+        check("depth_gain_m_per_ns", self.depth_gain_m_per_ns, 0.0, 1.0)?;
+        check("min_pivot_speed_rad_s", self.min_pivot_speed_rad_s, 0.0, 10.0)?;
         check("filter_cutoff_hz", self.filter_cutoff_hz, 0.0, 1000.0)?;
-        check("axial_damping", self.axial_damping, 0.0, 1e5)?;
-        check("axial_deadband", self.axial_deadband, 0.0, 50.0)?;
-        check("axial_still_deadband", self.axial_still_deadband, 0.0, 50.0)?;
-        check("axial_max_speed", self.axial_max_speed, 1e-4, 1.0)
+        check("axial_damping_ns_per_m", self.axial_damping_ns_per_m, 0.0, 1e5)?;
+        check("axial_deadband_n", self.axial_deadband_n, 0.0, 50.0)?;
+        check("axial_still_deadband_n", self.axial_still_deadband_n, 0.0, 50.0)?;
+        check("axial_max_speed_m_s", self.axial_max_speed_m_s, 1e-4, 1.0)
     }
 
     /// How far the tip's target depth yields in a step of `dt` to `along`, the force on the
     /// shaft along its direction (into the body; negative pushes the scope out), m: past
-    /// the dead-band (`axial_deadband` while `steering`, else `axial_still_deadband`), at
-    /// 1 / `axial_damping` m/s per N; zero when off or not finite.
+    /// the dead-band (`axial_deadband_n` while `steering`, else `axial_still_deadband_n`), at
+    /// 1 / `axial_damping_ns_per_m` m/s per N; zero when off or not finite.
     pub fn axial_yield(&self, along: f64, steering: bool, dt: f64) -> f64 {
         let band = if steering {
-            self.axial_deadband
+            self.axial_deadband_n
         } else {
-            self.axial_still_deadband
+            self.axial_still_deadband_n
         };
-        if self.axial_damping > 0.0 && along.is_finite() && dt.is_finite() && dt > 0.0 {
-            let most = self.axial_max_speed * dt;
-            (deadband(along, band) / self.axial_damping * dt).clamp(-most, most)
+        if self.axial_damping_ns_per_m > 0.0 && along.is_finite() && dt.is_finite() && dt > 0.0 {
+            let most = self.axial_max_speed_m_s * dt;
+            (deadband(along, band) / self.axial_damping_ns_per_m * dt).clamp(-most, most)
         } else {
             0.0
         }
@@ -165,8 +165,8 @@ pub struct Motion {
     pub omega: Vector3<f64>,
     /// The tip's depth past the port (the fulcrum depth's upper bound), m.
     pub tip_depth: f64,
-    /// Whether a command moves the scope (the dead-band is then `force_deadband`, else
-    /// `still_force_deadband`).
+    /// Whether a command moves the scope (the dead-band is then `force_deadband_n`, else
+    /// `still_force_deadband_n`).
     pub steering: bool,
 }
 
@@ -174,7 +174,7 @@ impl Fulcrum {
     /// At the prior depth, not displaced.
     pub fn new(p: &FulcrumParams) -> Self {
         Self {
-            depth: p.prior_depth,
+            depth: p.prior_depth_m,
             lateral: Vector3::zeros(),
         }
     }
@@ -197,9 +197,9 @@ impl Fulcrum {
         }
         let f = if n > 0.0 {
             let band = if steering {
-                p.force_deadband
+                p.force_deadband_n
             } else {
-                p.still_force_deadband
+                p.still_force_deadband_n
             };
             f_across * (deadband(n, band) / n)
         } else {
@@ -209,32 +209,32 @@ impl Fulcrum {
         // no command comes, damping only (the spring would pull the scope back to where the
         // fulcrum began: a motion nobody asked for).
         let lateral = across(shaft, &self.lateral);
-        let x = if p.stiffness > 0.0 && steering {
-            let rest = f / p.stiffness;
-            rest + (lateral - rest) * (-p.stiffness / p.damping * dt).exp()
+        let x = if p.stiffness_n_per_m > 0.0 && steering {
+            let rest = f / p.stiffness_n_per_m;
+            rest + (lateral - rest) * (-p.stiffness_n_per_m / p.damping_ns_per_m * dt).exp()
         } else {
-            lateral + f * (dt / p.damping)
+            lateral + f * (dt / p.damping_ns_per_m)
         };
         // The rate bound (module doc).
         let step = x - lateral;
-        let most = p.max_lateral_speed * dt;
+        let most = p.max_lateral_speed_m_s * dt;
         let x = if step.norm() > most {
             lateral + step * (most / step.norm())
         } else {
             x
         };
         let xn = x.norm();
-        self.lateral = if xn > p.max_displacement {
-            x * (p.max_displacement / xn)
+        self.lateral = if xn > p.max_displacement_m {
+            x * (p.max_displacement_m / xn)
         } else {
             x
         };
         // Along: the lever's gradient, only while pivoting.
         let w = omega.norm();
         let before = self.depth;
-        if w > p.min_pivot_speed && w.is_finite() {
+        if w > p.min_pivot_speed_rad_s && w.is_finite() {
             let u = omega.cross(shaft) / w;
-            self.depth = (self.depth - p.depth_gain * f.dot(&u) * dt).clamp(0.0, tip_depth.max(0.0));
+            self.depth = (self.depth - p.depth_gain_m_per_ns * f.dot(&u) * dt).clamp(0.0, tip_depth.max(0.0));
         }
         self.depth - before
     }
@@ -265,7 +265,7 @@ mod tests {
     #[test]
     fn the_depth_converges_on_the_wall_from_either_side_and_only_while_pivoting() {
         let p = FulcrumParams {
-            stiffness: 1e4, // keep the lateral part out of the way
+            stiffness_n_per_m: 1e4, // keep the lateral part out of the way
             ..Default::default()
         };
         let a = Unit::new_normalize(Vector3::new(0.1, 0.0, -1.0));
@@ -292,8 +292,8 @@ mod tests {
     fn the_lateral_part_yields_to_the_force_within_its_bounds_and_ignores_the_axial_force() {
         // With a spring (the shipped 0 leaves the wall to place it).
         let p = FulcrumParams {
-            stiffness: 100.0,
-            force_deadband: 0.3,
+            stiffness_n_per_m: 100.0,
+            force_deadband_n: 0.3,
             ..FulcrumParams::default()
         };
         let a = Unit::new_normalize(Vector3::new(0.0, 0.0, -1.0));
@@ -311,7 +311,7 @@ mod tests {
         for _ in 0..1000 {
             fc.step(&p, &Vector3::new(0.0, 9.0, 0.0), &a, &m, 0.01);
         }
-        assert!((fc.lateral.norm() - p.max_displacement).abs() < 1e-9);
+        assert!((fc.lateral.norm() - p.max_displacement_m).abs() < 1e-9);
         // Below the dead-band while steering: back to zero.
         for _ in 0..2000 {
             fc.step(&p, &Vector3::new(0.2, 0.0, 0.0), &a, &m, 0.01);
@@ -330,13 +330,17 @@ mod tests {
         // The shipped law has no spring: past the dead-band the fulcrum moves at
         // (f - band) / D, steering or not, and stays where the force left it.
         let p = FulcrumParams::default();
-        assert_eq!(p.stiffness, 0.0);
+        assert_eq!(p.stiffness_n_per_m, 0.0);
         let mut fc = Fulcrum::new(&p);
         for _ in 0..10 {
             fc.step(&p, &Vector3::new(0.6, 0.0, 0.0), &a, &m, 0.01);
         }
-        let past = 0.6 - p.force_deadband;
-        assert!((fc.lateral.x - past / p.damping * 0.1).abs() < 1e-12, "{}", fc.lateral);
+        let past = 0.6 - p.force_deadband_n;
+        assert!(
+            (fc.lateral.x - past / p.damping_ns_per_m * 0.1).abs() < 1e-12,
+            "{}",
+            fc.lateral
+        );
         let held = fc.lateral;
         for _ in 0..100 {
             fc.step(&p, &Vector3::zeros(), &a, &m, 0.01);
@@ -347,13 +351,13 @@ mod tests {
         for (q, m) in [(p.clone(), m), (p.clone(), silent())] {
             for stiff in [0.0, 100.0] {
                 let q = FulcrumParams {
-                    stiffness: stiff,
+                    stiffness_n_per_m: stiff,
                     ..q.clone()
                 };
                 let mut fc = Fulcrum::new(&q);
                 fc.step(&q, &Vector3::new(0.0, 30.0, 0.0), &a, &m, 0.01);
                 assert!(
-                    (fc.lateral.norm() - q.max_lateral_speed * 0.01).abs() < 1e-12,
+                    (fc.lateral.norm() - q.max_lateral_speed_m_s * 0.01).abs() < 1e-12,
                     "{}",
                     fc.lateral
                 );
@@ -388,17 +392,17 @@ mod tests {
             "no motion and no spring back while silent"
         );
         fc.step(&p, &Vector3::new(0.0, -2.4, 0.0), &a, &silent(), 0.01);
-        let expect = -(2.4 - p.still_force_deadband) / p.damping * 0.01;
+        let expect = -(2.4 - p.still_force_deadband_n) / p.damping_ns_per_m * 0.01;
         assert!((fc.lateral.y - before.y - expect).abs() < 1e-12);
     }
 
     #[test]
     fn bad_parameters_are_named() {
         let bad = FulcrumParams {
-            damping: 0.0,
+            damping_ns_per_m: 0.0,
             ..Default::default()
         };
-        assert!(bad.validate().unwrap_err().contains("scope.fulcrum.damping"));
+        assert!(bad.validate().unwrap_err().contains("scope.fulcrum.damping_ns_per_m"));
         assert!(FulcrumParams::default().validate().is_ok());
     }
 
@@ -411,15 +415,15 @@ mod tests {
         assert_eq!(p.axial_yield(-4.9, false, dt), 0.0);
         // Past it: the way the force pushes, at 1/D per newton over the band.
         let out = p.axial_yield(-2.4, true, dt);
-        assert!((out - (-0.4 / p.axial_damping * dt)).abs() < 1e-15, "{out}");
+        assert!((out - (-0.4 / p.axial_damping_ns_per_m * dt)).abs() < 1e-15, "{out}");
         assert!(p.axial_yield(5.4, false, dt) > 0.0);
-        assert!((p.axial_yield(5.4, false, dt) - 0.4 / p.axial_damping * dt).abs() < 1e-15);
+        assert!((p.axial_yield(5.4, false, dt) - 0.4 / p.axial_damping_ns_per_m * dt).abs() < 1e-15);
         // No faster than its rate bound, either way.
-        assert_eq!(p.axial_yield(40.0, true, dt), p.axial_max_speed * dt);
-        assert_eq!(p.axial_yield(-40.0, false, dt), -p.axial_max_speed * dt);
+        assert_eq!(p.axial_yield(40.0, true, dt), p.axial_max_speed_m_s * dt);
+        assert_eq!(p.axial_yield(-40.0, false, dt), -p.axial_max_speed_m_s * dt);
         // Off, or bad input: nothing.
         let off = FulcrumParams {
-            axial_damping: 0.0,
+            axial_damping_ns_per_m: 0.0,
             ..p.clone()
         };
         assert_eq!(off.axial_yield(-40.0, true, dt), 0.0);

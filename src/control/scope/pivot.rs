@@ -9,22 +9,22 @@
 //! fulcrum F = P + d s_f + x ([`crate::control::scope::fulcrum`]: depth s_f along the shaft from a prior,
 //! displacement x across it, both adapted from the force across the shaft).
 //!
-//! **Per step** the surgeon's command (dead-man: older than `command_timeout` is none; not
+//! **Per step** the surgeon's command (dead-man: older than `command_timeout_s` is none; not
 //! finite, or stamped in the future, is ignored with the reason) is cut to the speed
 //! limits, and its rates are shaped within the controller's `motion:` limits
 //! ([`crate::control::safety::motion::RateShaper`]: a command that starts, stops or reverses at once, or
 //! the dead-man, moves the target with bounded acceleration and jerk, braking ahead of the
 //! cone and the depth limits); the angular velocity R (pan, tilt, roll) turns R about F (the port P turns with
 //! it: P = F - d s_f), unless the new d would leave the cone about the docking axis
-//! (then only the roll turns: `CONE`); the zoom moves s_t, stopped at `min_depth` /
-//! `max_depth` (never pushed back into the range when it started outside it). The SQP
+//! (then only the roll turns: `CONE`); the zoom moves s_t, stopped at `min_depth_m` /
+//! `max_depth_m` (never pushed back into the range when it started outside it). The SQP
 //! then gets: c1 tip to the line (P, d), c2 tip to P + d s_t, c3 optical axis to d, c4,
 //! and the RCM term (F's distance from the shaft line) with the roll term
 //! ([`crate::control::sqp::PivotCost`]). With no command the targets do not move, so the scope
 //! holds still; only the fulcrum's lateral adaptation moves it, with the wall.
 //!
-//! **Retract** (`~retract`): the commands are ignored and s_t falls at `retract_speed` to
-//! the stand-off point before the port (`-standoff`); then the run ends (IDLE).
+//! **Retract** (`~retract`): the commands are ignored and s_t falls at `retract_speed_m_s` to
+//! the stand-off point before the port (`-standoff_m`); then the run ends (IDLE).
 //!
 //! **Held** ([`Pivot::hold`], the force stop while steering or withdrawing): the commands
 //! are ignored, the shaped rates brake to rest within the `motion:` limits (a pan or a
@@ -60,10 +60,10 @@ pub fn live_command(
         return Err("scope command not finite: ignored, holding still");
     }
     let age = now - c.stamp;
-    if age < -p.command_timeout {
+    if age < -p.command_timeout_s {
         return Err("scope command stamped in the future: ignored, holding still");
     }
-    Ok((age <= p.command_timeout).then_some(c.value))
+    Ok((age <= p.command_timeout_s).then_some(c.value))
 }
 
 /// The parameters of a step of [`Pivot::step`]: the scope's and the motion limits.
@@ -254,17 +254,17 @@ impl Pivot {
     fn capped(&mut self, p: &ScopeParams, c: ScopeCommand) -> ScopeCommand {
         let mut out = c;
         let w = c.pan.hypot(c.tilt);
-        if w > p.max_angular_speed {
-            out.pan *= p.max_angular_speed / w;
-            out.tilt *= p.max_angular_speed / w;
+        if w > p.max_angular_speed_rad_s {
+            out.pan *= p.max_angular_speed_rad_s / w;
+            out.tilt *= p.max_angular_speed_rad_s / w;
             self.limit = Some(ScopeLimit::Speed);
         }
-        if c.roll.abs() > p.max_roll_speed {
-            out.roll = c.roll.clamp(-p.max_roll_speed, p.max_roll_speed);
+        if c.roll.abs() > p.max_roll_speed_rad_s {
+            out.roll = c.roll.clamp(-p.max_roll_speed_rad_s, p.max_roll_speed_rad_s);
             self.limit = Some(ScopeLimit::Speed);
         }
-        if c.zoom.abs() > p.max_zoom_speed {
-            out.zoom = c.zoom.clamp(-p.max_zoom_speed, p.max_zoom_speed);
+        if c.zoom.abs() > p.max_zoom_speed_m_s {
+            out.zoom = c.zoom.clamp(-p.max_zoom_speed_m_s, p.max_zoom_speed_m_s);
             self.limit = Some(ScopeLimit::Speed);
         }
         out
@@ -307,29 +307,29 @@ impl Pivot {
     /// Move the target depth by the zoom, stopped at the depth limits.
     fn zoom(&mut self, p: &ScopeParams, zoom: f64, dt: f64) {
         let s = self.tip_depth + zoom * dt;
-        self.tip_depth = if zoom > 0.0 && s > p.max_depth {
+        self.tip_depth = if zoom > 0.0 && s > p.max_depth_m {
             self.limit = Some(ScopeLimit::MaxDepth);
             self.zoom_rate.cut_to(Vector3::zeros());
-            self.tip_depth.max(p.max_depth)
-        } else if zoom < 0.0 && s < p.min_depth {
+            self.tip_depth.max(p.max_depth_m)
+        } else if zoom < 0.0 && s < p.min_depth_m {
             self.limit = Some(ScopeLimit::MinDepth);
             self.zoom_rate.cut_to(Vector3::zeros());
-            self.tip_depth.min(p.min_depth)
+            self.tip_depth.min(p.min_depth_m)
         } else {
             s
         };
     }
 
     /// Yield along the shaft to the force `along` it ([`FulcrumParams::axial_yield`]).
-    /// Past `min_depth` too (the trocar that pushes the scope out moves the bore with it; a
+    /// Past `min_depth_m` too (the trocar that pushes the scope out moves the bore with it; a
     /// limit that stopped the yield would leave the scope pushing on it), but never out of
-    /// the port nor past `max_depth` (a depth already beyond is not pushed further).
+    /// the port nor past `max_depth_m` (a depth already beyond is not pushed further).
     fn yield_along(&mut self, p: &ScopeParams, along: f64, steering: bool, dt: f64) {
         let ds = p.fulcrum.axial_yield(along, steering, dt);
         if ds == 0.0 {
             return;
         }
-        let (lo, hi) = (self.tip_depth.min(0.0), p.max_depth.max(self.tip_depth));
+        let (lo, hi) = (self.tip_depth.min(0.0), p.max_depth_m.max(self.tip_depth));
         self.tip_depth = (self.tip_depth + ds).clamp(lo, hi);
     }
 
@@ -353,13 +353,13 @@ impl Pivot {
             // Held: braking to rest.
             (Some(end), _) if self.held => (Vector3::zeros(), 0.0, self.tip_depth - end),
             (None, _) if self.held => (Vector3::zeros(), 0.0, f64::INFINITY),
-            (Some(end), _) => (Vector3::zeros(), -p.retract_speed, self.tip_depth - end),
+            (Some(end), _) => (Vector3::zeros(), -p.retract_speed_m_s, self.tip_depth - end),
             (None, Ok(Some(c))) => {
                 let c = self.capped(p, c);
                 let room = if c.zoom > 0.0 {
-                    p.max_depth - self.tip_depth
+                    p.max_depth_m - self.tip_depth
                 } else {
-                    self.tip_depth - p.min_depth
+                    self.tip_depth - p.min_depth_m
                 };
                 (Vector3::new(c.pan, c.tilt, c.roll), c.zoom, room)
             }
@@ -483,7 +483,7 @@ mod tests {
             (pv.port() - Point3::origin()).norm() < 1e-12,
             "the port projected on the shaft"
         );
-        assert!((pv.fulcrum() - Point3::new(0.0, 0.0, -p.fulcrum.prior_depth)).norm() < 1e-12);
+        assert!((pv.fulcrum() - Point3::new(0.0, 0.0, -p.fulcrum.prior_depth_m)).norm() < 1e-12);
         for _ in 0..500 {
             let t = go(&mut pv, &p, Ok(None));
             assert!((t.point - Point3::new(0.0, 0.0, -0.03)).norm() < 1e-12);
@@ -507,10 +507,10 @@ mod tests {
         );
         assert_eq!(pv.target_depth(), 0.03);
         // Steering (a zero command: the dead-man held), 10 N out: (10 - 2) / 50 = 0.16 m/s,
-        // cut to the rate bound (`axial_max_speed`).
+        // cut to the rate bound (`axial_max_speed_m_s`).
         pv.step(PivotParams::new(&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &out, true, 0.01);
         assert!(
-            (pv.target_depth() - (0.03 - p.fulcrum.axial_max_speed * 0.01)).abs() < 1e-12,
+            (pv.target_depth() - (0.03 - p.fulcrum.axial_max_speed_m_s * 0.01)).abs() < 1e-12,
             "{}",
             pv.target_depth()
         );
@@ -527,7 +527,7 @@ mod tests {
         for _ in 0..1000 {
             pv.step(PivotParams::new(&p, &lim), cmd(0.0, 0.0, 0.0, 0.0), &-out, true, 0.01);
         }
-        assert_eq!(pv.target_depth(), p.max_depth);
+        assert_eq!(pv.target_depth(), p.max_depth_m);
     }
 
     #[test]
@@ -551,12 +551,12 @@ mod tests {
             let now = pv.direction().angle(&-Vector3::z());
             let r = (now - angle) / 0.01;
             let jerk_bound = if k == 0 {
-                lim.max_angular_jerk * 0.01 * 0.01
+                lim.max_angular_jerk_rad_s3 * 0.01 * 0.01
             } else {
                 0.17
             };
             assert!(
-                r <= jerk_bound + 1e-9 && r - rate <= lim.max_angular_accel * 0.01 + 1e-9,
+                r <= jerk_bound + 1e-9 && r - rate <= lim.max_angular_accel_rad_s2 * 0.01 + 1e-9,
                 "step {k}: {r} rad/s"
             );
             (angle, rate) = (now, r);
@@ -576,7 +576,7 @@ mod tests {
         );
         // The tip moved on a circle about the fulcrum.
         let tip = pv.port() + d.into_inner() * pv.target_depth();
-        assert!(((tip - f0).norm() - (0.03 - p.fulcrum.prior_depth)).abs() < 1e-12);
+        assert!(((tip - f0).norm() - (0.03 - p.fulcrum.prior_depth_m)).abs() < 1e-12);
         for _ in 0..101 {
             go(&mut pv, &p, cmd(0.0, 0.0, 0.3, 0.01));
         }
@@ -595,18 +595,21 @@ mod tests {
             assert_eq!(pv.limit, Some(ScopeLimit::Speed));
         }
         let step = pv.direction().angle(&-Vector3::z()) - before;
-        assert!((step - p.max_angular_speed * 0.01).abs() < 1e-12, "{step} rad per step");
+        assert!(
+            (step - p.max_angular_speed_rad_s * 0.01).abs() < 1e-12,
+            "{step} rad per step"
+        );
         // Zoom out to the minimum depth and no further.
         for _ in 0..200 {
             go(&mut pv, &p, cmd(0.0, 0.0, 0.0, -0.02));
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MinDepth));
-        assert_eq!(pv.target_depth(), p.min_depth);
+        assert_eq!(pv.target_depth(), p.min_depth_m);
         for _ in 0..600 {
             go(&mut pv, &p, cmd(0.0, 0.0, 0.0, 0.02));
         }
         assert_eq!(pv.limit, Some(ScopeLimit::MaxDepth));
-        assert_eq!(pv.target_depth(), p.max_depth);
+        assert_eq!(pv.target_depth(), p.max_depth_m);
         // Tilt into the cone's edge: stops within one step of it, roll still turns.
         for _ in 0..400 {
             go(&mut pv, &p, cmd(0.0, 0.3, 0.1, 0.0));
@@ -695,7 +698,7 @@ mod tests {
             assert!(steps < 1000);
         }
         assert_eq!(pv.target_depth(), -0.02);
-        assert!((steps as f64 - 0.05 / p.retract_speed / 0.01).abs() <= 1.0);
+        assert!((steps as f64 - 0.05 / p.retract_speed_m_s / 0.01).abs() <= 1.0);
         assert!(pv.direction().angle(&-Vector3::z()) < 1e-12);
     }
 
@@ -711,7 +714,7 @@ mod tests {
             }
             let mut prev = None;
             for _ in 0..50 {
-                prev = Some(go(&mut pv, &p, cmd(p.max_angular_speed, 0.0, 0.0, 0.0)));
+                prev = Some(go(&mut pv, &p, cmd(p.max_angular_speed_rad_s, 0.0, 0.0, 0.0)));
             }
             let mut prev = prev.unwrap();
             let v0 = pv.turn_rate.velocity().norm() + pv.zoom_rate.velocity().norm();
@@ -719,14 +722,21 @@ mod tests {
             pv.hold();
             assert!(pv.held());
             let push = Vector3::new(8.0, 0.0, 9.0);
-            let (mut rate, mut steps) = (if retract { p.retract_speed } else { p.max_angular_speed }, 0);
+            let (mut rate, mut steps) = (
+                if retract {
+                    p.retract_speed_m_s
+                } else {
+                    p.max_angular_speed_rad_s
+                },
+                0,
+            );
             while !pv.at_rest() {
                 let t = pv.step(PivotParams::new(&p, &lim), cmd(0.3, 0.0, 0.0, 0.02), &push, true, 0.01);
                 // The rates only slow, within the acceleration limits: no jump.
                 let (v, a_max) = if retract {
-                    (pv.zoom_rate.velocity().norm(), lim.max_accel)
+                    (pv.zoom_rate.velocity().norm(), lim.max_accel_m_s2)
                 } else {
-                    (pv.turn_rate.velocity().norm(), lim.max_angular_accel)
+                    (pv.turn_rate.velocity().norm(), lim.max_angular_accel_rad_s2)
                 };
                 assert!(v <= rate + 1e-12, "speeding up while held: {v} after {rate}");
                 assert!(rate - v <= a_max * 0.01 + 1e-9, "braking faster than the limit");

@@ -19,12 +19,12 @@
 //! **Law.** o = a · (p - p0) - s_f (1 - a · u), the estimated port's displacement along the
 //! docking axis a since DONE (p0: the controller's filtered estimate at DONE) less what
 //! tilting about the fulcrum adds there (u the estimated axis, s_f the fulcrum's depth), is
-//! low-passed at `cutoff_hz` on each fresh estimate and cut to ±`max_offset`. While the
+//! low-passed at `cutoff_hz` on each fresh estimate and cut to ±`max_offset_m`. While the
 //! surgeon steers (a command, even a zero one: the dead-man pressed), the law's port and
-//! fulcrum move with a part of it, a g o (`gain` g), at most `max_speed`; while no command
+//! fulcrum move with a part of it, a g o (`gain` g), at most `max_speed_m_s`; while no command
 //! comes they stay (the scope holds still: the pivot's stillness target), and when commands resume
-//! they catch up at `max_speed`. A missing, stale, non-finite or old-stamped estimate
-//! changes nothing: the offset holds; one more than `max_jump` from the followed offset (a
+//! they catch up at `max_speed_m_s`. A missing, stale, non-finite or old-stamped estimate
+//! changes nothing: the offset holds; one more than `max_jump_m` from the followed offset (a
 //! misdetected marker) is used only when the next one agrees with it.
 //!
 //! Nothing here allocates.
@@ -49,16 +49,16 @@ pub struct PortFollowParams {
     /// from carrying it further (at the cost of following less of the breathing).
     pub gain: f64,
     /// Largest offset followed, m: a port estimated further away is followed this far.
-    pub max_offset: f64,
+    pub max_offset_m: f64,
     /// Largest speed of the followed offset, m/s.
-    pub max_speed: f64,
+    pub max_speed_m_s: f64,
     /// An estimate older than this is not used, s.
-    pub max_age: f64,
+    pub max_age_s: f64,
     /// An estimate this far (m) from the followed offset is an outlier (a breath moves the
     /// port well under 1 mm between two 15 Hz frames) and is used only when the next one
     /// agrees with it within the same distance (the port did move: the marker came back
     /// into view elsewhere).
-    pub max_jump: f64,
+    pub max_jump_m: f64,
 }
 
 crate::shipped_defaults!(
@@ -73,10 +73,10 @@ impl PortFollowParams {
         for (key, v, lo, hi) in [
             ("scope.breathing.cutoff_hz", self.cutoff_hz, 1e-3, 100.0),
             ("scope.breathing.gain", self.gain, 0.0, 1.0),
-            ("scope.breathing.max_offset", self.max_offset, 0.0, 0.05),
-            ("scope.breathing.max_speed", self.max_speed, 1e-4, 0.1),
-            ("scope.breathing.max_age", self.max_age, 1e-3, 5.0),
-            ("scope.breathing.max_jump", self.max_jump, 1e-4, 0.05),
+            ("scope.breathing.max_offset_m", self.max_offset_m, 0.0, 0.05),
+            ("scope.breathing.max_speed_m_s", self.max_speed_m_s, 1e-4, 0.1),
+            ("scope.breathing.max_age_s", self.max_age_s, 1e-3, 5.0),
+            ("scope.breathing.max_jump_m", self.max_jump_m, 1e-4, 0.05),
         ] {
             in_range(key, v, lo, hi).map_err(|e| e.to_string())?;
         }
@@ -121,8 +121,8 @@ impl PortFollow {
     /// fulcrum `depth` m past the port: the point of the estimated axis at that depth is
     /// followed, which tilting about the fulcrum does not move (the face itself, `depth`
     /// above it, moves along the docking axis by `depth` (1 - cos tilt): 1.8 mm of 30 mm at
-    /// 20 deg). An estimate that is not finite, older than `max_age`, or not newer than the
-    /// last one is not used; one over `max_jump` from the followed offset only when the next
+    /// 20 deg). An estimate that is not finite, older than `max_age_s`, or not newer than the
+    /// last one is not used; one over `max_jump_m` from the followed offset only when the next
     /// one confirms it.
     pub fn observe(
         &mut self,
@@ -132,15 +132,15 @@ impl PortFollow {
         stamp: f64,
         now: f64,
     ) {
-        let fresh = stamp > self.stamp && now - stamp <= p.max_age;
+        let fresh = stamp > self.stamp && now - stamp <= p.max_age_s;
         let finite = port.coords.iter().chain(axis.iter()).all(|x| x.is_finite()) && depth.is_finite();
         let Some(u) = Unit::try_new(*axis, 1e-9).filter(|_| fresh && finite && now.is_finite()) else {
             return;
         };
         let tilt = 1.0 - self.axis.dot(&u).clamp(-1.0, 1.0);
-        let raw = (self.axis.dot(&(port - self.origin)) - depth * tilt).clamp(-p.max_offset, p.max_offset);
-        if (raw - self.tracked).abs() > p.max_jump {
-            let confirmed = self.pending.is_some_and(|q| (raw - q).abs() <= p.max_jump);
+        let raw = (self.axis.dot(&(port - self.origin)) - depth * tilt).clamp(-p.max_offset_m, p.max_offset_m);
+        if (raw - self.tracked).abs() > p.max_jump_m {
+            let confirmed = self.pending.is_some_and(|q| (raw - q).abs() <= p.max_jump_m);
             if !confirmed {
                 self.pending = Some(raw);
                 return;
@@ -157,7 +157,7 @@ impl PortFollow {
         if !(p.follow && steering && dt.is_finite() && dt > 0.0) {
             return Vector3::zeros();
         }
-        let room = p.max_speed * dt;
+        let room = p.max_speed_m_s * dt;
         let d = (p.gain * self.tracked - self.applied).clamp(-room, room);
         self.applied += d;
         self.axis.into_inner() * d
@@ -211,7 +211,7 @@ mod tests {
         let mut back_by = 0.0;
         for k in 0..10 {
             let d = f.step(&p, true, 0.01).z;
-            assert!(d.abs() <= p.max_speed * 0.01 + 1e-15, "step {k}: {d}");
+            assert!(d.abs() <= p.max_speed_m_s * 0.01 + 1e-15, "step {k}: {d}");
             back_by += d;
         }
         assert!((back_by + 0.002).abs() < 1e-9, "{back_by}");
@@ -265,7 +265,7 @@ mod tests {
             f.observe(&p, (&Point3::new(0.1, 0.2, 0.35), &Vector3::z()), 0.03, t, t);
             f.step(&p, true, 0.01);
         }
-        assert!((f.offset() - p.max_offset).abs() < 1e-9, "{}", f.offset());
+        assert!((f.offset() - p.max_offset_m).abs() < 1e-9, "{}", f.offset());
         // An outlier 8 mm away is not followed; the same place seen twice is (the port moved).
         let mut g = PortFollow::new(
             &PortFollowParams::default(),

@@ -56,7 +56,7 @@ pub struct SqpSettings {
     /// Largest number of QPs per control step (1 = real-time iteration).
     pub max_iterations: usize,
     /// Converged when the largest joint step of an iteration is below this, rad.
-    pub tolerance: f64,
+    pub tolerance_rad: f64,
     /// Levenberg regularisation added to the Hessian's diagonal.
     pub regularization: f64,
     /// Interior-point iterations allowed per QP (a QP that hits the cap has failed).
@@ -95,8 +95,8 @@ impl SqpSettings {
                 self.max_iterations
             ));
         }
-        if !(self.tolerance.is_finite() && self.tolerance > 0.0) {
-            return Err(format!("sqp.tolerance must be > 0, got {}", self.tolerance));
+        if !(self.tolerance_rad.is_finite() && self.tolerance_rad > 0.0) {
+            return Err(format!("sqp.tolerance_rad must be > 0, got {}", self.tolerance_rad));
         }
         if !(self.regularization.is_finite() && self.regularization >= 0.0) {
             return Err(format!("sqp.regularization must be >= 0, got {}", self.regularization));
@@ -486,7 +486,7 @@ impl SqpSolver {
                     iterations += 1;
                     qp_iterations = qp_iterations.saturating_add(it);
                     clarabel_qps += usize::from(clarabel);
-                    if dq.amax() < self.settings.tolerance {
+                    if dq.amax() < self.settings.tolerance_rad {
                         status = SqpStatus::Converged;
                         break;
                     }

@@ -8,7 +8,7 @@
 //! torques go into a bounded lock-free queue (`crossbeam_queue::ArrayQueue`, the oldest
 //! dropped when the loop falls behind, with a throttled warning), which the loop empties
 //! into its [`ControlInput::torque_samples`] each step; the controller low-passes them
-//! itself (`torque_filter_time_constant`). The queue is emptied before the torque slot is
+//! itself (`torque_filter_time_constant_s`). The queue is emptied before the torque slot is
 //! read and the callback writes the slot before it queues the sample, so the slot's
 //! newest sample is never older than the newest sample the loop took.
 //!
@@ -26,7 +26,7 @@
 //! back) clears it, so the scope holds still, with a throttled warning; it is no fault of
 //! the docking and never holds the controller. The controller's dead-man
 //! ([`crate::control::scope::pivot::live_command`]) drops a command older than
-//! `scope.command_timeout`, and ignores one stamped further ahead of its clock (a clock that
+//! `scope.command_timeout_s`, and ignores one stamped further ahead of its clock (a clock that
 //! went back).
 
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -129,7 +129,8 @@ impl LoopState {
     fn new(p: &ControllerNodeParams) -> Self {
         let period = |hz: f64, never: f64| if hz > 0.0 { 1.0 / hz } else { never };
         Self {
-            stats: LoopStats::new(1.0, p.latency_samples).with_nominal_period(Duration::from_secs_f64(p.controller.dt)),
+            stats: LoopStats::new(1.0, p.latency_samples)
+                .with_nominal_period(Duration::from_secs_f64(p.controller.dt_s)),
             start_time: None,
             last_now: f64::NEG_INFINITY,
             last_latency_stamp: f64::NEG_INFINITY,
@@ -184,7 +185,7 @@ fn control_loop(
     records: &OutputSender<StepRecord>,
     started_at: Option<f64>,
 ) {
-    let mut pace = Pacer::new(1.0 / p.controller.dt);
+    let mut pace = Pacer::new(1.0 / p.controller.dt_s);
     let mut st = LoopState::new(p);
     st.start_time = started_at;
     while rosrust::is_ok() {
@@ -287,7 +288,7 @@ pub fn run() -> Result<(), NodeError> {
         rosrust::ros_warn!(
             "docking_controller: DRY RUN at {:.0} Hz: commands {:?} on {} (not {}), the controller steers a ghost arm \
              (joints on {}); waiting for ~start",
-            1.0 / p.controller.dt,
+            1.0 / p.controller.dt_s,
             p.command_type,
             p.preview_topic,
             p.command_topic,
@@ -296,7 +297,7 @@ pub fn run() -> Result<(), NodeError> {
     } else {
         rosrust::ros_info!(
             "docking_controller: {:.0} Hz, command {:?} on {}, waiting for ~start",
-            1.0 / p.controller.dt,
+            1.0 / p.controller.dt_s,
             p.command_type,
             p.command_topic
         );

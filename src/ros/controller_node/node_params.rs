@@ -15,10 +15,6 @@ use crate::validate;
 #[derive(Debug, Clone, serde::Deserialize)]
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct ControllerNodeParams {
-    /// Gone: the control rate is the controller's `dt` (`~controller/dt`,
-    /// `config/controller.yaml`); present, it fails [`Self::validate`] with that said.
-    #[serde(default)]
-    pub rate_hz: Option<serde::de::IgnoredAny>,
     /// Arm model when `urdf_file` is empty.
     pub model: LbrModel,
     /// URDF to build the chain `lbr_link_0` -> `endoscope_tip` from ('' = built-in model).
@@ -88,7 +84,7 @@ pub struct ControllerNodeParams {
     /// The preflight's settings (`~preflight`).
     pub preflight: PreflightParams,
     /// Parameters of the optimal controller (`config/controller.yaml`, loaded under
-    /// `~controller`; its defaults when absent); its `dt` is the control period, its
+    /// `~controller`; its defaults when absent); its `dt_s` is the control period, its
     /// `force_feedback` set from the node's.
     #[serde(default)]
     pub controller: ControllerParams,
@@ -104,15 +100,8 @@ crate::shipped_defaults!(
 impl ControllerNodeParams {
     /// Check every rate, count and name; the error names the key.
     pub fn validate(&self) -> Result<(), NodeError> {
-        if self.rate_hz.is_some() {
-            return Err(NodeError::Invalid(
-                "rate_hz: the key is gone: the control rate is the controller's period, `dt` in \
-                 config/controller.yaml (~controller/dt; the launch files' rate:=HZ sets it)"
-                    .into(),
-            ));
-        }
         // 5000 Hz down to 10 Hz
-        validate::in_range("controller.dt", self.controller.dt, 2e-4, 0.1)?;
+        validate::in_range("controller.dt_s", self.controller.dt_s, 2e-4, 0.1)?;
         validate::non_negative("status_rate_hz", self.status_rate_hz)?;
         validate::non_negative("markers_rate_hz", self.markers_rate_hz)?;
         validate::positive_at_most("command_lookahead_periods", self.command_lookahead_periods, 100.0)?;
@@ -188,20 +177,23 @@ mod tests {
         assert_eq!(format!("{p:?}"), format!("{d:?}"));
         // Figures of the file itself.
         assert_eq!(
-            (d.controller.dt, d.latency_samples, d.preflight.window_s),
+            (d.controller.dt_s, d.latency_samples, d.preflight.window_s),
             (0.01, 5000, 1.0)
         );
-        assert_eq!((d.preflight.limits.min_image_hz, d.markers.force_scale), (5.0, 0.2));
+        assert_eq!(
+            (d.preflight.limits.min_image_hz, d.markers.force_scale_m_per_n),
+            (5.0, 0.2)
+        );
         assert_eq!(d.preflight.limits, Limits::default());
         // As the parameter server hands it over: partial, with the controller under `controller`.
         let tree = serde_json::json!({
             "preflight": {"limits": {"min_image_hz": 10}},
-            "controller": {"dt": 0.001, "guard": {"force_stop": 15}},
+            "controller": {"dt_s": 0.001, "guard": {"force_stop_n": 15}},
         });
         let p: ControllerNodeParams = crate::ros::params::from_value("/docking_controller", tree).unwrap();
-        assert_eq!((p.controller.dt, p.preflight.limits.min_image_hz), (0.001, 10.0));
+        assert_eq!((p.controller.dt_s, p.preflight.limits.min_image_hz), (0.001, 10.0));
         assert_eq!(p.preflight.limits.min_marker_hz, d.preflight.limits.min_marker_hz);
-        assert_eq!(p.controller.guard.force_stop, 15.0);
+        assert_eq!(p.controller.guard.force_stop_n, 15.0);
         assert_eq!(p.controller.guard.velocity_scale, d.controller.guard.velocity_scale);
         assert_eq!(p.command_topic, d.command_topic);
         let e = crate::ros::params::from_value::<ControllerNodeParams>(
@@ -210,15 +202,38 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!(e.what, "/docking_controller");
-        // The old rate key names its replacement; a period out of range is refused.
-        let old: ControllerNodeParams =
-            crate::ros::params::from_value("/docking_controller", serde_json::json!({"rate_hz": 1000})).unwrap();
-        let why = old.validate().unwrap_err().to_string();
-        assert!(why.contains("rate_hz") && why.contains("`dt`"), "{why}");
+        // The old rate key is refused naming the controller's period; an old key of the file
+        // (or of the controller's, under `controller`) names its new one; a period out of range
+        // is refused.
+        let why = crate::ros::params::from_value::<ControllerNodeParams>(
+            "/docking_controller",
+            serde_json::json!({"rate_hz": 1000}),
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            why.contains("`rate_hz`: the key is gone") && why.contains("`dt_s`"),
+            "{why}"
+        );
+        for (tree, message) in [
+            (
+                serde_json::json!({"markers": {"force_scale": 0.1}}),
+                "`markers.force_scale`: the key is now `markers.force_scale_m_per_n`",
+            ),
+            (
+                serde_json::json!({"controller": {"guard": {"force_stop": 15}}}),
+                "`guard.force_stop`: the key is now `guard.force_stop_n`",
+            ),
+        ] {
+            let e = crate::ros::params::from_value::<ControllerNodeParams>("/docking_controller", tree)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(message), "{e}");
+        }
         let fast: ControllerNodeParams =
-            crate::ros::params::from_value("/docking_controller", serde_json::json!({"controller": {"dt": 1e-5}}))
+            crate::ros::params::from_value("/docking_controller", serde_json::json!({"controller": {"dt_s": 1e-5}}))
                 .unwrap();
-        assert!(fast.validate().unwrap_err().to_string().contains("controller.dt"));
+        assert!(fast.validate().unwrap_err().to_string().contains("controller.dt_s"));
         assert!(
             e.message.contains("`preflight.limits.min_image_fps`: unknown key"),
             "{e}"

@@ -114,7 +114,7 @@ impl Outputs {
                 stamp,
                 &p.joint_names,
                 q,
-                p.command_lookahead_periods * p.controller.dt,
+                p.command_lookahead_periods * p.controller.dt_s,
             )),
             (_, Some(m)) => m.send(convert::multiarray_command(q)),
             _ => Ok(()),
