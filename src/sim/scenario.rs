@@ -36,7 +36,7 @@ pub struct ScenarioParams {
     /// Largest tilt of the trocar axis from straight down, deg.
     pub max_tilt_deg: f64,
     /// A draw is kept only if its docking pose is reachable with every joint this far inside
-    /// its limits, deg (the controller's guard margin, `guard.position_margin`); 0 = no check.
+    /// its limits, deg (the controller's guard margin, `guard.position_margin_rad`); 0 = no check.
     pub reach_margin_deg: f64,
     /// Draws tried before giving up with an error.
     pub max_draws: u32,
