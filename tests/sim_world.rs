@@ -175,7 +175,7 @@ fn a_trocar_out_of_reach_is_refused_by_the_check() {
     use trocar_docking::sim::scenario::Scenario;
     let kin = kin();
     let p = trocar_docking::sim::scenario::ScenarioParams::default();
-    let q0 = p.q_nominal;
+    let q0 = p.q_nominal_rad;
     // 2 m away: no joint configuration gets there.
     let far = Scenario {
         q0,

@@ -74,7 +74,7 @@ fn true_mount(seed: u64, mm: f64, deg: f64) -> Isometry3<f64> {
         )
 }
 
-/// The start: the scenario's nominal joints (src/sim/scenario.rs `q_nominal`), the marker
+/// The start: the scenario's nominal joints (src/sim/scenario.rs `q_nominal_rad`), the marker
 /// 0.3 m in front of the true camera, slightly tilted.
 fn start(mount: &Isometry3<f64>, kin: &LbrKinematics) -> (JointVector, Isometry3<f64>) {
     let q0 = JointVector::from_column_slice(&[0.0, 0.45, 0.0, -1.15, 0.0, 1.54, 0.0]);

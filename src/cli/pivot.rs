@@ -17,7 +17,7 @@ use crate::kinematics::{Kinematics, LbrKinematics};
 use crate::stats::finite_quantile;
 use crate::trials::batch::Stats;
 use crate::trials::config::{load_controller, Protocol, SimConfig};
-use crate::trials::pivot::{done_when_script, fixed_fulcrum, random_script, run_pivot, PivotResult, PivotTiming};
+use crate::trials::pivot::{done_when_script, fixed_fulcrum, random_script, run_pivot, PivotResult};
 
 use super::CliResult;
 
@@ -245,7 +245,7 @@ pub fn run(a: &PivotArgs) -> CliResult {
     let arm = |name: &'static str, c: &ControllerParams| -> Result<ArmPivot, String> {
         let runs = seeds
             .par_iter()
-            .map(|&s| run_pivot(&cfg.sim, c, kin.clone(), s, &script(s), &PivotTiming::default()))
+            .map(|&s| run_pivot(&cfg.sim, c, kin.clone(), s, &script(s), &cfg.pivot))
             .collect::<Result<Vec<_>, String>>()?;
         Ok(ArmPivot::of(name, runs))
     };

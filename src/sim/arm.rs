@@ -40,7 +40,7 @@ pub type JointMatrix = nalgebra::SMatrix<f64, 7, 7>;
 
 /// Parameters of the joint tracking model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct ArmParams {
     /// Time constant of the tracking lag, s (1 / natural frequency).
     pub lag_time_constant_s: f64,
@@ -54,17 +54,7 @@ pub struct ArmParams {
     pub deflection_time_constant_s: f64,
 }
 
-impl Default for ArmParams {
-    fn default() -> Self {
-        Self {
-            lag_time_constant_s: 0.01,
-            damping_ratio: 1.0,
-            velocity_scale: 1.0,
-            joint_stiffness_nm_per_rad: [0.0; 7],
-            deflection_time_constant_s: 0.005,
-        }
-    }
-}
+crate::shipped_defaults!(ArmParams, crate::sim::SHIPPED, ["sim", "arm"]);
 
 impl ArmParams {
     /// Check the values.

@@ -29,7 +29,7 @@ use super::{check_range, SimError};
 
 /// Parameters of the shaft and the contact law.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct ContactParams {
     /// Penalty stiffness per sphere, N/m.
     pub stiffness_n_per_m: f64,
@@ -47,19 +47,7 @@ pub struct ContactParams {
     pub sphere_spacing_m: f64,
 }
 
-impl Default for ContactParams {
-    fn default() -> Self {
-        Self {
-            stiffness_n_per_m: 1.0e6,
-            damping_ns_per_m: 200.0,
-            friction: 0.3,
-            slip_velocity_m_s: 0.01,
-            shaft_diameter_m: 0.005,
-            shaft_length_m: 0.12,
-            sphere_spacing_m: 0.0025,
-        }
-    }
-}
+crate::shipped_defaults!(ContactParams, crate::sim::SHIPPED, ["sim", "contact"]);
 
 impl ContactParams {
     /// Check the values.

@@ -8,7 +8,8 @@
 //!
 //! Pure Rust, no ROS, no C++: the arm is seen through the [`Kinematics`](crate::kinematics::Kinematics)
 //! trait. Every random draw comes from a seeded ChaCha stream, so a seed fixes a run.
-//! Parameters are plain serde structs with defaults, read from `config/sim.yaml`.
+//! Parameters are serde structs read from `config/sim.yaml`; their defaults are that file as
+//! built into the binary ([`SHIPPED`]), so each value is written once, there, with its source.
 
 pub mod arm;
 pub mod contact;
@@ -21,6 +22,8 @@ pub mod trocar;
 pub mod world;
 
 use serde::{Deserialize, Serialize};
+
+use crate::config::{Renamed, Shipped};
 
 pub use arm::ArmParams;
 pub use contact::ContactParams;
@@ -62,6 +65,27 @@ pub enum SimError {
     Yaml(#[from] crate::config::ParamError),
 }
 
+/// `config/sim.yaml` as built into the binary: the defaults of [`SimParams`] and its sections
+/// (`sim:`), and of the trials' sections (`trial:`, `policy:`, `baseline:`, `pivot:`,
+/// `protocols:`; [`crate::trials::config::SimConfig`]), each value written once, in the file.
+pub static SHIPPED: Shipped = Shipped::with_renamed("config/sim.yaml", include_str!("../../config/sim.yaml"), RENAMED);
+
+/// The keys of `config/sim.yaml` that were renamed or removed: given under the old name (in a
+/// file, a protocol's overrides or the node's `~world` namespace), they are refused naming the
+/// new one.
+const RENAMED: &[Renamed] = &[
+    Renamed {
+        old: "sim.scenario.q_nominal",
+        new: "sim.scenario.q_nominal_rad",
+        note: "",
+    },
+    Renamed {
+        old: "trial.control_rate_hz",
+        new: "",
+        note: "the trials run at the controller's period, `dt_s` in config/controller.yaml",
+    },
+];
+
 /// Check that `v` is finite and within `[lo, hi]`.
 pub(crate) fn check_range(name: &'static str, v: f64, lo: f64, hi: f64) -> Result<(), SimError> {
     if v.is_finite() && v >= lo && v <= hi {
@@ -74,9 +98,10 @@ pub(crate) fn check_range(name: &'static str, v: f64, lo: f64, hi: f64) -> Resul
     }
 }
 
-/// Every parameter of the simulated world (the `sim:` section of `config/sim.yaml`).
+/// Every parameter of the simulated world (the `sim:` section of `config/sim.yaml`; its
+/// defaults are that section as shipped, [`SHIPPED`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct SimParams {
     /// Physics rate, Hz (the FRI rate of the LBR: 1000).
     pub physics_rate_hz: f64,
@@ -100,22 +125,7 @@ pub struct SimParams {
     pub scenario: ScenarioParams,
 }
 
-impl Default for SimParams {
-    fn default() -> Self {
-        Self {
-            physics_rate_hz: 1000.0,
-            substeps: 10,
-            arm: ArmParams::default(),
-            trocar: TrocarParams::default(),
-            seal: SealParams::default(),
-            breathing: BreathingParams::default(),
-            contact: ContactParams::default(),
-            torque_sensor: TorqueSensorParams::default(),
-            measurement: MeasurementParams::default(),
-            scenario: ScenarioParams::default(),
-        }
-    }
-}
+crate::shipped_defaults!(SimParams, SHIPPED, ["sim"]);
 
 impl SimParams {
     /// Parse from YAML (missing fields take their defaults) and validate.
@@ -173,6 +183,30 @@ mod tests {
         p.validate().unwrap();
         let y = crate::config::to_yaml_string("sim", &p).unwrap();
         assert_eq!(SimParams::from_yaml_str(&y).unwrap(), p);
+    }
+
+    /// A partial `sim:` section takes the rest from the shipped one, and a renamed key is
+    /// refused naming the new one.
+    #[test]
+    fn a_partial_section_takes_the_shipped_values() {
+        let d = SimParams::default();
+        assert_eq!((d.physics_rate_hz, d.substeps), (1000.0, 10));
+        let p = SimParams::from_yaml_str("substeps: 20\nscenario: {max_draws: 7}\n").unwrap();
+        assert_eq!((p.substeps, p.scenario.max_draws), (20, 7));
+        let same = SimParams {
+            substeps: d.substeps,
+            scenario: d.scenario.clone(),
+            ..p.clone()
+        };
+        assert_eq!(same, d);
+        assert_eq!(p.scenario.q_nominal_rad, d.scenario.q_nominal_rad);
+        let e = SimParams::from_yaml_str("scenario: {q_nominal: [0, 0, 0, 0, 0, 0, 0]}")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("`sim.scenario.q_nominal`: the key is now `sim.scenario.q_nominal_rad`"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -49,11 +49,10 @@ impl std::fmt::Display for NoiseModel {
 }
 
 /// Where the calibration bias acts.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum BiasFrame {
     /// In the port frame: a constant offset of the trocar pose.
-    #[default]
     Port,
     /// In the camera frame: a hand-eye error, seen through the arm's pose.
     Camera,
@@ -61,7 +60,7 @@ pub enum BiasFrame {
 
 /// Parameters of the trocar pose measurement.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct MeasurementParams {
     /// Noise model.
     pub model: NoiseModel,
@@ -88,23 +87,7 @@ pub struct MeasurementParams {
     pub camera_in_tip_m: [f64; 3],
 }
 
-impl Default for MeasurementParams {
-    fn default() -> Self {
-        Self {
-            model: NoiseModel::Uniform,
-            rate_hz: 100.0,
-            latency_s: 0.0,
-            uniform_position_m: 0.005,
-            uniform_quaternion: 0.005,
-            gaussian_position_m: 0.003,
-            gaussian_rotation_rad: 0.006,
-            bias_position_m: 0.002,
-            bias_rotation_rad: 0.026,
-            bias_frame: BiasFrame::Port,
-            camera_in_tip_m: [0.0, 0.07, -0.21],
-        }
-    }
-}
+crate::shipped_defaults!(MeasurementParams, crate::sim::SHIPPED, ["sim", "measurement"]);
 
 impl MeasurementParams {
     /// Check the values.

@@ -1,8 +1,8 @@
 //! Randomised start of a trial: the arm's start configuration and the trocar's rest pose.
 //!
-//! q0 = q_nominal + U(-q_spread, q_spread) per joint (q_nominal puts the tip 0.57 m in
-//! front of the base, 0.31 m high, pointing down, with room on every joint for the docking
-//! pose about 0.15 m lower). The port lies `port_distance_m` from
+//! q0 = q_nominal_rad + U(-q_spread_rad, q_spread_rad) per joint (q_nominal_rad puts the tip
+//! 0.57 m in front of the base, 0.31 m high, pointing down, with room on every joint for the
+//! docking pose about 0.15 m lower). The port lies `port_distance_m` from
 //! the start tip, in a direction within `approach_cone_deg` of straight down; the trocar's
 //! axis (z, into the body) is straight down tilted by U(0, max_tilt_deg) about a random
 //! horizontal axis, with a random twist about itself.
@@ -23,10 +23,10 @@ use crate::kinematics::{JointVector, Kinematics};
 
 /// Parameters of the randomised start.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct ScenarioParams {
     /// Nominal start configuration, rad.
-    pub q_nominal: [f64; 7],
+    pub q_nominal_rad: [f64; 7],
     /// Half-range of the uniform perturbation of each joint, rad.
     pub q_spread_rad: f64,
     /// Range of the distance from the start tip to the port, m.
@@ -36,31 +36,19 @@ pub struct ScenarioParams {
     /// Largest tilt of the trocar axis from straight down, deg.
     pub max_tilt_deg: f64,
     /// A draw is kept only if its docking pose is reachable with every joint this far inside
-    /// its limits, deg (the controller's guard margin, `guard.position_margin`); 0 = no check.
+    /// its limits, deg (the controller's guard margin, `guard.position_margin_rad`); 0 = no check.
     pub reach_margin_deg: f64,
     /// Draws tried before giving up with an error.
     pub max_draws: u32,
 }
 
-impl Default for ScenarioParams {
-    fn default() -> Self {
-        Self {
-            q_nominal: [0.0, 0.45, 0.0, -1.15, 0.0, 1.54, 0.0],
-            q_spread_rad: 0.08,
-            port_distance_m: [0.10, 0.15],
-            approach_cone_deg: 20.0,
-            max_tilt_deg: 25.0,
-            reach_margin_deg: 5.0,
-            max_draws: 100,
-        }
-    }
-}
+crate::shipped_defaults!(ScenarioParams, crate::sim::SHIPPED, ["sim", "scenario"]);
 
 impl ScenarioParams {
     /// Check the values.
     pub fn validate(&self) -> Result<(), SimError> {
-        for &q in &self.q_nominal {
-            check_range("scenario.q_nominal", q, -std::f64::consts::PI, std::f64::consts::PI)?;
+        for &q in &self.q_nominal_rad {
+            check_range("scenario.q_nominal_rad", q, -std::f64::consts::PI, std::f64::consts::PI)?;
         }
         check_range("scenario.q_spread_rad", self.q_spread_rad, 0.0, 1.0)?;
         check_range("scenario.port_distance_m[0]", self.port_distance_m[0], 0.0, 1.0)?;
@@ -127,7 +115,7 @@ impl Scenario {
     fn draw(p: &ScenarioParams, kin: &dyn Kinematics, rng: &mut impl rand::Rng) -> Result<Self, SimError> {
         let lim = kin.limits();
         let s = p.q_spread_rad;
-        let mut q0 = p.q_nominal;
+        let mut q0 = p.q_nominal_rad;
         for (i, q) in q0.iter_mut().enumerate() {
             let d = if s > 0.0 { rng.random_range(-s..=s) } else { 0.0 };
             *q = (*q + d).clamp(lim.lower[i], lim.upper[i]);

@@ -25,7 +25,7 @@ use super::{check_range, SimError};
 
 /// Parameters of the seal (all zero friction = no seal).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct SealParams {
     /// Depth of the seal along the trocar axis, m.
     pub depth_m: f64,
@@ -41,18 +41,7 @@ pub struct SealParams {
     pub stick_velocity_m_s: f64,
 }
 
-impl Default for SealParams {
-    fn default() -> Self {
-        Self {
-            depth_m: 0.015,
-            static_friction_n: 0.0,
-            kinetic_friction_n: 0.0,
-            lip_stiffness_n_per_m: 5000.0,
-            viscous_ns_per_m: 0.0,
-            stick_velocity_m_s: 0.001,
-        }
-    }
-}
+crate::shipped_defaults!(SealParams, crate::sim::SHIPPED, ["sim", "seal"]);
 
 impl SealParams {
     /// Check the values.

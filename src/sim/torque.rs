@@ -24,7 +24,7 @@ const GRAVITY: Vector3<f64> = Vector3::new(0.0, 0.0, -9.81);
 
 /// Parameters of the torque sensor model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct TorqueSensorParams {
     /// Standard deviation of the white noise per joint, Nm.
     pub noise_sigma_nm: f64,
@@ -40,18 +40,7 @@ pub struct TorqueSensorParams {
     pub payload_com_spread_m: f64,
 }
 
-impl Default for TorqueSensorParams {
-    fn default() -> Self {
-        Self {
-            noise_sigma_nm: 0.1,
-            bias_nm: 0.2,
-            deadband_nm: 0.3,
-            payload_mass_error_kg: 0.0,
-            payload_com_m: [0.0, 0.0, -0.2],
-            payload_com_spread_m: 0.0,
-        }
-    }
-}
+crate::shipped_defaults!(TorqueSensorParams, crate::sim::SHIPPED, ["sim", "torque_sensor"]);
 
 impl TorqueSensorParams {
     /// Check the values.

@@ -37,7 +37,7 @@ use super::{check_range, SimError};
 
 /// Geometry and mount of the trocar.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct TrocarParams {
     /// Inner diameter of the port bore, m.
     pub port_diameter_m: f64,
@@ -69,26 +69,7 @@ pub struct TrocarParams {
     pub rot_damping_ratio: f64,
 }
 
-impl Default for TrocarParams {
-    fn default() -> Self {
-        Self {
-            port_diameter_m: 0.007,
-            funnel_diameter_m: 0.016,
-            funnel_depth_m: 0.01,
-            head_radius_m: 0.02,
-            length_m: 0.1,
-            pivot_depth_m: 0.03,
-            mass_kg: 0.3,
-            inertia_kgm2: 5e-4,
-            k_lateral_n_per_m: 1500.0,
-            k_axial_n_per_m: 1000.0,
-            k_tilt_nm_per_rad: 2.0,
-            k_twist_nm_per_rad: 1.0,
-            damping_ratio: 0.7,
-            rot_damping_ratio: 0.7,
-        }
-    }
-}
+crate::shipped_defaults!(TrocarParams, crate::sim::SHIPPED, ["sim", "trocar"]);
 
 impl TrocarParams {
     /// Check the values.
@@ -153,7 +134,7 @@ impl TrocarParams {
 
 /// Breathing: the abdominal wall, and the trocar's mount with it, moves periodically.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct BreathingParams {
     /// Amplitude along the trocar axis, m (0 = no breathing).
     pub amplitude_axial_m: f64,
@@ -163,15 +144,7 @@ pub struct BreathingParams {
     pub frequency_hz: [f64; 2],
 }
 
-impl Default for BreathingParams {
-    fn default() -> Self {
-        Self {
-            amplitude_axial_m: 0.0,
-            amplitude_lateral_m: 0.0,
-            frequency_hz: [0.2, 0.3],
-        }
-    }
-}
+crate::shipped_defaults!(BreathingParams, crate::sim::SHIPPED, ["sim", "breathing"]);
 
 impl BreathingParams {
     /// Check the values.

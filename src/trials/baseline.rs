@@ -21,7 +21,7 @@ const DONE_SETTLE_S: f64 = 0.2;
 
 /// Tunables of the baseline (the `baseline:` section of `config/sim.yaml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct BaselineParams {
     /// Stand-off before the port for alignment, m.
     pub standoff_m: f64,
@@ -33,16 +33,7 @@ pub struct BaselineParams {
     pub admittance_m_per_n: f64,
 }
 
-impl Default for BaselineParams {
-    fn default() -> Self {
-        Self {
-            standoff_m: 0.02,
-            speed_m_s: 0.05,
-            gain: 1.0,
-            admittance_m_per_n: 0.005,
-        }
-    }
-}
+crate::shipped_defaults!(BaselineParams, crate::sim::SHIPPED, ["baseline"]);
 
 /// The baseline policy.
 #[derive(Debug, Clone)]

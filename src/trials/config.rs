@@ -1,6 +1,9 @@
 //! The file `config/sim.yaml`: the simulated world (`sim:`), the trial rules (`trial:`),
-//! and the named protocols (`protocols:`), each a partial `sim:`/`trial:` tree laid over
-//! the base sections ([`SimConfig::with_protocol`]). The controller the trials run is
+//! the policy and the baseline's tunables, the pivot benchmark's durations (`pivot:`), and
+//! the named protocols (`protocols:`), each a partial `sim:`/`trial:` tree laid over the base
+//! sections ([`SimConfig::with_protocol`]). The file is built into the binary
+//! ([`crate::sim::SHIPPED`]) and each section's defaults are its values there: a file that
+//! leaves a key out takes the shipped value. The controller the trials run is
 //! `config/controller.yaml`, unchanged ([`load_controller`]).
 
 use std::collections::BTreeMap;
@@ -9,9 +12,11 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::baseline::BaselineParams;
+use super::pivot::PivotTiming;
 use super::run::TrialParams;
+use crate::config::Value;
 use crate::control::ControllerParams;
-use crate::sim::{SimError, SimParams};
+use crate::sim::{SimError, SimParams, SHIPPED};
 
 /// Default location of the simulator configuration, relative to the package root.
 pub const DEFAULT_PATH: &str = "config/sim.yaml";
@@ -22,33 +27,57 @@ pub const DEFAULT_CONTROLLER_PATH: &str = "config/controller.yaml";
 /// `config/controller.yaml` as built into the binary, for runs outside the package root.
 pub const EMBEDDED_CONTROLLER_YAML: &str = crate::control::params::SHIPPED_YAML;
 
-/// Everything `config/sim.yaml` holds.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+/// Everything `config/sim.yaml` holds. A section the file leaves out is the shipped one
+/// ([`crate::sim::SHIPPED`]); a section it gives is laid over the shipped one key by key,
+/// but for `protocols:`, which, given, is the file's own table.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SimConfig {
     /// The simulated world.
     pub sim: SimParams,
-    /// Trial rules (goal, tolerance, timeout, abort force, control rate).
+    /// Trial rules (goal, tolerances, timeout, abort force).
     pub trial: TrialParams,
     /// Which policy the trials run.
     pub policy: PolicyKind,
     /// The baseline policy.
     pub baseline: BaselineParams,
+    /// Durations of the pivot benchmark's runs around their script.
+    pub pivot: PivotTiming,
     /// Named protocols: each a partial tree of `sim:` and `trial:` values that replace the
     /// base ones (maps merge key by key, anything else is replaced).
-    pub protocols: BTreeMap<String, crate::config::Value>,
+    pub protocols: BTreeMap<String, Value>,
+}
+
+impl Default for SimConfig {
+    /// The shipped file, section by section.
+    fn default() -> Self {
+        static PROTOCOLS: std::sync::OnceLock<BTreeMap<String, Value>> = std::sync::OnceLock::new();
+        let protocols = PROTOCOLS.get_or_init(|| {
+            crate::config::from_yaml_value(SHIPPED.name(), SHIPPED.section(&["protocols"]).clone())
+                .unwrap_or_else(|e| panic!("the built-in {} has a bad `protocols:` table: {e}", SHIPPED.name()))
+        });
+        Self {
+            sim: SimParams::default(),
+            trial: TrialParams::default(),
+            policy: PolicyKind::default(),
+            baseline: BaselineParams::default(),
+            pivot: PivotTiming::default(),
+            protocols: protocols.clone(),
+        }
+    }
 }
 
 /// The policy of the trials.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "snake_case")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(remote = "Self", rename_all = "snake_case")]
 pub enum PolicyKind {
     /// The docking controller (paper eq. 1), `crate::control`.
-    #[default]
     Controller,
     /// The resolved-rate baseline, [`super::baseline`].
     Baseline,
 }
+
+crate::shipped_defaults!(PolicyKind, SHIPPED, ["policy"]);
 
 /// The protocols `config/sim.yaml` ships (the CLI's `--protocol`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
@@ -99,6 +128,7 @@ impl SimConfig {
     pub fn validate(&self) -> Result<(), SimError> {
         self.sim.validate()?;
         self.trial.validate()?;
+        self.pivot.validate()?;
         for name in self.protocols.keys() {
             self.with_protocol(name)?;
         }
@@ -140,8 +170,8 @@ impl SimConfig {
         Ok(out)
     }
 
-    /// `config/sim.yaml` when it exists (relative to the working directory), else the
-    /// built-in defaults.
+    /// `config/sim.yaml` when it exists (relative to the working directory), else the copy
+    /// built into the binary.
     pub fn load_default() -> Result<Self, SimError> {
         let p = Path::new(DEFAULT_PATH);
         if p.exists() {
@@ -184,6 +214,63 @@ mod tests {
         SimConfig::from_file(&Path::new(env!("CARGO_MANIFEST_DIR")).join(DEFAULT_PATH)).unwrap()
     }
 
+    /// The shipped file parses and validates (every protocol applied), and it is every
+    /// default: of the whole file and of each section.
+    #[test]
+    fn the_shipped_file_parses_validates_and_is_every_default() {
+        let c = shipped();
+        c.validate().unwrap();
+        assert_eq!(c, SimConfig::default());
+        assert_eq!(SimConfig::from_yaml_str("").unwrap(), c);
+        let d = &c.sim;
+        assert_eq!(
+            (
+                &d.arm,
+                &d.trocar,
+                &d.seal,
+                &d.breathing,
+                &d.contact,
+                &d.torque_sensor,
+                &d.measurement,
+                &d.scenario
+            ),
+            (
+                &crate::sim::ArmParams::default(),
+                &crate::sim::TrocarParams::default(),
+                &crate::sim::SealParams::default(),
+                &crate::sim::BreathingParams::default(),
+                &crate::sim::ContactParams::default(),
+                &crate::sim::TorqueSensorParams::default(),
+                &crate::sim::MeasurementParams::default(),
+                &crate::sim::ScenarioParams::default()
+            )
+        );
+        assert_eq!(
+            (&c.trial, &c.baseline, &c.pivot, c.policy),
+            (
+                &TrialParams::default(),
+                &BaselineParams::default(),
+                &PivotTiming::default(),
+                PolicyKind::default()
+            )
+        );
+        // Figures of the file itself, so that the defaults are read, not made up.
+        assert_eq!(
+            (
+                d.substeps,
+                d.contact.stiffness_n_per_m,
+                c.trial.abort_force_n,
+                c.pivot.dock_timeout_s
+            ),
+            (10, 1e6, 60.0, 20.0)
+        );
+        assert_eq!(c.policy, PolicyKind::Controller);
+        assert_eq!(
+            c.protocols.keys().map(String::as_str).collect::<Vec<_>>(),
+            ["paper", "realistic", "realistic_markerless"]
+        );
+    }
+
     #[test]
     fn shipped_config_parses_with_both_protocols() {
         let c = shipped();
@@ -201,20 +288,80 @@ mod tests {
         assert!(SimConfig::from_yaml_str("trial: {timeout_s: -1}").is_err());
     }
 
+    /// A user's file that leaves keys out takes the shipped values for them, section by
+    /// section and key by key.
+    #[test]
+    fn a_key_missing_from_a_users_file_takes_the_shipped_value() {
+        let d = SimConfig::default();
+        let c = SimConfig::from_yaml_str(
+            "sim: {trocar: {mass_kg: 0.5}}\ntrial: {timeout_s: 10}\npivot: {still_s: 1}\npolicy: baseline\n",
+        )
+        .unwrap();
+        assert_eq!(
+            (c.sim.trocar.mass_kg, c.trial.timeout_s, c.pivot.still_s, c.policy),
+            (0.5, 10.0, 1.0, PolicyKind::Baseline)
+        );
+        let mut same = c.clone();
+        same.sim.trocar.mass_kg = d.sim.trocar.mass_kg;
+        same.trial.timeout_s = d.trial.timeout_s;
+        same.pivot.still_s = d.pivot.still_s;
+        same.policy = d.policy;
+        assert_eq!(same, d);
+        // A protocol's overrides are laid over the same base: what it leaves out is the base's.
+        let p = SimConfig::from_yaml_str("protocols: {p: {sim: {seal: {static_friction_n: 3}}}}")
+            .unwrap()
+            .with_protocol("p")
+            .unwrap();
+        assert_eq!(p.sim.seal.static_friction_n, 3.0);
+        assert_eq!(p.sim.seal.kinetic_friction_n, d.sim.seal.kinetic_friction_n);
+        assert_eq!(p.sim.trocar, d.sim.trocar);
+        // The file's own protocol table replaces the shipped one.
+        assert_eq!(p.protocols.keys().collect::<Vec<_>>(), ["p"]);
+        assert!(SimConfig::from_yaml_str("pivot: {still_s: -1}").is_err());
+        assert!(SimConfig::from_yaml_str("policy: nope").is_err());
+    }
+
+    /// The error of `text` as a file, or else of its protocol `p` applied.
+    fn refusal(text: &str) -> String {
+        let e = SimConfig::from_yaml_str(text).and_then(|c| c.with_protocol("p"));
+        e.unwrap_err().to_string()
+    }
+
     /// The trials run at the controller's `dt_s`: the old `trial.control_rate_hz` is an error
     /// that names its replacement, at the top level and in a protocol.
     #[test]
     fn the_old_trial_control_rate_names_the_controllers_dt() {
-        let top = SimConfig::from_yaml_str("trial: {control_rate_hz: 100.0}")
-            .unwrap_err()
-            .to_string();
+        let gone = "`trial.control_rate_hz`: the key is gone";
+        let top = refusal("trial: {control_rate_hz: 100.0}");
         assert!(
-            top.contains("trial.control_rate_hz") && top.contains("`dt_s` in config/controller.yaml"),
+            top.contains(gone) && top.contains("`dt_s` in config/controller.yaml"),
             "{top}"
         );
-        let c = SimConfig::from_yaml_str("protocols: {p: {trial: {control_rate_hz: 1000}}}");
-        let e = c.and_then(|c| c.with_protocol("p")).unwrap_err().to_string();
-        assert!(e.contains("`dt_s` in config/controller.yaml"), "{e}");
+        let e = refusal("protocols: {p: {trial: {control_rate_hz: 1000}}}");
+        assert!(e.contains("protocol 'p'") && e.contains(gone), "{e}");
+    }
+
+    /// A renamed key is refused naming the new one, and an unknown key naming its path, at
+    /// the top level, in a protocol's overrides and through a ROS-style parameter tree.
+    #[test]
+    fn renamed_and_unknown_keys_are_refused_with_their_path_everywhere() {
+        let renamed = "`sim.scenario.q_nominal`: the key is now `sim.scenario.q_nominal_rad`";
+        let q = "[0, 0.45, 0, -1.15, 0, 1.54, 0]";
+        let e = refusal(&format!("sim: {{scenario: {{q_nominal: {q}}}}}"));
+        assert!(e.contains(renamed), "{e}");
+        let e = refusal(&format!("protocols: {{p: {{sim: {{scenario: {{q_nominal: {q}}}}}}}}}"));
+        assert!(e.contains("protocol 'p'") && e.contains(renamed), "{e}");
+        let zeros = [0.0; 7];
+        let tree = serde_json::json!({"sim": {"scenario": {"q_nominal": zeros}}});
+        let e = crate::config::from_tree::<SimConfig, _>("~world", &tree).unwrap_err();
+        assert!(e.to_string().contains(renamed), "{e}");
+        let ok = SimConfig::from_yaml_str(&format!("sim: {{scenario: {{q_nominal_rad: {q}}}}}")).unwrap();
+        assert_eq!(ok.sim.scenario.q_nominal_rad[1], 0.45);
+        let e = refusal("protocols: {p: {sim: {trocar: {typo: 1}}}}");
+        assert!(
+            e.contains("protocol 'p'") && e.contains("`sim.trocar.typo`: unknown key"),
+            "{e}"
+        );
     }
 
     #[test]

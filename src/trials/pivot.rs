@@ -18,13 +18,13 @@ use std::sync::Arc;
 
 use nalgebra::{Point3, Vector3};
 use rand::{RngExt, SeedableRng};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::closed_loop::{control_input, ClosedLoop, PlantError};
 use crate::control::docking::geometry::{across, distance_to_line};
 use crate::control::{Controller, ControllerParams, Phase, ScopeCommand, Stamped};
 use crate::kinematics::Kinematics;
-use crate::sim::{SimError, SimParams, SimWorld};
+use crate::sim::{check_range, SimError, SimParams, SimWorld};
 use crate::stats::finite_quantile;
 
 /// One piece of a script: a command held for a duration.
@@ -206,8 +206,10 @@ pub struct PivotResult {
     pub trace: Vec<PivotSample>,
 }
 
-/// Durations of a pivoting run around its script.
-#[derive(Debug, Clone, Copy, PartialEq)]
+/// Durations of a pivoting run around its script (the `pivot:` section of `config/sim.yaml`;
+/// its defaults are that section as shipped, [`crate::sim::SHIPPED`]).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct PivotTiming {
     /// Give up docking after this long, s.
     pub dock_timeout_s: f64,
@@ -219,14 +221,15 @@ pub struct PivotTiming {
     pub still_s: f64,
 }
 
-impl Default for PivotTiming {
-    fn default() -> Self {
-        Self {
-            dock_timeout_s: 20.0,
-            settle_before_s: 0.5,
-            settle_after_s: 0.5,
-            still_s: 2.0,
-        }
+crate::shipped_defaults!(PivotTiming, crate::sim::SHIPPED, ["pivot"]);
+
+impl PivotTiming {
+    /// Check the durations: finite, the dock timeout positive, the others not negative.
+    pub fn validate(&self) -> Result<(), SimError> {
+        check_range("pivot.dock_timeout_s", self.dock_timeout_s, 0.01, 3600.0)?;
+        check_range("pivot.settle_before_s", self.settle_before_s, 0.0, 3600.0)?;
+        check_range("pivot.settle_after_s", self.settle_after_s, 0.0, 3600.0)?;
+        check_range("pivot.still_s", self.still_s, 0.0, 3600.0)
     }
 }
 

@@ -52,9 +52,10 @@ pub trait Policy {
     fn period(&self) -> f64;
 }
 
-/// Parameters of a trial (the `trial:` section of `config/sim.yaml`).
+/// Parameters of a trial (the `trial:` section of `config/sim.yaml`; its defaults are that
+/// section as shipped, [`crate::sim::SHIPPED`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
+#[serde(remote = "Self", deny_unknown_fields)]
 pub struct TrialParams {
     /// Goal depth along the trocar axis, m.
     pub goal_depth_m: f64,
@@ -69,26 +70,9 @@ pub struct TrialParams {
     pub timeout_s: f64,
     /// Abort when the true contact force exceeds this, N.
     pub abort_force_n: f64,
-    /// A key that went: the control rate is the controller's `dt_s` (`config/controller.yaml`).
-    /// Set, it fails [`TrialParams::validate`] with a message that says so.
-    #[serde(default, skip_serializing)]
-    #[doc(hidden)]
-    pub control_rate_hz: Option<serde::de::IgnoredAny>,
 }
 
-impl Default for TrialParams {
-    fn default() -> Self {
-        Self {
-            goal_depth_m: 0.03,
-            tolerance_m: 0.005,
-            done_depth_tolerance_m: 0.002,
-            done_angle_tolerance_deg: 2.0,
-            timeout_s: 30.0,
-            abort_force_n: 60.0,
-            control_rate_hz: None,
-        }
-    }
-}
+crate::shipped_defaults!(TrialParams, crate::sim::SHIPPED, ["trial"]);
 
 impl TrialParams {
     /// Check the values.
@@ -103,16 +87,7 @@ impl TrialParams {
             45.0,
         )?;
         check_range("trial.timeout_s", self.timeout_s, 0.01, 3600.0)?;
-        check_range("trial.abort_force_n", self.abort_force_n, 0.1, 1e4)?;
-        if self.control_rate_hz.is_some() {
-            return Err(SimError::Param {
-                name: "trial.control_rate_hz",
-                why: "the key is gone: the trials run at the controller's rate, `dt_s` in config/controller.yaml \
-                      (0.01 s: 100 Hz)"
-                    .into(),
-            });
-        }
-        Ok(())
+        check_range("trial.abort_force_n", self.abort_force_n, 0.1, 1e4)
     }
 }
 
