@@ -112,6 +112,14 @@ pub fn merge(base: &mut Value, over: &Value) {
     }
 }
 
+/// The text of `config/controller.yaml` as built into the binary.
+pub const CONTROLLER_YAML: &str = include_str!("../config/controller.yaml");
+
+/// `config/controller.yaml` as built into the binary: every default of
+/// `control::ControllerParams` and of its sections is its value there (written once, with its
+/// comment and source).
+pub static CONTROLLER: Shipped = Shipped::new("config/controller.yaml", CONTROLLER_YAML);
+
 /// `config/docking_controller.yaml` (the docking controller node's private parameters, and
 /// the preflight's) as built into the binary: the defaults of the node's settings
 /// (`ros::controller_node::node_params`) and of the preflight's limits.

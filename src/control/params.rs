@@ -10,15 +10,11 @@ use super::safety::guard::GuardParams;
 use super::safety::motion::MotionLimits;
 use super::scope::command::ScopeParams;
 use super::sqp::{CostWeights, SqpSettings};
-use crate::config::Shipped;
 use crate::validate;
 
-/// The text of `config/controller.yaml` as built into the binary.
-pub const SHIPPED_YAML: &str = include_str!("../../config/controller.yaml");
-
-/// `config/controller.yaml` as built into the binary: every default of [`ControllerParams`]
-/// and of its sections is its value there (written once, with its comment and source).
-pub static SHIPPED: Shipped = Shipped::new("config/controller.yaml", SHIPPED_YAML);
+// The shipped file is built in with the other shipped files in `config.rs`, below the
+// sections that take their defaults from it: they name it here, and resolve to `config.rs`.
+pub use crate::config::{CONTROLLER as SHIPPED, CONTROLLER_YAML as SHIPPED_YAML};
 
 pub use crate::config::ParamError;
 
