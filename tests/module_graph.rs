@@ -61,9 +61,10 @@ const LAYERS: &[(&str, &str)] = &[
 /// `ros`, `cli`, `bench` -> `trials` -> `sim`, `control` -> `vision`, `kinematics` -> `ffi`,
 /// with the shared leaves `config`, `validate`, `signal`, `stats`, `realtime` below every
 /// folder that needs them. `sim` and `control` are peers: neither imports the other. The
-/// preflight's checks sit beside `trials` (the goal's reach is `Scenario::reachable`). A layer may always import itself and `test_alloc` (the test-only
-/// allocation counter). The core (`control`, `sim`, `trials`, `stats`, `signal`,
-/// `validate`) reaches no `ffi` (C++) directly.
+/// preflight's checks sit beside `trials` (the goal's reach is `Scenario::reachable`). A
+/// layer may always import itself and `test_alloc` (the test-only allocation counter). The
+/// core (`control`, `sim`, `trials`, `stats`, `signal`, `validate`) reaches no `ffi` (C++)
+/// directly.
 #[rustfmt::skip]
 const ALLOWED: &[(&str, &[&str])] = &[
     ("bin", &["ros", "cli", "bench", "trials", "preflight", "sim", "control", "vision", "kinematics", "config", "signal", "stats", "validate", "realtime", "root"]),
