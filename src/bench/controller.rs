@@ -12,7 +12,7 @@
 
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 
-use super::{scheduler_name, time_wall_and_cpu, LatencyStats, SuiteReport};
+use super::{scheduler_name, time_wall_and_cpu, LatencyStats, SuiteReport, Timed};
 use crate::control::sqp::SqpStatus;
 use crate::control::Phase;
 use crate::control::{Controller, ControllerParams};
@@ -141,7 +141,11 @@ pub fn run_scenario(
             }),
         };
         let input = control_input(&seen, None);
-        let (out, wall, cpu) = time_wall_and_cpu(|| c.step(kin, &input));
+        let Timed {
+            value: out,
+            wall_us: wall,
+            cpu_us: cpu,
+        } = time_wall_and_cpu(|| c.step(kin, &input));
         if out.phase == Phase::Tare {
             // The torque tare at each start holds the arm still: not the loop under test.
             s.excluded.tare += 1;

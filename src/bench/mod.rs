@@ -14,7 +14,7 @@ pub mod sim;
 pub mod vision;
 
 /// Latency statistics of repeated runs of one operation, in microseconds.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct LatencyStats {
     /// Number of samples.
     pub samples: usize,
@@ -50,8 +50,19 @@ impl LatencyStats {
     }
 }
 
+/// What one timed call returned, and how long it took.
+#[derive(Debug, Clone, Copy)]
+pub struct Timed<R> {
+    /// The call's result.
+    pub value: R,
+    /// Wall-clock time, µs.
+    pub wall_us: f64,
+    /// The thread's CPU time, µs (NaN where the thread CPU clock is unavailable).
+    pub cpu_us: f64,
+}
+
 /// Wall-clock and thread-CPU time of one call of `f`, µs (CPU NaN where unavailable).
-pub fn time_wall_and_cpu<R>(f: impl FnOnce() -> R) -> (R, f64, f64) {
+pub fn time_wall_and_cpu<R>(f: impl FnOnce() -> R) -> Timed<R> {
     let c0 = thread_cpu_time();
     let t0 = Instant::now();
     let r = f();
@@ -60,7 +71,11 @@ pub fn time_wall_and_cpu<R>(f: impl FnOnce() -> R) -> (R, f64, f64) {
         (Some(a), Some(b)) => b.saturating_sub(a).as_secs_f64() * 1e6,
         _ => f64::NAN,
     };
-    (r, wall.as_secs_f64() * 1e6, cpu)
+    Timed {
+        value: r,
+        wall_us: wall.as_secs_f64() * 1e6,
+        cpu_us: cpu,
+    }
 }
 
 /// One benchmarked operation: its name, latency, and extra figures (iterations, errors…).
@@ -115,12 +130,20 @@ mod tests {
         // charged to the running thread (docs/simulation.md, Soak), now and then milliseconds.
         let mut cpu = f64::INFINITY;
         for _ in 0..3 {
-            let ((), wall, c) = time_wall_and_cpu(|| std::thread::sleep(Duration::from_millis(20)));
+            let Timed {
+                wall_us: wall,
+                cpu_us: c,
+                ..
+            } = time_wall_and_cpu(|| std::thread::sleep(Duration::from_millis(20)));
             assert!(wall >= 20_000.0, "{wall}");
             cpu = cpu.min(c);
         }
         assert!(cpu < 5_000.0, "slept 20 ms but used {cpu} µs of CPU");
-        let ((), wall, cpu) = time_wall_and_cpu(|| {
+        let Timed {
+            wall_us: wall,
+            cpu_us: cpu,
+            ..
+        } = time_wall_and_cpu(|| {
             let t0 = Instant::now();
             while t0.elapsed() < Duration::from_millis(5) {
                 std::hint::black_box(0u64);

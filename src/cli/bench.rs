@@ -1,7 +1,9 @@
 //! `trocar_docking bench`: time the hot paths and print latency statistics (JSON with
 //! `--json`). Each suite lives in `crate::bench`.
 
-use crate::bench::SuiteReport;
+use serde::Deserialize;
+
+use crate::bench::{LatencyStats, SuiteReport};
 
 /// Which suite to run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -78,18 +80,11 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
             "operation (wall clock)", "samples", "median µs", "p90 µs", "p99 µs", "max µs"
         );
         for r in &reports {
-            let l = &r.latency;
-            println!(
-                "{}",
-                stats_row(&r.name, l.samples, l.median_us, l.p90_us, l.p99_us, l.max_us)
-            );
+            println!("{}", stats_row(&r.name, &r.latency));
             for (k, v) in &r.extra {
                 match latency_of(v) {
                     // Nested latency statistics (e.g. the controller's thread CPU time).
-                    Some(s) => println!(
-                        "{}",
-                        stats_row(&format!("  {k}"), s[0] as usize, s[1], s[2], s[3], s[4])
-                    ),
+                    Some(s) => println!("{}", stats_row(&format!("  {k}"), &s)),
                     None => println!("    {k}: {v}"),
                 }
             }
@@ -99,12 +94,31 @@ pub fn run(a: &BenchArgs) -> super::CliResult {
 }
 
 /// One row of the text table.
-fn stats_row(name: &str, samples: usize, median: f64, p90: f64, p99: f64, max: f64) -> String {
-    format!("{name:<36} {samples:>8} {median:>10.2} {p90:>10.2} {p99:>10.2} {max:>10.2}")
+fn stats_row(name: &str, l: &LatencyStats) -> String {
+    format!(
+        "{name:<36} {:>8} {:>10.2} {:>10.2} {:>10.2} {:>10.2}",
+        l.samples, l.median_us, l.p90_us, l.p99_us, l.max_us
+    )
 }
 
-/// [samples, median, p90, p99, max] of a JSON value shaped like `LatencyStats`.
-fn latency_of(v: &serde_json::Value) -> Option<[f64; 5]> {
-    let f = |k: &str| v.get(k).and_then(serde_json::Value::as_f64);
-    Some([f("samples")?, f("median_us")?, f("p90_us")?, f("p99_us")?, f("max_us")?])
+/// The statistics in a JSON value shaped like [`LatencyStats`] (a report's extra figure).
+fn latency_of(v: &serde_json::Value) -> Option<LatencyStats> {
+    LatencyStats::deserialize(v).ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_nested_latency_figure_is_read_back_and_anything_else_is_not() {
+        let l = LatencyStats::from_samples(&[1.0, 2.0, 3.0, 4.0]).unwrap();
+        let v = serde_json::json!(l);
+        assert_eq!(latency_of(&v), Some(l.clone()));
+        assert_eq!(latency_of(&serde_json::json!({"count": 3, "wall": v})), None);
+        assert_eq!(latency_of(&serde_json::json!(null)), None);
+        let row = stats_row("step", &l);
+        assert!(row.starts_with("step ") && row.contains("       4 "), "{row}");
+        assert!(row.ends_with("      4.00"), "{row}");
+    }
 }

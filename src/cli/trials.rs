@@ -6,7 +6,6 @@
 //! writes to `--out`: `summary.json`, `trials.csv`, `series/<arm>_<seed>.csv` and the
 //! plots `force_<protocol>.png`, `m_box_<protocol>.png`.
 
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -350,36 +349,57 @@ fn print_trials(r: &[ArmReport]) {
     }
 }
 
+/// The columns of `trials.csv`, one row per trial.
+const TABLE_HEADER: [&str; 18] = [
+    "arm",
+    "seed",
+    "outcome",
+    "final_phase",
+    "time_s",
+    "paper_success",
+    "paper_time_s",
+    "done_depth_error_m",
+    "done_radial_m",
+    "done_angle_deg",
+    "m_est_n",
+    "m_paper_code_scale",
+    "m_true_n",
+    "m_lateral_true_n",
+    "max_f_est_n",
+    "max_f_true_n",
+    "seal_breakaways",
+    "reason",
+];
+
+/// `trials.csv`. The fields are written as formatted (each figure with its own precision) and
+/// unquoted but for the reason, which is always quoted (its own quotes made `'`).
 fn write_table(path: &Path, r: &[ArmReport]) -> CliResult {
-    let mut table = std::io::BufWriter::new(std::fs::File::create(path)?);
-    writeln!(
-        table,
-        "arm,seed,outcome,final_phase,time_s,paper_success,paper_time_s,done_depth_error_m,done_radial_m,done_angle_deg,m_est_n,m_paper_code_scale,m_true_n,m_lateral_true_n,max_f_est_n,max_f_true_n,seal_breakaways,reason"
-    )?;
+    let mut table = csv::WriterBuilder::new()
+        .quote_style(csv::QuoteStyle::Never)
+        .from_path(path)?;
+    table.write_record(TABLE_HEADER)?;
     for arm in r {
         for t in &arm.trials {
-            writeln!(
-                table,
-                "{},{},{},{},{:.4},{},{:.4},{:.6},{:.6},{:.4},{:.5},{:.5},{:.5},{:.5},{:.4},{:.4},{},\"{}\"",
-                arm.summary.label,
-                t.seed,
-                t.outcome.name(),
-                t.final_phase,
-                t.time_s,
-                t.paper_success,
-                t.paper_time_s,
-                t.done_depth_error_m,
-                t.done_radial_m,
-                t.done_angle_deg,
-                t.m_est,
-                crate::trials::run::PAPER_CODE_SCALE * t.m_est,
-                t.m_true,
-                t.m_lateral_true,
-                t.max_f_est,
-                t.max_f_true,
-                t.seal_breakaways,
-                t.reason.replace('"', "'")
-            )?;
+            table.write_record([
+                arm.summary.label.clone(),
+                t.seed.to_string(),
+                t.outcome.name().to_string(),
+                t.final_phase.to_string(),
+                format!("{:.4}", t.time_s),
+                t.paper_success.to_string(),
+                format!("{:.4}", t.paper_time_s),
+                format!("{:.6}", t.done_depth_error_m),
+                format!("{:.6}", t.done_radial_m),
+                format!("{:.4}", t.done_angle_deg),
+                format!("{:.5}", t.m_est),
+                format!("{:.5}", crate::trials::run::PAPER_CODE_SCALE * t.m_est),
+                format!("{:.5}", t.m_true),
+                format!("{:.5}", t.m_lateral_true),
+                format!("{:.4}", t.max_f_est),
+                format!("{:.4}", t.max_f_true),
+                t.seal_breakaways.to_string(),
+                format!("\"{}\"", t.reason.replace('"', "'")),
+            ])?;
         }
     }
     table.flush()?;
@@ -426,18 +446,32 @@ fn write_outputs(a: &TrialsArgs, s: &RunSetup, r: &[ArmReport]) -> CliResult {
     Ok(())
 }
 
+/// One trial's samples, `series/<arm>_<seed>.csv`, each figure with its own precision.
 fn write_series(path: &Path, t: &TrialResult) -> CliResult {
-    let mut f = std::io::BufWriter::new(std::fs::File::create(path)?);
-    writeln!(
-        f,
-        "t_s,f_est_n,f_true_n,f_lateral_true_n,depth_m,radial_m,goal_dist_m,trocar_shift_m,phase"
-    )?;
+    let mut f = csv::Writer::from_path(path)?;
+    f.write_record([
+        "t_s",
+        "f_est_n",
+        "f_true_n",
+        "f_lateral_true_n",
+        "depth_m",
+        "radial_m",
+        "goal_dist_m",
+        "trocar_shift_m",
+        "phase",
+    ])?;
     for s in &t.samples {
-        writeln!(
-            f,
-            "{:.3},{:.5},{:.5},{:.5},{:.6},{:.6},{:.6},{:.6},{}",
-            s.t, s.f_est, s.f_true, s.f_lateral_true, s.depth, s.radial, s.goal_dist, s.trocar_shift, s.phase
-        )?;
+        f.write_record([
+            format!("{:.3}", s.t),
+            format!("{:.5}", s.f_est),
+            format!("{:.5}", s.f_true),
+            format!("{:.5}", s.f_lateral_true),
+            format!("{:.6}", s.depth),
+            format!("{:.6}", s.radial),
+            format!("{:.6}", s.goal_dist),
+            format!("{:.6}", s.trocar_shift),
+            s.phase.to_string(),
+        ])?;
     }
     f.flush()?;
     Ok(())

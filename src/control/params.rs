@@ -10,92 +10,11 @@ use super::safety::guard::GuardParams;
 use super::safety::motion::MotionLimits;
 use super::scope::command::ScopeParams;
 use super::sqp::{CostWeights, SqpSettings};
-use crate::config::{Renamed, Shipped};
 use crate::validate;
 
-/// The text of `config/controller.yaml` as built into the binary.
-pub const SHIPPED_YAML: &str = include_str!("../../config/controller.yaml");
-
-/// `config/controller.yaml` as built into the binary: every default of [`ControllerParams`]
-/// and of its sections is its value there (written once, with its comment and source).
-pub static SHIPPED: Shipped = Shipped::with_renamed("config/controller.yaml", SHIPPED_YAML, RENAMED);
-
-/// The renamed keys of `config/controller.yaml` (each now named with its unit): an old key is
-/// refused naming the new one.
-const RENAMED: &[Renamed] = &[
-    Renamed::key("dt", "dt_s"),
-    Renamed::key("insertion_depth", "insertion_depth_m"),
-    Renamed::key("standoff", "standoff_m"),
-    Renamed::key("approach_speed", "approach_speed_m_s"),
-    Renamed::key("insert_speed", "insert_speed_m_s"),
-    Renamed::key("approach_tolerance", "approach_tolerance_m"),
-    Renamed::key("goal_tolerance", "goal_tolerance_m"),
-    Renamed::key("goal_window", "goal_window_s"),
-    Renamed::key("trocar_filter_time_constant", "trocar_filter_time_constant_s"),
-    Renamed::key("torque_filter_time_constant", "torque_filter_time_constant_s"),
-    Renamed::key("retreat_distance", "retreat_distance_m"),
-    Renamed::key("approach_stall_timeout", "approach_stall_timeout_s"),
-    Renamed::key("seated.lateral_tolerance", "seated.lateral_tolerance_m"),
-    Renamed::key("seated.depth_tolerance", "seated.depth_tolerance_m"),
-    Renamed::key("seated.min_lateral_force", "seated.min_lateral_force_n"),
-    Renamed::key("seated.max_motion", "seated.max_motion_m"),
-    Renamed::key("seated.settle_time", "seated.settle_time_s"),
-    Renamed::key("admittance.torque_deadband", "admittance.torque_deadband_nm"),
-    Renamed::key("admittance.force_deadband", "admittance.force_deadband_n"),
-    Renamed::key("admittance.mass", "admittance.mass_kg"),
-    Renamed::key("admittance.damping", "admittance.damping_ns_per_m"),
-    Renamed::key("admittance.stiffness", "admittance.stiffness_n_per_m"),
-    Renamed::key("admittance.max_displacement", "admittance.max_displacement_m"),
-    Renamed::key("admittance.axial_force_full_stop", "admittance.axial_force_full_stop_n"),
-    Renamed::key("guard.position_margin", "guard.position_margin_rad"),
-    Renamed::key("guard.force_stop", "guard.force_stop_n"),
-    Renamed::key("guard.joint_timeout", "guard.joint_timeout_s"),
-    Renamed::key("guard.trocar_timeout", "guard.trocar_timeout_s"),
-    Renamed::key("guard.torque_timeout", "guard.torque_timeout_s"),
-    Renamed::key("guard.max_tracking_error", "guard.max_tracking_error_rad"),
-    Renamed::key("guard.max_command_lead", "guard.max_command_lead_rad"),
-    Renamed::key("guard.follow_timeout", "guard.follow_timeout_s"),
-    Renamed::key("guard.max_clock_jump", "guard.max_clock_jump_s"),
-    Renamed::key("motion.max_speed", "motion.max_speed_m_s"),
-    Renamed::key("motion.max_accel", "motion.max_accel_m_s2"),
-    Renamed::key("motion.max_jerk", "motion.max_jerk_m_s3"),
-    Renamed::key("motion.max_angular_speed", "motion.max_angular_speed_rad_s"),
-    Renamed::key("motion.max_angular_accel", "motion.max_angular_accel_rad_s2"),
-    Renamed::key("motion.max_angular_jerk", "motion.max_angular_jerk_rad_s3"),
-    Renamed::key("sqp.tolerance", "sqp.tolerance_rad"),
-    Renamed::key("scope.command_timeout", "scope.command_timeout_s"),
-    Renamed::key("scope.max_angular_speed", "scope.max_angular_speed_rad_s"),
-    Renamed::key("scope.max_roll_speed", "scope.max_roll_speed_rad_s"),
-    Renamed::key("scope.max_zoom_speed", "scope.max_zoom_speed_m_s"),
-    Renamed::key("scope.min_depth", "scope.min_depth_m"),
-    Renamed::key("scope.max_depth", "scope.max_depth_m"),
-    Renamed::key("scope.retract_speed", "scope.retract_speed_m_s"),
-    Renamed::key("scope.retract_force_stop", "scope.retract_force_stop_n"),
-    Renamed::key("scope.arm_lag", "scope.arm_lag_s"),
-    Renamed::key("scope.breathing.max_offset", "scope.breathing.max_offset_m"),
-    Renamed::key("scope.breathing.max_speed", "scope.breathing.max_speed_m_s"),
-    Renamed::key("scope.breathing.max_age", "scope.breathing.max_age_s"),
-    Renamed::key("scope.breathing.max_jump", "scope.breathing.max_jump_m"),
-    Renamed::key("scope.fulcrum.prior_depth", "scope.fulcrum.prior_depth_m"),
-    Renamed::key("scope.fulcrum.stiffness", "scope.fulcrum.stiffness_n_per_m"),
-    Renamed::key("scope.fulcrum.damping", "scope.fulcrum.damping_ns_per_m"),
-    Renamed::key("scope.fulcrum.force_deadband", "scope.fulcrum.force_deadband_n"),
-    Renamed::key(
-        "scope.fulcrum.still_force_deadband",
-        "scope.fulcrum.still_force_deadband_n",
-    ),
-    Renamed::key("scope.fulcrum.max_displacement", "scope.fulcrum.max_displacement_m"),
-    Renamed::key("scope.fulcrum.max_lateral_speed", "scope.fulcrum.max_lateral_speed_m_s"),
-    Renamed::key("scope.fulcrum.depth_gain", "scope.fulcrum.depth_gain_m_per_ns"),
-    Renamed::key("scope.fulcrum.min_pivot_speed", "scope.fulcrum.min_pivot_speed_rad_s"),
-    Renamed::key("scope.fulcrum.axial_damping", "scope.fulcrum.axial_damping_ns_per_m"),
-    Renamed::key("scope.fulcrum.axial_deadband", "scope.fulcrum.axial_deadband_n"),
-    Renamed::key(
-        "scope.fulcrum.axial_still_deadband",
-        "scope.fulcrum.axial_still_deadband_n",
-    ),
-    Renamed::key("scope.fulcrum.axial_max_speed", "scope.fulcrum.axial_max_speed_m_s"),
-];
+// The shipped file is built in with the other shipped files in `config.rs`, below the
+// sections that take their defaults from it: they name it here, and resolve to `config.rs`.
+pub use crate::config::{CONTROLLER as SHIPPED, CONTROLLER_YAML as SHIPPED_YAML};
 
 pub use crate::config::ParamError;
 
@@ -325,7 +244,7 @@ mod tests {
         );
         // Every old key is gone from the file, every new one is in it.
         let shipped = SHIPPED.section(&[]);
-        for r in RENAMED {
+        for r in crate::config::CONTROLLER_RENAMED {
             let at = |path: &str| path.split('.').try_fold(shipped, |node, key| node.get(key)).is_some();
             assert!(!at(r.old) && at(r.new), "{} -> {}", r.old, r.new);
         }

@@ -231,7 +231,11 @@ impl Pipeline {
         }
         self.last_stamp = Some(stamp);
         let camera = camera.ok_or("no camera_info received yet")?;
-        let (pixels, channels, order) = image_msgs::image_pixels(img)?;
+        let image_msgs::Pixels {
+            data: pixels,
+            channels,
+            order,
+        } = image_msgs::image_pixels(img)?;
         let view = image_msgs::view(img, &pixels, channels).map_err(|e| e.to_string())?;
         let detection = if self.p.method.uses_marker() {
             self.detect_marker(camera, &view)?

@@ -11,7 +11,8 @@
 //!   input fault as a fixed-capacity [`FaultText`]. The reader always gets the newest
 //!   complete value, never a torn one, wait-free.
 //! - [`requests`]: a bounded request queue (`crossbeam_queue::ArrayQueue`) from service
-//!   threads (`~start`, `~abort`, `~reset`) to the loop, with the reply sent back. The
+//!   threads (`~start`, `~abort`, `~reset`) to the loop, with the reply sent back through a
+//!   one-shot channel (the `oneshot` crate). The
 //!   caller waits for the reply with a timeout and gets a clear error when the loop does
 //!   not answer; a request that timed out before the loop took it is never carried out.
 //! - [`outputs`]: a bounded output queue from the loop to a publisher thread, which is
@@ -21,11 +22,11 @@
 //!   counted, never the loop delayed.
 //!
 //! What allocates where: the writer, the service and the publisher threads may allocate
-//! (a request's reply ticket is an `Arc` made by the caller). The loop's operations,
+//! (a request's state and its one-shot reply channel are made by the caller). The loop's operations,
 //! [`SlotReader::read`], [`SlotReader::read_new`], [`RequestServer::serve`] (apart from
 //! whatever the handler itself does) and [`OutputSender::push`], allocate nothing and take
 //! no lock. One rare exception is stated where it applies: when a caller gave up on a
-//! request and dropped its ticket, the loop frees that ticket.
+//! request and dropped its end, the loop frees the request's state and channel.
 //!
 //! How a control node uses them (a sketch):
 //!
@@ -49,6 +50,7 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::Thread;
 use std::time::{Duration, Instant};
 
+use arrayvec::ArrayString;
 use crossbeam_queue::ArrayQueue;
 
 // ---------------------------------------------------------------------------------------
@@ -109,14 +111,11 @@ impl<T: Send> fmt::Debug for SlotReader<T> {
     }
 }
 
-/// Text of at most `N` bytes, stored inline, so that it is `Copy` and can travel through a
-/// [`latest`] slot or an [`outputs`] queue without allocating. Longer text is cut at a
-/// character boundary, with `…` at the end.
-#[derive(Clone, Copy, PartialEq, Eq)]
-pub struct FixedText<const N: usize> {
-    len: usize,
-    bytes: [u8; N],
-}
+/// Text of at most `N` bytes, stored inline (an `arrayvec::ArrayString`), so that it is
+/// `Copy` and can travel through a [`latest`] slot or an [`outputs`] queue without
+/// allocating. Longer text is cut at a character boundary, with `…` at the end.
+#[derive(Clone, Copy, PartialEq, Eq, Default)]
+pub struct FixedText<const N: usize>(ArrayString<N>);
 
 /// An input fault (why an input was rejected) as the loop receives it.
 pub type FaultText = FixedText<240>;
@@ -124,7 +123,7 @@ pub type FaultText = FixedText<240>;
 impl<const N: usize> FixedText<N> {
     /// Empty text.
     pub const fn empty() -> Self {
-        Self { len: 0, bytes: [0; N] }
+        Self(ArrayString::new_const())
     }
 
     /// `text`, cut to at most `N` bytes.
@@ -143,40 +142,26 @@ impl<const N: usize> FixedText<N> {
 
     /// The text.
     pub fn as_str(&self) -> &str {
-        // Only whole UTF-8 characters are ever copied in (see `write_str`).
-        std::str::from_utf8(&self.bytes[..self.len]).unwrap_or_default()
+        self.0.as_str()
     }
 
     /// Whether the text is empty.
     pub fn is_empty(&self) -> bool {
-        self.len == 0
-    }
-}
-
-impl<const N: usize> Default for FixedText<N> {
-    fn default() -> Self {
-        Self::empty()
+        self.0.is_empty()
     }
 }
 
 impl<const N: usize> fmt::Write for FixedText<N> {
     fn write_str(&mut self, s: &str) -> fmt::Result {
         const ELLIPSIS: &str = "…";
-        let room = N - self.len;
-        if s.len() <= room {
-            self.bytes[self.len..self.len + s.len()].copy_from_slice(s.as_bytes());
-            self.len += s.len();
+        if self.0.try_push_str(s).is_ok() {
             return Ok(());
         }
         // Cut at a character boundary, leaving room for the ellipsis when there is any.
-        let keep = room.saturating_sub(ELLIPSIS.len());
+        let keep = self.0.remaining_capacity().saturating_sub(ELLIPSIS.len());
         let cut = (0..=keep).rev().find(|&i| s.is_char_boundary(i)).unwrap_or(0);
-        self.bytes[self.len..self.len + cut].copy_from_slice(&s.as_bytes()[..cut]);
-        self.len += cut;
-        if N - self.len >= ELLIPSIS.len() {
-            self.bytes[self.len..self.len + ELLIPSIS.len()].copy_from_slice(ELLIPSIS.as_bytes());
-            self.len += ELLIPSIS.len();
-        }
+        let _ = self.0.try_push_str(&s[..cut]);
+        let _ = self.0.try_push_str(ELLIPSIS);
         Err(fmt::Error)
     }
 }
@@ -223,16 +208,12 @@ const WAITING: u8 = 0;
 const TAKEN: u8 = 1;
 const WITHDRAWN: u8 = 2;
 
-/// Where the loop leaves the reply to one request, and whom it wakes.
-struct Ticket<R> {
-    state: AtomicU8,
-    reply: ArrayQueue<R>,
-    caller: Thread,
-}
-
+/// One request in the queue: whether the loop took it or its caller withdrew it, and the
+/// one-shot channel its reply goes back through.
 struct Pending<Q, R> {
     request: Q,
-    ticket: Arc<Ticket<R>>,
+    state: Arc<AtomicU8>,
+    reply: oneshot::Sender<R>,
 }
 
 /// Create a request queue of `capacity` (at least 1) requests `Q` with replies `R`.
@@ -267,14 +248,12 @@ impl<Q: Send, R: Send> RequestClient<Q, R> {
     /// the loop to take it and as long again for the reply once taken. A request the loop
     /// did not take in time is withdrawn: the loop will skip it.
     pub fn call(&self, request: Q, timeout: Duration) -> Result<R, HandoverError> {
-        let ticket = Arc::new(Ticket {
-            state: AtomicU8::new(WAITING),
-            reply: ArrayQueue::new(1),
-            caller: std::thread::current(),
-        });
+        let state = Arc::new(AtomicU8::new(WAITING));
+        let (reply, answer) = oneshot::channel();
         let pending = Pending {
             request,
-            ticket: ticket.clone(),
+            state: state.clone(),
+            reply,
         };
         if self.queue.push(pending).is_err() {
             return Err(HandoverError::Full {
@@ -282,28 +261,16 @@ impl<Q: Send, R: Send> RequestClient<Q, R> {
             });
         }
         let t0 = Instant::now();
-        let mut deadline = t0 + timeout;
-        let mut extended = false;
-        loop {
-            if let Some(r) = ticket.reply.pop() {
-                return Ok(r);
-            }
-            let now = Instant::now();
-            if now >= deadline {
-                let withdrawn = ticket
-                    .state
-                    .compare_exchange(WAITING, WITHDRAWN, Ordering::AcqRel, Ordering::Acquire);
-                match withdrawn {
-                    Ok(_) => return Err(HandoverError::Timeout { after: now - t0 }),
-                    // Taken: the loop is on it; wait for the reply as long again, once.
-                    Err(_) if !extended => {
-                        extended = true;
-                        deadline = now + timeout;
-                    }
-                    Err(_) => return ticket.reply.pop().ok_or(HandoverError::NoReply { after: now - t0 }),
-                }
-            }
-            std::thread::park_timeout(deadline.saturating_duration_since(Instant::now()));
+        if let Ok(r) = answer.recv_timeout(timeout) {
+            return Ok(r);
+        }
+        let withdrawn = state.compare_exchange(WAITING, WITHDRAWN, Ordering::AcqRel, Ordering::Acquire);
+        match withdrawn {
+            Ok(_) => Err(HandoverError::Timeout { after: t0.elapsed() }),
+            // Taken: the loop is on it; wait for the reply as long again, once.
+            Err(_) => answer
+                .recv_timeout(timeout)
+                .map_err(|_| HandoverError::NoReply { after: t0.elapsed() }),
         }
     }
 }
@@ -324,20 +291,17 @@ impl<Q, R> fmt::Debug for RequestServer<Q, R> {
 impl<Q: Send, R: Send> RequestServer<Q, R> {
     /// Run `handle` on every waiting request, in order, and send each reply to its caller;
     /// returns how many were handled. Withdrawn requests are dropped unhandled. Lock-free
-    /// and allocation-free itself (a withdrawn request's ticket is freed here when its
+    /// and allocation-free itself (a withdrawn request's state and channel are freed here when its
     /// caller already dropped it).
     pub fn serve(&self, mut handle: impl FnMut(Q) -> R) -> usize {
         let mut handled = 0;
-        while let Some(Pending { request, ticket }) = self.queue.pop() {
-            let taken = ticket
-                .state
-                .compare_exchange(WAITING, TAKEN, Ordering::AcqRel, Ordering::Acquire);
+        while let Some(Pending { request, state, reply }) = self.queue.pop() {
+            let taken = state.compare_exchange(WAITING, TAKEN, Ordering::AcqRel, Ordering::Acquire);
             if taken.is_err() {
                 continue; // withdrawn by a caller that timed out
             }
-            let reply = handle(request);
-            let _ = ticket.reply.push(reply);
-            ticket.caller.unpark();
+            // Sending wakes the waiting caller; a caller already gone drops the reply.
+            let _ = reply.send(handle(request));
             handled += 1;
         }
         handled
@@ -561,6 +525,38 @@ mod tests {
         let before = allocations_on_this_thread();
         assert_eq!(server.serve(|q| ran.push(q)), 0);
         assert_eq!(allocations_on_this_thread(), before, "an idle serve allocated");
+    }
+
+    #[test]
+    fn the_loop_replies_without_allocating() {
+        let (client, server) = requests::<u32, u32>(2);
+        let caller = std::thread::spawn(move || client.call(7, Duration::from_secs(5)));
+        let before = allocations_on_this_thread();
+        let mut served = 0;
+        while served == 0 {
+            served = server.serve(|q| 2 * q);
+            std::thread::yield_now();
+        }
+        assert_eq!(allocations_on_this_thread(), before, "serving a request allocated");
+        assert_eq!(caller.join().unwrap(), Ok(14));
+    }
+
+    #[test]
+    fn a_request_taken_but_not_answered_in_time_is_no_reply() {
+        let (client, server) = requests::<u8, u8>(1);
+        let looping = std::thread::spawn(move || {
+            while server.serve(|q| {
+                std::thread::sleep(Duration::from_millis(1500));
+                q
+            }) == 0
+            {
+                std::thread::sleep(Duration::from_millis(1));
+            }
+        });
+        let e = client.call(1, Duration::from_millis(300)).unwrap_err();
+        assert!(matches!(e, HandoverError::NoReply { .. }), "{e}");
+        assert!(e.to_string().contains("may have been carried out"), "{e}");
+        looping.join().unwrap();
     }
 
     #[test]

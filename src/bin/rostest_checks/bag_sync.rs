@@ -44,24 +44,29 @@ fn output(program: &str, args: &[&str]) -> Result<String, String> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
-/// The bag time (s) of the first message of `rostopic echo -p` output `csv` whose `field`
-/// column reads `value`.
-fn first_time_where(csv: &str, field: &str, value: &str) -> Result<f64, String> {
-    let mut lines = csv.lines();
-    let header: Vec<&str> = lines.next().ok_or("no messages")?.split(',').collect();
+/// The bag time (s) of the first message of `rostopic echo -p` output `text` (CSV, a header
+/// row first) whose `field` column reads `value`.
+fn first_time_where(text: &str, field: &str, value: &str) -> Result<f64, String> {
+    let mut rows = csv::ReaderBuilder::new().flexible(true).from_reader(text.as_bytes());
+    let header = rows.headers().map_err(|e| format!("bad header: {e}"))?.clone();
+    if header.is_empty() {
+        return Err("no messages".into());
+    }
     let col = header
         .iter()
-        .position(|h| *h == field)
+        .position(|h| h == field)
         .ok_or_else(|| format!("no column {field}"))?;
-    lines
-        .map(|l| l.split(',').collect::<Vec<_>>())
-        .find(|c| c.get(col) == Some(&value))
-        .ok_or_else(|| format!("no message with {field} {value}"))
-        .and_then(|c| {
-            c[0].parse::<f64>()
+    for row in rows.records() {
+        let row = row.map_err(|e| format!("bad row: {e}"))?;
+        if row.get(col) == Some(value) {
+            let time = row.get(0).unwrap_or_default();
+            return time
+                .parse::<f64>()
                 .map(|ns| ns * 1e-9)
-                .map_err(|e| format!("bad time {:?}: {e}", c[0]))
-        })
+                .map_err(|e| format!("bad time {time:?}: {e}"));
+        }
+    }
+    Err(format!("no message with {field} {value}"))
 }
 
 /// The bag's start (s) and when its controller entered APPROACH (s, bag time).
@@ -161,5 +166,14 @@ mod tests {
             .unwrap_err()
             .contains("no column"));
         assert!(first_time_where("", "field.phase", "TARE").is_err());
+    }
+
+    /// A quoted field with a comma in it (a string field of the message) is one column.
+    #[test]
+    fn a_quoted_comma_does_not_shift_the_columns() {
+        let csv = "%time,field.reason,field.phase\n\
+                   1000000000,\"held, no pose\",TARE\n\
+                   1200000000,\"a, b, c\",APPROACH\n";
+        assert!((first_time_where(csv, "field.phase", "APPROACH").unwrap() - 1.2).abs() < 1e-12);
     }
 }

@@ -1,10 +1,14 @@
 //! JUnit XML for rostest: a `<test>` node is started with `--gtest_output=xml:PATH` and
 //! rostest counts the test cases it finds in that file (none found = "0 tests", a failure).
-//! [`TestReport`] collects named checks and writes the file.
+//! [`TestReport`] collects named checks and writes the file through `quick-junit`: a
+//! `<testsuites>` holding one `<testsuite>` (rostest reads every `<testsuite>` and its
+//! `tests`, `failures` and `errors`), one `<testcase>` per check, a `<failure>` (message and
+//! text) in each failed one.
 
-use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
-use std::time::Instant;
+use std::time::{Duration, Instant};
+
+use quick_junit::{NonSuccessKind, Report, TestCaseStatus, TestSuite};
 
 /// The result of one named check.
 #[derive(Debug, Clone, PartialEq)]
@@ -31,24 +35,6 @@ pub fn gtest_output_path<S: AsRef<str>>(args: &[S]) -> Option<PathBuf> {
         .filter_map(|a| a.as_ref().strip_prefix("--gtest_output=xml:"))
         .find(|p| !p.is_empty())
         .map(PathBuf::from)
-}
-
-/// Escape text for an XML attribute or element.
-fn escape(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    for c in s.chars() {
-        match c {
-            '&' => out.push_str("&amp;"),
-            '<' => out.push_str("&lt;"),
-            '>' => out.push_str("&gt;"),
-            '"' => out.push_str("&quot;"),
-            '\'' => out.push_str("&apos;"),
-            // XML 1.0 forbids most control characters.
-            c if (c as u32) < 0x20 && !matches!(c, '\n' | '\r' | '\t') => out.push(' '),
-            c => out.push(c),
-        }
-    }
-    out
 }
 
 impl TestReport {
@@ -88,39 +74,26 @@ impl TestReport {
     }
 
     /// The JUnit XML document.
-    pub fn to_xml(&self) -> String {
-        let failures = self.cases.iter().filter(|c| c.failure.is_some()).count();
-        let mut x = String::from("<?xml version=\"1.0\" encoding=\"UTF-8\"?>\n");
-        let _ = writeln!(
-            x,
-            "<testsuite name=\"{}\" tests=\"{}\" failures=\"{}\" errors=\"0\" time=\"{:.3}\">",
-            escape(&self.suite),
-            self.cases.len(),
-            failures,
-            self.started.elapsed().as_secs_f64()
-        );
+    pub fn to_xml(&self) -> Result<String, quick_junit::SerializeError> {
+        let mut suite = TestSuite::new(self.suite.as_str());
+        suite.set_time(self.started.elapsed());
         for c in &self.cases {
-            let _ = write!(
-                x,
-                "  <testcase classname=\"{}\" name=\"{}\" status=\"run\" time=\"{:.3}\"",
-                escape(&self.suite),
-                escape(&c.name),
-                c.time_s
-            );
-            match &c.failure {
-                None => x.push_str("/>\n"),
+            let status = match &c.failure {
+                None => TestCaseStatus::success(),
                 Some(msg) => {
-                    let _ = writeln!(
-                        x,
-                        ">\n    <failure message=\"{}\" type=\"\">{}</failure>\n  </testcase>",
-                        escape(msg),
-                        escape(msg)
-                    );
+                    let mut failed = TestCaseStatus::non_success(NonSuccessKind::Failure);
+                    failed.set_message(msg.as_str()).set_description(msg.as_str());
+                    failed
                 }
-            }
+            };
+            let mut case = quick_junit::TestCase::new(c.name.as_str(), status);
+            case.set_classname(self.suite.as_str())
+                .set_time(Duration::try_from_secs_f64(c.time_s).unwrap_or_default());
+            suite.add_test_case(case);
         }
-        x.push_str("</testsuite>\n");
-        x
+        let mut report = Report::new(self.suite.as_str());
+        report.add_test_suite(suite);
+        report.to_string()
     }
 
     /// Write the XML to `path`, creating its folder.
@@ -128,7 +101,8 @@ impl TestReport {
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir)?;
         }
-        std::fs::write(path, self.to_xml())
+        let xml = self.to_xml().map_err(std::io::Error::other)?;
+        std::fs::write(path, xml)
     }
 }
 
@@ -149,8 +123,11 @@ mod tests {
         let mut r = TestReport::new("suite<1>");
         r.record("ok", 0.5, Ok(()));
         r.record("bad", 1.0, Err("M = 3 > 2 & \"x\"".into()));
-        let x = r.to_xml();
-        assert!(x.contains("tests=\"2\" failures=\"1\""), "{x}");
+        let x = r.to_xml().unwrap();
+        assert!(x.contains("<testsuite name=\"suite&lt;1&gt;\" tests=\"2\""), "{x}");
+        assert!(x.contains("failures=\"1\""), "{x}");
+        assert_eq!(x.matches("<testcase ").count(), 2, "{x}");
+        assert_eq!(x.matches("<failure ").count(), 1, "{x}");
         assert!(x.contains("name=\"suite&lt;1&gt;\""), "{x}");
         assert!(x.contains("M = 3 &gt; 2 &amp; &quot;x&quot;"), "{x}");
         assert!(!r.passed());
@@ -166,7 +143,7 @@ mod tests {
         let path = dir.join("sub/r.xml");
         r.write(&path).unwrap();
         let text = std::fs::read_to_string(&path).unwrap();
-        assert!(text.contains("<testcase classname=\"s\" name=\"passes\""));
+        assert!(text.contains("<testcase name=\"passes\" classname=\"s\""), "{text}");
         let _ = std::fs::remove_dir_all(dir);
     }
 }

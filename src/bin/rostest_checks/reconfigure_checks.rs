@@ -101,11 +101,17 @@ pub fn reconfigure(p: &CheckParams) -> Result<String, String> {
     ))
 }
 
+/// The tip's speed as the joint states come in.
+#[derive(Debug, Default)]
+struct SpeedState {
+    /// The last sample kept: its stamp (s) and the tip's position (m).
+    last: Option<(f64, nalgebra::Vector3<f64>)>,
+    /// The largest speed so far, m/s.
+    max: f64,
+}
+
 /// The largest speed of the tip between joint states 50-100 ms apart (FK of the measured
 /// joints), m/s, from the moment `start` is called.
-/// The last sample (stamp, tip position) and the largest speed so far.
-type SpeedState = (Option<(f64, nalgebra::Vector3<f64>)>, f64);
-
 struct TipSpeed {
     max: Arc<Mutex<SpeedState>>,
     _sub: rosrust::Subscriber,
@@ -114,7 +120,7 @@ struct TipSpeed {
 impl TipSpeed {
     fn subscribe(topic: &str) -> Result<Self, String> {
         let kin = LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
-        let max: Arc<Mutex<SpeedState>> = Arc::new(Mutex::new((None, 0.0)));
+        let max: Arc<Mutex<SpeedState>> = Arc::new(Mutex::new(SpeedState::default()));
         let (m, names) = (max.clone(), joint_names());
         let sub = rosrust::subscribe(topic, 100, move |js: sensor_msgs::JointState| {
             let (Ok(q), Ok(mut m)) = (convert::joint_positions("", &js, &names), m.lock()) else {
@@ -122,15 +128,15 @@ impl TipSpeed {
             };
             let Ok(tip) = kin.fk(&q) else { return };
             let (t, p) = (convert::seconds(js.header.stamp), tip.translation.vector);
-            match m.0 {
+            match m.last {
                 Some((t0, p0)) if t - t0 >= 0.05 => {
                     if t - t0 <= 0.1 {
-                        m.1 = f64::max(m.1, (p - p0).norm() / (t - t0));
+                        m.max = f64::max(m.max, (p - p0).norm() / (t - t0));
                     }
-                    m.0 = Some((t, p));
+                    m.last = Some((t, p));
                 }
                 Some(_) => {}
-                None => m.0 = Some((t, p)),
+                None => m.last = Some((t, p)),
             }
         })
         .map_err(|e| e.to_string())?;
@@ -138,7 +144,7 @@ impl TipSpeed {
     }
 
     fn max(&self) -> f64 {
-        self.max.lock().map_or(f64::NAN, |m| m.1)
+        self.max.lock().map_or(f64::NAN, |m| m.max)
     }
 }
 

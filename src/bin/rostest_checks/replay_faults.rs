@@ -57,10 +57,16 @@ impl Audit {
     }
 }
 
-/// The live status's phases and hold codes, in order, each change once; the stamp of
-/// the first HOLD, s; and the stamp of each change, s.
+/// What the live status showed.
 #[derive(Default, Clone)]
-struct Holds(Vec<(String, String)>, Option<f64>, Vec<f64>);
+struct Holds {
+    /// The phases and hold codes, in order, each change once.
+    changes: Vec<(String, String)>,
+    /// The stamp of the first HOLD, s.
+    first_hold: Option<f64>,
+    /// The stamp of each change, s.
+    stamps: Vec<f64>,
+}
 
 impl Holds {
     /// The changes with their stamps relative to `origin` (the recorded APPROACH), for a
@@ -68,9 +74,9 @@ impl Holds {
     fn timeline(&self, origin: Option<f64>) -> String {
         let o = origin.unwrap_or(f64::NAN);
         let parts: Vec<String> = self
-            .0
+            .changes
             .iter()
-            .zip(&self.2)
+            .zip(&self.stamps)
             .map(|((ph, c), t)| format!("{} at {:+.3} s", format!("{ph} {c}").trim_end(), t - o))
             .collect();
         format!("{} (times from the recorded APPROACH)", parts.join(", "))
@@ -96,13 +102,13 @@ pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
         let holds = holds.clone();
         rosrust::subscribe(&p.status_topic, 100, move |s: trocar_docking::DockingStatus| {
             if let Ok(mut h) = holds.lock() {
-                if s.phase == "HOLD" && h.1.is_none() {
-                    h.1 = Some(convert::seconds(s.header.stamp));
+                if s.phase == "HOLD" && h.first_hold.is_none() {
+                    h.first_hold = Some(convert::seconds(s.header.stamp));
                 }
                 let now = (s.phase, s.hold_code);
-                if h.0.last() != Some(&now) {
-                    h.0.push(now);
-                    h.2.push(convert::seconds(s.header.stamp));
+                if h.changes.last() != Some(&now) {
+                    h.changes.push(now);
+                    h.stamps.push(convert::seconds(s.header.stamp));
                 }
             }
         })
@@ -129,7 +135,7 @@ pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
     let start = trigger_client(&service, p.startup_timeout)?;
     let _player = bag_sync::play_and_start(p, || call_trigger(&service, &start))?;
     let code = p.hold_code.as_str();
-    let held = |h: &Holds| h.0.iter().any(|(ph, c)| ph == "HOLD" && c == code);
+    let held = |h: &Holds| h.changes.iter().any(|(ph, c)| ph == "HOLD" && c == code);
     wait_for(p.time_limit, || holds.lock().ok().filter(|h| held(h)).map(|_| ())).ok_or_else(|| {
         let origin = approach.lock().ok().and_then(|a| *a);
         format!(
@@ -150,7 +156,7 @@ pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
 fn judge(p: &CheckParams, seen: &Holds, fault_at: Option<f64>, a: &Audit) -> Result<String, String> {
     let code = p.hold_code.as_str();
     let timeline = seen.timeline(fault_at.map(|f| f - p.fault_after_s));
-    let (first_hold, seen) = (seen.1, &seen.0);
+    let (first_hold, seen) = (seen.first_hold, &seen.changes);
     if let Some(e) = &a.malformed {
         return Err(format!("a malformed command: {e}"));
     }
@@ -195,11 +201,11 @@ mod tests {
     use super::*;
 
     fn holds(seen: &[(&str, &str)], first_hold: Option<f64>) -> Holds {
-        Holds(
-            seen.iter().map(|(p, c)| ((*p).to_string(), (*c).to_string())).collect(),
+        Holds {
+            changes: seen.iter().map(|(p, c)| ((*p).to_string(), (*c).to_string())).collect(),
             first_hold,
-            Vec::new(),
-        )
+            stamps: Vec::new(),
+        }
     }
 
     /// The verdict fails on each broken condition: a hold before the fault, another code at

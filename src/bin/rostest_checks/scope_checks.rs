@@ -310,23 +310,49 @@ fn mean(v: impl Iterator<Item = f64>) -> f64 {
     }
 }
 
+/// The means of the status over a window (NaN: none).
+#[derive(Debug, Clone, Copy, Default)]
+struct StatusMeans {
+    /// The force estimate, N.
+    f_ext_n: f64,
+    /// The force across the shaft, N.
+    lateral_n: f64,
+    /// The shaft's distance from the controller's own fulcrum, m.
+    shaft_to_fulcrum_m: f64,
+}
+
+/// The status over a window of time.
+#[derive(Debug, Clone)]
+struct StatusFigures {
+    /// How many status messages.
+    count: usize,
+    /// The phases other than DONE, with their codes, each change once.
+    others: Vec<String>,
+    /// The means.
+    means: StatusMeans,
+}
+
 /// Status over [from, to]: how many, the phases other than DONE (with their codes), and
 /// the means of the force estimate, the lateral force and the shaft's distance from the
 /// controller's own fulcrum (NaN: none).
-fn status_figures(status: &[(f64, StatusSample)], from: f64, to: f64) -> (usize, Vec<String>, [f64; 3]) {
+fn status_figures(status: &[(f64, StatusSample)], from: f64, to: f64) -> StatusFigures {
     let window: Vec<_> = status.iter().filter(|(s, _)| *s >= from && *s <= to).collect();
-    let mut other: Vec<String> = window
+    let mut others: Vec<String> = window
         .iter()
         .filter(|(_, s)| s.phase != "DONE")
         .map(|(_, s)| format!("{} {}", s.phase, s.hold_code))
         .collect();
-    other.dedup();
-    let means = [
-        mean(window.iter().map(|(_, s)| s.f_ext_norm)),
-        mean(window.iter().map(|(_, s)| s.lateral_force)),
-        mean(window.iter().map(|(_, s)| s.shaft_to_fulcrum)),
-    ];
-    (window.len(), other, means)
+    others.dedup();
+    let means = StatusMeans {
+        f_ext_n: mean(window.iter().map(|(_, s)| s.f_ext_norm)),
+        lateral_n: mean(window.iter().map(|(_, s)| s.lateral_force)),
+        shaft_to_fulcrum_m: mean(window.iter().map(|(_, s)| s.shaft_to_fulcrum)),
+    };
+    StatusFigures {
+        count: window.len(),
+        others,
+        means,
+    }
 }
 
 /// What `scope_pivot` measured.
@@ -339,9 +365,9 @@ struct Figures {
     p95: (f64, f64),
     /// Largest angle of the shaft from its first direction, rad.
     sweep: f64,
-    /// Means while commanded: force estimate and lateral force (N), the shaft's distance
-    /// from the controller's fulcrum (m).
-    status: [f64; 3],
+    /// Means while commanded: force estimate and lateral force, the shaft's distance from
+    /// the controller's fulcrum.
+    status: StatusMeans,
     /// Phases other than DONE while commanded.
     others: Vec<String>,
     /// Tip travel from the last command to the start of the still window, beyond the true
@@ -361,7 +387,11 @@ impl Figures {
         let (distances, sweep) = pivot_figures(&tips, &lock(&rec.fulcrum));
         let (face, _) = pivot_figures(&tips, &truth);
         let n = distances.len();
-        let (n_status, others, status) = status_figures(&lock(&rec.status), t0, t1);
+        let StatusFigures {
+            count: n_status,
+            others,
+            means: status,
+        } = status_figures(&lock(&rec.status), t0, t1);
         let still_from = t1 + p.command_timeout + p.dead_man_margin_s;
         let still = tips_between(kin, &joints, still_from, still_from + p.still_window_s)?;
         Ok(Self {
@@ -384,10 +414,10 @@ impl Figures {
             self.p95.0 * 1e3,
             self.counts.0,
             self.p95.1 * 1e3,
-            self.status[2] * 1e3,
+            self.status.shaft_to_fulcrum_m * 1e3,
             self.sweep.to_degrees(),
-            self.status[1],
-            self.status[0],
+            self.status.lateral_n,
+            self.status.f_ext_n,
             self.travel * 1e3,
             self.still.1 * 1e3,
             p.still_window_s,
@@ -410,7 +440,8 @@ impl Figures {
             over(self.p95.0, p.max_shaft_distance)
                 .then(|| format!("shaft p95 above {} mm", p.max_shaft_distance * 1e3)),
             (self.sweep.to_degrees() < p.min_sweep_deg).then(|| format!("swept less than {} deg", p.min_sweep_deg)),
-            over(self.status[1], p.max_mean_force).then(|| format!("mean lateral force above {} N", p.max_mean_force)),
+            over(self.status.lateral_n, p.max_mean_force)
+                .then(|| format!("mean lateral force above {} N", p.max_mean_force)),
             (!self.others.is_empty()).then(|| format!("left DONE while commanded: {:?}", self.others)),
             over(self.travel, max_travel).then(|| format!("dead-man: moved more than {:.2} mm", max_travel * 1e3)),
             over(self.still.1, p.max_still_motion).then(|| format!("not still: above {} mm", p.max_still_motion * 1e3)),
@@ -456,7 +487,7 @@ fn bad_commands(p: &CheckParams, kin: &LbrKinematics, rec: &Records) -> Result<B
             .map(|(_, t)| (t.rotation * Vector3::z()).angle(&z0).to_degrees())
             .fold(0.0, f64::max)
     });
-    let (_, others, _) = status_figures(&lock(&rec.status), t0, t1 + 0.3);
+    let others = status_figures(&lock(&rec.status), t0, t1 + 0.3).others;
     Ok(BadCommands {
         moved,
         turned_deg,

@@ -22,9 +22,20 @@ pub fn encoding_layout(encoding: &str) -> Result<(u32, ChannelOrder), String> {
     }
 }
 
+/// The pixels of an Image, without row padding, and their layout.
+#[derive(Debug, Clone)]
+pub struct Pixels<'a> {
+    /// The rows, packed: borrowed when the message's rows are, copied when its step pads them.
+    pub data: Cow<'a, [u8]>,
+    /// Channels per pixel.
+    pub channels: u32,
+    /// The colour order of 3 or 4 channels.
+    pub order: ChannelOrder,
+}
+
 /// The pixels of an Image, without row padding, with their layout. Borrowed when the rows
 /// are packed, copied when the step pads them.
-pub fn image_pixels(msg: &sensor_msgs::Image) -> Result<(Cow<'_, [u8]>, u32, ChannelOrder), String> {
+pub fn image_pixels(msg: &sensor_msgs::Image) -> Result<Pixels<'_>, String> {
     let (channels, order) = encoding_layout(&msg.encoding)?;
     let (w, h) = (msg.width as usize, msg.height as usize);
     if w == 0 || h == 0 {
@@ -44,12 +55,12 @@ pub fn image_pixels(msg: &sensor_msgs::Image) -> Result<(Cow<'_, [u8]>, u32, Cha
             msg.height
         ));
     }
-    let pixels = if step == row {
+    let data = if step == row {
         Cow::Borrowed(&msg.data[..row * h])
     } else {
         Cow::Owned(msg.data.chunks(step).take(h).flat_map(|r| &r[..row]).copied().collect())
     };
-    Ok((pixels, channels, order))
+    Ok(Pixels { data, channels, order })
 }
 
 /// A checked view of `pixels` (from [`image_pixels`]) with the message's size.
@@ -131,11 +142,17 @@ mod tests {
     #[test]
     fn packed_and_padded_rows_and_bad_buffers() {
         let m = msg("mono8", 3, 2, 3, 6);
-        let (p, c, _) = image_pixels(&m).unwrap();
+        let Pixels {
+            data: p, channels: c, ..
+        } = image_pixels(&m).unwrap();
         assert!(matches!(p, Cow::Borrowed(_)));
         assert_eq!((p.len(), c), (6, 1));
         let m = msg("bgra8", 2, 2, 12, 24);
-        let (p, c, o) = image_pixels(&m).unwrap();
+        let Pixels {
+            data: p,
+            channels: c,
+            order: o,
+        } = image_pixels(&m).unwrap();
         assert_eq!((c, o), (4, ChannelOrder::Bgr));
         assert_eq!(&p[..], &[0, 1, 2, 3, 4, 5, 6, 7, 12, 13, 14, 15, 16, 17, 18, 19]);
         assert!(view(&m, &p, c).is_ok());
