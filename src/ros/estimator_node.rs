@@ -201,13 +201,9 @@ struct Pipeline {
 
 /// What one frame produced.
 struct FrameOutput {
-    trocar: Option<Isometry3<f64>>,
-    /// The covariance of a markerless pose.
-    covariance: Option<[f64; 36]>,
+    measured: Measured,
     marker: Option<Isometry3<f64>>,
     debug: Option<RgbImage>,
-    /// What was published, or why nothing (`~status`).
-    status: String,
 }
 
 impl Pipeline {
@@ -252,15 +248,13 @@ impl Pipeline {
             None
         };
         let marker = detection.as_ref().map(|d| d.pose_camera_marker);
-        let out = |trocar, covariance, status| FrameOutput {
-            trocar,
-            covariance,
+        let out = |measured| FrameOutput {
+            measured,
             marker,
             debug,
-            status,
         };
         let measured = match (self.p.method, detection) {
-            (EstimatorMethod::Marker, None) => return Ok(out(None, None, "no marker in the image".into())),
+            (EstimatorMethod::Marker, None) => return Ok(out(Measured::nothing("no marker in the image"))),
             (EstimatorMethod::Marker, Some(det)) => self.marker_pose(&det, stamp, &view, history, false)?,
             (EstimatorMethod::Fused, Some(det)) => match self.marker_pose(&det, stamp, &view, history, true) {
                 Ok(m) => m,
@@ -272,8 +266,8 @@ impl Pipeline {
                 self.markerless_pose(camera, &view, stamp, history)?
             }
         };
-        self.counts.published += u64::from(measured.0.is_some());
-        Ok(out(measured.0, measured.1, measured.2))
+        self.counts.published += u64::from(measured.trocar.is_some());
+        Ok(out(measured))
     }
 
     /// The marker in `view`, through a detector for `camera` (built when the camera changes).
@@ -328,7 +322,11 @@ impl Pipeline {
         match status {
             EstimateStatus::Initialized | EstimateStatus::Updated | EstimateStatus::Reinitialized => {
                 let pose = self.estimator.estimate(stamp).map(|e| e.pose_base_trocar);
-                Ok((pose, None, format!("marker: published ({status:?})")))
+                Ok(Measured {
+                    trocar: pose,
+                    covariance: None,
+                    status: format!("marker: published ({status:?})"),
+                })
             }
             EstimateStatus::Outlier => Err("marker pose rejected as an outlier".into()),
             EstimateStatus::PoorQuality => Err(format!(
@@ -336,7 +334,7 @@ impl Pipeline {
                 det.reprojection_error_px
             )),
             EstimateStatus::InvalidInput => Err("invalid marker pose or stamp".into()),
-            EstimateStatus::NoMeasurement => Ok((None, None, "no marker in the image".into())),
+            EstimateStatus::NoMeasurement => Ok(Measured::nothing("no marker in the image")),
         }
     }
 
@@ -368,7 +366,11 @@ impl Pipeline {
                     .estimate(stamp)
                     .map(|e| measurement::with_roll_convention(&e.pose_base_trocar));
                 let status = format!("markerless: published ({s:?}), confidence {:.2}", m.confidence);
-                Ok((pose, Some(m.covariance), status))
+                Ok(Measured {
+                    trocar: pose,
+                    covariance: Some(m.covariance),
+                    status,
+                })
             }
             EstimateStatus::Outlier => Err(format!(
                 "markerless pose (confidence {:.2}) rejected as an outlier",
@@ -379,8 +381,26 @@ impl Pipeline {
     }
 }
 
-/// A frame's published pose (if any), its covariance (markerless), and its status line.
-type Measured = (Option<Isometry3<f64>>, Option<[f64; 36]>, String);
+/// What one frame measured.
+struct Measured {
+    /// The trocar pose to publish, if any.
+    trocar: Option<Isometry3<f64>>,
+    /// The covariance of a markerless pose.
+    covariance: Option<[f64; 36]>,
+    /// What was published, or why nothing (`~status`).
+    status: String,
+}
+
+impl Measured {
+    /// Nothing to publish, and why.
+    fn nothing(status: &str) -> Self {
+        Self {
+            trocar: None,
+            covariance: None,
+            status: status.into(),
+        }
+    }
+}
 
 /// What the callbacks share: the joint history, the last camera model, the pipeline.
 #[derive(Clone)]
@@ -440,9 +460,9 @@ impl Publishers {
 
     /// Publish what one frame produced, stamped with the image's stamp.
     fn frame(&self, img: &sensor_msgs::Image, base_frame: &str, out: FrameOutput) {
-        if let Some(t) = &out.trocar {
+        if let Some(t) = &out.measured.trocar {
             let stamped = convert::pose_stamped(img.header.stamp, base_frame, t);
-            if let Some(c) = out.covariance {
+            if let Some(c) = out.measured.covariance {
                 let _ = self.covariance.send(geometry_msgs::PoseWithCovarianceStamped {
                     header: stamped.header.clone(),
                     pose: geometry_msgs::PoseWithCovariance {
@@ -453,7 +473,7 @@ impl Publishers {
             }
             let _ = self.pose.send(stamped);
         }
-        self.status(out.status);
+        self.status(out.measured.status);
         if let Some(m) = &out.marker {
             let _ = self
                 .marker
@@ -544,8 +564,8 @@ fn on_image(img: &sensor_msgs::Image, shared: &Shared, publishers: &Publishers, 
     let want_debug = publishers.debug.subscriber_count() > 0;
     match pl.frame(img, cam.as_ref(), &shared.history, want_debug) {
         Ok(out) => {
-            if out.trocar.is_none() && pl.warn.ready() {
-                rosrust::ros_warn!("frame dropped: {}", out.status);
+            if out.measured.trocar.is_none() && pl.warn.ready() {
+                rosrust::ros_warn!("frame dropped: {}", out.measured.status);
             }
             publishers.frame(img, base_frame, out);
         }

@@ -79,7 +79,7 @@ impl Seen {
         self.positions.clone_from(&m.position);
     }
 
-    fn observations(&self, camera: bool) -> (Option<JointStates>, Option<LbrState>, Option<Camera>) {
+    fn observations(&self, camera: bool) -> Streams {
         let joints = (self.joints.count > 0).then(|| JointStates {
             stream: self.joints.stream(),
             names: self.names.clone(),
@@ -96,8 +96,19 @@ impl Seen {
             images: self.images.stream(),
             image_size: self.image_size,
         });
-        (joints, lbr, cam)
+        Streams {
+            joint_states: joints,
+            lbr_state: lbr,
+            camera: cam,
+        }
     }
+}
+
+/// What the watched streams showed (None: nothing arrived, or no camera in the set-up).
+struct Streams {
+    joint_states: Option<JointStates>,
+    lbr_state: Option<LbrState>,
+    camera: Option<Camera>,
 }
 
 /// The topics watched.
@@ -268,7 +279,11 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
     if let Some(e) = &s.pose_error {
         rosrust::ros_warn!("preflight: a trocar pose was rejected: {e}");
     }
-    let (joint_states, lbr_state, camera_obs) = s.observations(camera);
+    let Streams {
+        joint_states,
+        lbr_state,
+        camera: camera_obs,
+    } = s.observations(camera);
     let state = rosrust::state().map_err(ros_err)?;
     let command_subscribers = nodes_on(&state, &node.command_topic, false)
         .into_iter()
@@ -364,17 +379,17 @@ mod tests {
         for (t, q) in [(10.0, 0.0), (10.02, 0.003), (10.01, -0.001)] {
             s.joint_states(&msg(t, q));
         }
-        let (j, lbr, cam) = s.observations(false);
-        let j = j.unwrap();
+        let seen = s.observations(false);
+        let j = seen.joint_states.unwrap();
         assert!((j.stream.rate_hz() - 100.0).abs() < 1e-6, "{}", j.stream.rate_hz());
         assert!((j.motion_rad - 0.004).abs() < 1e-12);
         assert_eq!(j.positions, vec![-0.001, 1.0]);
-        assert!(lbr.is_none() && cam.is_none());
+        assert!(seen.lbr_state.is_none() && seen.camera.is_none());
         // Renamed joints restart the motion's range.
         let mut m = msg(10.03, 5.0);
         m.name = vec!["x".into(), "y".into()];
         s.joint_states(&m);
-        assert_eq!(s.observations(true).0.unwrap().motion_rad, 0.0);
-        assert!(s.observations(true).2.is_some());
+        assert_eq!(s.observations(true).joint_states.unwrap().motion_rad, 0.0);
+        assert!(s.observations(true).camera.is_some());
     }
 }

@@ -193,6 +193,15 @@ impl Breathing {
     }
 }
 
+/// How far the trocar is from its rest pose.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Deviation {
+    /// Distance of the fulcrum from its anchor, m.
+    pub shift_m: f64,
+    /// Tilt angle from rest, rad.
+    pub tilt_rad: f64,
+}
+
 /// State of the compliantly mounted trocar.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Trocar {
@@ -312,10 +321,13 @@ impl Trocar {
         ke + pe
     }
 
-    /// Distance of the fulcrum from its anchor, m, and tilt angle from rest, rad.
-    pub fn deviation(&self) -> (f64, f64) {
+    /// How far the trocar is from its rest pose.
+    pub fn deviation(&self) -> Deviation {
         let (e, _) = self.deflection();
-        (e.norm(), self.r.angle_to(&self.rest.rotation))
+        Deviation {
+            shift_m: e.norm(),
+            tilt_rad: self.r.angle_to(&self.rest.rotation),
+        }
     }
 
     /// Place the trocar at a displaced state (tests).
@@ -454,7 +466,10 @@ mod tests {
         for _ in 0..20_000 {
             t.step(2e-4, &f, &Vector3::zeros());
         }
-        let (d, tilt) = t.deviation();
+        let Deviation {
+            shift_m: d,
+            tilt_rad: tilt,
+        } = t.deviation();
         assert!((d - 2.0 / p.k_axial_n_per_m).abs() < 1e-5, "{d}");
         assert!(tilt < 1e-9);
         let port = t.pose().translation.vector - rest.translation.vector;

@@ -392,14 +392,15 @@ mod tests {
         // Joint torques are J^T f: here the first three joints read the force.
         let tau = w.external_torques();
         assert!((tau[2] - f.z).abs() < 1e-9);
-        let (dev, _) = w.trocar().deviation();
+        let dev = w.trocar().deviation().shift_m;
         assert!(dev > 0.003, "the trocar moved {dev}");
         // Withdraw: the trocar returns to its rest pose.
         w.set_command(&JointVector::from_column_slice(&[0.012, 0.0, 0.05, 0.0, 0.0, 0.0, 0.0]))
             .unwrap();
         w.step(3.0).unwrap();
         assert_eq!(w.contact().contacts, 0);
-        let (dev, tilt) = w.trocar().deviation();
+        let deviation = w.trocar().deviation();
+        let (dev, tilt) = (deviation.shift_m, deviation.tilt_rad);
         assert!(dev < 1e-4 && tilt < 1e-3, "not back at rest: {dev} m, {tilt} rad");
         assert!(w.trocar().energy() < 1e-6);
     }

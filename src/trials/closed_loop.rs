@@ -166,9 +166,17 @@ mod tests {
         SimWorld::new(&SimParams::default(), kin, 1).unwrap()
     }
 
+    /// One period of a loop run in a fresh world.
+    struct Period {
+        result: Result<ControlFlow<usize>, PlantError>,
+        /// The physics ticks run.
+        ticks: usize,
+        world: SimWorld,
+    }
+
     /// One period of a loop at `rate_hz` in a fresh world, stopped after `stop_at` physics
-    /// ticks (if ever): the result, the ticks run and the world.
-    fn period(rate_hz: f64, stop_at: usize) -> (Result<ControlFlow<usize>, PlantError>, usize, SimWorld) {
+    /// ticks (if ever).
+    fn period(rate_hz: f64, stop_at: usize) -> Period {
         let mut w = world();
         let mut lp = ClosedLoop::new(&w, 1.0 / rate_hz);
         let mut ticks = 0;
@@ -180,12 +188,20 @@ mod tests {
                 ControlFlow::Continue(())
             }
         });
-        (r, ticks, w)
+        Period {
+            result: r,
+            ticks,
+            world: w,
+        }
     }
 
     #[test]
     fn a_period_steps_the_physics_to_the_next_control_tick() {
-        let (r, ticks, w) = period(100.0, usize::MAX);
+        let Period {
+            result: r,
+            ticks,
+            world: w,
+        } = period(100.0, usize::MAX);
         assert!(matches!(r, Ok(ControlFlow::Continue(()))));
         assert_eq!(ticks, (w.params().physics_rate_hz / 100.0).round() as usize);
         assert!((w.time() - 0.01).abs() < 1e-9, "{}", w.time());
@@ -213,7 +229,7 @@ mod tests {
 
     #[test]
     fn a_break_ends_the_period_early() {
-        let (r, ticks, _) = period(10.0, 3);
+        let Period { result: r, ticks, .. } = period(10.0, 3);
         assert!(matches!(r, Ok(ControlFlow::Break(3))));
         assert_eq!(ticks, 3);
     }

@@ -402,7 +402,7 @@ fn drive(
             depth: port.z,
             radial,
             goal_dist: (port.coords - Vector3::new(0.0, 0.0, p.goal_depth_m)).norm(),
-            trocar_shift: world.trocar().deviation().0,
+            trocar_shift: world.trocar().deviation().shift_m,
             tip_speed,
             tip_accel,
             phase: action.phase,

@@ -134,9 +134,16 @@ pub fn facing_pose(distance: f64, x: f64, y: f64, tilt_x: f64, tilt_y: f64, yaw:
 mod tests {
     use super::*;
 
-    /// Mean, standard deviation and the correlation of horizontal neighbours of the noise
-    /// added to a flat grey image.
-    fn noise_stats(noise: fn(&mut [u8], f64, u64), sigma: f64, seed: u64) -> (f64, f64, f64, Vec<u8>) {
+    /// The noise added to a flat grey image, in grey levels.
+    struct NoiseStats {
+        mean: f64,
+        std_dev: f64,
+        /// The correlation of horizontal neighbours.
+        neighbour_correlation: f64,
+        image: Vec<u8>,
+    }
+
+    fn noise_stats(noise: fn(&mut [u8], f64, u64), sigma: f64, seed: u64) -> NoiseStats {
         let mut img = vec![128u8; 640 * 480];
         noise(&mut img, sigma, seed);
         let d: Vec<f64> = img.iter().map(|v| f64::from(*v) - 128.0).collect();
@@ -144,20 +151,27 @@ mod tests {
         let mean = d.iter().sum::<f64>() / n;
         let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
         let cov = d.windows(2).map(|w| (w[0] - mean) * (w[1] - mean)).sum::<f64>() / (n - 1.0);
-        (mean, var.sqrt(), cov / var, img)
+        NoiseStats {
+            mean,
+            std_dev: var.sqrt(),
+            neighbour_correlation: cov / var,
+            image: img,
+        }
     }
 
     #[test]
     fn the_fast_noise_has_the_gaussian_noise_s_spread_and_is_white() {
         for sigma in [1.0, 2.0, 4.0] {
-            let (m0, s0, _, _) = noise_stats(add_gaussian_noise, sigma, 5);
-            let (m, s, corr, a) = noise_stats(add_fast_gaussian_noise, sigma, 5);
+            let gaussian = noise_stats(add_gaussian_noise, sigma, 5);
+            let (m0, s0) = (gaussian.mean, gaussian.std_dev);
+            let fast = noise_stats(add_fast_gaussian_noise, sigma, 5);
+            let (m, s, corr) = (fast.mean, fast.std_dev, fast.neighbour_correlation);
             eprintln!("sigma {sigma}: gaussian {m0:.3} +- {s0:.3}, fast {m:.3} +- {s:.3}, corr {corr:.4}");
             // Rounding to grey levels adds 1/12 grey level^2 to both.
             assert!((s - s0).abs() < 0.06 * sigma, "fast {s} against {s0}");
             assert!(m.abs() < 0.08 * sigma, "mean {m}");
             assert!(corr.abs() < 0.01, "neighbours correlated: {corr}");
-            let (_, _, _, b) = noise_stats(add_fast_gaussian_noise, sigma, 6);
+            let (a, b) = (fast.image, noise_stats(add_fast_gaussian_noise, sigma, 6).image);
             let same = a.iter().zip(&b).filter(|(x, y)| x == y).count() as f64 / a.len() as f64;
             // Two independent draws agree as often as two grey levels of this spread do.
             assert!(same < 0.5 / sigma, "frames repeat: {same:.2} of pixels equal");

@@ -180,7 +180,7 @@ pub fn rotation_angle_mismatch(samples: &[Sample]) -> f64 {
         return 0.0;
     }
     d.sort_by(f64::total_cmp);
-    d[d.len() / 2]
+    crate::stats::quantile_sorted(&d, 0.5)
 }
 
 /// The frame-mismatch fault in words, when the rotation angles disagree.
@@ -315,4 +315,33 @@ pub fn calibrate_samples(samples: &[Sample], model: &ObservationModel) -> Result
         warnings: conditioning_warnings(&conditioning),
         faults: faults(samples, model, &o, (&emc, &bm))?,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Samples whose flanges turn by `angles` (rad) about z while the camera sees the marker
+    /// still: each pair's mismatch is the difference of its two angles.
+    fn turning_flange(angles: &[f64]) -> Vec<Sample> {
+        angles
+            .iter()
+            .map(|a| Sample {
+                base_t_flange: Isometry3::new(Vector3::zeros(), Vector3::z() * *a),
+                camera_t_marker: Isometry3::translation(0.0, 0.0, 0.3),
+                corners: None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_rotation_angle_mismatch_is_the_median_over_pairs_by_the_one_quantile_rule() {
+        // Pairs 0.1, 0.3, 0.2: the middle one.
+        let odd = rotation_angle_mismatch(&turning_flange(&[0.0, 0.1, 0.3]));
+        assert!((odd - 0.2).abs() < 1e-12, "{odd}");
+        // Pairs 0.1, 0.2, 0.3, 0.4, 0.6, 0.7: the mean of the two middle ones.
+        let even = rotation_angle_mismatch(&turning_flange(&[0.0, 0.1, 0.3, 0.7]));
+        assert!((even - 0.35).abs() < 1e-12, "{even}");
+        assert_eq!(rotation_angle_mismatch(&turning_flange(&[0.2])), 0.0, "no pair");
+    }
 }

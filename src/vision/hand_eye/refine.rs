@@ -154,7 +154,11 @@ pub fn refine(
             out,
         );
     };
-    let (x, c, m) = levenberg_marquardt(eval, n, o.max_iterations);
+    let LeastSquares {
+        x,
+        cost: c,
+        residuals: m,
+    } = levenberg_marquardt(eval, n, o.max_iterations);
     if !c.is_finite() {
         return Err(VisionError::InvalidInput("the refinement diverged".into()));
     }
@@ -171,13 +175,18 @@ pub fn refine(
     })
 }
 
+/// A least-squares solution.
+struct LeastSquares {
+    /// The unknowns.
+    x: Vec<f64>,
+    /// The sum of the squared residuals at `x`.
+    cost: f64,
+    /// The number of residuals.
+    residuals: usize,
+}
+
 /// Levenberg–Marquardt on `n` unknowns from zero: `eval(x, out)` writes the residuals.
-/// Returns the solution, its cost (sum of squares) and the number of residuals.
-fn levenberg_marquardt(
-    eval: impl Fn(&[f64], &mut Vec<f64>),
-    n: usize,
-    max_iterations: usize,
-) -> (Vec<f64>, f64, usize) {
+fn levenberg_marquardt(eval: impl Fn(&[f64], &mut Vec<f64>), n: usize, max_iterations: usize) -> LeastSquares {
     let cost = |r: &[f64]| r.iter().map(|v| v * v).sum::<f64>();
     let mut x = vec![0.0; n];
     let mut r = Vec::new();
@@ -229,5 +238,9 @@ fn levenberg_marquardt(
             break;
         }
     }
-    (x, c, m)
+    LeastSquares {
+        x,
+        cost: c,
+        residuals: m,
+    }
 }

@@ -32,6 +32,17 @@ enum Part {
     Bottom,
 }
 
+/// One model edge sample, normalised image coordinates.
+#[derive(Debug, Clone, Copy)]
+struct EdgeSample {
+    point: Vector2<f64>,
+    /// The edge's unit normal.
+    normal: Vector2<f64>,
+    part: Part,
+    /// The gradient searched along the normal: +1 dark to light, -1 light to dark, 0 either.
+    polarity: i32,
+}
+
 /// One estimate of the trocar's axis.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct MarkerlessEstimate {
@@ -178,8 +189,8 @@ impl MarkerlessEstimator {
         })
     }
 
-    /// Model edge samples of `axis`: point, normal (normalised coordinates), part, polarity.
-    fn samples(&self, axis: &Axis) -> Vec<(Vector2<f64>, Vector2<f64>, Part, i32)> {
+    /// Model edge samples of `axis`.
+    fn samples(&self, axis: &Axis) -> Vec<EdgeSample> {
         let mut out = Vec::with_capacity(OPENING_POINTS + RIM_POINTS + 2 * LIMB_POINTS);
         let (u, v) = basis(&axis.direction);
         for (part, radius, n, pol) in [
@@ -192,7 +203,12 @@ impl MarkerlessEstimator {
             for k in 0..n {
                 let phi = std::f64::consts::TAU * k as f64 / n as f64;
                 if let Some(p) = project(&(axis.point + radius * (phi.cos() * u + phi.sin() * v))) {
-                    out.push((p, conic_normal(&c, &p), part, pol));
+                    out.push(EdgeSample {
+                        point: p,
+                        normal: conic_normal(&c, &p),
+                        part,
+                        polarity: pol,
+                    });
                 }
             }
         }
@@ -207,7 +223,12 @@ impl MarkerlessEstimator {
                 // Visible where the side faces the camera, away from the tangent points.
                 if w.dot(&(-q)) > 0.2 * q.norm() * (1.0 - axis.direction.dot(&q.normalize()).powi(2)).sqrt() {
                     if let Some(p) = project(&q) {
-                        out.push((p, conic_normal(&c, &p), Part::Bottom, 0));
+                        out.push(EdgeSample {
+                            point: p,
+                            normal: conic_normal(&c, &p),
+                            part: Part::Bottom,
+                            polarity: 0,
+                        });
                     }
                 }
             }
@@ -224,7 +245,12 @@ impl MarkerlessEstimator {
                 let n = Vector2::new(-dir.y, dir.x).normalize();
                 for k in 0..LIMB_POINTS {
                     let t = (k as f64 + 0.5) / LIMB_POINTS as f64;
-                    out.push((pa + t * dir, n, Part::Limb(i), 0));
+                    out.push(EdgeSample {
+                        point: pa + t * dir,
+                        normal: n,
+                        part: Part::Limb(i),
+                        polarity: 0,
+                    });
                 }
             }
         }
@@ -232,21 +258,19 @@ impl MarkerlessEstimator {
     }
 
     /// Search the image for the edges of `samples` (within `range_px`).
-    fn search(
-        &self,
-        samples: &[(Vector2<f64>, Vector2<f64>, Part, i32)],
-        range_px: f64,
-    ) -> Result<Vec<Option<Vector2<f64>>>, VisionError> {
+    fn search(&self, samples: &[EdgeSample], range_px: f64) -> Result<Vec<Option<Vector2<f64>>>, VisionError> {
         let mut found = vec![None; samples.len()];
         for pol in [-1, 0, 1] {
-            let idx: Vec<usize> = (0..samples.len()).filter(|&i| samples[i].3 == pol).collect();
+            let idx: Vec<usize> = (0..samples.len()).filter(|&i| samples[i].polarity == pol).collect();
             if idx.is_empty() {
                 continue;
             }
             let pts: Vec<f64> = idx
                 .iter()
                 .flat_map(|&i| {
-                    let (p, n, _, _) = samples[i];
+                    let EdgeSample {
+                        point: p, normal: n, ..
+                    } = samples[i];
                     [p.x, p.y, n.x, n.y]
                 })
                 .collect();
@@ -270,7 +294,7 @@ impl MarkerlessEstimator {
             matched = samples
                 .iter()
                 .zip(&found)
-                .filter_map(|(s, f)| f.map(|p| (p, s.2)))
+                .filter_map(|(s, f)| f.map(|p| (p, s.part)))
                 // The outline's edges decide between the hypotheses; near the rim's tangent
                 // points they lie within a few pixels of the face's edge, so the fit leaves them out.
                 .filter(|(_, part)| matches!(part, Part::Opening | Part::Rim))
@@ -290,7 +314,7 @@ impl MarkerlessEstimator {
         let mut sq = 0.0;
         let mut n_open = 0;
         for (s, p) in samples.iter().zip(&found) {
-            let k = match s.2 {
+            let k = match s.part {
                 Part::Opening => 0,
                 Part::Rim => 1,
                 Part::Limb(_) => 2,
@@ -298,7 +322,7 @@ impl MarkerlessEstimator {
             };
             totals[k] += 1;
             if let Some(p) = p {
-                let res = self.residual(&axis, p, s.2).unwrap_or(f64::INFINITY) * f;
+                let res = self.residual(&axis, p, s.part).unwrap_or(f64::INFINITY) * f;
                 if res.abs() <= 1.0 {
                     counts[k] += 1;
                 }

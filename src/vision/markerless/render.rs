@@ -114,6 +114,34 @@ enum Surface {
     Tool,
 }
 
+/// The nearest hit of a camera ray.
+#[derive(Debug, Clone, Copy)]
+struct RayHit {
+    /// Distance along the ray, m (infinite when nothing is hit).
+    distance_m: f64,
+    surface: Surface,
+    /// The surface's normal, port frame.
+    normal: Vector3<f64>,
+    /// The ray's unit direction, port frame.
+    direction: Vector3<f64>,
+}
+
+/// A circle in the camera frame.
+struct Circle {
+    centre: Vector3<f64>,
+    /// Two orthonormal vectors spanning its plane.
+    span: [Vector3<f64>; 2],
+    radius_m: f64,
+}
+
+/// A closed cylinder (the tool's shaft) in the port frame.
+#[derive(Debug, Clone, Copy)]
+struct Shaft {
+    start: Vector3<f64>,
+    end: Vector3<f64>,
+    radius_m: f64,
+}
+
 /// The ray caster for one camera: the viewing ray of every pixel corner, computed once.
 #[derive(Debug, Clone)]
 pub struct TrocarRenderer {
@@ -203,7 +231,7 @@ impl TrocarRenderer {
         ids.par_chunks_mut(stride).enumerate().for_each(|(j, row)| {
             for (i, id) in row.iter_mut().enumerate() {
                 let [cx, cy] = self.corners[(roi.y0 + j) * (w + 1) + roi.x0 + i];
-                *id = caster.hit(&Vector3::new(cx, cy, 1.0)).1;
+                *id = caster.hit(&Vector3::new(cx, cy, 1.0)).surface;
             }
         });
         let ids = CornerIds { ids, roi, stride };
@@ -259,8 +287,6 @@ impl TrocarRenderer {
         const SIDES: usize = 32;
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let circumscribe = 1.0 / (std::f64::consts::PI / SIDES as f64).cos();
-        // Circles (camera frame): centre, two unit vectors spanning their plane, radius.
-        type Circle = (Vector3<f64>, [Vector3<f64>; 2], f64);
         let mut circles: Vec<Circle> = vec![];
         if scene.show_trocar {
             let m = model;
@@ -275,20 +301,34 @@ impl TrocarRenderer {
                 (end, m.cannula.radius),
             ] {
                 let c = camera_t_port.transform_point(&Point3::new(0.0, 0.0, z)).coords;
-                circles.push((c, [ex, ey], r));
+                circles.push(Circle {
+                    centre: c,
+                    span: [ex, ey],
+                    radius_m: r,
+                });
             }
         }
         if let Some(t) = &scene.tool {
             let (a, b) = (Vector3::from(t.start), Vector3::from(t.end));
             let (u, v) = super::geometry::basis(&nalgebra::Unit::new_normalize(b - a));
-            circles.push((a, [u, v], t.radius));
-            circles.push((b, [u, v], t.radius));
+            for centre in [a, b] {
+                circles.push(Circle {
+                    centre,
+                    span: [u, v],
+                    radius_m: t.radius,
+                });
+            }
         }
         if circles.is_empty() {
             return Rect::default();
         }
         let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for (c, [u, v], r) in &circles {
+        for Circle {
+            centre: c,
+            span: [u, v],
+            radius_m: r,
+        } in &circles
+        {
             for k in 0..SIDES {
                 let a = k as f64 * std::f64::consts::TAU / SIDES as f64;
                 let p = c + r * circumscribe * (a.cos() * u + a.sin() * v);
@@ -507,7 +547,7 @@ struct Caster {
     wall_point: Vector3<f64>,
     wall_normal: Vector3<f64>,
     wall_u: Vector3<f64>,
-    tool: Option<(Vector3<f64>, Vector3<f64>, f64)>,
+    tool: Option<Shaft>,
     /// The trocar's bounding sphere (port frame): centre, radius.
     bounds: (Vector3<f64>, f64),
     seed: u64,
@@ -525,13 +565,12 @@ impl Caster {
         };
         let wall_normal = Vector3::new(0.0, scene.wall_tilt.sin(), -scene.wall_tilt.cos());
         let tool = scene.tool.map(|t| {
-            let a = port_t_camera
-                .transform_point(&Point3::from(Vector3::from(t.start)))
-                .coords;
-            let b = port_t_camera
-                .transform_point(&Point3::from(Vector3::from(t.end)))
-                .coords;
-            (a, b, t.radius)
+            let to_port = |p: [f64; 3]| port_t_camera.transform_point(&Point3::from(Vector3::from(p))).coords;
+            Shaft {
+                start: to_port(t.start),
+                end: to_port(t.end),
+                radius_m: t.radius,
+            }
         });
         Self {
             origin: port_t_camera.translation.vector,
@@ -558,7 +597,12 @@ impl Caster {
 
     /// The surface hit by the camera ray `dir` (camera frame) and its radiance.
     fn trace(&self, dir: &Vector3<f64>) -> (Surface, f64) {
-        let (t, s, n, d) = self.hit(dir);
+        let RayHit {
+            distance_m: t,
+            surface: s,
+            normal: n,
+            direction: d,
+        } = self.hit(dir);
         if s == Surface::Nothing {
             return (s, 0.0);
         }
@@ -572,15 +616,19 @@ impl Caster {
         (s, self.shade(&p, &n, &d, albedo, shiny))
     }
 
-    /// The nearest hit of the camera ray `dir` (camera frame): distance, surface, normal and
-    /// the ray's direction in the port frame.
-    fn hit(&self, dir: &Vector3<f64>) -> (f64, Surface, Vector3<f64>, Vector3<f64>) {
+    /// The nearest hit of the camera ray `dir` (camera frame).
+    fn hit(&self, dir: &Vector3<f64>) -> RayHit {
         let d = self.rot * dir.normalize();
         let o = self.origin;
-        let mut best = (f64::INFINITY, Surface::Nothing, Vector3::zeros());
+        let mut best = RayHit {
+            distance_m: f64::INFINITY,
+            surface: Surface::Nothing,
+            normal: Vector3::zeros(),
+            direction: d,
+        };
         let mut consider = |t: f64, s: Surface, n: Vector3<f64>| {
-            if t > 1e-6 && t < best.0 {
-                best = (t, s, n);
+            if t > 1e-6 && t < best.distance_m {
+                (best.distance_m, best.surface, best.normal) = (t, s, n);
             }
         };
         // Rays that miss the trocar's bounding sphere skip its surfaces.
@@ -624,13 +672,12 @@ impl Caster {
                 self.wall_normal,
             );
         }
-        if let Some((a, b, r)) = &self.tool {
-            if let Some((t, n)) = cylinder(&o, &d, a, b, *r) {
+        if let Some(tool) = &self.tool {
+            if let Some((t, n)) = cylinder(&o, &d, &tool.start, &tool.end, tool.radius_m) {
                 consider(t, Surface::Tool, n);
             }
         }
-        let (t, s, n) = best;
-        (t, s, n, d)
+        best
     }
 
     fn shade(&self, p: &Vector3<f64>, n: &Vector3<f64>, d: &Vector3<f64>, albedo: f64, shiny: bool) -> f64 {
