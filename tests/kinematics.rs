@@ -35,8 +35,8 @@ fn zero_configuration_heights() {
             let kin = LbrKinematics::from_model(
                 model,
                 &ToolParams {
-                    length: tool,
-                    diameter: 0.005,
+                    length_m: tool,
+                    diameter_m: 0.005,
                 },
             )
             .unwrap();

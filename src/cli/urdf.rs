@@ -11,10 +11,10 @@ pub struct UrdfArgs {
     #[arg(long, value_enum, default_value = "med7")]
     pub model: LbrModel,
     /// Endoscope length from the flange to the tip, m.
-    #[arg(long, default_value_t = 0.25)]
+    #[arg(long, default_value_t = ToolParams::default().length_m)]
     pub tool_length: f64,
     /// Endoscope shaft diameter, m.
-    #[arg(long, default_value_t = 0.005)]
+    #[arg(long, default_value_t = ToolParams::default().diameter_m)]
     pub tool_diameter: f64,
     /// Output file (default: standard output).
     #[arg(long, short)]
@@ -26,8 +26,8 @@ pub fn run(a: &UrdfArgs) -> super::CliResult {
     let xml = urdf(
         a.model,
         &ToolParams {
-            length: a.tool_length,
-            diameter: a.tool_diameter,
+            length_m: a.tool_length,
+            diameter_m: a.tool_diameter,
         },
     )?;
     match &a.output {
