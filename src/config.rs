@@ -214,6 +214,7 @@ const DOCKING_CONTROLLER_NODE_RENAMED: &[Renamed] = &[
         note: "the control rate is the controller's period, `dt_s` in config/controller.yaml (~controller/dt_s; \
                the launch files' rate:=HZ sets it)",
     },
+    Renamed::key("preflight.limits.min_joint_states_hz", "preflight.limits.min_driver_hz"),
     Renamed::key("markers.axis_length", "markers.axis_length_m"),
     Renamed::key("markers.optical_axis_length", "markers.optical_axis_length_m"),
     Renamed::key("markers.force_scale", "markers.force_scale_m_per_n"),

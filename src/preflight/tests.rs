@@ -33,6 +33,7 @@ fn good(kin: &dyn Kinematics) -> Observations {
                 span_s: 1.0,
             },
             sample_time: 0.002,
+            cadence_s: 0.002,
             tau_ext: (0..100)
                 .map(|i| (0..7).map(|k| 0.3 + 0.1 * f64::from((i + k) % 3)).collect())
                 .collect(),
@@ -229,4 +230,53 @@ fn default_limits_are_valid_and_a_bad_one_is_named() {
         ..Limits::default()
     };
     assert_eq!(bad.validate().unwrap_err().key, "limits.rate_tolerance");
+}
+
+#[test]
+fn the_cadence_is_the_median_interval_whatever_was_lost() {
+    // 500 Hz for 1 s, in any order, with bursts of ten messages lost (20 % in all): the
+    // period stays 2 ms.
+    let mut t: Vec<f64> = (0..500)
+        .filter(|i| i % 50 >= 10)
+        .map(|i| 0.002 * f64::from(i))
+        .collect();
+    t.reverse();
+    assert!((cadence_s(&t) - 0.002).abs() < 1e-12, "{}", cadence_s(&t));
+    // A driver at 400 Hz.
+    let slow: Vec<f64> = (0..400).map(|i| 0.0025 * f64::from(i)).collect();
+    assert!((cadence_s(&slow) - 0.0025).abs() < 1e-12);
+    assert!(cadence_s(&[1.0]).is_nan());
+    assert!(cadence_s(&[f64::NAN, 1.0]).is_nan());
+}
+
+fn lbr_check(o: &Observations) -> (bool, String) {
+    let k = kin();
+    let r = evaluate(o, &Limits::default(), &TareParams::default(), &k);
+    let c = r.checks.iter().find(|c| c.code == "LBR_STATE").unwrap();
+    (c.verdict == Verdict::Pass, c.detail.clone())
+}
+
+#[test]
+fn lbr_state_lost_on_the_way_passes_but_a_slow_driver_or_a_starved_controller_fails() {
+    let k = kin();
+    // The driver at its FRI cycle, 16 % of it lost in this node's subscriber (a loaded host).
+    let mut o = good(&k);
+    o.lbr_state.as_mut().unwrap().stream.count = 421;
+    let (ok, detail) = lbr_check(&o);
+    assert!(ok, "{detail}");
+    assert!(detail.contains("420 Hz received (84 % of the cycles"), "{detail}");
+    // The driver sending every 2.5 ms while the FRI cycle is 2 ms: fails.
+    let mut o = good(&k);
+    o.lbr_state.as_mut().unwrap().cadence_s = 0.0025;
+    let (ok, detail) = lbr_check(&o);
+    assert!(!ok && detail.contains("(400 Hz)"), "{detail}");
+    // Just inside the tolerance (10 %): 2.2 ms passes.
+    o.lbr_state.as_mut().unwrap().cadence_s = 0.00221;
+    assert!(lbr_check(&o).0);
+    // The right cadence but under 90 Hz reaching the controller: fails.
+    let mut o = good(&k);
+    o.lbr_state.as_mut().unwrap().stream.count = 81;
+    let (ok, detail) = lbr_check(&o);
+    assert!(!ok && detail.contains("80 Hz received"), "{detail}");
+    assert_eq!(failed(&o), vec!["LBR_STATE"]);
 }

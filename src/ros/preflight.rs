@@ -54,6 +54,7 @@ struct Seen {
     low: Vec<f64>,
     high: Vec<f64>,
     lbr: Stamps,
+    lbr_stamps: Vec<f64>,
     sample_time: f64,
     tau_ext: Vec<Vec<f64>>,
     images: Stamps,
@@ -89,6 +90,7 @@ impl Seen {
         let lbr = (self.lbr.count > 0).then(|| LbrState {
             stream: self.lbr.stream(),
             sample_time: self.sample_time,
+            cadence_s: preflight::cadence_s(&self.lbr_stamps),
             tau_ext: self.tau_ext.clone(),
         });
         let cam = camera.then(|| Camera {
@@ -132,20 +134,20 @@ fn watch<T: rosrust::Message>(
     rosrust::subscribe(topic, queue, move |m: T| f(&mut lock(&s), m)).map_err(ros_err)
 }
 
-/// Messages a driver topic's subscriber may hold before it drops (2 s of a 500 Hz FRI
-/// stream): the rates are counted from the stamps of what arrives, so a preflight thread
-/// that the scheduler holds back must not drop messages and read a slow driver.
-const DRIVER_QUEUE: usize = 1000;
-
 /// Subscribe the topics; the subscribers live as long as the returned handles.
 fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
     let (topic, frame) = (t.trocar_pose.clone(), t.base_frame.clone());
     Ok(vec![
-        watch(&t.joint_states, DRIVER_QUEUE, seen, |s, m: sensor_msgs::JointState| {
-            s.joint_states(&m)
-        })?,
-        watch(&t.lbr_state, DRIVER_QUEUE, seen, |s, m: lbr_msgs::LBRState| {
-            s.lbr.add(convert::seconds(m.stamp.data));
+        watch(
+            &t.joint_states,
+            topics::DRIVER_QUEUE,
+            seen,
+            |s, m: sensor_msgs::JointState| s.joint_states(&m),
+        )?,
+        watch(&t.lbr_state, topics::DRIVER_QUEUE, seen, |s, m: lbr_msgs::LBRState| {
+            let t = convert::seconds(m.stamp.data);
+            s.lbr.add(t);
+            s.lbr_stamps.push(t);
             s.sample_time = m.sample_time;
             s.tau_ext.push(m.external_torque);
         })?,
@@ -364,6 +366,12 @@ mod tests {
             ..PreflightParams::default()
         };
         assert!(bad.validate().unwrap_err().to_string().contains("window_s"));
+        // The rate floor's old key is refused, naming the new one.
+        let old = "preflight:\n  limits:\n    min_joint_states_hz: 100.0\n";
+        let e = params::from_yaml_str::<ControllerNodeParams>("old.yaml", old)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("preflight.limits.min_driver_hz"), "{e}");
     }
 
     #[test]

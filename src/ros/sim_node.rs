@@ -15,6 +15,7 @@ use super::convert;
 use super::convert::image as image_msgs;
 use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs};
 use super::params;
+use super::topics;
 use super::trajectory::TrajectoryFollower;
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
@@ -509,8 +510,8 @@ struct Outputs {
 impl Outputs {
     fn new(p: &SimNodeParams) -> Result<Self, NodeError> {
         Ok(Self {
-            joint_states: rosrust::publish(&p.joint_states_topic, 10).map_err(ros_err)?,
-            lbr_state: rosrust::publish(&p.lbr_state_topic, 10).map_err(ros_err)?,
+            joint_states: rosrust::publish(&p.joint_states_topic, topics::DRIVER_QUEUE).map_err(ros_err)?,
+            lbr_state: rosrust::publish(&p.lbr_state_topic, topics::DRIVER_QUEUE).map_err(ros_err)?,
             clock: optional(p.publish_clock, "/clock", 10)?,
             pose: optional(p.direct_pose_enabled, &p.trocar_pose_topic, 10)?,
             truth: optional(!p.trocar_true_topic.is_empty(), &p.trocar_true_topic, 2)?,

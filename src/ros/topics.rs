@@ -7,6 +7,11 @@
 pub const JOINT_STATES: &str = "/lbr/joint_states";
 /// The driver's LBRState (external torques), once per FRI cycle.
 pub const LBR_STATE: &str = "/lbr/states";
+/// Messages a driver topic may hold, at the publisher and at a subscriber, before it drops
+/// (2 s of a 500 Hz FRI stream). The preflight counts rates from the stamps of what arrives,
+/// so a thread that the scheduler holds back (the simulator's publisher under load, the
+/// preflight's subscriber) must delay messages, not drop them and read a slow driver.
+pub const DRIVER_QUEUE: usize = 1000;
 /// The joint command (trajectory_msgs/JointTrajectory, or Float64MultiArray).
 pub const COMMAND: &str = "/lbr/PositionJointInterface_trajectory_controller/command";
 /// The camera image (ZED mini, left, rectified).
