@@ -11,27 +11,34 @@ use crate::vision::{
     MarkerSpec, RenderOptions,
 };
 
-/// The marker options shared by `detect` and `render`.
+/// The marker options shared by `detect` and `render`. Family and size default to the
+/// marker the simulator shows and the estimator expects (`marker:` of
+/// config/trocar_estimator.yaml: DICT_4X4_50, 40 mm).
 #[derive(Debug, clap::Args)]
 pub struct MarkerArgs {
-    /// Family: an OpenCV dictionary name (DICT_4X4_50, DICT_ARUCO_ORIGINAL, ...) or tag36h11.
-    #[arg(long, default_value = "DICT_4X4_50")]
-    pub family: String,
-    /// Marker id (detect: keep only this id; default: all).
+    /// Family: an OpenCV dictionary name (DICT_4X4_50, DICT_ARUCO_ORIGINAL, ...) or tag36h11
+    /// [default: the estimator's, DICT_4X4_50].
+    #[arg(long)]
+    pub family: Option<String>,
+    /// Marker id (detect: keep only this id, default all; render: default the estimator's, 7).
     #[arg(long)]
     pub id: Option<u32>,
-    /// Marker side, m.
-    #[arg(long, default_value_t = 0.05)]
-    pub size: f64,
+    /// Marker side, m [default: the estimator's, 0.04].
+    #[arg(long)]
+    pub size: Option<f64>,
 }
 
 impl MarkerArgs {
     fn spec(&self) -> Result<MarkerSpec, crate::vision::VisionError> {
-        let family: MarkerFamily = self.family.parse()?;
+        let shipped = MarkerSpec::default();
+        let family: MarkerFamily = match &self.family {
+            Some(f) => f.parse()?,
+            None => shipped.family,
+        };
         let spec = MarkerSpec {
             family,
             id: self.id,
-            size_m: self.size,
+            size_m: self.size.unwrap_or(shipped.size_m),
         };
         spec.validate()?;
         Ok(spec)
@@ -125,6 +132,7 @@ fn detection_json(d: &MarkerDetection) -> serde_json::Value {
 pub fn run_detect(a: &DetectArgs) -> super::CliResult {
     let camera = CameraModel::from_yaml_file(&a.camera)?;
     let spec = a.marker.spec()?;
+    let (family, size_m) = (spec.family.name().to_string(), spec.size_m);
     let image = GreyImage::read(&a.image)?;
     let mut det = MarkerDetector::new(spec, &camera)?;
     let t0 = std::time::Instant::now();
@@ -132,7 +140,7 @@ pub fn run_detect(a: &DetectArgs) -> super::CliResult {
     let ms = t0.elapsed().as_secs_f64() * 1e3;
     if a.json {
         let v = serde_json::json!({
-            "image": a.image, "family": a.marker.family, "size_m": a.marker.size, "time_ms": ms,
+            "image": a.image, "family": family, "size_m": size_m, "time_ms": ms,
             "markers": found.iter().map(detection_json).collect::<Vec<_>>(),
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
@@ -160,7 +168,7 @@ pub fn run_detect(a: &DetectArgs) -> super::CliResult {
 pub fn run_render(a: &RenderArgs) -> super::CliResult {
     let camera = CameraModel::from_yaml_file(&a.camera)?;
     let mut spec = a.marker.spec()?;
-    spec.id = Some(spec.id.unwrap_or(0));
+    spec.id = spec.id.or(MarkerSpec::default().id).or(Some(0));
     if a.offset.len() != 2 || a.tilt_deg.len() != 2 {
         return Err("--offset and --tilt-deg take two comma-separated numbers".into());
     }
