@@ -74,7 +74,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     ("cli", &["bench", "trials", "preflight", "sim", "control", "vision", "kinematics", "kdl", "config", "signal", "stats", "validate", "realtime"]),
     ("bench", &["trials", "sim", "control", "vision", "kinematics", "kdl", "config", "signal", "stats", "validate", "realtime"]),
     ("trials", &["sim", "control", "kinematics", "kdl", "config", "signal", "stats", "validate", "realtime"]),
-    ("preflight", &["sim", "control", "vision", "kinematics", "config", "validate"]),
+    ("preflight", &["sim", "control", "vision", "kinematics", "config", "stats", "validate"]),
     ("sim", &["kinematics", "config", "signal", "stats", "validate"]),
     ("control", &["kinematics", "config", "signal", "stats", "validate"]),
     ("vision", &["kinematics", "ffi", "config", "signal", "stats", "validate"]),
