@@ -73,8 +73,11 @@ pub struct SimNodeParams {
     pub trocar_fulcrum_true_topic: String,
     /// Base frame.
     pub base_frame: String,
-    /// Stop camera and direct pose after this many simulated seconds (negative: never).
+    /// Stop camera and direct pose after this many simulated seconds (negative: never),
+    /// counted from [`Self::trocar_dropout_from`].
     pub trocar_dropout_after_s: f64,
+    /// What `trocar_dropout_after_s` counts from.
+    pub trocar_dropout_from: DropoutFrom,
     /// The simulated camera: its model, mount and the marker it sees.
     pub camera: SimCameraParams,
     /// The simulator's own parameters (`config/sim.yaml`, loaded under `~world`; its
@@ -497,6 +500,29 @@ fn optional<T: rosrust::Message>(
     }
 }
 
+/// What the trocar sources' dropout time counts from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DropoutFrom {
+    /// The start of the simulation.
+    Start,
+    /// The arm's first moving command: a test that needs the arm moving when the pose
+    /// stops does not depend on how long the nodes took to start.
+    FirstMotion,
+}
+
+/// Whether the trocar sources (camera, direct pose) still deliver at simulated time `t`,
+/// with the arm's first moving command at `first_motion` (None: not yet).
+fn trocar_live(dropout_after_s: f64, from: DropoutFrom, t: f64, first_motion: Option<f64>) -> bool {
+    if dropout_after_s < 0.0 {
+        return true;
+    }
+    match from {
+        DropoutFrom::Start => t < dropout_after_s,
+        DropoutFrom::FirstMotion => first_motion.is_none_or(|t0| t - t0 < dropout_after_s),
+    }
+}
+
 /// The node's publishers (the camera's live on its thread).
 struct Outputs {
     joint_states: rosrust::Publisher<sensor_msgs::JointState>,
@@ -532,6 +558,16 @@ impl Outputs {
             .send(convert::lbr_state(stamp, sample_time, &q, &tau, &tau_ext));
     }
 
+    /// The ground truth (trocar pose, fulcrum), where its topics are set.
+    fn truth(&self, p: &SimNodeParams, world: &SimWorld, stamp: rosrust::Time) {
+        if let Some(publ) = &self.truth {
+            let _ = publ.send(convert::pose_stamped(stamp, &p.base_frame, &world.trocar_pose_true()));
+        }
+        if let Some(publ) = &self.fulcrum_truth {
+            let _ = publ.send(convert::point_stamped(stamp, &p.base_frame, &world.trocar().anchor()));
+        }
+    }
+
     /// In the direct mode, a pose measurement newer than `last` (its stamp, updated),
     /// stamped at capture: the controller's latency then counts the sensor delay.
     fn direct_pose(&self, p: &SimNodeParams, world: &SimWorld, t0: f64, stamp: rosrust::Time, last: &mut f64) {
@@ -558,6 +594,8 @@ struct ArmCommand {
     report: Every,
     /// The largest lead of a command over the measured joints, rad.
     max_lead: f64,
+    /// When the first moving command came (simulated time, s).
+    first_motion: Option<f64>,
 }
 
 impl ArmCommand {
@@ -566,6 +604,7 @@ impl ArmCommand {
             follower: TrajectoryFollower::new(world.joint_positions()),
             report: Every::new(0.1, t0 + 10.0),
             max_lead: 0.0,
+            first_motion: None,
         }
     }
 
@@ -577,6 +616,9 @@ impl ArmCommand {
                 Ok(()) => {
                     self.max_lead = self.max_lead.max((c.q - world.joint_positions()).amax());
                     self.follower.push(now, c.q, c.due.unwrap_or(now));
+                    if self.first_motion.is_none() && self.follower.moving() > 0 {
+                        self.first_motion = Some(world.time());
+                    }
                 }
                 Err(e) => {
                     rosrust::ros_warn!("command rejected by the arm, keeping the last one: {e}");
@@ -660,7 +702,12 @@ pub fn run() -> Result<(), NodeError> {
         if fri.due(t) {
             out.driver(&p, &world, stamp, sample_time);
         }
-        let live = p.trocar_dropout_after_s < 0.0 || world.time() < p.trocar_dropout_after_s;
+        let live = trocar_live(
+            p.trocar_dropout_after_s,
+            p.trocar_dropout_from,
+            world.time(),
+            arm.first_motion,
+        );
         if let (true, Some(cam)) = (live, camera.as_mut()) {
             if frames.due(t) {
                 cam.capture(&world, stamp);
@@ -670,12 +717,7 @@ pub fn run() -> Result<(), NodeError> {
             out.direct_pose(&p, &world, t0, stamp, &mut last_measurement);
         }
         if truth.due(t) {
-            if let Some(publ) = &out.truth {
-                let _ = publ.send(convert::pose_stamped(stamp, &p.base_frame, &world.trocar_pose_true()));
-            }
-            if let Some(publ) = &out.fulcrum_truth {
-                let _ = publ.send(convert::point_stamped(stamp, &p.base_frame, &world.trocar().anchor()));
-            }
+            out.truth(&p, &world, stamp);
         }
         // Pace: simulated time runs real_time_factor times as fast as the wall clock.
         let ahead = world.time() / p.real_time_factor - wall0.elapsed().as_secs_f64();
@@ -690,6 +732,18 @@ pub fn run() -> Result<(), NodeError> {
 mod tests {
     use super::*;
     use nalgebra::Vector3;
+
+    #[test]
+    fn the_trocar_sources_stop_after_their_time_from_the_start_or_the_first_motion() {
+        use DropoutFrom::{FirstMotion, Start};
+        assert!(trocar_live(-1.0, Start, 1e6, None));
+        assert!(trocar_live(2.0, Start, 1.99, None) && !trocar_live(2.0, Start, 2.0, None));
+        assert!(!trocar_live(0.0, Start, 0.0, None), "0: no pose from the start");
+        // From the first motion: live however long the start-up takes, then 1 s more.
+        assert!(trocar_live(1.0, FirstMotion, 30.0, None));
+        assert!(trocar_live(1.0, FirstMotion, 30.9, Some(30.0)));
+        assert!(!trocar_live(1.0, FirstMotion, 31.0, Some(30.0)));
+    }
 
     /// The node's parameters as the launch file loads them: `config/lbr_med_sim.yaml` in
     /// the private namespace, `config/sim.yaml` under `~world` (through JSON, as the
