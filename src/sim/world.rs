@@ -17,13 +17,21 @@ use rand_chacha::ChaCha8Rng;
 use super::arm::Arm;
 use super::contact::{ContactModel, ContactWrench, ShaftMotion};
 use super::jam::Jam;
-use super::noise::{TrocarMeasurement, TrocarSensor};
+use super::noise::{NoisySensor, PoseSource, SensorInput, TrocarMeasurement};
 use super::scenario::Scenario;
 use super::seal::Seal;
 use super::torque::TorqueSensor;
 use super::trocar::{Breathing, Trocar};
 use super::{stream, SimError, SimParams};
 use crate::kinematics::{Jacobian, JointVector, Kinematics};
+
+/// The random stream of the trocar pose sensor of the world of `seed`: the noise-model
+/// sensor draws its calibration bias first from it, then its noise; another pose source
+/// that draws its bias first from it by [`super::MeasurementParams::draw_bias`] gets the same
+/// bias.
+pub fn measurement_stream(seed: u64) -> ChaCha8Rng {
+    stream(seed, STREAM_MEASUREMENT)
+}
 
 /// Random stream purposes.
 const STREAM_SCENARIO: u64 = 1;
@@ -44,8 +52,7 @@ pub struct SimWorld {
     contact: ContactModel,
     seal: Seal,
     torque: TorqueSensor,
-    sensor: TrocarSensor,
-    rng_meas: ChaCha8Rng,
+    sensor: Box<dyn PoseSource>,
     rng_torque: ChaCha8Rng,
     tip: Isometry3<f64>,
     jac: Jacobian,
@@ -90,7 +97,6 @@ impl SimWorld {
     ) -> Result<Self, SimError> {
         params.validate()?;
         let mut rng_torque = stream(seed, STREAM_TORQUE);
-        let mut rng_meas = stream(seed, STREAM_MEASUREMENT);
         let arm = Arm::new(&params.arm, kin.limits(), &scenario.q0())?;
         let (tip, jac) = kin.fk_jacobian(&arm.q_link())?;
         Ok(Self {
@@ -99,8 +105,7 @@ impl SimWorld {
             contact: ContactModel::new(&params.contact, &params.trocar)?,
             seal: Seal::new(&params.seal)?,
             torque: TorqueSensor::new(&params.torque_sensor, &mut rng_torque)?,
-            sensor: TrocarSensor::new(&params.measurement, &mut rng_meas)?,
-            rng_meas,
+            sensor: Box::new(NoisySensor::new(&params.measurement, measurement_stream(seed))?),
             rng_torque,
             params: params.clone(),
             kin,
@@ -119,8 +124,7 @@ impl SimWorld {
 
     fn primed(mut self) -> Self {
         self.trocar.set_anchor_offset(&self.breathing.offset(0.0));
-        let pose = self.trocar.pose();
-        self.sensor.update(0.0, &pose, &self.tip, &mut self.rng_meas);
+        self.update_sensor();
         self.tau_meas = self
             .torque
             .measure(&JointVector::zeros(), &self.tip, &self.jac, &mut self.rng_torque);
@@ -230,9 +234,28 @@ impl SimWorld {
         self.jac = jac;
         let tau_true = self.tau_of(&last);
         self.tau_meas = self.torque.measure(&tau_true, &self.tip, &jac, &mut self.rng_torque);
-        let pose = self.trocar.pose();
-        self.sensor.update(self.t, &pose, &self.tip, &mut self.rng_meas);
+        self.update_sensor();
         Ok(())
+    }
+
+    /// Advance the pose source to now.
+    fn update_sensor(&mut self) {
+        let pose = self.trocar.pose();
+        let at = SensorInput {
+            true_pose: &pose,
+            tip: &self.tip,
+            q: self.arm.q(),
+            q_link: &self.arm.q_link(),
+        };
+        self.sensor.update(self.t, &at);
+    }
+
+    /// Replace the trocar pose source (the noise model of `measurement` by default), from
+    /// now on: it is advanced to the current time at once (a capture at t = 0 in a fresh
+    /// world).
+    pub fn set_pose_source(&mut self, source: Box<dyn PoseSource>) {
+        self.sensor = source;
+        self.update_sensor();
     }
 
     /// J^T [F; M] of a wrench on the arm, at the current Jacobian.
