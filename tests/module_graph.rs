@@ -78,7 +78,7 @@ const ALLOWED: &[(&str, &[&str])] = &[
     // layer above both, since neither may import the other.
     ("sim_vision", &["sim", "vision", "kinematics", "kdl", "config", "validate"]),
     ("trials", &["sim", "control", "kinematics", "kdl", "config", "signal", "stats", "validate", "realtime"]),
-    ("preflight", &["sim", "control", "vision", "kinematics", "config", "validate"]),
+    ("preflight", &["sim", "control", "vision", "kinematics", "config", "stats", "validate"]),
     ("sim", &["kinematics", "config", "signal", "stats", "validate"]),
     ("control", &["kinematics", "config", "signal", "stats", "validate"]),
     ("vision", &["kinematics", "ffi", "config", "signal", "stats", "validate"]),
