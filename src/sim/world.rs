@@ -477,4 +477,43 @@ mod tests {
         assert_eq!(w.step(0.0105).unwrap(), 10);
         assert_eq!(w.step(0.0005).unwrap(), 1);
     }
+
+    /// A pose source that counts its updates and delivers the true pose at each one.
+    struct Counting {
+        updates: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+        last: Option<TrocarMeasurement>,
+    }
+
+    impl PoseSource for Counting {
+        fn update(&mut self, t: f64, at: &SensorInput<'_>) {
+            self.updates.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            self.last = Some(TrocarMeasurement {
+                stamp: t,
+                pose: *at.true_pose,
+            });
+        }
+
+        fn latest(&self, _now: f64) -> Option<TrocarMeasurement> {
+            self.last
+        }
+    }
+
+    #[test]
+    fn a_pose_source_set_on_the_world_is_advanced_every_physics_tick_and_read() {
+        let mut w = world([0.0, 0.0, 0.05]);
+        let updates = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        w.set_pose_source(Box::new(Counting {
+            updates: updates.clone(),
+            last: None,
+        }));
+        assert_eq!(
+            updates.load(std::sync::atomic::Ordering::Relaxed),
+            1,
+            "advanced to now at once"
+        );
+        let n = w.step(0.02).unwrap();
+        assert_eq!(updates.load(std::sync::atomic::Ordering::Relaxed), n + 1);
+        let m = w.measure_trocar(w.time()).unwrap();
+        assert_eq!((m.stamp, m.pose), (w.time(), w.trocar_pose_true()));
+    }
 }
