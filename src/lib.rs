@@ -9,6 +9,7 @@
 //! - [`vision`]: marker pose (OpenCV/ViSP through the bridge), synthetic camera, hand-eye,
 //!   the trocar estimator and the joint history it pairs images with.
 //! - [`sim`]: the simulated plant (pure Rust); [`trials`]: the paper's experiment on it.
+//! - [`sim_vision`]: the plant seen through the markerless camera pipeline (a pose source for the trials).
 //! - [`ros`]: the ROS 1 nodes (rosrust): parameters, message conversions, wiring.
 //! - [`cli`], [`bench`](mod@bench): the offline `trocar_docking` command and its benchmark suites.
 //! - [`preflight`]: the checks of a set-up before the arm moves (pure), on what the ROS side observed.
@@ -30,6 +31,7 @@ pub mod realtime;
 pub mod ros;
 pub mod signal;
 pub mod sim;
+pub mod sim_vision;
 pub mod stats;
 #[cfg(test)]
 mod test_alloc;

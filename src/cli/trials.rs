@@ -4,7 +4,9 @@
 //! `config/controller.yaml` unchanged but for `force_feedback` (its `dt_s` is the trials' period); in parallel, with a
 //! progress bar on stderr; prints a summary and a per-trial table (JSON with `--json`) and
 //! writes to `--out`: `summary.json`, `trials.csv`, `series/<arm>_<seed>.csv` and the
-//! plots `force_<protocol>.png`, `m_box_<protocol>.png`.
+//! plots `force_<protocol>.png`, `m_box_<protocol>.png`. With `--sensor camera` the trocar pose
+//! comes from the markerless camera pipeline ([`crate::sim_vision`]) instead of the protocol's
+//! noise model.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -15,9 +17,11 @@ use crate::control::ControllerParams;
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointLimits, Kinematics, LbrKinematics};
 use crate::sim::noise::NoiseModel;
-use crate::trials::batch::{run_arm, ArmReport, ArmSummary, PolicyFactory, Stats};
+use crate::sim_vision::{CameraPoseSource, CameraSetup, FrameCounts};
+use crate::trials::batch::{run_arm_with, ArmReport, ArmSetup, ArmSummary, PolicyFactory, PoseSourceFactory, Stats};
 use crate::trials::config::{load_controller, PolicyKind, Protocol, SimConfig};
 use crate::trials::run::TrialResult;
+use crate::vision::CameraModel;
 
 use super::CliResult;
 
@@ -67,6 +71,25 @@ pub struct TrialsArgs {
     /// Print JSON instead of text.
     #[arg(long)]
     pub json: bool,
+    /// The trocar pose sensor: `model` (the protocol's noise model) or `camera` (the
+    /// markerless camera pipeline in the loop: each capture rendered as the simulator's camera
+    /// renders it, estimated and filtered as the trocar estimator does, at the protocol's
+    /// rate, latency and hand-eye bias; much slower).
+    #[arg(long, value_enum, default_value_t = Sensor::Model)]
+    pub sensor: Sensor,
+    /// With `--sensor camera`: the camera calibration YAML the images are rendered and
+    /// estimated with.
+    #[arg(long, default_value = "config/camera_zedm.yaml")]
+    pub camera_calibration: PathBuf,
+}
+
+/// The trocar pose sensor of the trials.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Sensor {
+    /// The protocol's noise model of the pose (`measurement:` in config/sim.yaml).
+    Model,
+    /// The markerless camera pipeline: render, estimate, filter.
+    Camera,
 }
 
 /// Which arms to run.
@@ -110,11 +133,14 @@ fn factory(c: &SimConfig, controller: &ControllerParams, ff: bool) -> Box<Policy
     crate::trials::policy::factory(c, controller, ff, &JointLimits::of_model(LbrModel::Med7))
 }
 
-/// What one run ran: protocol, world, controller.
+/// What one run ran: protocol, world, controller, and the camera pipeline if it replaces the
+/// noise model.
 struct RunSetup {
     protocol: Protocol,
     cfg: SimConfig,
     controller: ControllerParams,
+    camera: Option<CameraSetup>,
+    frames: Arc<FrameCounts>,
 }
 
 /// Run `trials`.
@@ -126,6 +152,14 @@ pub fn run(a: &TrialsArgs) -> CliResult {
         protocol: a.protocol,
         cfg: load_config(a)?,
         controller: load_controller(a.controller_config.as_deref())?,
+        camera: match a.sensor {
+            Sensor::Model => None,
+            Sensor::Camera => Some(CameraSetup::shipped(
+                CameraModel::from_yaml_file(&a.camera_calibration)
+                    .map_err(|e| format!("--camera-calibration {}: {e}", a.camera_calibration.display()))?,
+            )),
+        },
+        frames: Arc::new(FrameCounts::default()),
     };
     // Fail early on a broken model; each trial then builds its own chain (see KinematicsFactory).
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())?;
@@ -138,6 +172,11 @@ pub fn run(a: &TrialsArgs) -> CliResult {
     let ratio = ratio(&reports);
     if a.json {
         let mut v = run_json(&setup, &reports, ratio);
+        if setup.camera.is_some() {
+            let (captured, gated, fused) = setup.frames.get();
+            v["sensor"] = "camera".into();
+            v["camera_frames"] = serde_json::json!({"captured": captured, "gated": gated, "fused": fused});
+        }
         v["seeds"] = serde_json::json!([a.seed, a.seed.wrapping_add(a.trials as u64 - 1)]);
         v["wall_s"] = wall.into();
         v["simulated_s"] = simulated.into();
@@ -168,14 +207,25 @@ fn run_arms(
     );
     bar.set_prefix(format!("trials ({} protocol)", s.protocol));
     let tick = || bar.inc(1);
+    let camera = s.camera.clone().map(|c| {
+        let (measurement, frames) = (s.cfg.sim.measurement.clone(), s.frames.clone());
+        move |seed: u64, _: &crate::sim::SimWorld| {
+            CameraPoseSource::new(&c, &measurement, seed)
+                .map(|src| Box::new(src.with_counts(frames.clone())) as Box<dyn crate::sim::noise::PoseSource>)
+        }
+    });
+    let setup = ArmSetup {
+        params: &s.cfg.sim,
+        trial: &s.cfg.trial,
+        kin: &kin,
+        source: camera.as_ref().map(|f| f as &PoseSourceFactory),
+    };
     let reports = arms
         .iter()
         .map(|&ff| {
-            run_arm(
+            run_arm_with(
                 arm_label(ff),
-                &s.cfg.sim,
-                &s.cfg.trial,
-                &kin,
+                &setup,
                 seeds,
                 factory(&s.cfg, &s.controller, ff).as_ref(),
                 &tick,
@@ -251,10 +301,16 @@ fn ms(s: &Stats) -> String {
 
 fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f64, simulated: f64, out: &Path) {
     let cfg = &s.cfg;
+    let sensor = match s.camera {
+        Some(_) => {
+            let (captured, gated, fused) = s.frames.get();
+            format!("sensor: the markerless camera pipeline ({captured} frames, {gated} past the confidence gate, {fused} fused)")
+        }
+        None => format!("noise {}", cfg.sim.measurement.model),
+    };
     println!(
-        "protocol {}; noise {}; {} trials per arm, each run to DONE, a latched hold or the {} s timeout",
+        "protocol {}; {sensor}; {} trials per arm, each run to DONE, a latched hold or the {} s timeout",
         s.protocol,
-        cfg.sim.measurement.model,
         r.first().map_or(0, |x| x.trials.len()),
         cfg.trial.timeout_s,
     );

@@ -348,26 +348,25 @@ impl Pipeline {
         history: &Mutex<JointHistory>,
     ) -> Result<Measured, String> {
         let base_t_camera = self.camera_at(stamp, history)?;
-        let prior = self
-            .estimator
-            .estimate(stamp)
-            .map(|e| measurement::prior_direction(&base_t_camera, &e.pose_base_trocar));
         if self.markerless.as_ref().is_none_or(|m| m.camera() != camera) {
             self.markerless = Some(MarkerlessEstimator::new(camera, &self.model).map_err(|e| e.to_string())?);
         }
         let est = self.markerless.as_mut().ok_or("no markerless estimator")?;
-        let e = est.estimate(view, prior.as_ref()).map_err(|e| e.to_string())?;
-        let m = measurement::accept(e.as_ref(), &base_t_camera, &self.p.markerless)?;
+        let tracked = measurement::track(
+            est,
+            &mut self.estimator,
+            view,
+            stamp,
+            &base_t_camera,
+            &self.p.markerless,
+        )?;
+        let m = tracked.measurement;
         self.counts.markerless += 1;
-        match self.estimator.fuse(stamp, m.pose) {
+        match tracked.status {
             s @ (EstimateStatus::Initialized | EstimateStatus::Updated | EstimateStatus::Reinitialized) => {
-                let pose = self
-                    .estimator
-                    .estimate(stamp)
-                    .map(|e| measurement::with_roll_convention(&e.pose_base_trocar));
                 let status = format!("markerless: published ({s:?}), confidence {:.2}", m.confidence);
                 Ok(Measured {
-                    trocar: pose,
+                    trocar: tracked.pose,
                     covariance: Some(m.covariance),
                     status,
                 })

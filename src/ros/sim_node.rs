@@ -21,9 +21,9 @@ use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::sim::SimWorld;
 use crate::trials::config::SimConfig;
-use crate::vision::estimator::{marker_in_camera, PoseYaml};
-use crate::vision::markerless::{Scene, TrocarModel, TrocarRenderer};
-use crate::vision::render::{add_fast_gaussian_noise, add_gaussian_noise};
+use crate::vision::estimator::marker_in_camera;
+use crate::vision::render::add_gaussian_noise;
+use crate::vision::sim_camera::{blank_frame, TrocarCamera};
 use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions, VisionError};
 
 use super::node::{ros_err, CommandType, NodeError};
@@ -106,49 +106,7 @@ impl SimNodeParams {
     }
 }
 
-/// The simulated camera (`camera:` in `config/lbr_med_sim.yaml`): a marker on the trocar
-/// rendered from the true arm pose through the true camera mount, published as the real
-/// camera's topics with the capture time as stamp.
-#[derive(Debug, Clone, serde::Deserialize)]
-#[serde(remote = "Self", deny_unknown_fields)]
-pub struct SimCameraParams {
-    /// ROS camera calibration YAML of the simulated camera (required with `camera_enabled`).
-    pub calibration_file: String,
-    /// Optical frame of the images.
-    pub frame: String,
-    /// Image encoding: mono8, rgb8, bgr8, rgba8 or bgra8 (the ZED publishes bgra8).
-    pub encoding: String,
-    /// Gaussian pixel noise, grey levels.
-    pub noise_sigma: f64,
-    /// Optical blur, px.
-    pub blur_sigma_px: f64,
-    /// Side of the textured plate around the marker, in marker sizes (>= 1.25; a smaller
-    /// plate renders faster).
-    pub plane_scale: f64,
-    /// The true camera pose in the flange frame (the estimator's hand-eye may differ).
-    pub flange_t_camera: PoseYaml,
-    /// The marker on the trocar.
-    pub marker: MarkerSpec,
-    /// The true trocar port pose in the marker frame.
-    pub marker_t_trocar: PoseYaml,
-    /// Render the marker (on its textured plate); false: render the trocar without a marker
-    /// (the markerless renderer: shaded head and cannula, the dark opening, the abdominal
-    /// wall, lighting drawn from `seed` per run).
-    pub show_marker: bool,
-    /// The trocar model YAML the markerless image shows ('' = the shipped
-    /// `config/trocar_model.yaml`, built in).
-    pub trocar_model_file: String,
-    /// Without the marker: the wall's radiance is traced every this many pixels and
-    /// interpolated (1 = every pixel; the trocar and every edge are always per pixel).
-    pub wall_step_px: usize,
-}
-
-crate::shipped_defaults!(
-    SimCameraParams,
-    crate::config::LBR_MED_SIM,
-    ["camera"],
-    deserialize_only
-);
+pub use crate::vision::sim_camera::SimCameraParams;
 
 /// One frame to render: the trocar's port in the camera at the capture time.
 struct CameraJob {
@@ -166,11 +124,7 @@ enum SimScene {
         marker_t_trocar: Isometry3<f64>,
     },
     /// The trocar without a marker.
-    Trocar {
-        renderer: Box<TrocarRenderer>,
-        model: TrocarModel,
-        scene: Box<Scene>,
-    },
+    Trocar(Box<TrocarCamera>),
 }
 
 impl SimScene {
@@ -182,7 +136,6 @@ impl SimScene {
         model: &CameraModel,
         marker_t_trocar: Isometry3<f64>,
     ) -> Result<Self, NodeError> {
-        let invalid = |what: &str, e: &dyn std::fmt::Display| NodeError::Invalid(format!("camera.{what}: {e}"));
         if c.show_marker {
             return Ok(Self::Marker {
                 spec: c.marker.clone(),
@@ -194,24 +147,9 @@ impl SimScene {
                 marker_t_trocar,
             });
         }
-        let trocar = if c.trocar_model_file.is_empty() {
-            TrocarModel::shipped()
-        } else {
-            TrocarModel::from_yaml_file(std::path::Path::new(&c.trocar_model_file))
-                .map_err(|e| invalid("trocar_model_file", &e))?
-        };
         // Noise is added per frame by the camera thread.
-        let mut scene = Scene::random(seed, 0.0);
-        scene.blur_sigma = c.blur_sigma_px;
-        Ok(Self::Trocar {
-            renderer: Box::new(
-                TrocarRenderer::new(model)
-                    .map_err(|e| invalid("calibration_file", &e))?
-                    .with_wall_step(c.wall_step_px),
-            ),
-            model: trocar,
-            scene: Box::new(scene),
-        })
+        let camera = TrocarCamera::new(c, seed, model).map_err(|e| NodeError::Invalid(e.to_string()))?;
+        Ok(Self::Trocar(Box::new(camera)))
     }
 
     /// A port pose in the camera that must render: the marker or the trocar 0.3 m ahead.
@@ -220,7 +158,7 @@ impl SimScene {
             Self::Marker { marker_t_trocar, .. } => {
                 crate::vision::facing_pose(0.3, 0.0, 0.0, 0.0, 0.0, 0.0) * marker_t_trocar
             }
-            Self::Trocar { .. } => Isometry3::translation(0.0, 0.0, 0.3),
+            Self::Trocar(_) => Isometry3::translation(0.0, 0.0, 0.3),
         }
     }
 
@@ -229,7 +167,7 @@ impl SimScene {
     fn add_noise(&self, grey: &mut [u8], sigma: f64, seq: u64) {
         match self {
             Self::Marker { .. } => add_gaussian_noise(grey, sigma, seq),
-            Self::Trocar { .. } => add_fast_gaussian_noise(grey, sigma, seq),
+            Self::Trocar(_) => TrocarCamera::add_noise(grey, sigma, seq),
         }
     }
 
@@ -241,11 +179,7 @@ impl SimScene {
                 opts,
                 marker_t_trocar,
             } => render_marker_image(spec, model, &(camera_t_trocar * marker_t_trocar.inverse()), opts).map(|g| g.data),
-            Self::Trocar {
-                renderer,
-                model: m,
-                scene,
-            } => renderer.render(m, camera_t_trocar, scene).map(|g| g.data),
+            Self::Trocar(camera) => camera.render(camera_t_trocar),
         }
     }
 }
@@ -281,7 +215,7 @@ impl CameraOutput {
             let t0 = Instant::now();
             let mut grey = pool
                 .install(|| scene.render(model, &job.camera_t_trocar))
-                .unwrap_or_else(|_| vec![128; model.width as usize * model.height as usize]);
+                .unwrap_or_else(|_| blank_frame(model));
             render_ms.latency(t0.elapsed().as_secs_f64() * 1e3);
             if job.seq % 150 == 0 {
                 let l = render_ms.percentiles();
@@ -731,6 +665,7 @@ pub fn run() -> Result<(), NodeError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::vision::markerless::TrocarModel;
     use nalgebra::Vector3;
 
     #[test]
@@ -769,7 +704,7 @@ mod tests {
             ..p.camera.clone()
         };
         let trocar = SimScene::of(&without, 1, &cam, marker_t_trocar).unwrap();
-        assert!(matches!(marker, SimScene::Marker { .. }) && matches!(trocar, SimScene::Trocar { .. }));
+        assert!(matches!(marker, SimScene::Marker { .. }) && matches!(trocar, SimScene::Trocar(_)));
         let bad_model = SimCameraParams {
             trocar_model_file: "/nonexistent/trocar.yaml".into(),
             ..without

@@ -166,27 +166,108 @@ pub fn perturb(p: &MeasurementParams, pose: &Isometry3<f64>, rng: &mut impl rand
     }
 }
 
+/// What a pose source sees of the world at a physics tick.
+#[derive(Debug, Clone, Copy)]
+pub struct SensorInput<'a> {
+    /// The trocar's true port pose (base frame).
+    pub true_pose: &'a Isometry3<f64>,
+    /// The true tool tip pose (base frame, link side).
+    pub tip: &'a Isometry3<f64>,
+    /// The joint positions the arm reports (motor side), rad: what the estimator pairs with
+    /// a frame.
+    pub q: &'a crate::kinematics::JointVector,
+    /// The link-side joint positions (with the joints' elastic deflection), rad: where the
+    /// arm, and a camera on it, really is.
+    pub q_link: &'a crate::kinematics::JointVector,
+}
+
+/// A source of trocar pose measurements, advanced by the world after every physics tick:
+/// the noise-model sensor ([`NoisySensor`]) or an implementation outside the simulator (a
+/// rendered camera and its estimate). A capture that measures nothing delivers nothing: the
+/// newest delivered measurement stays the newest.
+pub trait PoseSource: Send {
+    /// Advance to time `t` with the world `at`: capture if a capture is due, deliver what is
+    /// ready.
+    fn update(&mut self, t: f64, at: &SensorInput<'_>);
+    /// The newest measurement delivered by time `now`, if any.
+    fn latest(&self, now: f64) -> Option<TrocarMeasurement>;
+}
+
+/// The timing of a pose sensor: captures on a grid of `1 / rate_hz` from t = 0, each
+/// delivered `latency_s` after its capture.
+#[derive(Debug, Clone)]
+pub struct CaptureSchedule {
+    period: f64,
+    latency_s: f64,
+    next_capture: f64,
+    pending: VecDeque<TrocarMeasurement>,
+    latest: Option<TrocarMeasurement>,
+}
+
+impl CaptureSchedule {
+    /// The schedule of `rate_hz` and `latency_s` (checked by [`MeasurementParams::validate`]),
+    /// its first capture at t = 0.
+    pub fn new(rate_hz: f64, latency_s: f64) -> Self {
+        let cap = (latency_s * rate_hz).ceil() as usize + 2;
+        Self {
+            period: 1.0 / rate_hz,
+            latency_s,
+            next_capture: 0.0,
+            pending: VecDeque::with_capacity(cap),
+            latest: None,
+        }
+    }
+
+    /// Whether a capture is due at `t`; when it is, the grid moves past `t` (skipping the
+    /// captures a coarse caller missed).
+    pub fn capture_due(&mut self, t: f64) -> bool {
+        if t + 1e-9 < self.next_capture {
+            return false;
+        }
+        while self.next_capture <= t + 1e-9 {
+            self.next_capture += self.period;
+        }
+        true
+    }
+
+    /// Queue a captured measurement for delivery.
+    pub fn push(&mut self, m: TrocarMeasurement) {
+        self.pending.push_back(m);
+    }
+
+    /// Deliver every queued measurement whose latency has passed by `t`.
+    pub fn deliver(&mut self, t: f64) {
+        while let Some(m) = self.pending.front() {
+            if m.stamp + self.latency_s <= t + 1e-9 {
+                self.latest = self.pending.pop_front();
+            } else {
+                break;
+            }
+        }
+    }
+
+    /// The newest measurement delivered by time `now`, if any.
+    pub fn latest(&self, now: f64) -> Option<TrocarMeasurement> {
+        self.latest.filter(|m| m.stamp + self.latency_s <= now + 1e-9)
+    }
+}
+
 /// A pose sensor: captures at its rate, delivers after its latency.
 #[derive(Debug, Clone)]
 pub struct TrocarSensor {
     params: MeasurementParams,
     bias: Isometry3<f64>,
-    next_capture: f64,
-    pending: VecDeque<TrocarMeasurement>,
-    latest: Option<TrocarMeasurement>,
+    schedule: CaptureSchedule,
 }
 
 impl TrocarSensor {
     /// A sensor whose first capture is at t = 0, its calibration bias drawn from `rng`.
     pub fn new(params: &MeasurementParams, rng: &mut impl rand::Rng) -> Result<Self, SimError> {
         params.validate()?;
-        let cap = (params.latency_s * params.rate_hz).ceil() as usize + 2;
         Ok(Self {
             bias: params.draw_bias(rng),
             params: params.clone(),
-            next_capture: 0.0,
-            pending: VecDeque::with_capacity(cap),
-            latest: None,
+            schedule: CaptureSchedule::new(params.rate_hz, params.latency_s),
         })
     }
 
@@ -205,27 +286,44 @@ impl TrocarSensor {
     /// Advance to time `t`: capture `true_pose` if a capture is due (the tool tip at `tip`),
     /// deliver what is ready.
     pub fn update(&mut self, t: f64, true_pose: &Isometry3<f64>, tip: &Isometry3<f64>, rng: &mut impl rand::Rng) {
-        let period = 1.0 / self.params.rate_hz;
-        if t + 1e-9 >= self.next_capture {
+        if self.schedule.capture_due(t) {
             let pose = perturb(&self.params, &self.biased(true_pose, tip), rng);
-            self.pending.push_back(TrocarMeasurement { stamp: t, pose });
-            // Stay on the capture grid; skip captures missed by a coarse caller.
-            while self.next_capture <= t + 1e-9 {
-                self.next_capture += period;
-            }
+            self.schedule.push(TrocarMeasurement { stamp: t, pose });
         }
-        while let Some(m) = self.pending.front() {
-            if m.stamp + self.params.latency_s <= t + 1e-9 {
-                self.latest = self.pending.pop_front();
-            } else {
-                break;
-            }
-        }
+        self.schedule.deliver(t);
     }
 
     /// The newest measurement delivered by time `now`, if any.
     pub fn latest(&self, now: f64) -> Option<TrocarMeasurement> {
-        self.latest.filter(|m| m.stamp + self.params.latency_s <= now + 1e-9)
+        self.schedule.latest(now)
+    }
+}
+
+/// The noise-model sensor as the world's [`PoseSource`]: a [`TrocarSensor`] with its own
+/// random stream (its calibration bias drawn first from it).
+#[derive(Debug, Clone)]
+pub struct NoisySensor {
+    sensor: TrocarSensor,
+    rng: rand_chacha::ChaCha8Rng,
+}
+
+impl NoisySensor {
+    /// The sensor of `params`, its bias and noise drawn from `rng`.
+    pub fn new(params: &MeasurementParams, mut rng: rand_chacha::ChaCha8Rng) -> Result<Self, SimError> {
+        Ok(Self {
+            sensor: TrocarSensor::new(params, &mut rng)?,
+            rng,
+        })
+    }
+}
+
+impl PoseSource for NoisySensor {
+    fn update(&mut self, t: f64, at: &SensorInput<'_>) {
+        self.sensor.update(t, at.true_pose, at.tip, &mut self.rng);
+    }
+
+    fn latest(&self, now: f64) -> Option<TrocarMeasurement> {
+        self.sensor.latest(now)
     }
 }
 

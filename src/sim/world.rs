@@ -17,13 +17,21 @@ use rand_chacha::ChaCha8Rng;
 use super::arm::Arm;
 use super::contact::{ContactModel, ContactWrench, ShaftMotion};
 use super::jam::Jam;
-use super::noise::{TrocarMeasurement, TrocarSensor};
+use super::noise::{NoisySensor, PoseSource, SensorInput, TrocarMeasurement};
 use super::scenario::Scenario;
 use super::seal::Seal;
 use super::torque::TorqueSensor;
 use super::trocar::{Breathing, Trocar};
 use super::{stream, SimError, SimParams};
 use crate::kinematics::{Jacobian, JointVector, Kinematics};
+
+/// The random stream of the trocar pose sensor of the world of `seed`: the noise-model
+/// sensor draws its calibration bias first from it, then its noise; another pose source
+/// that draws its bias first from it by [`super::MeasurementParams::draw_bias`] gets the same
+/// bias.
+pub fn measurement_stream(seed: u64) -> ChaCha8Rng {
+    stream(seed, STREAM_MEASUREMENT)
+}
 
 /// Random stream purposes.
 const STREAM_SCENARIO: u64 = 1;
@@ -44,8 +52,7 @@ pub struct SimWorld {
     contact: ContactModel,
     seal: Seal,
     torque: TorqueSensor,
-    sensor: TrocarSensor,
-    rng_meas: ChaCha8Rng,
+    sensor: Box<dyn PoseSource>,
     rng_torque: ChaCha8Rng,
     tip: Isometry3<f64>,
     jac: Jacobian,
@@ -90,7 +97,6 @@ impl SimWorld {
     ) -> Result<Self, SimError> {
         params.validate()?;
         let mut rng_torque = stream(seed, STREAM_TORQUE);
-        let mut rng_meas = stream(seed, STREAM_MEASUREMENT);
         let arm = Arm::new(&params.arm, kin.limits(), &scenario.q0())?;
         let (tip, jac) = kin.fk_jacobian(&arm.q_link())?;
         Ok(Self {
@@ -99,8 +105,7 @@ impl SimWorld {
             contact: ContactModel::new(&params.contact, &params.trocar)?,
             seal: Seal::new(&params.seal)?,
             torque: TorqueSensor::new(&params.torque_sensor, &mut rng_torque)?,
-            sensor: TrocarSensor::new(&params.measurement, &mut rng_meas)?,
-            rng_meas,
+            sensor: Box::new(NoisySensor::new(&params.measurement, measurement_stream(seed))?),
             rng_torque,
             params: params.clone(),
             kin,
@@ -119,8 +124,7 @@ impl SimWorld {
 
     fn primed(mut self) -> Self {
         self.trocar.set_anchor_offset(&self.breathing.offset(0.0));
-        let pose = self.trocar.pose();
-        self.sensor.update(0.0, &pose, &self.tip, &mut self.rng_meas);
+        self.update_sensor();
         self.tau_meas = self
             .torque
             .measure(&JointVector::zeros(), &self.tip, &self.jac, &mut self.rng_torque);
@@ -230,9 +234,28 @@ impl SimWorld {
         self.jac = jac;
         let tau_true = self.tau_of(&last);
         self.tau_meas = self.torque.measure(&tau_true, &self.tip, &jac, &mut self.rng_torque);
-        let pose = self.trocar.pose();
-        self.sensor.update(self.t, &pose, &self.tip, &mut self.rng_meas);
+        self.update_sensor();
         Ok(())
+    }
+
+    /// Advance the pose source to now.
+    fn update_sensor(&mut self) {
+        let pose = self.trocar.pose();
+        let at = SensorInput {
+            true_pose: &pose,
+            tip: &self.tip,
+            q: self.arm.q(),
+            q_link: &self.arm.q_link(),
+        };
+        self.sensor.update(self.t, &at);
+    }
+
+    /// Replace the trocar pose source (the noise model of `measurement` by default), from
+    /// now on: it is advanced to the current time at once (a capture at t = 0 in a fresh
+    /// world).
+    pub fn set_pose_source(&mut self, source: Box<dyn PoseSource>) {
+        self.sensor = source;
+        self.update_sensor();
     }
 
     /// J^T [F; M] of a wrench on the arm, at the current Jacobian.
@@ -453,5 +476,44 @@ mod tests {
         assert!(w.set_command(&JointVector::repeat(f64::INFINITY)).is_err());
         assert_eq!(w.step(0.0105).unwrap(), 10);
         assert_eq!(w.step(0.0005).unwrap(), 1);
+    }
+
+    /// A pose source that counts its updates and delivers the true pose at each one.
+    struct Counting {
+        updates: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+        last: Option<TrocarMeasurement>,
+    }
+
+    impl PoseSource for Counting {
+        fn update(&mut self, t: f64, at: &SensorInput<'_>) {
+            self.updates.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+            self.last = Some(TrocarMeasurement {
+                stamp: t,
+                pose: *at.true_pose,
+            });
+        }
+
+        fn latest(&self, _now: f64) -> Option<TrocarMeasurement> {
+            self.last
+        }
+    }
+
+    #[test]
+    fn a_pose_source_set_on_the_world_is_advanced_every_physics_tick_and_read() {
+        let mut w = world([0.0, 0.0, 0.05]);
+        let updates = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+        w.set_pose_source(Box::new(Counting {
+            updates: updates.clone(),
+            last: None,
+        }));
+        assert_eq!(
+            updates.load(std::sync::atomic::Ordering::Relaxed),
+            1,
+            "advanced to now at once"
+        );
+        let n = w.step(0.02).unwrap();
+        assert_eq!(updates.load(std::sync::atomic::Ordering::Relaxed), n + 1);
+        let m = w.measure_trocar(w.time()).unwrap();
+        assert_eq!((m.stamp, m.pose), (w.time(), w.trocar_pose_true()));
     }
 }

@@ -10,6 +10,7 @@ use serde::Serialize;
 
 use super::run::{run_trial, Outcome, Policy, TrialParams, TrialResult, PAPER_CODE_SCALE};
 use crate::kinematics::Kinematics;
+use crate::sim::noise::PoseSource;
 use crate::sim::{SimParams, SimWorld};
 
 /// Mean, standard deviation (sample, n - 1), min and max of a set of values. A value that
@@ -192,6 +193,24 @@ pub type KinematicsFactory = dyn Fn() -> Result<Arc<dyn Kinematics>, String> + S
 /// Builds the policy of the trial with a given seed (or says why it cannot).
 pub type PolicyFactory = dyn Fn(u64) -> Result<Box<dyn Policy>, String> + Sync;
 
+/// Builds the trocar pose source of the trial with a given seed in its fresh world (or says
+/// why it cannot); without one the world keeps its noise-model sensor.
+pub type PoseSourceFactory = dyn Fn(u64, &SimWorld) -> Result<Box<dyn PoseSource>, String> + Sync;
+
+/// What one arm runs: the world's parameters, the trial's, the kinematics and, if given, the
+/// pose source that replaces the world's noise-model sensor.
+#[derive(Clone, Copy)]
+pub struct ArmSetup<'a> {
+    /// The world's parameters.
+    pub params: &'a SimParams,
+    /// The trial's parameters.
+    pub trial: &'a TrialParams,
+    /// The kinematics of each trial.
+    pub kin: &'a KinematicsFactory,
+    /// The pose source of each trial (None: the noise model of `params.measurement`).
+    pub source: Option<&'a PoseSourceFactory>,
+}
+
 /// Run `seeds.len()` trials for one arm in parallel; `make_policy(seed)` builds the policy
 /// of a trial, `tick()` is called after each trial (progress).
 pub fn run_arm(
@@ -203,10 +222,27 @@ pub fn run_arm(
     make_policy: &PolicyFactory,
     tick: &(dyn Fn() + Sync),
 ) -> ArmReport {
+    let setup = ArmSetup {
+        params,
+        trial,
+        kin,
+        source: None,
+    };
+    run_arm_with(label, &setup, seeds, make_policy, tick)
+}
+
+/// As [`run_arm`], with the pose source of `setup`.
+pub fn run_arm_with(
+    label: &str,
+    setup: &ArmSetup<'_>,
+    seeds: &[u64],
+    make_policy: &PolicyFactory,
+    tick: &(dyn Fn() + Sync),
+) -> ArmReport {
     let trials: Vec<TrialResult> = seeds
         .par_iter()
         .map(|&seed| {
-            let r = one(params, trial, kin, seed, make_policy);
+            let r = one(setup, seed, make_policy);
             tick();
             r
         })
@@ -217,24 +253,24 @@ pub fn run_arm(
     }
 }
 
-fn one(
-    params: &SimParams,
-    trial: &TrialParams,
-    kin: &KinematicsFactory,
-    seed: u64,
-    make_policy: &PolicyFactory,
-) -> TrialResult {
+fn one(setup: &ArmSetup<'_>, seed: u64, make_policy: &PolicyFactory) -> TrialResult {
     let failed = |why: String| TrialResult::not_run(seed, why);
-    let kin = match kin() {
+    let kin = match (setup.kin)() {
         Ok(k) => k,
         Err(e) => return failed(e),
     };
-    let mut world = match SimWorld::new(params, kin, seed) {
+    let mut world = match SimWorld::new(setup.params, kin, seed) {
         Ok(w) => w,
         Err(e) => return failed(e.to_string()),
     };
+    if let Some(make) = setup.source {
+        match make(seed, &world) {
+            Ok(s) => world.set_pose_source(s),
+            Err(e) => return failed(e),
+        }
+    }
     match make_policy(seed) {
-        Ok(mut p) => run_trial(&mut world, p.as_mut(), trial, seed),
+        Ok(mut p) => run_trial(&mut world, p.as_mut(), setup.trial, seed),
         Err(e) => failed(e),
     }
 }

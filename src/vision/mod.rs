@@ -14,6 +14,7 @@ pub mod marker;
 pub mod markerless;
 pub mod overlay;
 pub mod render;
+pub mod sim_camera;
 
 pub use camera::CameraModel;
 pub use estimator::{EstimateStatus, EstimatorParams, TrocarEstimate, TrocarEstimator};

@@ -2,7 +2,9 @@
 //! (camera frame) carried into the base frame as a port pose with the roll fixed by
 //! [`with_roll_convention`], the previous estimate carried into the camera as the prior that
 //! resolves the two-fold ambiguity, the gate on the confidence (with the reason a frame is
-//! dropped), and the covariance of the 5 DOF from the confidence.
+//! dropped), the covariance of the 5 DOF from the confidence, and one frame through all of
+//! it into the trocar estimator's filter ([`track`]: the estimator node's and the trials'
+//! camera source's one path).
 //!
 //! **Roll convention.** The axis fixes the port's z axis (into the body); its roll about that
 //! axis is not observable without a marker and does not matter for docking. The port frame's
@@ -14,10 +16,11 @@
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::estimator::MarkerlessEstimate;
+use super::estimator::{MarkerlessEstimate, MarkerlessEstimator};
 use super::Axis;
 use crate::validate;
-use crate::vision::VisionError;
+use crate::vision::estimator::{EstimateStatus, TrocarEstimator};
+use crate::vision::{ImageView, VisionError};
 
 /// How the trocar estimator measures the trocar.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -176,6 +179,50 @@ pub fn accept(
         pose,
         confidence: e.confidence,
         covariance: covariance(&pose, e.confidence, p),
+    })
+}
+
+/// One frame of the markerless estimate as the trocar estimator takes it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Tracked {
+    /// The frame's measurement (it passed the confidence gate).
+    pub measurement: MarkerlessMeasurement,
+    /// What the estimator's filter did with it (`Outlier`: rejected by its gate).
+    pub status: EstimateStatus,
+    /// The filtered port pose at the frame's stamp (roll by the convention) when the
+    /// measurement was fused; `None` when it was rejected.
+    pub pose: Option<Isometry3<f64>>,
+}
+
+/// One frame `view`, captured at `stamp` from a camera at `base_t_camera`, through the
+/// markerless estimate into the trocar estimator `filter`: the filter's estimate carried
+/// into the camera as the prior ([`prior_direction`]), the estimate, the confidence gate
+/// ([`accept`]), then the filter's outlier gate and update ([`TrocarEstimator::fuse`]).
+/// `Err`: why the frame gives no measurement (the filter unchanged).
+pub fn track(
+    estimator: &mut MarkerlessEstimator,
+    filter: &mut TrocarEstimator,
+    view: &ImageView,
+    stamp: f64,
+    base_t_camera: &Isometry3<f64>,
+    p: &MarkerlessParams,
+) -> Result<Tracked, String> {
+    let prior = filter
+        .estimate(stamp)
+        .map(|e| prior_direction(base_t_camera, &e.pose_base_trocar));
+    let e = estimator.estimate(view, prior.as_ref()).map_err(|e| e.to_string())?;
+    let m = accept(e.as_ref(), base_t_camera, p)?;
+    let status = filter.fuse(stamp, m.pose);
+    let pose = match status {
+        EstimateStatus::Initialized | EstimateStatus::Updated | EstimateStatus::Reinitialized => filter
+            .estimate(stamp)
+            .map(|e| with_roll_convention(&e.pose_base_trocar)),
+        _ => None,
+    };
+    Ok(Tracked {
+        measurement: m,
+        status,
+        pose,
     })
 }
 
