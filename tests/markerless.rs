@@ -328,3 +328,47 @@ fn a_prior_resolves_the_two_fold_ambiguity_where_the_outline_cannot() {
     eprintln!("confident without a prior {confident_without}/10, with {confident_with}/10, worst axis {worst:.2} deg");
     assert!(confident_with >= 8 && confident_with > confident_without);
 }
+
+/// A wrong prior (an earlier estimate on the other circle pose: the true axis mirrored about
+/// the line of sight) does not hold the estimate where the head's outline decides on its own:
+/// the image overrides it, confidently, so the estimator's outlier gate can re-initialise the
+/// track instead of every frame falling under the confidence gate.
+#[test]
+fn the_outline_overrides_a_prior_it_contradicts() {
+    let cam = camera();
+    let r = TrocarRenderer::new(&cam).unwrap();
+    let model = TrocarModel::shipped();
+    let mut est = MarkerlessEstimator::new(&cam, &model).unwrap();
+    let poses = docking_approach(&mount(), 0.3, 0.15, 10, 29).unwrap();
+    let mut overridden = 0;
+    for (k, camera_t_port) in poses.iter().enumerate() {
+        let scene = Scene::random(29_000 + k as u64, 2.0);
+        let img = r.render(&model, camera_t_port, &scene).unwrap();
+        let dir = camera_t_port.rotation * Vector3::z();
+        let Some(without) = est.estimate(&img.view(), None).unwrap() else {
+            continue;
+        };
+        if without.confidence < HIGH_CONFIDENCE || without.axis.direction.angle(&dir) > 2f64.to_radians() {
+            continue;
+        }
+        let sight = camera_t_port.translation.vector.normalize();
+        let mirrored = nalgebra::Unit::new_normalize(2.0 * dir.dot(&sight) * sight - dir);
+        if mirrored.angle(&dir) < 6f64.to_radians() {
+            continue;
+        }
+        let e = est.estimate(&img.view(), Some(&mirrored)).unwrap().expect("found");
+        let err = e.axis.direction.angle(&dir).to_degrees();
+        eprintln!(
+            "frame {k}: prior {:.1} deg off; estimate {err:.2} deg, confidence {:.2}",
+            mirrored.angle(&dir).to_degrees(),
+            e.confidence
+        );
+        assert!(
+            err <= 2.0 && e.confidence >= HIGH_CONFIDENCE,
+            "frame {k}: {err:.2} deg at {:.2}",
+            e.confidence
+        );
+        overridden += 1;
+    }
+    assert!(overridden >= 5, "only {overridden} frames where the outline decides");
+}

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{Kinematics, LbrKinematics};
-use trocar_docking::sim::noise::NoiseModel;
+use trocar_docking::sim::noise::{NoiseModel, PoseSource, SensorInput, TrocarMeasurement};
 use trocar_docking::sim::{SimParams, SimWorld};
 use trocar_docking::trials::baseline::Baseline;
 use trocar_docking::trials::closed_loop::Observation;
@@ -103,6 +103,53 @@ fn a_done_short_of_the_goal_is_a_false_done() {
     assert!(r.reason.contains("from the goal depth"), "{}", r.reason);
 }
 
+/// A pose source that sees the port `shift` m deeper along its axis than it is, at once.
+struct Deeper {
+    shift: f64,
+    latest: Option<TrocarMeasurement>,
+}
+
+impl PoseSource for Deeper {
+    fn update(&mut self, t: f64, at: &SensorInput<'_>) {
+        let mut pose = *at.true_pose;
+        pose.translation.vector += at.true_pose.rotation * nalgebra::Vector3::z() * self.shift;
+        self.latest = Some(TrocarMeasurement { stamp: t, pose });
+    }
+
+    fn latest(&self, _now: f64) -> Option<TrocarMeasurement> {
+        self.latest
+    }
+}
+
+/// At DONE the trial reports the delivered estimate's offset from the true port along the
+/// axis, signed: the share of the depth error that came from the estimate.
+#[test]
+fn done_reports_the_estimates_depth_error() {
+    let kin = kin();
+    let (p, tp) = noiseless();
+    let run = |shift: f64| {
+        let mut w = SimWorld::new(&p, kin.clone(), 3).unwrap();
+        w.set_pose_source(Box::new(Deeper { shift, latest: None }));
+        let mut b = Baseline::new(&Default::default(), tp.goal_depth_m, shipped_period(), false);
+        run_trial(&mut w, &mut b, &tp, 3)
+    };
+    for shift in [0.0015, -0.0015, 0.0] {
+        let r = run(shift);
+        assert_eq!(r.final_phase, "DONE", "{}", r.reason);
+        assert!(
+            (r.done_estimate_depth_m - shift).abs() < 1e-4,
+            "shift {shift}: {}",
+            r.done_estimate_depth_m
+        );
+        // The baseline docks to the estimated goal: the tip ends the shift off the truth's.
+        assert!(
+            (r.done_depth_error_m - shift.abs()).abs() < 0.5e-3,
+            "shift {shift}: depth error {}",
+            r.done_depth_error_m
+        );
+    }
+}
+
 /// A policy that holds latched (only an operator resumes it) ends the trial there, as a
 /// failure with the hold's code: no trial waits out its timeout for an operator.
 #[test]
@@ -139,7 +186,7 @@ fn a_latched_hold_ends_the_trial() {
     assert_eq!(r.outcome, Outcome::Held, "{}", r.reason);
     assert!((r.time_s - 0.5).abs() < 0.011, "ended at {} s", r.time_s);
     assert_eq!(r.final_hold, "FORCE_LIMIT");
-    assert!(r.done_depth_error_m.is_nan() && !r.paper_success);
+    assert!(r.done_depth_error_m.is_nan() && r.done_estimate_depth_m.is_nan() && !r.paper_success);
 }
 
 #[test]

@@ -43,7 +43,19 @@ fn chain_base_flange_camera_marker_trocar() {
 /// Feed noisy measurements of `truth(t)` at 30 Hz; returns the errors of the estimate and
 /// of the raw measurements (m) after a settling second.
 fn run(truth: impl Fn(f64) -> Vector3<f64>, sigma: f64) -> (f64, f64) {
-    let mut est = TrocarEstimator::new(EstimatorParams::default()).unwrap();
+    run_with(smoothing(0.15), truth, sigma)
+}
+
+/// The shipped parameters with the filter's time constant `tau`, s.
+fn smoothing(tau: f64) -> EstimatorParams {
+    EstimatorParams {
+        time_constant_s: tau,
+        ..EstimatorParams::default()
+    }
+}
+
+fn run_with(p: EstimatorParams, truth: impl Fn(f64) -> Vector3<f64>, sigma: f64) -> (f64, f64) {
+    let mut est = TrocarEstimator::new(p).unwrap();
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
     let n = Normal::new(0.0, sigma).unwrap();
     let (mut e_est, mut e_raw, mut k) = (0.0, 0.0, 0.0);
@@ -70,6 +82,21 @@ fn run(truth: impl Fn(f64) -> Vector3<f64>, sigma: f64) -> (f64, f64) {
 fn steady_under_noise() {
     let (est, raw) = run(|_| Vector3::new(0.5, 0.0, 0.3), 0.002);
     assert!(est < 0.5 * raw, "filtered rms {est} vs raw {raw}");
+}
+
+/// Shipped, the estimator does not smooth (the controller's trocar filter is the one
+/// low-pass): a moving trocar is followed without lag, a noisy one passed through as measured.
+#[test]
+fn the_shipped_estimator_passes_the_measurement_through() {
+    assert_eq!(EstimatorParams::default().time_constant_s, 0.0);
+    let (est, _) = run_with(
+        EstimatorParams::default(),
+        |t| Vector3::new(0.5 + 0.01 * t, 0.0, 0.3),
+        0.0,
+    );
+    assert!(est < 1e-9, "tracking error {est} m");
+    let (est, raw) = run_with(EstimatorParams::default(), |_| Vector3::new(0.5, 0.0, 0.3), 0.002);
+    assert!((est - raw).abs() < 1e-12, "{est} vs {raw}");
 }
 
 #[test]
@@ -151,7 +178,7 @@ fn a_file_of_the_estimator_section_takes_the_shipped_values_for_what_it_leaves_o
     let d = EstimatorParams::default();
     assert_eq!(
         (d.time_constant_s, d.gate_translation_m, d.reinit_after),
-        (0.15, 0.02, 5)
+        (0.0, 0.02, 5)
     );
     assert_eq!(
         p,

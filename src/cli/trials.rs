@@ -406,7 +406,7 @@ fn print_trials(r: &[ArmReport]) {
 }
 
 /// The columns of `trials.csv`, one row per trial.
-const TABLE_HEADER: [&str; 18] = [
+const TABLE_HEADER: [&str; 19] = [
     "arm",
     "seed",
     "outcome",
@@ -417,6 +417,7 @@ const TABLE_HEADER: [&str; 18] = [
     "done_depth_error_m",
     "done_radial_m",
     "done_angle_deg",
+    "done_estimate_depth_m",
     "m_est_n",
     "m_paper_code_scale",
     "m_true_n",
@@ -447,6 +448,7 @@ fn write_table(path: &Path, r: &[ArmReport]) -> CliResult {
                 format!("{:.6}", t.done_depth_error_m),
                 format!("{:.6}", t.done_radial_m),
                 format!("{:.4}", t.done_angle_deg),
+                format!("{:.6}", t.done_estimate_depth_m),
                 format!("{:.5}", t.m_est),
                 format!("{:.5}", crate::trials::run::PAPER_CODE_SCALE * t.m_est),
                 format!("{:.5}", t.m_true),

@@ -305,6 +305,7 @@ mod tests {
             paper_time_s: m,
             done_depth_error_m: f64::NAN,
             done_radial_m: f64::NAN,
+            done_estimate_depth_m: f64::NAN,
             done_angle_deg: f64::NAN,
             m_est: m,
             m_true: m,

@@ -176,6 +176,10 @@ pub struct TrialResult {
     pub done_depth_error_m: f64,
     /// At DONE, the true tip's distance from the true axis, m (NaN: no DONE).
     pub done_radial_m: f64,
+    /// At DONE, the newest trocar pose delivered to the controller: its port's offset from
+    /// the true port along the true axis, m, signed (+: estimated deeper into the body;
+    /// NaN: no DONE, or nothing delivered). The estimate's share of the depth error.
+    pub done_estimate_depth_m: f64,
     /// At DONE, the angle between the shaft and the true axis, deg (NaN: no DONE).
     pub done_angle_deg: f64,
     /// M from the policy's f_ext estimate, N (true-force M when the policy has none).
@@ -223,6 +227,7 @@ impl TrialResult {
             paper_time_s: f64::NAN,
             done_depth_error_m: f64::NAN,
             done_radial_m: f64::NAN,
+            done_estimate_depth_m: f64::NAN,
             done_angle_deg: f64::NAN,
             m_est: f64::NAN,
             m_true: f64::NAN,
@@ -246,6 +251,7 @@ struct DoneTruth {
     depth_error_m: f64,
     radial_m: f64,
     angle_deg: f64,
+    estimate_depth_m: f64,
 }
 
 /// What a run records beside its time series.
@@ -282,6 +288,7 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
         paper_time_s: end.paper_time_s.unwrap_or(f64::NAN),
         done_depth_error_m: done.map_or(f64::NAN, |d| d.depth_error_m),
         done_radial_m: done.map_or(f64::NAN, |d| d.radial_m),
+        done_estimate_depth_m: done.map_or(f64::NAN, |d| d.estimate_depth_m),
         done_angle_deg: done.map_or(f64::NAN, |d| d.angle_deg),
         m_est: m.m_est,
         m_true: m.m_true,
@@ -308,12 +315,17 @@ pub fn docked_at_done(world: &SimWorld, p: &TrialParams) -> bool {
 fn judge_done(world: &SimWorld, p: &TrialParams) -> (DoneTruth, bool) {
     let port = world.tip_in_port();
     let radial = (port.x * port.x + port.y * port.y).sqrt();
-    let axis = world.trocar_pose_true().rotation * Vector3::z();
+    let trocar = world.trocar_pose_true();
+    let axis = trocar.rotation * Vector3::z();
     let shaft = world.tip_pose().rotation * Vector3::z();
+    let estimate_depth_m = world.measure_trocar(world.time()).map_or(f64::NAN, |m| {
+        (m.pose.translation.vector - trocar.translation.vector).dot(&axis)
+    });
     let truth = DoneTruth {
         depth_error_m: (port.z - p.goal_depth_m).abs(),
         radial_m: radial,
         angle_deg: shaft.angle(&axis).to_degrees(),
+        estimate_depth_m,
     };
     let docked = truth.depth_error_m <= p.done_depth_tolerance_m
         && radial < world.params().trocar.port_radius()

@@ -151,7 +151,12 @@ impl MarkerlessEstimator {
         Ok(best)
     }
 
-    /// Pick the better hypothesis (by the prior when given, else by score) and grade it.
+    /// Pick the better hypothesis and grade it: by the head's outline (the score) alone, or,
+    /// with a `prior`, the one nearer the prior, unless the outline picks the other one with
+    /// high confidence on its own: the image overrides the prior it contradicts, so that a
+    /// wrong prior (a wrong earlier estimate) can neither hold the estimate on the wrong pose
+    /// nor keep every frame below the confidence gate, where the estimator's outlier gate
+    /// would never see them and the track could never be re-initialised.
     /// `harmless`: the two circle poses were within 3 deg of each other before refinement.
     fn decide(
         &self,
@@ -159,33 +164,23 @@ impl MarkerlessEstimator {
         prior: Option<&Unit<Vector3<f64>>>,
         harmless: bool,
     ) -> Option<MarkerlessEstimate> {
-        let mut sorted: Vec<Hypothesis> = hyps.to_vec();
-        match prior {
-            Some(p) => sorted.sort_by(|a, b| a.axis.direction.dot(p).total_cmp(&b.axis.direction.dot(p)).reverse()),
-            None => sorted.sort_by(|a, b| b.score.total_cmp(&a.score)),
-        }
-        let h = *sorted.first()?;
-        let margin = match sorted.get(1) {
-            _ if harmless => 1.0,
-            Some(o) => match prior {
-                Some(p) => {
-                    let (ab, ao) = (h.axis.direction.angle(p), o.axis.direction.angle(p));
-                    ((ao - ab) / 10f64.to_radians()).clamp(0.0, 1.0)
-                }
-                None => ((h.score - o.score) / 0.25).clamp(0.0, 1.0),
-            },
-            // The other pose found no opening on refinement: nothing to tell them apart by.
-            None => 0.5,
-        };
-        let fit = 1.0 / (1.0 + (h.rms_px / 0.6).powi(2));
-        let confidence = (h.support * fit * margin).clamp(0.0, 1.0);
-        Some(MarkerlessEstimate {
-            axis: h.axis,
-            confidence,
-            fit_rms_px: h.rms_px,
-            edge_support: h.support,
-            opening_support: h.opening_support,
-            ambiguity_margin: margin,
+        let mut by_score: Vec<Hypothesis> = hyps.to_vec();
+        by_score.sort_by(|a, b| b.score.total_cmp(&a.score));
+        let outline = grade(by_score.first()?, by_score.get(1), harmless, |h, o| {
+            ((h.score - o.score) / 0.25).clamp(0.0, 1.0)
+        });
+        let Some(p) = prior else { return Some(outline) };
+        let mut by_prior = by_score.clone();
+        by_prior.sort_by(|a, b| a.axis.direction.dot(p).total_cmp(&b.axis.direction.dot(p)).reverse());
+        let with_prior = grade(by_prior.first()?, by_prior.get(1), harmless, |h, o| {
+            let (ab, ao) = (h.axis.direction.angle(p), o.axis.direction.angle(p));
+            ((ao - ab) / 10f64.to_radians()).clamp(0.0, 1.0)
+        });
+        let disagree = outline.axis.direction.angle(&with_prior.axis.direction) > 3f64.to_radians();
+        Some(if disagree && outline.confidence >= HIGH_CONFIDENCE {
+            outline
+        } else {
+            with_prior
         })
     }
 
@@ -451,5 +446,31 @@ impl MarkerlessEstimator {
             }
         }
         axis
+    }
+}
+
+/// Grade hypothesis `h` against the other one `o` (if any): edge support x fit x ambiguity
+/// margin, the margin by `margin(h, o)` (1 when the two poses were within 3 deg of each other
+/// from the start, `harmless`; 0.5 when the other found no opening on refinement: nothing to
+/// tell them apart by).
+fn grade(
+    h: &Hypothesis,
+    o: Option<&Hypothesis>,
+    harmless: bool,
+    margin: impl Fn(&Hypothesis, &Hypothesis) -> f64,
+) -> MarkerlessEstimate {
+    let margin = match o {
+        _ if harmless => 1.0,
+        Some(o) => margin(h, o),
+        None => 0.5,
+    };
+    let fit = 1.0 / (1.0 + (h.rms_px / 0.6).powi(2));
+    MarkerlessEstimate {
+        axis: h.axis,
+        confidence: (h.support * fit * margin).clamp(0.0, 1.0),
+        fit_rms_px: h.rms_px,
+        edge_support: h.support,
+        opening_support: h.opening_support,
+        ambiguity_margin: margin,
     }
 }
