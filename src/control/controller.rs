@@ -42,7 +42,7 @@ use super::scope::pivot::{live_command, Pivot, PivotParams};
 use super::sqp::{CostWeights, LimitAvoidance, PivotCost, SqpSolver, Targets};
 use super::supervisor::{Phase, Supervisor};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
-use crate::signal::StreamLowPass;
+use crate::signal::{StreamLowPass, TrackingFilter};
 
 /// Retreat after a force stop: the current target depth and the final depth, m.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -77,7 +77,10 @@ struct RunState {
     admittance: Admittance,
     metric: ForceMetric,
     last_command: Option<JointVector>,
+    /// The filtered trocar pose at the stamp of the last measurement.
     trocar_filtered: Option<(Isometry3<f64>, f64)>,
+    /// The trocar position's tracking filter (made with the parameters at first use).
+    trocar_track: Option<TrackingFilter<3>>,
     target: Option<Point3<f64>>,
     insert_depth: f64,
     /// Time spent at the stand-off point without the alignment, s.
@@ -257,6 +260,12 @@ impl OptimalController {
         }
     }
 
+    /// The trocar pose filtered by its stamps: a first-order filter of time constant
+    /// `trocar_filter_time_constant_s` on the pose, and along its axis, where breathing moves
+    /// the port and no contact guides the tip, the second-order tracking filter of
+    /// `trocar_depth_filter_time_constant_s` ([`TrackingFilter`]), which follows a moving port
+    /// without the first-order filter's lag (0: the first-order filter along the axis too).
+    /// A pose no newer than the last changes nothing.
     fn filtered_trocar(&mut self, pose: Isometry3<f64>, stamp: f64) -> Isometry3<f64> {
         let tc = self.params.trocar_filter_time_constant_s;
         let out = match self.run.trocar_filtered {
@@ -269,9 +278,21 @@ impl OptimalController {
                     .unwrap_or(pose.rotation);
                 Isometry3::from_parts(p.into(), r)
             }
-            Some((prev, t_prev)) if tc > 0.0 && stamp <= t_prev => return prev,
+            Some((prev, t_prev)) if stamp <= t_prev => return prev,
             _ => pose,
         };
+        let mut out = out;
+        let depth_tc = self.params.trocar_depth_filter_time_constant_s;
+        if depth_tc > 0.0 {
+            let gap = self.params.guard.trocar_timeout_s;
+            let track = self
+                .run
+                .trocar_track
+                .get_or_insert_with(|| TrackingFilter::new(depth_tc, gap));
+            let tracked = track.update(stamp, &pose.translation.vector);
+            let axis = out.rotation * Vector3::z();
+            out.translation.vector += axis * axis.dot(&(tracked - out.translation.vector));
+        }
         self.run.trocar_filtered = Some((out, stamp));
         out
     }
@@ -842,6 +863,7 @@ impl CommandSource for OptimalController {
             self.run = RunState {
                 supervisor: self.run.supervisor.clone(),
                 trocar_filtered: self.run.trocar_filtered,
+                trocar_track: self.run.trocar_track,
                 ..RunState::default()
             };
         }

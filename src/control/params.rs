@@ -59,6 +59,9 @@ pub struct ControllerParams {
     pub seated: SeatedParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant_s: f64,
+    /// Time constant of the second-order tracking filter on the trocar position along its
+    /// axis, s (0 = the first-order filter there too); see [`crate::signal::TrackingFilter`].
+    pub trocar_depth_filter_time_constant_s: f64,
     /// Time constant of the first-order low-pass on the external torques at the rate they
     /// arrive (each FRI cycle), s (0 = the newest sample alone); see
     /// [`crate::signal::StreamLowPass`]. Applied by the controller itself, in each step, to
@@ -115,6 +118,10 @@ impl ControllerParams {
         validate::non_negative("goal_window_s", self.goal_window_s)?;
         self.seated.validate()?;
         validate::non_negative("trocar_filter_time_constant_s", self.trocar_filter_time_constant_s)?;
+        validate::non_negative(
+            "trocar_depth_filter_time_constant_s",
+            self.trocar_depth_filter_time_constant_s,
+        )?;
         validate::non_negative("torque_filter_time_constant_s", self.torque_filter_time_constant_s)?;
         validate::non_negative("retreat_distance_m", self.retreat_distance_m)?;
         validate::non_negative("limit_avoidance_weight", self.limit_avoidance_weight)?;
