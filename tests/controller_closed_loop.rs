@@ -8,6 +8,8 @@ use trocar_docking::control::{ControlInput, Controller, ControllerParams, Phase,
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 
+mod common;
+
 fn kin() -> LbrKinematics {
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default()).unwrap()
 }
@@ -30,20 +32,7 @@ fn scenario(kin: &LbrKinematics, misalign_deg: f64, tilt_about: Vector3<f64>) ->
 
 /// Inputs all measured at `now`, with no contact (zero external torques).
 fn fresh_input(now: f64, q: JointVector, trocar: Isometry3<f64>) -> ControlInput {
-    ControlInput {
-        scope: None,
-        now,
-        joints: Some(Stamped { stamp: now, value: q }),
-        tau_ext: Some(Stamped {
-            stamp: now,
-            value: JointVector::zeros(),
-        }),
-        torque_samples: Default::default(),
-        trocar: Some(Stamped {
-            stamp: now,
-            value: trocar,
-        }),
-    }
+    common::contact_free_input(now, q, now, trocar)
 }
 
 fn run(

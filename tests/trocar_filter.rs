@@ -4,11 +4,11 @@
 //! its time constant.
 
 use nalgebra::{Isometry3, Translation3, Vector3};
-use trocar_docking::control::{ControlInput, Controller, ControllerParams, Stamped};
-use trocar_docking::kinematics::{JointVector, Kinematics};
+use trocar_docking::control::{Controller, ControllerParams};
+use trocar_docking::kinematics::Kinematics;
 
 mod common;
-use common::{kin, q_start, trocar};
+use common::{contact_free_input, kin, q_start, trocar};
 
 /// Dock towards a port that moves at `velocity` (base frame, m/s) from t = 0, seen by a
 /// 15 Hz camera (each pose stamped at capture, held until the next); the arm follows every
@@ -34,20 +34,7 @@ fn goal_offset_after_motion(p: ControllerParams, velocity: Vector3<f64>) -> (f64
     for k in 0..=150 {
         let now = k as f64 * dt;
         let capture = (now / frame).floor() * frame;
-        let input = ControlInput {
-            scope: None,
-            now,
-            joints: Some(Stamped { stamp: now, value: q }),
-            tau_ext: Some(Stamped {
-                stamp: now,
-                value: JointVector::zeros(),
-            }),
-            torque_samples: Default::default(),
-            trocar: Some(Stamped {
-                stamp: capture,
-                value: port_at(capture),
-            }),
-        };
+        let input = contact_free_input(now, q, capture, port_at(capture));
         let out = c.step(&kin, &input);
         q = out.command.unwrap_or(q);
         if let Some(goal) = out.goal {

@@ -1,6 +1,11 @@
-//! Fixtures the controller tests share: the arm, its start pose and a trocar below it.
+//! Fixtures the controller tests share: the arm, its start pose, a trocar below it, and an
+//! input without contact.
+
+// Each test file uses some of them.
+#![allow(dead_code)]
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+use trocar_docking::control::{ControlInput, Stamped};
 use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 
@@ -21,4 +26,23 @@ pub fn trocar(kin: &LbrKinematics) -> Isometry3<f64> {
         Translation3::from(tip.translation.vector + Vector3::new(0.01, 0.0, -0.1)),
         UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
     )
+}
+
+/// An input measured at `now` with no contact (zero external torques): the joints `q`, and
+/// the trocar pose `trocar` captured at `trocar_stamp`.
+pub fn contact_free_input(now: f64, q: JointVector, trocar_stamp: f64, trocar: Isometry3<f64>) -> ControlInput {
+    ControlInput {
+        scope: None,
+        now,
+        joints: Some(Stamped { stamp: now, value: q }),
+        tau_ext: Some(Stamped {
+            stamp: now,
+            value: JointVector::zeros(),
+        }),
+        torque_samples: Default::default(),
+        trocar: Some(Stamped {
+            stamp: trocar_stamp,
+            value: trocar,
+        }),
+    }
 }
