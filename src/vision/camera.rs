@@ -66,6 +66,10 @@ pub struct CameraModel {
     pub distortion: Vec<f64>,
     /// Camera name.
     pub name: String,
+    /// The stereo baseline, m: for the right camera of a rectified stereo pair, how far to the
+    /// right (+x) of the left camera it sits (ROS: the projection matrix's `Tx = -fx * baseline`);
+    /// 0 for a single camera or the left one of a pair.
+    pub baseline_m: f64,
 }
 
 impl CameraModel {
@@ -80,6 +84,7 @@ impl CameraModel {
             cy,
             distortion: vec![],
             name: String::new(),
+            baseline_m: 0.0,
         };
         c.validate()?;
         Ok(c)
@@ -116,6 +121,7 @@ impl CameraModel {
             cy: k[5],
             distortion: d.to_vec(),
             name: String::new(),
+            baseline_m: 0.0,
         };
         c.validate()?;
         Ok(c)
@@ -135,7 +141,32 @@ impl CameraModel {
             &c.distortion_model,
         )?;
         m.name = c.camera_name.clone();
+        if let Some(p) = &c.projection_matrix {
+            if p.rows != 3 || p.cols != 4 || p.data.len() != 12 {
+                return Err(VisionError::InvalidInput("projection_matrix must be 3x4".into()));
+            }
+            m.set_baseline_from_projection(&p.data)?;
+        }
         Ok(m)
+    }
+
+    /// Set [`CameraModel::baseline_m`] from a ROS projection matrix `P` (row-major 3 x 4):
+    /// `-P[0][3] / P[0][0]`.
+    pub fn set_baseline_from_projection(&mut self, p: &[f64]) -> Result<(), VisionError> {
+        if p.len() != 12 || !(p[0].is_finite() && p[0] > 0.0 && p[3].is_finite()) {
+            return Err(VisionError::InvalidInput(
+                "projection matrix: 12 finite values with P[0][0] > 0 expected".into(),
+            ));
+        }
+        self.baseline_m = -p[3] / p[0];
+        self.validate()
+    }
+
+    /// Where the right camera of a rectified stereo pair (this model, with its
+    /// [`CameraModel::baseline_m`]) sees the left camera's points: a translation by minus the
+    /// baseline along x.
+    pub fn stereo_right_t_left(&self) -> nalgebra::Isometry3<f64> {
+        nalgebra::Isometry3::translation(-self.baseline_m, 0.0, 0.0)
     }
 
     /// Read a ROS camera calibration YAML file.
@@ -183,7 +214,18 @@ impl CameraModel {
                 rows: 3,
                 cols: 4,
                 data: vec![
-                    self.fx, 0.0, self.cx, 0.0, 0.0, self.fy, self.cy, 0.0, 0.0, 0.0, 1.0, 0.0,
+                    self.fx,
+                    0.0,
+                    self.cx,
+                    -self.fx * self.baseline_m,
+                    0.0,
+                    self.fy,
+                    self.cy,
+                    0.0,
+                    0.0,
+                    0.0,
+                    1.0,
+                    0.0,
                 ],
             }),
         }
@@ -216,6 +258,12 @@ impl CameraModel {
         }
         if self.distortion.iter().any(|d| !d.is_finite() || d.abs() > 1e3) {
             return bad("distortion coefficients must be finite and moderate".into());
+        }
+        if !(self.baseline_m.is_finite() && self.baseline_m.abs() <= 1.0) {
+            return bad(format!(
+                "stereo baseline {} m (from the projection matrix's Tx) not within 1 m",
+                self.baseline_m
+            ));
         }
         Ok(())
     }
@@ -265,6 +313,16 @@ mod tests {
         let z = CameraModel::from_yaml_file(&path).unwrap();
         assert_eq!((z.width, z.height), (1280, 720));
         assert!((600.0..800.0).contains(&z.fx));
+        assert_eq!(z.baseline_m, 0.0);
+        // The right camera of the stereo pair: its baseline from P's Tx, kept on a round trip.
+        let r = CameraModel::from_yaml_file(&path.with_file_name("camera_zedm_right.yaml")).unwrap();
+        assert!((r.baseline_m - 0.063).abs() < 1e-6, "{}", r.baseline_m);
+        let p = r.stereo_right_t_left() * nalgebra::Point3::new(0.1, 0.0, 0.3);
+        assert!((p.x - 0.037).abs() < 1e-6);
+        let s = crate::config::to_yaml_string("camera", &r.to_calibration()).unwrap();
+        assert_eq!(CameraModel::from_yaml_str(&s).unwrap(), r);
+        let bad = s.replace("-44.1504", "NaN");
+        assert!(CameraModel::from_yaml_str(&bad).is_err());
     }
 
     #[test]

@@ -72,6 +72,10 @@ pub fn view<'a>(msg: &sensor_msgs::Image, pixels: &'a [u8], channels: u32) -> Re
 pub fn camera_model(msg: &sensor_msgs::CameraInfo) -> Result<CameraModel, VisionError> {
     let mut m = CameraModel::from_camera_info(msg.width, msg.height, &msg.K, &msg.D, &msg.distortion_model)?;
     m.name = msg.header.frame_id.clone();
+    // A zero P (a CameraInfo without a projection) leaves the baseline at 0.
+    if msg.P[0] > 0.0 {
+        m.set_baseline_from_projection(&msg.P)?;
+    }
     Ok(m)
 }
 
@@ -88,8 +92,20 @@ pub fn camera_info(stamp: rosrust::Time, frame: &str, c: &CameraModel) -> sensor
     };
     msg.K.copy_from_slice(&cal.camera_matrix.data);
     msg.R.copy_from_slice(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
-    msg.P
-        .copy_from_slice(&[c.fx, 0.0, c.cx, 0.0, 0.0, c.fy, c.cy, 0.0, 0.0, 0.0, 1.0, 0.0]);
+    msg.P.copy_from_slice(&[
+        c.fx,
+        0.0,
+        c.cx,
+        -c.fx * c.baseline_m,
+        0.0,
+        c.fy,
+        c.cy,
+        0.0,
+        0.0,
+        0.0,
+        1.0,
+        0.0,
+    ]);
     msg
 }
 
@@ -172,6 +188,17 @@ mod tests {
         let mut back = camera_model(&info).unwrap();
         back.name.clear();
         assert_eq!(back, c);
+        // The right camera of a stereo pair carries its baseline in P's Tx.
+        let right = CameraModel {
+            baseline_m: 0.063,
+            ..c.clone()
+        };
+        let info_r = camera_info(rosrust::Time::new(), "cam", &right);
+        assert!((info_r.P[3] + 350.0 * 0.063).abs() < 1e-12);
+        assert!((camera_model(&info_r).unwrap().baseline_m - 0.063).abs() < 1e-12);
+        let mut bad = info_r.clone();
+        bad.P[3] = 350.0 * 5.0;
+        assert!(camera_model(&bad).is_err(), "a 5 m baseline");
         let mut bad = info.clone();
         bad.K[0] = f64::NAN;
         assert!(camera_model(&bad).is_err());

@@ -4,7 +4,7 @@
 //! DOF), the better explained kept, and a confidence from the fit, the edge support and
 //! the ambiguity margin.
 
-use nalgebra::{Matrix5, Unit, Vector2, Vector3, Vector5};
+use nalgebra::{Isometry3, Matrix5, Point3, Unit, Vector2, Vector3, Vector5};
 
 use super::geometry::{
     basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
@@ -62,12 +62,74 @@ pub struct MarkerlessEstimate {
     pub ambiguity_margin: f64,
 }
 
-/// The estimator for one camera and one trocar model.
+/// The estimator for one camera (optionally with the right camera of a stereo pair) and one
+/// trocar model.
 pub struct MarkerlessEstimator {
-    det: cxx::UniquePtr<ffi::MarkerlessDetectorCpp>,
-    camera: CameraModel,
+    left: Eye,
+    right: Option<RightEye>,
     model: TrocarModel,
 }
+
+/// One camera's detector (it holds the camera's last image) and model.
+struct Eye {
+    det: cxx::UniquePtr<ffi::MarkerlessDetectorCpp>,
+    camera: CameraModel,
+}
+
+impl Eye {
+    fn new(camera: &CameraModel) -> Result<Self, VisionError> {
+        camera.validate()?;
+        let det = ffi::new_markerless_detector(
+            &camera.intrinsics(),
+            &camera.distortion,
+            camera.width as i32,
+            camera.height as i32,
+        )?;
+        Ok(Self {
+            det,
+            camera: camera.clone(),
+        })
+    }
+
+    /// Load `image` (the camera's size) into the detector.
+    fn load(&mut self, image: &ImageView) -> Result<(), VisionError> {
+        image.validate()?;
+        if image.width != self.camera.width || image.height != self.camera.height {
+            return Err(VisionError::InvalidInput(format!(
+                "image {}x{} does not match the camera {} ({}x{})",
+                image.width, image.height, self.camera.name, self.camera.width, self.camera.height
+            )));
+        }
+        ffi::markerless_load(
+            self.det.pin_mut(),
+            image.data,
+            image.width as i32,
+            image.height as i32,
+            image.channels as i32,
+            1.0,
+        )?;
+        Ok(())
+    }
+}
+
+/// The right camera of a stereo pair: its eye and where it sees the left camera's points.
+struct RightEye {
+    eye: Eye,
+    right_t_left: Isometry3<f64>,
+}
+
+/// The two circle poses of one ellipse, each refined on the image (those that found the
+/// opening), and whether they were within 3 deg of each other from the start (`harmless`).
+struct Candidate {
+    hyps: Vec<Hypothesis>,
+    harmless: bool,
+}
+
+/// How far apart (deg) the chosen circle pose and the right camera's nearest one may be for
+/// the two views to agree on it.
+const STEREO_AGREE_DEG: f64 = 4.0;
+/// The stereo margin is the other pose's disagreement minus the chosen one's over this (deg).
+const STEREO_MARGIN_DEG: f64 = 5.0;
 
 /// One pose hypothesis and how well the image supports it.
 #[derive(Debug, Clone, Copy)]
@@ -82,24 +144,46 @@ struct Hypothesis {
 impl MarkerlessEstimator {
     /// An estimator for `camera` and `model`.
     pub fn new(camera: &CameraModel, model: &TrocarModel) -> Result<Self, VisionError> {
-        camera.validate()?;
         model.validate()?;
-        let det = ffi::new_markerless_detector(
-            &camera.intrinsics(),
-            &camera.distortion,
-            camera.width as i32,
-            camera.height as i32,
-        )?;
         Ok(Self {
-            det,
-            camera: camera.clone(),
+            left: Eye::new(camera)?,
+            right: None,
             model: *model,
         })
     }
 
-    /// The camera it was built for.
+    /// The same estimator with the right camera of a stereo pair: `right` its model and
+    /// `right_t_left` the left camera's points in its frame (a rectified pair: a translation
+    /// by minus the baseline along x, [`CameraModel::stereo_right_t_left`]). Its image, when
+    /// given ([`MarkerlessEstimator::estimate_stereo`]), decides between the two poses an
+    /// ellipse admits: the true pose is one of the right image's two as well, the other is not.
+    pub fn with_right_camera(
+        mut self,
+        right: &CameraModel,
+        right_t_left: &Isometry3<f64>,
+    ) -> Result<Self, VisionError> {
+        let finite = right_t_left.translation.vector.iter().all(|v| v.is_finite())
+            && right_t_left.rotation.coords.iter().all(|v| v.is_finite());
+        if !finite || right_t_left.translation.vector.norm() > 1.0 {
+            return Err(VisionError::InvalidInput(
+                "the stereo pair's right_t_left must be finite with a baseline under 1 m".into(),
+            ));
+        }
+        self.right = Some(RightEye {
+            eye: Eye::new(right)?,
+            right_t_left: *right_t_left,
+        });
+        Ok(self)
+    }
+
+    /// The camera it was built for (the left one of a stereo pair).
     pub fn camera(&self) -> &CameraModel {
-        &self.camera
+        &self.left.camera
+    }
+
+    /// The right camera of a stereo pair, if it has one.
+    pub fn right_camera(&self) -> Option<&CameraModel> {
+        self.right.as_ref().map(|r| &r.eye.camera)
     }
 
     /// The axis of the trocar in `image`, or `None` when no opening is found well enough.
@@ -109,39 +193,38 @@ impl MarkerlessEstimator {
         image: &ImageView,
         prior: Option<&Unit<Vector3<f64>>>,
     ) -> Result<Option<MarkerlessEstimate>, VisionError> {
-        image.validate()?;
-        if image.width != self.camera.width || image.height != self.camera.height {
-            return Err(VisionError::InvalidInput(format!(
-                "image {}x{} does not match the camera ({}x{})",
-                image.width, image.height, self.camera.width, self.camera.height
-            )));
-        }
-        ffi::markerless_load(
-            self.det.pin_mut(),
-            image.data,
-            image.width as i32,
-            image.height as i32,
-            image.channels as i32,
-            1.0,
-        )?;
-        // The opening's semi-axis between 0.05 and 1.5 m away.
-        let f = self.camera.fx.max(self.camera.fy);
-        let r = self.model.opening.radius;
-        let (lo, hi) = ((self.camera.fx.min(self.camera.fy) * r / 1.5).max(3.0), f * r / 0.05);
-        let cands = ffi::markerless_ellipses(self.det.pin_mut(), lo, hi.max(lo), 6)?;
+        self.estimate_stereo(image, None, prior)
+    }
+
+    /// [`MarkerlessEstimate`] of the left `image` with the right camera's image `right`
+    /// captured with it (ignored without a right camera): where the left image admits two
+    /// poses, the one the right image admits too is kept, whatever the prior and the outline
+    /// say; where the right image cannot tell (no opening found there, or no pose of its
+    /// within 4 deg of either), the left image's decision stands.
+    pub fn estimate_stereo(
+        &mut self,
+        image: &ImageView,
+        right: Option<&ImageView>,
+        prior: Option<&Unit<Vector3<f64>>>,
+    ) -> Result<Option<MarkerlessEstimate>, VisionError> {
+        self.left.load(image)?;
+        let recs = ellipses(&mut self.left, &self.model)?;
+        let cands = self.candidates(&self.left, &recs)?;
+        let right = right.filter(|_| self.right.is_some());
+        // The right image's poses (left frame), looked at only when some ellipse is ambiguous.
+        let mut seen_right: Option<Vec<Axis>> = None;
         let mut best: Option<MarkerlessEstimate> = None;
-        for rec in cands.chunks_exact(ELLIPSE_RECORD_LEN) {
-            let conic = ellipse_conic([rec[0], rec[1]], rec[2], rec[3], rec[4], self.camera.intrinsics());
-            let Some(sols) = circle_poses(&conic, r) else { continue };
-            // Solutions within 3 deg of each other from the start: the ambiguity is harmless.
-            let harmless = sols[0].angle_to(&sols[1]) < 3f64.to_radians();
-            let mut hyps: Vec<Hypothesis> = vec![];
-            for s in sols {
-                if let Some(h) = self.refine(s)? {
-                    hyps.push(h);
+        for c in &cands {
+            let stereo = match right {
+                Some(img) if !c.harmless && !c.hyps.is_empty() => {
+                    if seen_right.is_none() {
+                        seen_right = Some(self.right_poses(img)?);
+                    }
+                    seen_right.as_deref().and_then(|r| stereo_choice(&c.hyps, r))
                 }
-            }
-            let Some(e) = self.decide(&hyps, prior, harmless) else {
+                _ => None,
+            };
+            let Some(e) = self.decide(&c.hyps, prior, c.harmless, stereo) else {
                 continue;
             };
             if best.as_ref().is_none_or(|b| e.edge_support > b.edge_support) {
@@ -151,6 +234,50 @@ impl MarkerlessEstimator {
         Ok(best)
     }
 
+    /// Every circle pose the right camera's image `img` admits (each refined on it), in the
+    /// left camera's frame.
+    fn right_poses(&mut self, img: &ImageView) -> Result<Vec<Axis>, VisionError> {
+        let Some(mut r) = self.right.take() else {
+            return Ok(vec![]);
+        };
+        let out = r.eye.load(img).and_then(|()| {
+            let recs = ellipses(&mut r.eye, &self.model)?;
+            let left_t_right = r.right_t_left.inverse();
+            Ok(self
+                .candidates(&r.eye, &recs)?
+                .iter()
+                .flat_map(|c| c.hyps.iter())
+                .map(|h| Axis {
+                    point: (left_t_right * Point3::from(h.axis.point)).coords,
+                    direction: left_t_right.rotation * h.axis.direction,
+                })
+                .collect())
+        });
+        self.right = Some(r);
+        out
+    }
+
+    /// The refined circle poses of the ellipses `recs` found in the image `eye` holds.
+    fn candidates(&self, eye: &Eye, recs: &[f64]) -> Result<Vec<Candidate>, VisionError> {
+        let cam = &eye.camera;
+        let r = self.model.opening.radius;
+        let mut out = vec![];
+        for rec in recs.chunks_exact(ELLIPSE_RECORD_LEN) {
+            let conic = ellipse_conic([rec[0], rec[1]], rec[2], rec[3], rec[4], cam.intrinsics());
+            let Some(sols) = circle_poses(&conic, r) else { continue };
+            // Solutions within 3 deg of each other from the start: the ambiguity is harmless.
+            let harmless = sols[0].angle_to(&sols[1]) < 3f64.to_radians();
+            let mut hyps: Vec<Hypothesis> = vec![];
+            for s in sols {
+                if let Some(h) = self.refine(eye, s)? {
+                    hyps.push(h);
+                }
+            }
+            out.push(Candidate { hyps, harmless });
+        }
+        Ok(out)
+    }
+
     /// Pick the better hypothesis and grade it: by the head's outline (the score) alone, or,
     /// with a `prior`, the one nearer the prior, unless the outline picks the other one with
     /// high confidence on its own: the image overrides the prior it contradicts, so that a
@@ -158,12 +285,21 @@ impl MarkerlessEstimator {
     /// nor keep every frame below the confidence gate, where the estimator's outlier gate
     /// would never see them and the track could never be re-initialised.
     /// `harmless`: the two circle poses were within 3 deg of each other before refinement.
+    /// `stereo`: the hypothesis the right camera's image agrees with and the margin it gives
+    /// ([`stereo_choice`]); it decides, before the prior and the outline.
     fn decide(
         &self,
         hyps: &[Hypothesis],
         prior: Option<&Unit<Vector3<f64>>>,
         harmless: bool,
+        stereo: Option<(usize, f64)>,
     ) -> Option<MarkerlessEstimate> {
+        if let Some((i, margin)) = stereo {
+            let h = hyps.get(i)?;
+            let other = hyps.iter().enumerate().find(|(k, _)| *k != i).map(|(_, o)| o);
+            // With one pose left after refinement the right image confirms it: margin as given.
+            return Some(grade(h, other.or(Some(h)), harmless, |_, _| margin));
+        }
         let mut by_score: Vec<Hypothesis> = hyps.to_vec();
         by_score.sort_by(|a, b| b.score.total_cmp(&a.score));
         let outline = grade(by_score.first()?, by_score.get(1), harmless, |h, o| {
@@ -253,7 +389,7 @@ impl MarkerlessEstimator {
     }
 
     /// Search the image for the edges of `samples` (within `range_px`).
-    fn search(&self, samples: &[EdgeSample], range_px: f64) -> Result<Vec<Option<Vector2<f64>>>, VisionError> {
+    fn search(eye: &Eye, samples: &[EdgeSample], range_px: f64) -> Result<Vec<Option<Vector2<f64>>>, VisionError> {
         let mut found = vec![None; samples.len()];
         for pol in [-1, 0, 1] {
             let idx: Vec<usize> = (0..samples.len()).filter(|&i| samples[i].polarity == pol).collect();
@@ -269,7 +405,7 @@ impl MarkerlessEstimator {
                     [p.x, p.y, n.x, n.y]
                 })
                 .collect();
-            let out = ffi::markerless_search_edges(&self.det, &pts, range_px, pol, 4.0)?;
+            let out = ffi::markerless_search_edges(&eye.det, &pts, range_px, pol, 4.0)?;
             for (k, rec) in out.chunks_exact(EDGE_RECORD_LEN).enumerate() {
                 if rec[0] > 0.5 {
                     found[idx[k]] = Some(Vector2::new(rec[1], rec[2]));
@@ -280,12 +416,12 @@ impl MarkerlessEstimator {
     }
 
     /// Refine one circle pose on the image's edges; `None` when the opening is not there.
-    fn refine(&self, start: Axis) -> Result<Option<Hypothesis>, VisionError> {
+    fn refine(&self, eye: &Eye, start: Axis) -> Result<Option<Hypothesis>, VisionError> {
         let mut axis = start;
         let mut matched: Vec<(Vector2<f64>, Part)> = vec![];
         for range in [3.0, 2.0, 1.5] {
             let samples = self.samples(&axis);
-            let found = self.search(&samples, range)?;
+            let found = Self::search(eye, &samples, range)?;
             matched = samples
                 .iter()
                 .zip(&found)
@@ -298,12 +434,12 @@ impl MarkerlessEstimator {
             if n_open < OPENING_POINTS / 3 {
                 return Ok(None);
             }
-            axis = self.fit(axis, &matched);
+            axis = self.fit(eye.camera.fx, axis, &matched);
         }
         // Grade: the samples of the final pose, found within 1 px of the model.
         let samples = self.samples(&axis);
-        let found = self.search(&samples, 1.0)?;
-        let f = self.camera.fx;
+        let found = Self::search(eye, &samples, 1.0)?;
+        let f = eye.camera.fx;
         let mut counts = [0usize; 4];
         let mut totals = [0usize; 4];
         let mut sq = 0.0;
@@ -389,8 +525,7 @@ impl MarkerlessEstimator {
 
     /// Robust Levenberg-Marquardt (Cauchy weights, 1 px scale) of the axis on the matched
     /// edge points.
-    fn fit(&self, start: Axis, matched: &[(Vector2<f64>, Part)]) -> Axis {
-        let f = self.camera.fx;
+    fn fit(&self, f: f64, start: Axis, matched: &[(Vector2<f64>, Part)]) -> Axis {
         let residuals = |a: &Axis| -> Vec<f64> {
             matched
                 .iter()
@@ -447,6 +582,50 @@ impl MarkerlessEstimator {
         }
         axis
     }
+}
+
+/// The opening-like ellipses of the image `eye` holds (records of `markerless_ellipses`): a
+/// semi-axis of an opening between 0.05 and 1.5 m away, the best six by contrast.
+fn ellipses(eye: &mut Eye, model: &TrocarModel) -> Result<Vec<f64>, VisionError> {
+    let cam = &eye.camera;
+    let f = cam.fx.max(cam.fy);
+    let r = model.opening.radius;
+    let (lo, hi) = ((cam.fx.min(cam.fy) * r / 1.5).max(3.0), f * r / 0.05);
+    Ok(ffi::markerless_ellipses(eye.det.pin_mut(), lo, hi.max(lo), 6)?
+        .into_iter()
+        .collect())
+}
+
+/// Which of the left image's hypotheses `hyps` the right image's poses `right` (left frame)
+/// agree with, and the margin: for each hypothesis the smallest angle to a right pose of the
+/// same opening (its port within 10 mm + 5 % of the distance); the hypothesis within
+/// [`STEREO_AGREE_DEG`] of one, by how much more the other disagrees over
+/// [`STEREO_MARGIN_DEG`] (1 when the other has no right pose near it). `None`: the right
+/// image cannot tell (no right pose of this opening, or none agrees).
+fn stereo_choice(hyps: &[Hypothesis], right: &[Axis]) -> Option<(usize, f64)> {
+    let disagreement = |h: &Hypothesis| {
+        right
+            .iter()
+            .filter(|r| (r.point - h.axis.point).norm() <= 0.01 + 0.05 * h.axis.point.norm())
+            .map(|r| r.direction.angle(&h.axis.direction).to_degrees())
+            .min_by(f64::total_cmp)
+    };
+    let d: Vec<Option<f64>> = hyps.iter().map(disagreement).collect();
+    let (best, db) = d
+        .iter()
+        .enumerate()
+        .filter_map(|(i, x)| x.map(|x| (i, x)))
+        .min_by(|a, b| a.1.total_cmp(&b.1))?;
+    if db > STEREO_AGREE_DEG {
+        return None;
+    }
+    let other = d
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| *i != best)
+        .map(|(_, x)| x.unwrap_or(f64::INFINITY))
+        .fold(f64::INFINITY, f64::min);
+    Some((best, ((other - db) / STEREO_MARGIN_DEG).clamp(0.0, 1.0)))
 }
 
 /// Grade hypothesis `h` against the other one `o` (if any): edge support x fit x ambiguity
