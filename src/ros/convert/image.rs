@@ -79,7 +79,7 @@ pub fn camera_model(msg: &sensor_msgs::CameraInfo) -> Result<CameraModel, Vision
     Ok(m)
 }
 
-/// The CameraInfo of a camera model (R = identity, P = K | 0).
+/// The CameraInfo of a camera model (R = identity, P = K | Tx with the stereo baseline).
 pub fn camera_info(stamp: rosrust::Time, frame: &str, c: &CameraModel) -> sensor_msgs::CameraInfo {
     let cal = c.to_calibration();
     let mut msg = sensor_msgs::CameraInfo {
@@ -92,20 +92,9 @@ pub fn camera_info(stamp: rosrust::Time, frame: &str, c: &CameraModel) -> sensor
     };
     msg.K.copy_from_slice(&cal.camera_matrix.data);
     msg.R.copy_from_slice(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
-    msg.P.copy_from_slice(&[
-        c.fx,
-        0.0,
-        c.cx,
-        -c.fx * c.baseline_m,
-        0.0,
-        c.fy,
-        c.cy,
-        0.0,
-        0.0,
-        0.0,
-        1.0,
-        0.0,
-    ]);
+    if let Some(p) = &cal.projection_matrix {
+        msg.P.copy_from_slice(&p.data);
+    }
     msg
 }
 

@@ -591,9 +591,7 @@ fn ellipses(eye: &mut Eye, model: &TrocarModel) -> Result<Vec<f64>, VisionError>
     let f = cam.fx.max(cam.fy);
     let r = model.opening.radius;
     let (lo, hi) = ((cam.fx.min(cam.fy) * r / 1.5).max(3.0), f * r / 0.05);
-    Ok(ffi::markerless_ellipses(eye.det.pin_mut(), lo, hi.max(lo), 6)?
-        .into_iter()
-        .collect())
+    Ok(ffi::markerless_ellipses(eye.det.pin_mut(), lo, hi.max(lo), 6)?)
 }
 
 /// Which of the left image's hypotheses `hyps` the right image's poses `right` (left frame)
