@@ -1,5 +1,6 @@
 //! The markerless cases of the vision suite: the trocar's axis from 1280x720 frames rendered
-//! along the docking approach (camera_zedm, noise 2), timed per frame on one core, with the
+//! along the docking approach (camera_zedm, noise 2; mono, and with the stereo pair's right
+//! image, camera_zedm_right), timed per frame on one core, with the
 //! accuracy against the truth in `extra`; and the render itself (what the simulated camera
 //! spends per frame without the marker, on rayon's threads and on the one thread it runs on).
 
@@ -36,7 +37,46 @@ fn accuracy(
     extra
 }
 
-/// Run the case: 12 frames from 0.4 to 0.1 m, `n` timed estimates (frames cycle).
+/// One estimate case: the accuracy of `est` on `frames` (with the stereo pair's `right`
+/// frames, if any) against `poses`, and `n` timed estimates (the frames cycle).
+fn axis_case(
+    name: &str,
+    mut est: MarkerlessEstimator,
+    frames: &[GreyImage],
+    right: Option<&[GreyImage]>,
+    poses: &[Isometry3<f64>],
+    n: usize,
+) -> Result<Option<SuiteReport>, VisionError> {
+    let right_view = |i: usize| right.map(|r| r[i].view());
+    let (mut pos, mut ang, mut found) = (vec![], vec![], 0usize);
+    for (i, (img, p)) in frames.iter().zip(poses).enumerate() {
+        if let Some(e) = est.estimate_stereo(&img.view(), right_view(i).as_ref(), None)? {
+            found += 1;
+            pos.push((e.axis.point - p.translation.vector).norm() * 1e3);
+            ang.push(
+                e.axis
+                    .direction
+                    .dot(&(p.rotation * Vector3::z()))
+                    .clamp(-1.0, 1.0)
+                    .acos()
+                    .to_degrees(),
+            );
+        }
+    }
+    let idx: Vec<usize> = (0..n.clamp(1, 300)).map(|i| i % frames.len()).collect();
+    let t = time_each(&idx, 3, |&i| {
+        est.estimate_stereo(&frames[i].view(), right_view(i).as_ref(), None)
+            .map(|e| e.is_some())
+    });
+    Ok(LatencyStats::from_samples(&t).map(|latency| SuiteReport {
+        name: name.into(),
+        latency,
+        extra: accuracy(frames.len(), found, pos, ang),
+    }))
+}
+
+/// Run the cases: 12 frames from 0.4 to 0.1 m, `n` timed estimates (frames cycle), mono and
+/// with the stereo pair's right image; the renders.
 pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
     let camera = CameraModel::from_yaml_str(include_str!("../../config/camera_zedm.yaml"))?;
     let model = TrocarModel::shipped();
@@ -70,33 +110,27 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
             None => frame(i),
         })
     });
-    let mut est = MarkerlessEstimator::new(&camera, &model)?;
-    let (mut pos, mut ang, mut found) = (vec![], vec![], 0usize);
-    for (img, p) in frames.iter().zip(&poses) {
-        if let Some(e) = est.estimate(&img.view(), None)? {
-            found += 1;
-            pos.push((e.axis.point - p.translation.vector).norm() * 1e3);
-            ang.push(
-                e.axis
-                    .direction
-                    .dot(&(p.rotation * Vector3::z()))
-                    .clamp(-1.0, 1.0)
-                    .acos()
-                    .to_degrees(),
-            );
-        }
+    let right_camera = CameraModel::from_yaml_str(include_str!("../../config/camera_zedm_right.yaml"))?;
+    let right_t_left = right_camera.stereo_right_t_left();
+    let right_renderer = TrocarRenderer::new(&right_camera)?;
+    let right_frames: Vec<GreyImage> = poses
+        .iter()
+        .enumerate()
+        .map(|(k, p)| right_renderer.render(&model, &(right_t_left * p), &Scene::random(17_000 + k as u64, 2.0)))
+        .collect::<Result<_, _>>()?;
+    let mono = MarkerlessEstimator::new(&camera, &model)?;
+    let stereo = MarkerlessEstimator::new(&camera, &model)?.with_right_camera(&right_camera, &right_t_left)?;
+    let mut out = vec![];
+    for (name, est, right) in [
+        ("markerless_axis_zedm_1280x720", mono, None),
+        (
+            "markerless_axis_stereo_zedm_1280x720",
+            stereo,
+            Some(right_frames.as_slice()),
+        ),
+    ] {
+        out.extend(axis_case(name, est, &frames, right, &poses, n)?);
     }
-    let idx: Vec<usize> = (0..n.clamp(1, 300)).map(|i| i % frames.len()).collect();
-    let t = time_each(&idx, 3, |&i| est.estimate(&frames[i].view(), None).map(|e| e.is_some()));
-    let Some(latency) = LatencyStats::from_samples(&t) else {
-        return Ok(vec![]);
-    };
-    let extra = accuracy(frames.len(), found, pos, ang);
-    let mut out = vec![SuiteReport {
-        name: "markerless_axis_zedm_1280x720".into(),
-        latency,
-        extra,
-    }];
     for (t, (name, threads)) in render_t.iter().zip([
         ("markerless_render_zedm_1280x720", rayon::current_num_threads()),
         ("markerless_render_wall4_zedm_1280x720", rayon::current_num_threads()),

@@ -21,6 +21,7 @@ use crate::sim_vision::{CameraPoseSource, CameraSetup, FrameCounts};
 use crate::trials::batch::{run_arm_with, ArmReport, ArmSetup, ArmSummary, PolicyFactory, PoseSourceFactory, Stats};
 use crate::trials::config::{load_controller, PolicyKind, Protocol, SimConfig};
 use crate::trials::run::TrialResult;
+use crate::vision::sim_camera::SimCameraParams;
 use crate::vision::CameraModel;
 
 use super::CliResult;
@@ -81,6 +82,11 @@ pub struct TrialsArgs {
     /// estimated with.
     #[arg(long, default_value = "config/camera_zedm.yaml")]
     pub camera_calibration: PathBuf,
+    /// With `--sensor camera`: the calibration YAML of the stereo pair's right camera (its
+    /// image, with every `camera.right_every`-th frame of config/lbr_med_sim.yaml, resolves
+    /// the opening's two-fold ambiguity); '' = a mono camera.
+    #[arg(long, default_value = "config/camera_zedm_right.yaml")]
+    pub right_camera_calibration: PathBuf,
 }
 
 /// The trocar pose sensor of the trials.
@@ -143,6 +149,27 @@ struct RunSetup {
     frames: Arc<FrameCounts>,
 }
 
+/// The camera pipeline of `--sensor camera`: the shipped set-up with the cameras of
+/// `--camera-calibration` and `--right-camera-calibration`.
+fn camera_setup(a: &TrialsArgs) -> Result<CameraSetup, String> {
+    let left = CameraModel::from_yaml_file(&a.camera_calibration)
+        .map_err(|e| format!("--camera-calibration {}: {e}", a.camera_calibration.display()))?;
+    let camera = SimCameraParams {
+        right_calibration_file: a.right_camera_calibration.to_string_lossy().into_owned(),
+        ..SimCameraParams::default()
+    };
+    let right = camera.right_camera().map_err(|e| {
+        format!(
+            "--right-camera-calibration {}: {e}",
+            a.right_camera_calibration.display()
+        )
+    })?;
+    Ok(CameraSetup {
+        camera,
+        ..CameraSetup::shipped(left, right)
+    })
+}
+
 /// Run `trials`.
 pub fn run(a: &TrialsArgs) -> CliResult {
     if a.trials == 0 {
@@ -154,10 +181,7 @@ pub fn run(a: &TrialsArgs) -> CliResult {
         controller: load_controller(a.controller_config.as_deref())?,
         camera: match a.sensor {
             Sensor::Model => None,
-            Sensor::Camera => Some(CameraSetup::shipped(
-                CameraModel::from_yaml_file(&a.camera_calibration)
-                    .map_err(|e| format!("--camera-calibration {}: {e}", a.camera_calibration.display()))?,
-            )),
+            Sensor::Camera => Some(camera_setup(a)?),
         },
         frames: Arc::new(FrameCounts::default()),
     };
@@ -172,9 +196,13 @@ pub fn run(a: &TrialsArgs) -> CliResult {
     let ratio = ratio(&reports);
     if a.json {
         let mut v = run_json(&setup, &reports, ratio);
-        if setup.camera.is_some() {
+        if let Some(c) = &setup.camera {
             let (captured, gated, fused) = setup.frames.get();
             v["sensor"] = "camera".into();
+            v["stereo_right_every"] = match c.right {
+                Some(_) => c.camera.right_every.into(),
+                None => serde_json::Value::Null,
+            };
             v["camera_frames"] = serde_json::json!({"captured": captured, "gated": gated, "fused": fused});
         }
         v["seeds"] = serde_json::json!([a.seed, a.seed.wrapping_add(a.trials as u64 - 1)]);
@@ -301,10 +329,14 @@ fn ms(s: &Stats) -> String {
 
 fn print_text(r: &[ArmReport], s: &RunSetup, ratio: Option<(f64, f64)>, wall: f64, simulated: f64, out: &Path) {
     let cfg = &s.cfg;
-    let sensor = match s.camera {
-        Some(_) => {
+    let sensor = match &s.camera {
+        Some(c) => {
             let (captured, gated, fused) = s.frames.get();
-            format!("sensor: the markerless camera pipeline ({captured} frames, {gated} past the confidence gate, {fused} fused)")
+            let eyes = match c.right {
+                Some(_) => format!("stereo, the right image with every {}. frame", c.camera.right_every),
+                None => "mono".into(),
+            };
+            format!("sensor: the markerless camera pipeline, {eyes} ({captured} frames, {gated} past the confidence gate, {fused} fused)")
         }
         None => format!("noise {}", cfg.sim.measurement.model),
     };

@@ -59,6 +59,12 @@ pub struct EstimatorNodeParams {
     pub image_topic: String,
     /// CameraInfo in.
     pub camera_info_topic: String,
+    /// The stereo pair's right image in ('' = a mono camera): with the markerless method,
+    /// a right image of the left image's stamp decides between the two poses the opening's
+    /// ellipse admits.
+    pub right_image_topic: String,
+    /// The right camera's CameraInfo in (its projection's Tx gives the baseline).
+    pub right_camera_info_topic: String,
     /// Joint states in (the flange pose at each image's stamp).
     pub joint_states_topic: String,
     /// Trocar pose out.
@@ -168,6 +174,12 @@ impl EstimatorNodeParams {
         Ok(())
     }
 
+    /// Whether the node takes the stereo pair's right image: a markerless method and both
+    /// right topics set.
+    pub fn stereo(&self) -> bool {
+        self.method.uses_markerless() && !self.right_image_topic.is_empty() && !self.right_camera_info_topic.is_empty()
+    }
+
     /// How often to log the frame statistics; `None` = never (`report_period_s: 0`).
     pub fn report_period(&self) -> Result<Option<Duration>, NodeError> {
         Ok(validate::period_or_never("report_period_s", self.report_period_s)?)
@@ -186,6 +198,8 @@ struct FrameCounts {
 /// The node's state, shared by the image callback (which does the work) and the reports.
 struct Pipeline {
     p: EstimatorNodeParams,
+    /// Frames that came with a right image of their stamp (since the last report).
+    stereo_frames: u64,
     flange: LbrKinematics,
     detector: Option<TrackingDetector>,
     markerless: Option<MarkerlessEstimator>,
@@ -213,6 +227,7 @@ impl Pipeline {
         &mut self,
         img: &sensor_msgs::Image,
         camera: Option<&CameraModel>,
+        right: Option<&StereoRight>,
         history: &Mutex<JointHistory>,
         want_debug: bool,
     ) -> Result<FrameOutput, String> {
@@ -259,11 +274,11 @@ impl Pipeline {
             (EstimatorMethod::Fused, Some(det)) => match self.marker_pose(&det, stamp, &view, history, true) {
                 Ok(m) => m,
                 // A marker cut by the border: the trocar's shape may still be whole.
-                Err(e) if e.contains("border") => self.markerless_pose(camera, &view, stamp, history)?,
+                Err(e) if e.contains("border") => self.markerless_pose(camera, &view, right, stamp, history)?,
                 Err(e) => return Err(e),
             },
             (EstimatorMethod::Markerless, _) | (EstimatorMethod::Fused, None) => {
-                self.markerless_pose(camera, &view, stamp, history)?
+                self.markerless_pose(camera, &view, right, stamp, history)?
             }
         };
         self.counts.published += u64::from(measured.trocar.is_some());
@@ -338,24 +353,50 @@ impl Pipeline {
         }
     }
 
-    /// The markerless estimate of `view`, the previous estimate as its prior, fused when its
-    /// confidence passes the gate.
+    /// The markerless estimate of `view` (with the right image of its stamp, if any), the
+    /// previous estimate as its prior, fused when its confidence passes the gate.
     fn markerless_pose(
         &mut self,
         camera: &CameraModel,
         view: &ImageView,
+        right: Option<&StereoRight>,
         stamp: f64,
         history: &Mutex<JointHistory>,
     ) -> Result<Measured, String> {
         let base_t_camera = self.camera_at(stamp, history)?;
-        if self.markerless.as_ref().is_none_or(|m| m.camera() != camera) {
-            self.markerless = Some(MarkerlessEstimator::new(camera, &self.model).map_err(|e| e.to_string())?);
+        let right_camera = right.map(|r| &r.camera);
+        if self
+            .markerless
+            .as_ref()
+            .is_none_or(|m| m.camera() != camera || m.right_camera() != right_camera)
+        {
+            let e = MarkerlessEstimator::new(camera, &self.model);
+            let e = match right_camera {
+                Some(r) => e.and_then(|e| e.with_right_camera(r, &r.stereo_right_t_left())),
+                None => e,
+            };
+            self.markerless = Some(e.map_err(|e| e.to_string())?);
         }
+        let right_pixels = match right.and_then(|r| r.image.as_ref()) {
+            Some(img) => Some((
+                img,
+                image_msgs::image_pixels(img).map_err(|e| format!("right image: {e}"))?,
+            )),
+            None => None,
+        };
+        let right_view = match &right_pixels {
+            Some((img, px)) => {
+                Some(image_msgs::view(img, &px.data, px.channels).map_err(|e| format!("right image: {e}"))?)
+            }
+            None => None,
+        };
+        self.stereo_frames += u64::from(right_view.is_some());
         let est = self.markerless.as_mut().ok_or("no markerless estimator")?;
         let tracked = measurement::track(
             est,
             &mut self.estimator,
             view,
+            right_view.as_ref(),
             stamp,
             &base_t_camera,
             &self.p.markerless,
@@ -401,11 +442,24 @@ impl Measured {
     }
 }
 
-/// What the callbacks share: the joint history, the last camera model, the pipeline.
+/// The stereo pair's right camera and, when one came with the left image's stamp, its image.
+struct StereoRight {
+    camera: CameraModel,
+    image: Option<sensor_msgs::Image>,
+}
+
+/// A stereo camera stamps the two images of one capture alike: a right image pairs with the
+/// left image whose stamp is within this, s.
+const STEREO_MAX_SKEW_S: f64 = 1e-3;
+
+/// What the callbacks share: the joint history, the last camera model (and the right
+/// camera's), the latest right image, the pipeline.
 #[derive(Clone)]
 struct Shared {
     history: Arc<Mutex<JointHistory>>,
     camera: Arc<Mutex<Option<CameraModel>>>,
+    right_camera: Arc<Mutex<Option<CameraModel>>>,
+    right_image: Arc<Mutex<Option<sensor_msgs::Image>>>,
     pipeline: Arc<Mutex<Pipeline>>,
 }
 
@@ -418,6 +472,7 @@ impl Shared {
         let history = JointHistory::new(capacity, p.max_joint_gap_s, p.max_joint_extrapolation_s);
         let pipeline = Pipeline {
             p: p.clone(),
+            stereo_frames: 0,
             flange,
             detector: None,
             markerless: None,
@@ -432,6 +487,8 @@ impl Shared {
         Ok(Self {
             history: Arc::new(Mutex::new(history)),
             camera: Arc::new(Mutex::new(None)),
+            right_camera: Arc::new(Mutex::new(None)),
+            right_image: Arc::new(Mutex::new(None)),
             pipeline: Arc::new(Mutex::new(pipeline)),
         })
     }
@@ -522,24 +579,47 @@ fn subscribe_joint_states(p: &EstimatorNodeParams, shared: &Shared) -> Result<ro
     .map_err(ros_err)
 }
 
-/// The camera model from CameraInfo; a bad one clears it, so frames are dropped.
-fn subscribe_camera_info(p: &EstimatorNodeParams, shared: &Shared) -> Result<rosrust::Subscriber, NodeError> {
-    let camera = shared.camera.clone();
+/// The camera model from the CameraInfo of `topic` into `camera`; a bad one clears it (the
+/// left camera's: frames are dropped; the right camera's: frames go mono).
+fn subscribe_camera_info(
+    topic: &str,
+    camera: &Arc<Mutex<Option<CameraModel>>>,
+) -> Result<rosrust::Subscriber, NodeError> {
+    let (camera, name) = (camera.clone(), topic.to_string());
     let warn = Throttle::new(Duration::from_secs(2));
     rosrust::subscribe(
-        &p.camera_info_topic,
+        topic,
         2,
         move |m: sensor_msgs::CameraInfo| match image_msgs::camera_model(&m) {
             Ok(c) => *lock(&camera) = Some(c),
             Err(e) => {
                 *lock(&camera) = None;
                 if warn.ready() {
-                    rosrust::ros_warn!("camera_info rejected, frames are dropped until a valid one: {e}");
+                    rosrust::ros_warn!("{name} rejected until a valid one: {e}");
                 }
             }
         },
     )
     .map_err(ros_err)
+}
+
+/// The stereo pair's right images: the latest is kept for the left image of its stamp.
+fn subscribe_right_images(p: &EstimatorNodeParams, shared: &Shared) -> Result<rosrust::Subscriber, NodeError> {
+    let slot = shared.right_image.clone();
+    rosrust::subscribe(&p.right_image_topic, 1, move |img: sensor_msgs::Image| {
+        *lock(&slot) = Some(img);
+    })
+    .map_err(ros_err)
+}
+
+/// The right camera and the right image captured with the left image stamped `stamp` (taken
+/// from the slot); `None` without a right camera.
+fn stereo_right(shared: &Shared, stamp: rosrust::Time) -> Option<StereoRight> {
+    let camera = lock(&shared.right_camera).clone()?;
+    let t = convert::seconds(stamp);
+    let image =
+        lock(&shared.right_image).take_if(|r| (convert::seconds(r.header.stamp) - t).abs() <= STEREO_MAX_SKEW_S);
+    Some(StereoRight { camera, image })
 }
 
 /// Move the calling thread (rosrust's image callback thread) to SCHED_FIFO `priority`.
@@ -559,9 +639,10 @@ fn on_image(img: &sensor_msgs::Image, shared: &Shared, publishers: &Publishers, 
     let t0 = Instant::now();
     let age_ms = (convert::seconds(rosrust::now()) - convert::seconds(img.header.stamp)) * 1e3;
     let cam = lock(&shared.camera).clone();
+    let right = stereo_right(shared, img.header.stamp);
     let mut pl = lock(&shared.pipeline);
     let want_debug = publishers.debug.subscriber_count() > 0;
-    match pl.frame(img, cam.as_ref(), &shared.history, want_debug) {
+    match pl.frame(img, cam.as_ref(), right.as_ref(), &shared.history, want_debug) {
         Ok(out) => {
             if out.measured.trocar.is_none() && pl.warn.ready() {
                 rosrust::ros_warn!("frame dropped: {}", out.measured.status);
@@ -605,8 +686,9 @@ fn report(pipeline: &Mutex<Pipeline>) {
     let (c, lat, age) = (pl.counts, pl.processing.percentiles(), pl.arrival_age.percentiles());
     if c.frames > 0 {
         rosrust::ros_info!(
-            "trocar_estimator: {} frames, marker in {}, markerless accepted in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms, p99 {:.1} ms",
+            "trocar_estimator: {} frames ({} with a right image), marker in {}, markerless accepted in {}, pose published for {}; processing p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms; image age at arrival p50 {:.1} ms, p99 {:.1} ms",
             c.frames,
+            pl.stereo_frames,
             c.detected,
             c.markerless,
             c.published,
@@ -618,6 +700,7 @@ fn report(pipeline: &Mutex<Pipeline>) {
         );
     }
     pl.counts = FrameCounts::default();
+    pl.stereo_frames = 0;
 }
 
 /// Run the node until shutdown. Call after `rosrust::init`.
@@ -627,11 +710,15 @@ pub fn run() -> Result<(), NodeError> {
     let report_period = p.report_period()?;
     let shared = Shared::new(&p)?;
     let publishers = Publishers::new(&p)?;
-    let _subs = [
+    let mut _subs = vec![
         subscribe_joint_states(&p, &shared)?,
-        subscribe_camera_info(&p, &shared)?,
-        subscribe_images(&p, &shared, publishers)?,
+        subscribe_camera_info(&p.camera_info_topic, &shared.camera)?,
     ];
+    if p.stereo() {
+        _subs.push(subscribe_camera_info(&p.right_camera_info_topic, &shared.right_camera)?);
+        _subs.push(subscribe_right_images(&p, &shared)?);
+    }
+    _subs.push(subscribe_images(&p, &shared, publishers)?);
     rosrust::ros_info!(
         "trocar_estimator: method {}, {} on {}, marker {} id {:?} {} m, pose on {}",
         p.method,
@@ -657,6 +744,7 @@ pub fn run() -> Result<(), NodeError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::ros::topics;
 
     fn with(yaml: &str) -> Result<(), NodeError> {
         params::from_yaml_str::<EstimatorNodeParams>("t", yaml)?.validate()
@@ -679,11 +767,12 @@ mod tests {
             (0.04, Some(7), 5)
         );
         // The topics the rest of the stack assumes.
-        use crate::ros::topics;
         assert_eq!(d.joint_names, crate::kinematics::joint_names());
         for (a, b) in [
             (&d.image_topic, topics::CAMERA_IMAGE),
             (&d.camera_info_topic, topics::CAMERA_INFO),
+            (&d.right_image_topic, topics::CAMERA_RIGHT_IMAGE),
+            (&d.right_camera_info_topic, topics::CAMERA_RIGHT_INFO),
             (&d.joint_states_topic, topics::JOINT_STATES),
             (&d.trocar_pose_topic, topics::TROCAR_POSE),
         ] {
@@ -710,6 +799,37 @@ mod tests {
             e.message.contains("`marker.size`: the key is now `marker.size_m`"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn the_right_image_is_taken_with_a_markerless_method_and_both_right_topics() {
+        let d = EstimatorNodeParams::default();
+        // The shipped method is the marker: no right image, whatever the topics.
+        assert!(!d.stereo() && !d.right_image_topic.is_empty());
+        for (method, right, info, stereo) in [
+            (
+                EstimatorMethod::Markerless,
+                topics::CAMERA_RIGHT_IMAGE,
+                topics::CAMERA_RIGHT_INFO,
+                true,
+            ),
+            (
+                EstimatorMethod::Fused,
+                topics::CAMERA_RIGHT_IMAGE,
+                topics::CAMERA_RIGHT_INFO,
+                true,
+            ),
+            (EstimatorMethod::Markerless, "", topics::CAMERA_RIGHT_INFO, false),
+            (EstimatorMethod::Markerless, topics::CAMERA_RIGHT_IMAGE, "", false),
+        ] {
+            let p = EstimatorNodeParams {
+                method,
+                right_image_topic: right.into(),
+                right_camera_info_topic: info.into(),
+                ..d.clone()
+            };
+            assert_eq!(p.stereo(), stereo, "{method} {right:?} {info:?}");
+        }
     }
 
     #[test]

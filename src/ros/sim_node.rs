@@ -61,6 +61,11 @@ pub struct SimNodeParams {
     pub image_topic: String,
     /// CameraInfo out.
     pub camera_info_topic: String,
+    /// The stereo pair's right image out (with `camera.right_calibration_file`, without the
+    /// marker; published just before the left image of the same stamp).
+    pub right_image_topic: String,
+    /// The right camera's CameraInfo out.
+    pub right_camera_info_topic: String,
     /// Publish the simulator's noisy trocar pose measurement directly (its rate, latency,
     /// noise and hand-eye bias are the world protocol's `sim.measurement`).
     pub direct_pose_enabled: bool,
@@ -148,7 +153,9 @@ impl SimScene {
             });
         }
         // Noise is added per frame by the camera thread.
-        let camera = TrocarCamera::new(c, seed, model).map_err(|e| NodeError::Invalid(e.to_string()))?;
+        let invalid = |e: crate::vision::sim_camera::CameraSetupError| NodeError::Invalid(e.to_string());
+        let right = c.right_camera().map_err(invalid)?;
+        let camera = TrocarCamera::new(c, seed, model, right.as_ref()).map_err(invalid)?;
         Ok(Self::Trocar(Box::new(camera)))
     }
 
@@ -182,6 +189,14 @@ impl SimScene {
             Self::Trocar(camera) => camera.render(camera_t_trocar),
         }
     }
+
+    /// The right camera of the stereo pair, if the scene renders its image.
+    fn right_camera(&self) -> Option<&CameraModel> {
+        match self {
+            Self::Marker { .. } => None,
+            Self::Trocar(camera) => camera.right_camera(),
+        }
+    }
 }
 
 /// The simulated camera: renders on its own thread (a frame takes tens of ms) so the
@@ -198,6 +213,11 @@ struct SimCamera {
 struct CameraOutput {
     image: rosrust::Publisher<sensor_msgs::Image>,
     info: rosrust::Publisher<sensor_msgs::CameraInfo>,
+    /// The right camera's image and CameraInfo (a stereo scene).
+    right: Option<(
+        rosrust::Publisher<sensor_msgs::Image>,
+        rosrust::Publisher<sensor_msgs::CameraInfo>,
+    )>,
     params: SimCameraParams,
     model: CameraModel,
 }
@@ -216,6 +236,13 @@ impl CameraOutput {
             let mut grey = pool
                 .install(|| scene.render(model, &job.camera_t_trocar))
                 .unwrap_or_else(|_| blank_frame(model));
+            // The right image of a stereo scene with every `right_every`-th frame.
+            let right = match (&self.right, scene) {
+                (Some(_), SimScene::Trocar(camera)) if c.right_due(job.seq) => {
+                    pool.install(|| camera.right_frame(&job.camera_t_trocar, noise, job.seq))
+                }
+                _ => None,
+            };
             render_ms.latency(t0.elapsed().as_secs_f64() * 1e3);
             if job.seq % 150 == 0 {
                 let l = render_ms.percentiles();
@@ -229,6 +256,21 @@ impl CameraOutput {
             }
             if noise > 0.0 {
                 scene.add_noise(&mut grey, noise, job.seq);
+            }
+            // The right image first: the estimator pairs each left image with the latest right.
+            if let (Some((image, info)), Some(r), Some(rm)) = (&self.right, right, scene.right_camera()) {
+                if let Ok((data, channels)) = image_msgs::grey_as(&c.encoding, r) {
+                    let _ = info.send(image_msgs::camera_info(job.stamp, &c.frame, rm));
+                    let _ = image.send(image_msgs::image(
+                        job.stamp,
+                        &c.frame,
+                        rm.width,
+                        rm.height,
+                        &c.encoding,
+                        channels,
+                        data,
+                    ));
+                }
             }
             let Ok((data, channels)) = image_msgs::grey_as(&c.encoding, grey) else {
                 continue;
@@ -275,6 +317,13 @@ impl SimCamera {
             .map_err(|e| invalid("render", &e))?;
         let pub_img = rosrust::publish::<sensor_msgs::Image>(&p.image_topic, 2).map_err(ros_err)?;
         let pub_info = rosrust::publish::<sensor_msgs::CameraInfo>(&p.camera_info_topic, 2).map_err(ros_err)?;
+        let right = match scene.right_camera() {
+            Some(_) => Some((
+                rosrust::publish::<sensor_msgs::Image>(&p.right_image_topic, 2).map_err(ros_err)?,
+                rosrust::publish::<sensor_msgs::CameraInfo>(&p.right_camera_info_topic, 2).map_err(ros_err)?,
+            )),
+            None => None,
+        };
         // A rendezvous channel: a frame is only taken when the renderer is free.
         let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(0);
         let (c, noise) = (c.clone(), c.noise_sigma);
@@ -289,6 +338,7 @@ impl SimCamera {
         let out = CameraOutput {
             image: pub_img,
             info: pub_info,
+            right,
             params: c,
             model,
         };
@@ -689,6 +739,46 @@ mod tests {
         let mut tree = read("lbr_med_sim.yaml");
         tree["world"] = read("sim.yaml");
         SimNodeParams::from_tree("lbr_med_sim", tree).unwrap()
+    }
+
+    #[test]
+    fn the_right_camera_renders_without_the_marker_only_and_a_bad_one_names_its_key() {
+        let p = shipped();
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+        let cam = CameraModel::from_yaml_file(&dir.join("camera_zedm.yaml")).unwrap();
+        let marker_t_trocar = p.camera.marker_t_trocar.to_isometry().unwrap();
+        // As sim.launch sets it.
+        let stereo = SimCameraParams {
+            right_calibration_file: dir.join("camera_zedm_right.yaml").to_string_lossy().into_owned(),
+            ..p.camera.clone()
+        };
+        let marker = SimScene::of(&stereo, 1, &cam, marker_t_trocar).unwrap();
+        assert!(marker.right_camera().is_none(), "the marker's scene is mono");
+        let trocar = SimScene::of(
+            &SimCameraParams {
+                show_marker: false,
+                ..stereo.clone()
+            },
+            1,
+            &cam,
+            marker_t_trocar,
+        )
+        .unwrap();
+        assert!((trocar.right_camera().unwrap().baseline_m - 0.063).abs() < 1e-9);
+        assert_eq!(
+            (p.right_image_topic.as_str(), p.right_camera_info_topic.as_str()),
+            (topics::CAMERA_RIGHT_IMAGE, topics::CAMERA_RIGHT_INFO)
+        );
+        let bad = SimCameraParams {
+            show_marker: false,
+            right_calibration_file: dir.join("camera_zedm.yaml").to_string_lossy().into_owned(),
+            ..stereo
+        };
+        let e = SimScene::of(&bad, 1, &cam, marker_t_trocar).err().unwrap().to_string();
+        assert!(
+            e.contains("camera.right_calibration_file") && e.contains("baseline"),
+            "{e}"
+        );
     }
 
     #[test]

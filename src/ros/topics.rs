@@ -18,6 +18,10 @@ pub const COMMAND: &str = "/lbr/PositionJointInterface_trajectory_controller/com
 pub const CAMERA_IMAGE: &str = "/zedm/zed_node/left/image_rect_color";
 /// The camera's CameraInfo.
 pub const CAMERA_INFO: &str = "/zedm/zed_node/left/camera_info";
+/// The stereo pair's right image (ZED mini, right, rectified).
+pub const CAMERA_RIGHT_IMAGE: &str = "/zedm/zed_node/right/image_rect_color";
+/// The right camera's CameraInfo (its projection's Tx gives the baseline).
+pub const CAMERA_RIGHT_INFO: &str = "/zedm/zed_node/right/camera_info";
 /// The trocar pose in the base frame (geometry_msgs/PoseStamped).
 pub const TROCAR_POSE: &str = "/trocar/pose";
 /// The simulator's true trocar pose.

@@ -29,7 +29,7 @@ use crate::sim::MeasurementParams;
 use crate::vision::estimator::{marker_in_camera, EstimatorParams, PoseYaml, TrocarEstimator};
 use crate::vision::markerless::measurement::track;
 use crate::vision::markerless::{MarkerlessEstimator, MarkerlessParams, TrocarModel};
-use crate::vision::sim_camera::{SimCameraParams, TrocarCamera};
+use crate::vision::sim_camera::{right_due, SimCameraParams, TrocarCamera};
 use crate::vision::{CameraModel, ImageView};
 
 /// What the camera pose source is built from (one per run; each trial builds its source).
@@ -40,6 +40,10 @@ pub struct CameraSetup {
     pub camera: SimCameraParams,
     /// The camera's intrinsics and distortion (the calibration file the node renders with).
     pub calibration: CameraModel,
+    /// The stereo pair's right camera (`camera.right_calibration_file`; `None`: mono): its
+    /// image, rendered with every `camera.right_every`-th frame, resolves the two-fold
+    /// ambiguity of the opening's ellipse.
+    pub right: Option<CameraModel>,
     /// The markerless gate (`markerless:` of `config/trocar_estimator.yaml`).
     pub markerless: MarkerlessParams,
     /// The estimator's filter and gates (`estimator:` of `config/trocar_estimator.yaml`; its
@@ -53,11 +57,13 @@ pub struct CameraSetup {
 
 impl CameraSetup {
     /// The shipped set-up (`config/lbr_med_sim.yaml`, `config/trocar_estimator.yaml`, the
-    /// shipped trocar model, the LBR Med 7) for the camera `calibration`.
-    pub fn shipped(calibration: CameraModel) -> Self {
+    /// shipped trocar model, the LBR Med 7) for the camera `calibration` and the stereo
+    /// pair's `right` camera (`None`: mono).
+    pub fn shipped(calibration: CameraModel, right: Option<CameraModel>) -> Self {
         Self {
             camera: SimCameraParams::default(),
             calibration,
+            right,
             markerless: MarkerlessParams::default(),
             estimator: EstimatorParams::default(),
             trocar: TrocarModel::shipped(),
@@ -98,6 +104,8 @@ pub struct CameraPoseSource {
     filter: TrocarEstimator,
     markerless: MarkerlessParams,
     schedule: CaptureSchedule,
+    /// The right image comes with every this many frames ([`right_due`]).
+    right_every: u64,
     noise_sigma: f64,
     seed: u64,
     seq: u64,
@@ -124,8 +132,15 @@ impl CameraPoseSource {
         Ok(Self {
             flange: LbrKinematics::from_model_or_file(setup.model, "", FLANGE_LINK).map_err(|e| e.to_string())?,
             true_mount,
-            camera: TrocarCamera::new(&setup.camera, seed, &setup.calibration).map_err(|e| e.to_string())?,
-            estimator: MarkerlessEstimator::new(&setup.calibration, &setup.trocar).map_err(|e| e.to_string())?,
+            camera: TrocarCamera::new(&setup.camera, seed, &setup.calibration, setup.right.as_ref())
+                .map_err(|e| e.to_string())?,
+            estimator: match &setup.right {
+                None => MarkerlessEstimator::new(&setup.calibration, &setup.trocar),
+                Some(r) => MarkerlessEstimator::new(&setup.calibration, &setup.trocar)
+                    .and_then(|e| e.with_right_camera(r, &r.stereo_right_t_left())),
+            }
+            .map_err(|e| e.to_string())?,
+            right_every: setup.camera.right_every,
             filter,
             markerless: setup.markerless.clone(),
             schedule: CaptureSchedule::new(measurement.rate_hz, measurement.latency_s),
@@ -163,12 +178,16 @@ impl CameraPoseSource {
         // The pixel noise of frame `seq` of this trial (the node numbers its frames alone).
         let noise_seed = self.seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ self.seq;
         let grey = self.camera.frame(&camera_t_trocar, self.noise_sigma, noise_seed);
-        let c = self.camera.camera();
-        let view = ImageView {
-            data: &grey,
-            width: c.width,
-            height: c.height,
-            channels: 1,
+        let view = ImageView::grey(&grey, self.camera.camera());
+        // The right image with every `right_every`-th frame, as the node publishes it.
+        let right = if right_due(self.right_every, self.seq) {
+            self.camera.right_frame(&camera_t_trocar, self.noise_sigma, noise_seed)
+        } else {
+            None
+        };
+        let right_view = match (&right, self.camera.right_camera()) {
+            (Some(g), Some(c)) => Some(ImageView::grey(g, c)),
+            _ => None,
         };
         // The estimator pairs the frame with the joints the arm reports at its stamp.
         let base_t_camera = self.flange.fk(at.q).ok()? * self.filter.flange_t_camera();
@@ -176,6 +195,7 @@ impl CameraPoseSource {
             &mut self.estimator,
             &mut self.filter,
             &view,
+            right_view.as_ref(),
             t,
             &base_t_camera,
             &self.markerless,
@@ -215,7 +235,7 @@ mod tests {
 
     fn setup() -> CameraSetup {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml");
-        CameraSetup::shipped(CameraModel::from_yaml_file(&path).unwrap())
+        CameraSetup::shipped(CameraModel::from_yaml_file(&path).unwrap(), None)
     }
 
     fn config() -> SimConfig {

@@ -33,6 +33,17 @@ impl<'a> ImageView<'a> {
         Ok(v)
     }
 
+    /// A grey view of `data` with the size of `camera`'s images (unchecked: the renderers
+    /// of that camera make buffers of its size; [`ImageView::validate`] checks).
+    pub fn grey(data: &'a [u8], camera: &super::CameraModel) -> Self {
+        Self {
+            data,
+            width: camera.width,
+            height: camera.height,
+            channels: 1,
+        }
+    }
+
     /// Check size, channels and buffer length.
     pub fn validate(&self) -> Result<(), VisionError> {
         if self.width == 0 || self.height == 0 {

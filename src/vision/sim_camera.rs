@@ -46,6 +46,54 @@ pub struct SimCameraParams {
     /// Without the marker: the wall's radiance is traced every this many pixels and
     /// interpolated (1 = every pixel; the trocar and every edge are always per pixel).
     pub wall_step_px: usize,
+    /// Without the marker: the ROS camera calibration YAML of the stereo pair's right camera
+    /// (a rectified pair: its projection's `Tx` gives the baseline); '' = a mono camera.
+    pub right_calibration_file: String,
+    /// With a right camera: its image is rendered with every this many left frames (1 =
+    /// every frame, as a real stereo camera delivers it; more keeps the render time within
+    /// the frame period).
+    pub right_every: u64,
+}
+
+impl SimCameraParams {
+    /// The right camera of `right_calibration_file` (`None`: '', a mono camera). It must be
+    /// the right camera of a rectified pair: a baseline of 1 mm to 1 m.
+    pub fn right_camera(&self) -> Result<Option<CameraModel>, CameraSetupError> {
+        if self.right_calibration_file.is_empty() {
+            return Ok(None);
+        }
+        let err = |error| CameraSetupError {
+            key: "right_calibration_file",
+            error,
+        };
+        let m = CameraModel::from_yaml_file(std::path::Path::new(&self.right_calibration_file)).map_err(err)?;
+        if !(1e-3..=1.0).contains(&m.baseline_m) {
+            return Err(err(VisionError::InvalidInput(format!(
+                "{}: baseline {:.1} mm (projection Tx = -fx * baseline): a right camera needs 1 mm to 1 m",
+                self.right_calibration_file,
+                m.baseline_m * 1e3 + 0.0
+            ))));
+        }
+        if self.right_every == 0 {
+            return Err(CameraSetupError {
+                key: "right_every",
+                error: VisionError::InvalidInput("right_every must be at least 1".into()),
+            });
+        }
+        Ok(Some(m))
+    }
+
+    /// Whether frame number `seq` (from 1) of a stereo camera comes with a right image
+    /// ([`right_due`] of `right_every`).
+    pub fn right_due(&self, seq: u64) -> bool {
+        right_due(self.right_every, seq)
+    }
+}
+
+/// Whether frame number `seq` (from 1) of a stereo camera that renders its right image with
+/// every `right_every`-th frame comes with one: the first, then every `right_every`-th.
+pub fn right_due(right_every: u64, seq: u64) -> bool {
+    seq.saturating_sub(1).is_multiple_of(right_every.max(1))
 }
 
 crate::shipped_defaults!(
@@ -79,9 +127,11 @@ pub fn blank_frame(model: &CameraModel) -> Vec<u8> {
 }
 
 /// The trocar without a marker as the simulated camera renders it: the renderer of one
-/// camera, the trocar model and the scene drawn once from a seed.
+/// camera (and of the right camera of a stereo pair), the trocar model and the scene drawn
+/// once from a seed.
 pub struct TrocarCamera {
     renderer: TrocarRenderer,
+    right: Option<TrocarRenderer>,
     model: TrocarModel,
     scene: Scene,
 }
@@ -90,8 +140,14 @@ impl TrocarCamera {
     /// The scene of the camera parameters `c` for a camera `model`: the trocar of
     /// `c.trocar_model_file`, lighting, materials and the wall drawn once from `seed`, the
     /// blur of `c.blur_sigma_px`, the wall traced every `c.wall_step_px` (the pixel noise is
-    /// added per frame, [`TrocarCamera::add_noise`]).
-    pub fn new(c: &SimCameraParams, seed: u64, model: &CameraModel) -> Result<Self, CameraSetupError> {
+    /// added per frame, [`TrocarCamera::add_noise`]); `right`: the right camera of a stereo
+    /// pair ([`SimCameraParams::right_camera`]), which sees the same scene.
+    pub fn new(
+        c: &SimCameraParams,
+        seed: u64,
+        model: &CameraModel,
+        right: Option<&CameraModel>,
+    ) -> Result<Self, CameraSetupError> {
         let trocar = if c.trocar_model_file.is_empty() {
             TrocarModel::shipped()
         } else {
@@ -108,8 +164,19 @@ impl TrocarCamera {
             key: "calibration_file",
             error,
         })?;
+        let right = right
+            .map(|m| {
+                TrocarRenderer::new(m)
+                    .map(|r| r.with_wall_step(c.wall_step_px))
+                    .map_err(|error| CameraSetupError {
+                        key: "right_calibration_file",
+                        error,
+                    })
+            })
+            .transpose()?;
         Ok(Self {
             renderer: renderer.with_wall_step(c.wall_step_px),
+            right,
             model: trocar,
             scene,
         })
@@ -118,6 +185,11 @@ impl TrocarCamera {
     /// The camera it renders for.
     pub fn camera(&self) -> &CameraModel {
         self.renderer.camera()
+    }
+
+    /// The right camera of the stereo pair, if it has one.
+    pub fn right_camera(&self) -> Option<&CameraModel> {
+        self.right.as_ref().map(TrocarRenderer::camera)
     }
 
     /// The grey image of the port at `camera_t_trocar`, without noise.
@@ -142,5 +214,137 @@ impl TrocarCamera {
             .unwrap_or_else(|_| blank_frame(self.camera()));
         Self::add_noise(&mut grey, sigma, noise_seed);
         grey
+    }
+
+    /// The right camera's image of the port at `camera_t_trocar` (the left camera's view),
+    /// without noise; `None` for a mono camera.
+    pub fn render_right(&self, camera_t_trocar: &Isometry3<f64>) -> Option<Result<Vec<u8>, VisionError>> {
+        let r = self.right.as_ref()?;
+        let right_t_trocar = r.camera().stereo_right_t_left() * camera_t_trocar;
+        Some(r.render(&self.model, &right_t_trocar, &self.scene).map(|g| g.data))
+    }
+
+    /// The right camera's frame captured with the left frame [`TrocarCamera::frame`] of the
+    /// same arguments (its own pixel noise); `None` for a mono camera.
+    pub fn right_frame(&self, camera_t_trocar: &Isometry3<f64>, sigma: f64, noise_seed: u64) -> Option<Vec<u8>> {
+        let r = self.right.as_ref()?;
+        let mut grey = self
+            .render_right(camera_t_trocar)?
+            .unwrap_or_else(|_| blank_frame(r.camera()));
+        Self::add_noise(&mut grey, sigma, right_noise_seed(noise_seed));
+        Some(grey)
+    }
+}
+
+/// The right image's noise seed of the left frame's `noise_seed` (independent noise).
+pub fn right_noise_seed(noise_seed: u64) -> u64 {
+    noise_seed ^ 0xA5A5_5A5A_C3C3_3C3C
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::vision::markerless::MarkerlessEstimator;
+    use crate::vision::ImageView;
+    use nalgebra::{UnitQuaternion, Vector3};
+
+    fn config(file: &str) -> String {
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("config")
+            .join(file)
+            .to_string_lossy()
+            .into_owned()
+    }
+
+    fn stereo() -> SimCameraParams {
+        SimCameraParams {
+            right_calibration_file: config("camera_zedm_right.yaml"),
+            ..SimCameraParams::default()
+        }
+    }
+
+    #[test]
+    fn the_right_camera_is_read_with_its_baseline_and_a_mono_or_bad_one_is_refused() {
+        // '' (the shipped value): a mono camera.
+        assert!(SimCameraParams::default().right_camera().unwrap().is_none());
+        let r = stereo().right_camera().unwrap().unwrap();
+        assert!((r.baseline_m - 0.063).abs() < 1e-9, "{}", r.baseline_m);
+        // The left calibration has no baseline: not a right camera.
+        let mono = SimCameraParams {
+            right_calibration_file: config("camera_zedm.yaml"),
+            ..stereo()
+        };
+        let e = mono.right_camera().unwrap_err().to_string();
+        assert!(
+            e.contains("camera.right_calibration_file") && e.contains("baseline 0.0 mm"),
+            "{e}"
+        );
+        let missing = SimCameraParams {
+            right_calibration_file: "/nonexistent/right.yaml".into(),
+            ..stereo()
+        };
+        assert!(missing
+            .right_camera()
+            .unwrap_err()
+            .to_string()
+            .contains("right_calibration_file"));
+        let never = SimCameraParams {
+            right_every: 0,
+            ..stereo()
+        };
+        assert!(never
+            .right_camera()
+            .unwrap_err()
+            .to_string()
+            .contains("camera.right_every"));
+    }
+
+    #[test]
+    fn the_right_image_comes_with_the_first_frame_then_every_right_every_th() {
+        let due = |every: u64| (1..=7).filter(|&s| right_due(every, s)).collect::<Vec<u64>>();
+        assert_eq!(due(1), vec![1, 2, 3, 4, 5, 6, 7]);
+        assert_eq!(due(3), vec![1, 4, 7]);
+        assert_eq!(due(0), due(1), "0 is refused at set-up; the schedule treats it as 1");
+        assert!(
+            stereo().right_due(1)
+                && !SimCameraParams {
+                    right_every: 2,
+                    ..stereo()
+                }
+                .right_due(2)
+        );
+    }
+
+    #[test]
+    fn the_right_image_shows_the_trocar_where_the_right_camera_sees_it() {
+        let c = stereo();
+        let left = CameraModel::from_yaml_file(std::path::Path::new(&config("camera_zedm.yaml"))).unwrap();
+        let right = c.right_camera().unwrap().unwrap();
+        let cam = TrocarCamera::new(&c, 3, &left, Some(&right)).unwrap();
+        let mono = TrocarCamera::new(&c, 3, &left, None).unwrap();
+        assert!(mono.right_camera().is_none() && mono.right_frame(&Isometry3::identity(), 2.0, 1).is_none());
+        // The port 0.25 m ahead, its axis tilted 20 deg, 1 cm left of the optical axis.
+        let camera_t_trocar = Isometry3::from_parts(
+            nalgebra::Translation3::new(-0.01, 0.005, 0.25),
+            UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 20f64.to_radians()),
+        );
+        let l = cam.frame(&camera_t_trocar, 2.0, 7);
+        let r = cam.right_frame(&camera_t_trocar, 2.0, 7).unwrap();
+        assert_eq!(r.len(), l.len());
+        assert_ne!(l, r);
+        // Found by an estimator of the right camera alone, the port sits where the right
+        // camera sees it (63 mm to the left in its frame), the axis as the left sees it.
+        let model = TrocarModel::shipped();
+        let mut est = MarkerlessEstimator::new(&right, &model).unwrap();
+        let truth = right.stereo_right_t_left() * camera_t_trocar;
+        let z = truth.rotation * Vector3::z();
+        let e = est
+            .estimate(&ImageView::grey(&r, &right), Some(&nalgebra::Unit::new_normalize(z)))
+            .unwrap()
+            .unwrap();
+        let dp = (e.axis.point - truth.translation.vector).norm();
+        assert!(dp < 3e-3, "{dp} m");
+        assert!(e.axis.direction.angle(&z) < 2f64.to_radians());
+        assert!((truth.translation.x - camera_t_trocar.translation.x + 0.063).abs() < 1e-12);
     }
 }

@@ -118,6 +118,13 @@ struct RightEye {
     right_t_left: Isometry3<f64>,
 }
 
+impl RightEye {
+    /// The right camera's centre in the left camera's frame.
+    fn origin_in_left(&self) -> Vector3<f64> {
+        self.right_t_left.inverse().translation.vector
+    }
+}
+
 /// The two circle poses of one ellipse, each refined on the image (those that found the
 /// opening), and whether they were within 3 deg of each other from the start (`harmless`).
 struct Candidate {
@@ -199,8 +206,9 @@ impl MarkerlessEstimator {
     /// [`MarkerlessEstimate`] of the left `image` with the right camera's image `right`
     /// captured with it (ignored without a right camera): where the left image admits two
     /// poses, the one the right image admits too is kept, whatever the prior and the outline
-    /// say; where the right image cannot tell (no opening found there, or no pose of its
-    /// within 4 deg of either), the left image's decision stands.
+    /// say, and the port centre is where the two eyes' lines of sight to it cross
+    /// ([`triangulate`]); where the right image cannot tell (no opening found there, or no
+    /// pose of its within 4 deg of either), the left image's estimate stands.
     pub fn estimate_stereo(
         &mut self,
         image: &ImageView,
@@ -211,16 +219,16 @@ impl MarkerlessEstimator {
         let recs = ellipses(&mut self.left, &self.model)?;
         let cands = self.candidates(&self.left, &recs)?;
         let right = right.filter(|_| self.right.is_some());
-        // The right image's poses (left frame), looked at only when some ellipse is ambiguous.
+        // The right image's poses (left frame), looked at once some ellipse gave a pose.
         let mut seen_right: Option<Vec<Axis>> = None;
         let mut best: Option<MarkerlessEstimate> = None;
         for c in &cands {
-            let stereo = match right {
-                Some(img) if !c.harmless && !c.hyps.is_empty() => {
+            let stereo = match (right, self.right.as_ref().map(RightEye::origin_in_left)) {
+                (Some(img), Some(origin)) if !c.hyps.is_empty() => {
                     if seen_right.is_none() {
                         seen_right = Some(self.right_poses(img)?);
                     }
-                    seen_right.as_deref().and_then(|r| stereo_choice(&c.hyps, r))
+                    stereo_choice(&c.hyps, seen_right.as_deref().unwrap_or_default(), &origin)
                 }
                 _ => None,
             };
@@ -285,20 +293,23 @@ impl MarkerlessEstimator {
     /// nor keep every frame below the confidence gate, where the estimator's outlier gate
     /// would never see them and the track could never be re-initialised.
     /// `harmless`: the two circle poses were within 3 deg of each other before refinement.
-    /// `stereo`: the hypothesis the right camera's image agrees with and the margin it gives
-    /// ([`stereo_choice`]); it decides, before the prior and the outline.
+    /// `stereo`: the hypothesis the right camera's image agrees with, the margin it gives and
+    /// the triangulated port centre ([`stereo_choice`]); it decides, before the prior and the
+    /// outline.
     fn decide(
         &self,
         hyps: &[Hypothesis],
         prior: Option<&Unit<Vector3<f64>>>,
         harmless: bool,
-        stereo: Option<(usize, f64)>,
+        stereo: Option<StereoChoice>,
     ) -> Option<MarkerlessEstimate> {
-        if let Some((i, margin)) = stereo {
-            let h = hyps.get(i)?;
-            let other = hyps.iter().enumerate().find(|(k, _)| *k != i).map(|(_, o)| o);
+        if let Some(StereoChoice { index, margin, point }) = stereo {
+            let h = hyps.get(index)?;
+            let other = hyps.iter().enumerate().find(|(k, _)| *k != index).map(|(_, o)| o);
             // With one pose left after refinement the right image confirms it: margin as given.
-            return Some(grade(h, other.or(Some(h)), harmless, |_, _| margin));
+            let mut e = grade(h, other.or(Some(h)), harmless, |_, _| margin);
+            e.axis.point = point;
+            return Some(e);
         }
         let mut by_score: Vec<Hypothesis> = hyps.to_vec();
         by_score.sort_by(|a, b| b.score.total_cmp(&a.score));
@@ -600,19 +611,21 @@ fn ellipses(eye: &mut Eye, model: &TrocarModel) -> Result<Vec<f64>, VisionError>
 /// [`STEREO_AGREE_DEG`] of one, by how much more the other disagrees over
 /// [`STEREO_MARGIN_DEG`] (1 when the other has no right pose near it). `None`: the right
 /// image cannot tell (no right pose of this opening, or none agrees).
-fn stereo_choice(hyps: &[Hypothesis], right: &[Axis]) -> Option<(usize, f64)> {
+/// `right_origin`: the right camera's centre in the left frame. With the choice comes the
+/// port centre triangulated from the two eyes ([`triangulate`]).
+fn stereo_choice(hyps: &[Hypothesis], right: &[Axis], right_origin: &Vector3<f64>) -> Option<StereoChoice> {
     let disagreement = |h: &Hypothesis| {
         right
             .iter()
             .filter(|r| (r.point - h.axis.point).norm() <= 0.01 + 0.05 * h.axis.point.norm())
-            .map(|r| r.direction.angle(&h.axis.direction).to_degrees())
-            .min_by(f64::total_cmp)
+            .map(|r| (r.direction.angle(&h.axis.direction).to_degrees(), r.point))
+            .min_by(|a, b| a.0.total_cmp(&b.0))
     };
-    let d: Vec<Option<f64>> = hyps.iter().map(disagreement).collect();
-    let (best, db) = d
+    let d: Vec<Option<(f64, Vector3<f64>)>> = hyps.iter().map(disagreement).collect();
+    let (best, db, right_point) = d
         .iter()
         .enumerate()
-        .filter_map(|(i, x)| x.map(|x| (i, x)))
+        .filter_map(|(i, x)| x.map(|(a, p)| (i, a, p)))
         .min_by(|a, b| a.1.total_cmp(&b.1))?;
     if db > STEREO_AGREE_DEG {
         return None;
@@ -621,9 +634,49 @@ fn stereo_choice(hyps: &[Hypothesis], right: &[Axis]) -> Option<(usize, f64)> {
         .iter()
         .enumerate()
         .filter(|(i, _)| *i != best)
-        .map(|(_, x)| x.unwrap_or(f64::INFINITY))
+        .map(|(_, x)| x.map_or(f64::INFINITY, |x| x.0))
         .fold(f64::INFINITY, f64::min);
-    Some((best, ((other - db) / STEREO_MARGIN_DEG).clamp(0.0, 1.0)))
+    let left_point = hyps[best].axis.point;
+    Some(StereoChoice {
+        index: best,
+        margin: ((other - db) / STEREO_MARGIN_DEG).clamp(0.0, 1.0),
+        point: triangulate(&left_point, right_origin, &right_point).unwrap_or(left_point),
+    })
+}
+
+/// The hypothesis the right image agrees with ([`stereo_choice`]).
+#[derive(Debug, Clone, Copy)]
+struct StereoChoice {
+    /// Its index among the left image's hypotheses.
+    index: usize,
+    /// How much more the other hypothesis disagrees with the right image (0-1).
+    margin: f64,
+    /// The port centre triangulated from the two eyes (left frame).
+    point: Vector3<f64>,
+}
+
+/// The port centre seen from the two eyes: the midpoint of the shortest segment between the
+/// left camera's ray through its estimate `left` (left frame, from the origin) and the right
+/// camera's ray from `right_origin` through its estimate `right` (left frame). Each eye's
+/// circle pose puts the centre on its line of sight well (the ellipse's position) but its
+/// distance along it from the ellipse's size, where a fraction of a pixel is millimetres;
+/// the two lines of sight cross at the centre whatever each distance. `None`: the rays are
+/// (near) parallel, or the crossing is not in front of both cameras, or it lies more than
+/// 10 mm + 5 % of the distance from `left` (the rays do not meet near the estimates).
+pub fn triangulate(left: &Vector3<f64>, right_origin: &Vector3<f64>, right: &Vector3<f64>) -> Option<Vector3<f64>> {
+    let (d1, d2) = (left.try_normalize(1e-12)?, (right - right_origin).try_normalize(1e-12)?);
+    let w0 = -right_origin;
+    let (b, d, e) = (d1.dot(&d2), d1.dot(&w0), d2.dot(&w0));
+    let denom = 1.0 - b * b;
+    if denom < 1e-6 {
+        return None;
+    }
+    let (t1, t2) = ((b * e - d) / denom, (e - b * d) / denom);
+    if t1 <= 0.0 || t2 <= 0.0 {
+        return None;
+    }
+    let p = 0.5 * (t1 * d1 + right_origin + t2 * d2);
+    ((p - left).norm() <= 0.01 + 0.05 * left.norm() && p.iter().all(|v| v.is_finite())).then_some(p)
 }
 
 /// Grade hypothesis `h` against the other one `o` (if any): edge support x fit x ambiguity
@@ -649,5 +702,31 @@ fn grade(
         edge_support: h.support,
         opening_support: h.opening_support,
         ambiguity_margin: margin,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn two_lines_of_sight_meet_at_the_port_whatever_each_eyes_distance_error() {
+        let port = Vector3::new(0.02, -0.01, 0.3);
+        let right_origin = Vector3::new(0.063, 0.0, 0.0);
+        // Each eye's estimate on its own line of sight, 1 % too deep and 1 % too near (3 mm).
+        let left = 1.01 * port;
+        let right = right_origin + 0.99 * (port - right_origin);
+        let p = triangulate(&left, &right_origin, &right).unwrap();
+        assert!((p - port).norm() < 1e-9, "{:?}", p - port);
+        // Lines of sight 0.1 mm apart at the port (an image error): the midpoint, within it.
+        let skew = right + Vector3::new(0.0, 1e-4, 0.0);
+        assert!((triangulate(&left, &right_origin, &skew).unwrap() - port).norm() < 1e-4);
+        // Parallel lines of sight, a crossing behind the cameras, or one far from the
+        // estimates: none.
+        assert!(triangulate(&left, &right_origin, &(right_origin + left)).is_none());
+        assert!(triangulate(&left, &right_origin, &(right_origin - 0.5 * (port - right_origin))).is_none());
+        let far = right_origin + 0.9 * (Vector3::new(0.05, -0.01, 0.3) - right_origin);
+        assert!(triangulate(&left, &right_origin, &far).is_none());
+        assert!(triangulate(&Vector3::zeros(), &right_origin, &right).is_none());
     }
 }

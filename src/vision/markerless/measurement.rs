@@ -194,15 +194,17 @@ pub struct Tracked {
     pub pose: Option<Isometry3<f64>>,
 }
 
-/// One frame `view`, captured at `stamp` from a camera at `base_t_camera`, through the
-/// markerless estimate into the trocar estimator `filter`: the filter's estimate carried
-/// into the camera as the prior ([`prior_direction`]), the estimate, the confidence gate
+/// One frame `view`, captured at `stamp` from a camera at `base_t_camera` (with `right`, the
+/// stereo pair's right image captured with it, if any), through the markerless estimate into
+/// the trocar estimator `filter`: the filter's estimate carried into the camera as the prior
+/// ([`prior_direction`]), the estimate ([`MarkerlessEstimator::estimate_stereo`]), the confidence gate
 /// ([`accept`]), then the filter's outlier gate and update ([`TrocarEstimator::fuse`]).
 /// `Err`: why the frame gives no measurement (the filter unchanged).
 pub fn track(
     estimator: &mut MarkerlessEstimator,
     filter: &mut TrocarEstimator,
     view: &ImageView,
+    right: Option<&ImageView>,
     stamp: f64,
     base_t_camera: &Isometry3<f64>,
     p: &MarkerlessParams,
@@ -210,7 +212,9 @@ pub fn track(
     let prior = filter
         .estimate(stamp)
         .map(|e| prior_direction(base_t_camera, &e.pose_base_trocar));
-    let e = estimator.estimate(view, prior.as_ref()).map_err(|e| e.to_string())?;
+    let e = estimator
+        .estimate_stereo(view, right, prior.as_ref())
+        .map_err(|e| e.to_string())?;
     let m = accept(e.as_ref(), base_t_camera, p)?;
     let status = filter.fuse(stamp, m.pose);
     let pose = match status {
