@@ -452,6 +452,9 @@ struct StereoRight {
 /// left image whose stamp is within this, s.
 const STEREO_MAX_SKEW_S: f64 = 1e-3;
 
+/// How long a left image waits for its right image before it is estimated mono.
+const STEREO_WAIT: Duration = Duration::from_millis(5);
+
 /// What the callbacks share: the joint history, the last camera model (and the right
 /// camera's), the latest right image, the pipeline.
 #[derive(Clone)]
@@ -613,12 +616,20 @@ fn subscribe_right_images(p: &EstimatorNodeParams, shared: &Shared) -> Result<ro
 }
 
 /// The right camera and the right image captured with the left image stamped `stamp` (taken
-/// from the slot); `None` without a right camera.
+/// from the slot, waiting up to [`STEREO_WAIT`] for it: the two images travel on their own
+/// connections, and the left one may come first); `None` without a right camera.
 fn stereo_right(shared: &Shared, stamp: rosrust::Time) -> Option<StereoRight> {
     let camera = lock(&shared.right_camera).clone()?;
     let t = convert::seconds(stamp);
-    let image =
-        lock(&shared.right_image).take_if(|r| (convert::seconds(r.header.stamp) - t).abs() <= STEREO_MAX_SKEW_S);
+    let deadline = Instant::now() + STEREO_WAIT;
+    let image = loop {
+        let image =
+            lock(&shared.right_image).take_if(|r| (convert::seconds(r.header.stamp) - t).abs() <= STEREO_MAX_SKEW_S);
+        if image.is_some() || Instant::now() >= deadline {
+            break image;
+        }
+        std::thread::sleep(Duration::from_micros(500));
+    };
     Some(StereoRight { camera, image })
 }
 
@@ -830,6 +841,35 @@ mod tests {
             };
             assert_eq!(p.stereo(), stereo, "{method} {right:?} {info:?}");
         }
+    }
+
+    #[test]
+    fn a_left_image_takes_the_right_image_of_its_stamp_or_goes_mono() {
+        let shared = Shared::new(&EstimatorNodeParams::default()).unwrap();
+        let stamp = rosrust::Time { sec: 100, nsec: 0 };
+        // No right camera known yet: mono.
+        assert!(stereo_right(&shared, stamp).is_none());
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm_right.yaml");
+        *lock(&shared.right_camera) = Some(CameraModel::from_yaml_file(&dir).unwrap());
+        let right_at = |sec: u32, nsec: u32| {
+            let mut img = sensor_msgs::Image::default();
+            img.header.stamp = rosrust::Time { sec, nsec };
+            img
+        };
+        // The right image of the same capture (stamps within 1 ms): taken, the slot emptied.
+        *lock(&shared.right_image) = Some(right_at(100, 500_000));
+        let r = stereo_right(&shared, stamp).unwrap();
+        assert!((r.camera.baseline_m - 0.063).abs() < 1e-9);
+        assert_eq!(r.image.unwrap().header.stamp.nsec, 500_000);
+        assert!(lock(&shared.right_image).is_none());
+        // One of another capture (a frame period away): left in the slot, the left image goes
+        // mono after waiting at most a few milliseconds for its own.
+        *lock(&shared.right_image) = Some(right_at(100, 66_000_000));
+        let t0 = Instant::now();
+        let r = stereo_right(&shared, stamp).unwrap();
+        let waited = t0.elapsed();
+        assert!(r.image.is_none() && lock(&shared.right_image).is_some());
+        assert!(waited >= STEREO_WAIT && waited < STEREO_WAIT * 10, "{waited:?}");
     }
 
     #[test]

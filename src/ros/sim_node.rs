@@ -233,15 +233,18 @@ impl CameraOutput {
         for job in jobs {
             // Out of view or behind the camera: the camera still delivers a (blank) frame.
             let t0 = Instant::now();
-            let mut grey = pool
-                .install(|| scene.render(model, &job.camera_t_trocar))
-                .unwrap_or_else(|_| blank_frame(model));
-            // The right image of a stereo scene with every `right_every`-th frame.
-            let right = match (&self.right, scene) {
+            let left = || {
+                scene
+                    .render(model, &job.camera_t_trocar)
+                    .unwrap_or_else(|_| blank_frame(model))
+            };
+            // The right image of a stereo scene with every `right_every`-th frame, rendered
+            // beside the left one (the pool has a thread per camera).
+            let (mut grey, right) = match (&self.right, scene) {
                 (Some(_), SimScene::Trocar(camera)) if c.right_due(job.seq) => {
-                    pool.install(|| camera.right_frame(&job.camera_t_trocar, noise, job.seq))
+                    pool.install(|| rayon::join(left, || camera.right_frame(&job.camera_t_trocar, noise, job.seq)))
                 }
-                _ => None,
+                _ => (pool.install(left), None),
             };
             render_ms.latency(t0.elapsed().as_secs_f64() * 1e3);
             if job.seq % 150 == 0 {
@@ -327,11 +330,11 @@ impl SimCamera {
         // A rendezvous channel: a frame is only taken when the renderer is free.
         let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(0);
         let (c, noise) = (c.clone(), c.noise_sigma);
-        // The markerless renderer runs on rayon: one thread of its own, niced (as is the
-        // camera thread then), so the physics and the FRI topics keep their core (a real
+        // The markerless renderer runs on rayon: a thread of its own per camera (the stereo
+        // pair's two images render side by side), niced (as is the camera thread then), so the physics and the FRI topics keep their core (a real
         // camera does not slow the arm down). The marker's renderer is one C++ call.
         let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(1)
+            .num_threads(if scene.right_camera().is_some() { 2 } else { 1 })
             .start_handler(|_| lower_priority())
             .build()
             .map_err(|e| NodeError::Invalid(format!("camera thread pool: {e}")))?;
