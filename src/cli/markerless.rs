@@ -51,6 +51,11 @@ pub struct RenderTrocarArgs {
     /// Camera-to-port distances of the sequence, far,near (m).
     #[arg(long, value_delimiter = ',', default_value = "0.4,0.1")]
     pub range: Vec<f64>,
+    /// With --sequence: also render the stereo pair's right camera (the calibration of a
+    /// rectified pair's right camera, e.g. config/camera_zedm_right.yaml) into OUT/right/,
+    /// the same scene seen from the baseline to the right.
+    #[arg(long)]
+    pub right_camera: Option<PathBuf>,
 }
 
 /// Arguments of `trocar-pose`.
@@ -72,6 +77,21 @@ pub struct TrocarPoseArgs {
     /// One JSON object per image and line (else text).
     #[arg(long)]
     pub json: bool,
+    /// The stereo pair's right camera (a rectified pair's right calibration); with
+    /// --right-images, its image decides between the two poses and triangulates the port.
+    #[arg(long, requires = "right_images")]
+    pub right_camera: Option<PathBuf>,
+    /// Folder of the right camera's images, paired with --images in name order (as many).
+    #[arg(long, requires = "right_camera")]
+    pub right_images: Option<PathBuf>,
+}
+
+/// The right camera of a stereo pair from its calibration YAML (a baseline of 1 mm to 1 m).
+fn stereo_right_camera(path: &Path) -> Result<CameraModel, String> {
+    let m = CameraModel::from_yaml_file(path).map_err(|e| format!("--right-camera {}: {e}", path.display()))?;
+    m.check_stereo_right()
+        .map_err(|e| format!("--right-camera {}: {e}", path.display()))?;
+    Ok(m)
 }
 
 /// A pose from x,y,z,qx,qy,qz,qw.
@@ -148,6 +168,15 @@ pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
         let mount = read_mount(&a.mount)?;
         let poses = docking_approach(&mount, a.range[0], a.range[1], n, a.seed)?;
         std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: {e}", a.out.display()))?;
+        let right = match &a.right_camera {
+            Some(path) => {
+                let m = stereo_right_camera(path)?;
+                let dir = a.out.join("right");
+                std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+                Some((TrocarRenderer::new(&m)?, m.stereo_right_t_left(), dir))
+            }
+            None => None,
+        };
         let mut frames = vec![];
         for (k, p) in poses.iter().enumerate() {
             let seed = a.seed.wrapping_mul(1_000_003).wrapping_add(k as u64);
@@ -155,6 +184,9 @@ pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
             let img = renderer.render(&model, p, &scene)?;
             let name = format!("frame_{k:04}.png");
             img.write(&a.out.join(&name))?;
+            if let Some((r, right_t_left, dir)) = &right {
+                r.render(&model, &(right_t_left * p), &scene)?.write(&dir.join(&name))?;
+            }
             let mut t = truth_json(p);
             t["image"] = name.into();
             t["distance_m"] = p.translation.vector.norm().into();
@@ -205,6 +237,25 @@ fn image_files(dir: &Path) -> Result<Vec<PathBuf>, String> {
     Ok(v)
 }
 
+/// The right camera of `--right-camera` and the images of `--right-images`, as many as the
+/// left images (`n`); `None` without them.
+fn stereo_pair(a: &TrocarPoseArgs, n: usize) -> Result<Option<(CameraModel, Vec<PathBuf>)>, String> {
+    let (Some(cam), Some(dir)) = (&a.right_camera, &a.right_images) else {
+        return Ok(None);
+    };
+    let m = stereo_right_camera(cam)?;
+    let r = image_files(dir)?;
+    if r.len() != n {
+        return Err(format!(
+            "--right-images {} has {} images, --images {} has {n}: they pair in name order",
+            dir.display(),
+            r.len(),
+            a.images.display(),
+        ));
+    }
+    Ok(Some((m, r)))
+}
+
 /// Run `trocar-pose`.
 pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
     let camera = CameraModel::from_yaml_file(&a.camera)?;
@@ -217,14 +268,29 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
     };
     let files = image_files(&a.images)?;
     let mut est = MarkerlessEstimator::new(&camera, &model)?;
+    let right_files = match stereo_pair(a, files.len())? {
+        Some((m, r)) => {
+            est = est.with_right_camera(&m, &m.stereo_right_t_left())?;
+            Some(r)
+        }
+        None => None,
+    };
     let mut failures = 0usize;
-    for f in &files {
+    for (k, f) in files.iter().enumerate() {
         let name = f
             .file_name()
             .map(|n| n.to_string_lossy().into_owned())
             .unwrap_or_default();
         let t0 = std::time::Instant::now();
-        let result = GreyImage::read(f).and_then(|img| est.estimate(&img.view(), prior.as_ref()));
+        let right = right_files.as_ref().map(|r| GreyImage::read(&r[k])).transpose();
+        let result = right.and_then(|right| {
+            let img = GreyImage::read(f)?;
+            est.estimate_stereo(
+                &img.view(),
+                right.as_ref().map(GreyImage::view).as_ref(),
+                prior.as_ref(),
+            )
+        });
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let v = match result {
             Ok(Some(e)) => serde_json::json!({

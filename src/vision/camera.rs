@@ -162,6 +162,18 @@ impl CameraModel {
         self.validate()
     }
 
+    /// Check that this model can be the right camera of a rectified stereo pair: a
+    /// baseline of 1 mm to 1 m (from its projection's `Tx = -fx * baseline`).
+    pub fn check_stereo_right(&self) -> Result<(), VisionError> {
+        if (1e-3..=1.0).contains(&self.baseline_m) {
+            return Ok(());
+        }
+        Err(VisionError::InvalidInput(format!(
+            "baseline {:.1} mm (projection Tx = -fx * baseline): a right camera needs 1 mm to 1 m",
+            self.baseline_m * 1e3 + 0.0
+        )))
+    }
+
     /// Where the right camera of a rectified stereo pair (this model, with its
     /// [`CameraModel::baseline_m`]) sees the left camera's points: a translation by minus the
     /// baseline along x.

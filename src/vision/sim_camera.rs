@@ -67,13 +67,13 @@ impl SimCameraParams {
             error,
         };
         let m = CameraModel::from_yaml_file(std::path::Path::new(&self.right_calibration_file)).map_err(err)?;
-        if !(1e-3..=1.0).contains(&m.baseline_m) {
-            return Err(err(VisionError::InvalidInput(format!(
-                "{}: baseline {:.1} mm (projection Tx = -fx * baseline): a right camera needs 1 mm to 1 m",
-                self.right_calibration_file,
-                m.baseline_m * 1e3 + 0.0
-            ))));
-        }
+        m.check_stereo_right().map_err(|e| match e {
+            VisionError::InvalidInput(why) => err(VisionError::InvalidInput(format!(
+                "{}: {why}",
+                self.right_calibration_file
+            ))),
+            other => err(other),
+        })?;
         if self.right_every == 0 {
             return Err(CameraSetupError {
                 key: "right_every",
