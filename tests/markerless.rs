@@ -8,7 +8,7 @@ use trocar_docking::stats::finite_quantile;
 use trocar_docking::vision::markerless::approach::docking_approach;
 use trocar_docking::vision::markerless::render::ToolCylinder;
 use trocar_docking::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer, HIGH_CONFIDENCE};
-use trocar_docking::vision::CameraModel;
+use trocar_docking::vision::{CameraModel, GreyImage};
 
 fn camera() -> CameraModel {
     CameraModel::from_yaml_file(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml")).unwrap()
@@ -499,64 +499,45 @@ fn the_outline_overrides_a_prior_it_contradicts() {
 #[test]
 fn the_right_image_resolves_the_two_fold_ambiguity_without_a_prior() {
     let (left, right) = (camera(), right_camera());
-    let right_t_left = right.stereo_right_t_left();
     assert!((right.baseline_m - 0.063).abs() < 1e-4, "{}", right.baseline_m);
-    let (rl, rr) = (
-        TrocarRenderer::new(&left).unwrap(),
-        TrocarRenderer::new(&right).unwrap(),
-    );
-    let model = TrocarModel::shipped();
-    let mut mono = MarkerlessEstimator::new(&left, &model).unwrap();
-    let mut stereo = MarkerlessEstimator::new(&left, &model)
-        .unwrap()
-        .with_right_camera(&right, &right_t_left)
-        .unwrap();
+    let mut rig = stereo_rig();
     // A pair calibrated the wrong way round (the right camera on the left): its poses land
     // 126 mm from the left's, so it cannot tell, and the left image decides alone.
-    let mut swapped = MarkerlessEstimator::new(&left, &model)
+    let mut swapped = MarkerlessEstimator::new(&left, &TrocarModel::shipped())
         .unwrap()
-        .with_right_camera(&right, &right_t_left.inverse())
+        .with_right_camera(&right, &rig.right_t_left.inverse())
         .unwrap();
     let (mut n, mut mono_ok, mut stereo_ok, mut worst) = (0, 0, 0, 0.0f64);
-    for seed in 0..4u64 {
-        for (k, camera_t_port) in docking_approach(&mount(), 0.4, 0.3, 6, 40 + seed)
-            .unwrap()
-            .iter()
-            .enumerate()
-        {
-            let scene = Scene::random(40_000 + 100 * seed + k as u64, 2.0);
-            let li = rl.render(&model, camera_t_port, &scene).unwrap();
-            let ri = rr.render(&model, &(right_t_left * camera_t_port), &scene).unwrap();
-            let dir = camera_t_port.rotation * Vector3::z();
-            let grade = |e: Option<trocar_docking::vision::markerless::MarkerlessEstimate>| {
-                e.map_or((0.0, 90.0, 1e3), |e| {
-                    (
-                        e.confidence,
-                        e.axis.direction.angle(&dir).to_degrees(),
-                        (e.axis.point - camera_t_port.translation.vector).norm() * 1e3,
-                    )
-                })
-            };
-            let m = grade(mono.estimate(&li.view(), None).unwrap());
-            let s = grade(stereo.estimate_stereo(&li.view(), Some(&ri.view()), None).unwrap());
-            let w = grade(swapped.estimate_stereo(&li.view(), Some(&ri.view()), None).unwrap());
-            assert_eq!(w, m, "seed {seed} frame {k}: a miscalibrated pair changed the estimate");
-            eprintln!(
-                "seed {seed} frame {k}: mono conf {:.2} {:.2} deg {:.2} mm; stereo conf {:.2} {:.2} deg {:.2} mm",
-                m.0, m.1, m.2, s.0, s.1, s.2
+    for (seed, k, camera_t_port, li, ri) in &rig.pairs((0.4, 0.3, 6), 40) {
+        let dir = camera_t_port.rotation * Vector3::z();
+        let grade = |e: Option<trocar_docking::vision::markerless::MarkerlessEstimate>| {
+            e.map_or((0.0, 90.0, 1e3), |e| {
+                (
+                    e.confidence,
+                    e.axis.direction.angle(&dir).to_degrees(),
+                    (e.axis.point - camera_t_port.translation.vector).norm() * 1e3,
+                )
+            })
+        };
+        let m = grade(rig.mono.estimate(&li.view(), None).unwrap());
+        let s = grade(rig.stereo.estimate_stereo(&li.view(), Some(&ri.view()), None).unwrap());
+        let w = grade(swapped.estimate_stereo(&li.view(), Some(&ri.view()), None).unwrap());
+        assert_eq!(w, m, "seed {seed} frame {k}: a miscalibrated pair changed the estimate");
+        eprintln!(
+            "seed {seed} frame {k}: mono conf {:.2} {:.2} deg {:.2} mm; stereo conf {:.2} {:.2} deg {:.2} mm",
+            m.0, m.1, m.2, s.0, s.1, s.2
+        );
+        n += 1;
+        mono_ok += usize::from(m.0 >= HIGH_CONFIDENCE);
+        stereo_ok += usize::from(s.0 >= HIGH_CONFIDENCE);
+        if s.0 >= HIGH_CONFIDENCE {
+            worst = worst.max(s.1);
+            assert!(
+                s.1 <= 5.0 && s.2 <= 10.0,
+                "seed {seed} frame {k}: {:.2} deg {:.2} mm",
+                s.1,
+                s.2
             );
-            n += 1;
-            mono_ok += usize::from(m.0 >= HIGH_CONFIDENCE);
-            stereo_ok += usize::from(s.0 >= HIGH_CONFIDENCE);
-            if s.0 >= HIGH_CONFIDENCE {
-                worst = worst.max(s.1);
-                assert!(
-                    s.1 <= 5.0 && s.2 <= 10.0,
-                    "seed {seed} frame {k}: {:.2} deg {:.2} mm",
-                    s.1,
-                    s.2
-                );
-            }
         }
     }
     // Measured: confident mono 11/24, stereo 22/24 (the other two carry confidence 0.07 and
@@ -575,9 +556,68 @@ fn the_right_image_resolves_the_two_fold_ambiguity_without_a_prior() {
         channels: 1,
     };
     let poses = docking_approach(&mount(), 0.4, 0.3, 2, 40).unwrap();
-    let li = rl.render(&model, &poses[0], &Scene::random(40_000, 2.0)).unwrap();
-    let e = stereo.estimate_stereo(&li.view(), Some(&small), None);
+    let li = rig
+        .rl
+        .render(&TrocarModel::shipped(), &poses[0], &Scene::random(40_000, 2.0))
+        .unwrap();
+    let e = rig.stereo.estimate_stereo(&li.view(), Some(&small), None);
     assert!(e.as_ref().is_err_and(|e| e.to_string().contains("zedm_right")), "{e:?}");
+}
+
+/// The ZED Mini's stereo pair with the shipped trocar: a renderer per camera, the right
+/// camera's view of the left's points, and a mono and a stereo estimator.
+struct StereoRig {
+    rl: TrocarRenderer,
+    rr: TrocarRenderer,
+    right_t_left: Isometry3<f64>,
+    mono: MarkerlessEstimator,
+    stereo: MarkerlessEstimator,
+}
+
+impl StereoRig {
+    /// Rendered pairs along four docking approaches (`(far, near, frames)` each, the approach
+    /// seeds `seed0 + 0..4`, the scenes `1000 * seed0 + 100 * approach + frame`, 2 grey
+    /// levels of noise): (approach, frame, camera_t_port, left image, right image).
+    fn pairs(
+        &self,
+        (far, near, frames): (f64, f64, usize),
+        seed0: u64,
+    ) -> Vec<(u64, usize, Isometry3<f64>, GreyImage, GreyImage)> {
+        let model = TrocarModel::shipped();
+        let mut out = vec![];
+        for seed in 0..4u64 {
+            for (k, camera_t_port) in docking_approach(&mount(), far, near, frames, seed0 + seed)
+                .unwrap()
+                .into_iter()
+                .enumerate()
+            {
+                let scene = Scene::random(1000 * seed0 + 100 * seed + k as u64, 2.0);
+                let li = self.rl.render(&model, &camera_t_port, &scene).unwrap();
+                let ri = self
+                    .rr
+                    .render(&model, &(self.right_t_left * camera_t_port), &scene)
+                    .unwrap();
+                out.push((seed, k, camera_t_port, li, ri));
+            }
+        }
+        out
+    }
+}
+
+fn stereo_rig() -> StereoRig {
+    let (left, right) = (camera(), right_camera());
+    let right_t_left = right.stereo_right_t_left();
+    let model = TrocarModel::shipped();
+    StereoRig {
+        rl: TrocarRenderer::new(&left).unwrap(),
+        rr: TrocarRenderer::new(&right).unwrap(),
+        right_t_left,
+        mono: MarkerlessEstimator::new(&left, &model).unwrap(),
+        stereo: MarkerlessEstimator::new(&left, &model)
+            .unwrap()
+            .with_right_camera(&right, &right_t_left)
+            .unwrap(),
+    }
 }
 
 fn right_camera() -> CameraModel {
@@ -592,49 +632,29 @@ fn right_camera() -> CameraModel {
 /// along the line of sight, mono against stereo.
 #[test]
 fn the_two_eyes_put_the_port_at_its_depth() {
-    let (left, right) = (camera(), right_camera());
-    let right_t_left = right.stereo_right_t_left();
-    let (rl, rr) = (
-        TrocarRenderer::new(&left).unwrap(),
-        TrocarRenderer::new(&right).unwrap(),
-    );
-    let model = TrocarModel::shipped();
-    let mut mono = MarkerlessEstimator::new(&left, &model).unwrap();
-    let mut stereo = MarkerlessEstimator::new(&left, &model)
-        .unwrap()
-        .with_right_camera(&right, &right_t_left)
-        .unwrap();
+    let mut rig = stereo_rig();
     let (mut dm, mut ds) = (vec![], vec![]);
-    for seed in 0..4u64 {
-        for (k, camera_t_port) in docking_approach(&mount(), 0.4, 0.15, 8, 60 + seed)
-            .unwrap()
-            .iter()
-            .enumerate()
-        {
-            let scene = Scene::random(60_000 + 100 * seed + k as u64, 2.0);
-            let li = rl.render(&model, camera_t_port, &scene).unwrap();
-            let ri = rr.render(&model, &(right_t_left * camera_t_port), &scene).unwrap();
-            let p = camera_t_port.translation.vector;
-            let prior = nalgebra::Unit::new_normalize(camera_t_port.rotation * Vector3::z());
-            let depth = |e: &trocar_docking::vision::markerless::MarkerlessEstimate| {
-                (e.axis.point - p).dot(&p.normalize()) * 1e3
-            };
-            let m = mono.estimate(&li.view(), Some(&prior)).unwrap();
-            let s = stereo
-                .estimate_stereo(&li.view(), Some(&ri.view()), Some(&prior))
-                .unwrap();
-            let (Some(m), Some(s)) = (m, s) else {
-                panic!("seed {seed} frame {k}: no estimate");
-            };
-            eprintln!(
-                "seed {seed} frame {k} at {:.3} m: depth error mono {:+.2} mm, stereo {:+.2} mm",
-                p.norm(),
-                depth(&m),
-                depth(&s)
-            );
-            dm.push(depth(&m).abs());
-            ds.push(depth(&s).abs());
-        }
+    for (seed, k, camera_t_port, li, ri) in &rig.pairs((0.4, 0.15, 8), 60) {
+        let p = camera_t_port.translation.vector;
+        let prior = nalgebra::Unit::new_normalize(camera_t_port.rotation * Vector3::z());
+        let depth =
+            |e: &trocar_docking::vision::markerless::MarkerlessEstimate| (e.axis.point - p).dot(&p.normalize()) * 1e3;
+        let m = rig.mono.estimate(&li.view(), Some(&prior)).unwrap();
+        let s = rig
+            .stereo
+            .estimate_stereo(&li.view(), Some(&ri.view()), Some(&prior))
+            .unwrap();
+        let (Some(m), Some(s)) = (m, s) else {
+            panic!("seed {seed} frame {k}: no estimate");
+        };
+        eprintln!(
+            "seed {seed} frame {k} at {:.3} m: depth error mono {:+.2} mm, stereo {:+.2} mm",
+            p.norm(),
+            depth(&m),
+            depth(&s)
+        );
+        dm.push(depth(&m).abs());
+        ds.push(depth(&s).abs());
     }
     let q = |v: &[f64], p: f64| finite_quantile(v, p);
     eprintln!(
