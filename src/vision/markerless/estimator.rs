@@ -219,16 +219,25 @@ impl MarkerlessEstimator {
         let recs = ellipses(&mut self.left, &self.model)?;
         let cands = self.candidates(&self.left, &recs)?;
         let right = right.filter(|_| self.right.is_some());
-        // The right image's poses (left frame), looked at once some ellipse gave a pose.
-        let mut seen_right: Option<Vec<Axis>> = None;
+        // The right image's candidates and poses (left frame), read once some ellipse gave a
+        // pose.
+        let mut seen_right: Option<(Vec<Candidate>, Vec<Axis>)> = None;
         let mut best: Option<MarkerlessEstimate> = None;
         for c in &cands {
             let stereo = match (right, self.right.as_ref().map(RightEye::origin_in_left)) {
                 (Some(img), Some(origin)) if !c.hyps.is_empty() => {
                     if seen_right.is_none() {
-                        seen_right = Some(self.right_poses(img)?);
+                        seen_right = Some(self.right_candidates(img)?);
                     }
-                    stereo_choice(&c.hyps, seen_right.as_deref().unwrap_or_default(), &origin)
+                    let r = seen_right.as_ref().map_or(&[][..], |r| &r.1);
+                    let choice = stereo_choice(&c.hyps, r, &origin);
+                    // The right image sees this opening but none of its poses agrees with
+                    // either of the left image's: one eye is off, and the left alone does not
+                    // decide (the right image's own estimate may, below).
+                    if choice.is_none() && same_opening(&c.hyps[0].axis.point, r) {
+                        continue;
+                    }
+                    choice
                 }
                 _ => None,
             };
@@ -239,27 +248,47 @@ impl MarkerlessEstimator {
                 best = Some(e);
             }
         }
+        // Where the left image gives no confident estimate (its refinements may both have
+        // settled on one wrong axis), the right image's own, carried into the left frame,
+        // stands if it is confident and its port is one the left image found too (the pair's
+        // calibration checked by the two images, not trusted).
+        let left_ports: Vec<Axis> = cands.iter().flat_map(|c| c.hyps.iter().map(|h| h.axis)).collect();
+        let seen_left = |p: &Vector3<f64>| same_opening(p, &left_ports);
+        let unsure = best.as_ref().is_none_or(|b| b.confidence < HIGH_CONFIDENCE);
+        if let Some(img) = right.filter(|_| unsure && !left_ports.is_empty()) {
+            if seen_right.is_none() {
+                seen_right = Some(self.right_candidates(img)?);
+            }
+            for c in seen_right.as_ref().map_or(&[][..], |r| &r.0) {
+                if let Some(e) = self.decide(&c.hyps, prior, c.harmless, None) {
+                    let better = best.as_ref().is_none_or(|b| e.confidence > b.confidence);
+                    if e.confidence >= HIGH_CONFIDENCE && better && seen_left(&e.axis.point) {
+                        best = Some(e);
+                    }
+                }
+            }
+        }
         Ok(best)
     }
 
-    /// Every circle pose the right camera's image `img` admits (each refined on it), in the
-    /// left camera's frame.
-    fn right_poses(&mut self, img: &ImageView) -> Result<Vec<Axis>, VisionError> {
+    /// The right camera's image `img`: its candidates (each circle pose refined on it) and
+    /// all their poses, in the left camera's frame.
+    fn right_candidates(&mut self, img: &ImageView) -> Result<(Vec<Candidate>, Vec<Axis>), VisionError> {
         let Some(mut r) = self.right.take() else {
-            return Ok(vec![]);
+            return Ok((vec![], vec![]));
         };
         let out = r.eye.load(img).and_then(|()| {
             let recs = ellipses(&mut r.eye, &self.model)?;
             let left_t_right = r.right_t_left.inverse();
-            Ok(self
-                .candidates(&r.eye, &recs)?
-                .iter()
-                .flat_map(|c| c.hyps.iter())
-                .map(|h| Axis {
+            let mut cands = self.candidates(&r.eye, &recs)?;
+            for h in cands.iter_mut().flat_map(|c| c.hyps.iter_mut()) {
+                h.axis = Axis {
                     point: (left_t_right * Point3::from(h.axis.point)).coords,
                     direction: left_t_right.rotation * h.axis.direction,
-                })
-                .collect())
+                };
+            }
+            let poses = cands.iter().flat_map(|c| c.hyps.iter().map(|h| h.axis)).collect();
+            Ok((cands, poses))
         });
         self.right = Some(r);
         out
@@ -617,7 +646,7 @@ fn stereo_choice(hyps: &[Hypothesis], right: &[Axis], right_origin: &Vector3<f64
     let disagreement = |h: &Hypothesis| {
         right
             .iter()
-            .filter(|r| (r.point - h.axis.point).norm() <= 0.01 + 0.05 * h.axis.point.norm())
+            .filter(|r| same_port(&r.point, &h.axis.point))
             .map(|r| (r.direction.angle(&h.axis.direction).to_degrees(), r.point))
             .min_by(|a, b| a.0.total_cmp(&b.0))
     };
@@ -642,6 +671,18 @@ fn stereo_choice(hyps: &[Hypothesis], right: &[Axis], right_origin: &Vector3<f64
         margin: ((other - db) / STEREO_MARGIN_DEG).clamp(0.0, 1.0),
         point: triangulate(&left_point, right_origin, &right_point).unwrap_or(left_point),
     })
+}
+
+/// Whether the port estimate `p` is the port `q` (camera frame) as the other image or the
+/// other pose sees it: within 10 mm + 5 % of the distance.
+fn same_port(p: &Vector3<f64>, q: &Vector3<f64>) -> bool {
+    (p - q).norm() <= 0.01 + 0.05 * q.norm()
+}
+
+/// Whether some pose of `poses` has its port at `point` ([`same_port`]): the same opening
+/// seen in the other image.
+fn same_opening(point: &Vector3<f64>, poses: &[Axis]) -> bool {
+    poses.iter().any(|a| same_port(&a.point, point))
 }
 
 /// The hypothesis the right image agrees with ([`stereo_choice`]).
@@ -676,7 +717,7 @@ pub fn triangulate(left: &Vector3<f64>, right_origin: &Vector3<f64>, right: &Vec
         return None;
     }
     let p = 0.5 * (t1 * d1 + right_origin + t2 * d2);
-    ((p - left).norm() <= 0.01 + 0.05 * left.norm() && p.iter().all(|v| v.is_finite())).then_some(p)
+    (same_port(&p, left) && p.iter().all(|v| v.is_finite())).then_some(p)
 }
 
 /// Grade hypothesis `h` against the other one `o` (if any): edge support x fit x ambiguity
