@@ -207,8 +207,11 @@ impl MarkerlessEstimator {
     /// captured with it (ignored without a right camera): where the left image admits two
     /// poses, the one the right image admits too is kept, whatever the prior and the outline
     /// say, and the port centre is where the two eyes' lines of sight to it cross
-    /// ([`triangulate`]); where the right image cannot tell (no opening found there, or no
-    /// pose of its within 4 deg of either), the left image's estimate stands.
+    /// ([`triangulate`]); where the right image finds no opening there, the left image's
+    /// estimate stands; where it sees the same opening but none of its poses is within
+    /// 4 deg of either, the left image does not decide. Where the left image gives no
+    /// confident estimate, the right image's own confident one of an opening the left image
+    /// found too stands (carried into the left frame).
     pub fn estimate_stereo(
         &mut self,
         image: &ImageView,
