@@ -619,7 +619,10 @@ fn subscribe_right_images(p: &EstimatorNodeParams, shared: &Shared) -> Result<ro
 /// from the slot, waiting up to [`STEREO_WAIT`] for it: the two images travel on their own
 /// connections, and the left one may come first); `None` without a right camera.
 fn stereo_right(shared: &Shared, stamp: rosrust::Time) -> Option<StereoRight> {
-    let camera = lock(&shared.right_camera).clone()?;
+    // A right CameraInfo without a baseline (P's Tx) is no stereo pair: mono.
+    let camera = lock(&shared.right_camera)
+        .clone()
+        .filter(|c| c.check_stereo_right().is_ok())?;
     let t = convert::seconds(stamp);
     let deadline = Instant::now() + STEREO_WAIT;
     let image = loop {
@@ -847,9 +850,12 @@ mod tests {
     fn a_left_image_takes_the_right_image_of_its_stamp_or_goes_mono() {
         let shared = Shared::new(&EstimatorNodeParams::default()).unwrap();
         let stamp = rosrust::Time { sec: 100, nsec: 0 };
-        // No right camera known yet: mono.
+        // No right camera known yet, or one without a baseline: mono.
         assert!(stereo_right(&shared, stamp).is_none());
-        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm_right.yaml");
+        let config = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+        *lock(&shared.right_camera) = Some(CameraModel::from_yaml_file(&config.join("camera_zedm.yaml")).unwrap());
+        assert!(stereo_right(&shared, stamp).is_none());
+        let dir = config.join("camera_zedm_right.yaml");
         *lock(&shared.right_camera) = Some(CameraModel::from_yaml_file(&dir).unwrap());
         let right_at = |sec: u32, nsec: u32| {
             let mut img = sensor_msgs::Image::default();
