@@ -331,8 +331,9 @@ impl SimCamera {
         let (tx, rx) = std::sync::mpsc::sync_channel::<CameraJob>(0);
         let (c, noise) = (c.clone(), c.noise_sigma);
         // The markerless renderer runs on rayon: a thread of its own per camera (the stereo
-        // pair's two images render side by side), niced (as is the camera thread then), so the physics and the FRI topics keep their core (a real
-        // camera does not slow the arm down). The marker's renderer is one C++ call.
+        // pair's two images render side by side), niced (as is the camera thread then), so
+        // the physics and the FRI topics keep their core (a real camera does not slow the
+        // arm down). The marker's renderer is one C++ call.
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(if scene.right_camera().is_some() { 2 } else { 1 })
             .start_handler(|_| lower_priority())
