@@ -119,7 +119,7 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
         .map(|(k, p)| right_renderer.render(&model, &(right_t_left * p), &Scene::random(17_000 + k as u64, 2.0)))
         .collect::<Result<_, _>>()?;
     let mono = MarkerlessEstimator::new(&camera, &model)?;
-    let stereo = MarkerlessEstimator::new(&camera, &model)?.with_right_camera(&right_camera, &right_t_left)?;
+    let stereo = MarkerlessEstimator::for_cameras(&camera, Some(&right_camera), &model)?;
     let mut out = vec![];
     for (name, est, right) in [
         ("markerless_axis_zedm_1280x720", mono, None),

@@ -267,14 +267,9 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
         None => None,
     };
     let files = image_files(&a.images)?;
-    let mut est = MarkerlessEstimator::new(&camera, &model)?;
-    let right_files = match stereo_pair(a, files.len())? {
-        Some((m, r)) => {
-            est = est.with_right_camera(&m, &m.stereo_right_t_left())?;
-            Some(r)
-        }
-        None => None,
-    };
+    let pair = stereo_pair(a, files.len())?;
+    let mut est = MarkerlessEstimator::for_cameras(&camera, pair.as_ref().map(|p| &p.0), &model)?;
+    let right_files = pair.map(|p| p.1);
     let mut failures = 0usize;
     for (k, f) in files.iter().enumerate() {
         let name = f

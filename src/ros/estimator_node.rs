@@ -370,11 +370,7 @@ impl Pipeline {
             .as_ref()
             .is_none_or(|m| m.camera() != camera || m.right_camera() != right_camera)
         {
-            let e = MarkerlessEstimator::new(camera, &self.model);
-            let e = match right_camera {
-                Some(r) => e.and_then(|e| e.with_right_camera(r, &r.stereo_right_t_left())),
-                None => e,
-            };
+            let e = MarkerlessEstimator::for_cameras(camera, right_camera, &self.model);
             self.markerless = Some(e.map_err(|e| e.to_string())?);
         }
         let right_pixels = match right.and_then(|r| r.image.as_ref()) {

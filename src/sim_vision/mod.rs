@@ -134,12 +134,8 @@ impl CameraPoseSource {
             true_mount,
             camera: TrocarCamera::new(&setup.camera, seed, &setup.calibration, setup.right.as_ref())
                 .map_err(|e| e.to_string())?,
-            estimator: match &setup.right {
-                None => MarkerlessEstimator::new(&setup.calibration, &setup.trocar),
-                Some(r) => MarkerlessEstimator::new(&setup.calibration, &setup.trocar)
-                    .and_then(|e| e.with_right_camera(r, &r.stereo_right_t_left())),
-            }
-            .map_err(|e| e.to_string())?,
+            estimator: MarkerlessEstimator::for_cameras(&setup.calibration, setup.right.as_ref(), &setup.trocar)
+                .map_err(|e| e.to_string())?,
             right_every: setup.camera.right_every,
             filter,
             markerless: setup.markerless.clone(),

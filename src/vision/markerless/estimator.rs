@@ -183,6 +183,20 @@ impl MarkerlessEstimator {
         Ok(self)
     }
 
+    /// An estimator for `camera` and `model`, with `right` the right camera of a rectified
+    /// stereo pair ([`MarkerlessEstimator::with_right_camera`] at its baseline), if any.
+    pub fn for_cameras(
+        camera: &CameraModel,
+        right: Option<&CameraModel>,
+        model: &TrocarModel,
+    ) -> Result<Self, VisionError> {
+        let e = Self::new(camera, model)?;
+        match right {
+            Some(r) => e.with_right_camera(r, &r.stereo_right_t_left()),
+            None => Ok(e),
+        }
+    }
+
     /// The camera it was built for (the left one of a stereo pair).
     pub fn camera(&self) -> &CameraModel {
         &self.left.camera
