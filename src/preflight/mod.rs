@@ -227,6 +227,22 @@ pub struct Camera {
     pub images: Stream,
     /// Size of the last image, px.
     pub image_size: Option<(u32, u32)>,
+    /// The images' stamps, s (the stereo pairs are counted by them).
+    pub image_stamps: Vec<f64>,
+    /// The stereo pair's right camera, where the estimator reads one (None: it reads no right
+    /// image: method marker, or its right topics '').
+    pub right: Option<RightCamera>,
+}
+
+/// The stereo pair's right camera, as the estimator is set to read it.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct RightCamera {
+    /// The estimator's right image topic.
+    pub topic: String,
+    /// The right images' stamps, s.
+    pub stamps: Vec<f64>,
+    /// The baseline its last CameraInfo gives, m, or why it gives none (None: no CameraInfo).
+    pub baseline_m: Option<Result<f64, String>>,
 }
 
 /// The trocar pose (the marker) seen.
@@ -313,6 +329,7 @@ pub fn evaluate(obs: &Observations, lim: &Limits, tare: &TareParams, kin: &dyn K
     checks.push(joint_names(obs, kin));
     checks.push(torques_at_rest(obs, tare));
     checks.extend(camera(obs, lim));
+    checks.push(stereo(obs, lim));
     checks.push(marker(obs, lim));
     checks.push(hand_eye(obs, lim));
     checks.push(reach(obs, lim, kin));
@@ -520,6 +537,68 @@ fn camera(obs: &Observations, lim: &Limits) -> Vec<Check> {
         "check the camera's frame rate, its USB link and the image topic",
     );
     vec![info, rate]
+}
+
+/// The stereo pair's right image, where the estimator reads one: it must come with the left
+/// images (a right image of the same stamp, [`crate::vision::STEREO_MAX_SKEW_S`], with
+/// nearly every left image since the first right one: the rate tolerance's share may be
+/// missing) and its CameraInfo must give a baseline of 1 mm to 1 m. Without them the
+/// estimator runs mono, waiting a few ms per image for the right one, and the markerless
+/// docking succeeds less often.
+fn stereo(obs: &Observations, lim: &Limits) -> Check {
+    let fix = "start the camera's right image and its camera_info (the ZED wrapper: right/image_rect_color, \
+               right/camera_info) or set the estimator's right_image_topic and right_camera_info_topic to them; \
+               '' for both runs mono on purpose (it docks less often: docs/markerless.md)";
+    let Some(c) = &obs.camera else {
+        return not_checked(
+            "STEREO",
+            "no camera: the simulator publishes the trocar pose directly".into(),
+        );
+    };
+    let Some(r) = &c.right else {
+        return not_checked(
+            "STEREO",
+            "the estimator reads no right image (method marker, or its right topics '')".into(),
+        );
+    };
+    let baseline = match &r.baseline_m {
+        None => Err("no right camera_info".to_string()),
+        Some(Err(e)) => Err(format!("right camera_info: {e}")),
+        Some(Ok(b)) => Ok(*b),
+    };
+    let skew = crate::vision::STEREO_MAX_SKEW_S;
+    // From the first right image on (its subscriber may connect after the left one's).
+    let first = r.stamps.iter().copied().fold(f64::INFINITY, f64::min);
+    let left: Vec<f64> = c
+        .image_stamps
+        .iter()
+        .copied()
+        .filter(|t| r.stamps.is_empty() || *t >= first - skew)
+        .collect();
+    let paired = left
+        .iter()
+        .filter(|t| r.stamps.iter().any(|s| (s - *t).abs() <= skew))
+        .count();
+    let need = 1.0 - lim.rate_tolerance;
+    let share = if left.is_empty() {
+        0.0
+    } else {
+        paired as f64 / left.len() as f64
+    };
+    let base = baseline
+        .as_ref()
+        .map_or_else(Clone::clone, |b| format!("baseline {:.1} mm", b * 1e3));
+    check(
+        "STEREO",
+        !left.is_empty() && share >= need && baseline.is_ok(),
+        format!(
+            "{paired} of {} images with a right image of their stamp on {} (>= {:.0} %); {base}",
+            left.len(),
+            r.topic,
+            need * 100.0
+        ),
+        fix,
+    )
 }
 
 fn marker(obs: &Observations, lim: &Limits) -> Check {

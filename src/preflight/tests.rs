@@ -10,6 +10,11 @@ fn kin() -> LbrKinematics {
     LbrKinematics::from_model_or_file(LbrModel::Med7, "", TIP_LINK).unwrap()
 }
 
+/// The 16 images of `good`'s camera: 15 Hz over 1 s.
+fn left_stamps() -> Vec<f64> {
+    (0..16).map(|i| 100.0 + f64::from(i) / 15.0).collect()
+}
+
 /// A set-up as the simulator in the camera mode presents it: every check passes.
 fn good(kin: &dyn Kinematics) -> Observations {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
@@ -47,6 +52,8 @@ fn good(kin: &dyn Kinematics) -> Observations {
             }),
             images: Stream { count: 16, span_s: 1.0 },
             image_size: Some((1280, 720)),
+            image_stamps: left_stamps(),
+            right: None,
         }),
         marker: Marker {
             stream: Stream { count: 15, span_s: 1.0 },
@@ -190,7 +197,10 @@ fn a_simulated_clock_without_the_simulator_fails_and_the_direct_mode_skips_the_c
         .filter(|c| c.verdict == Verdict::NotChecked)
         .map(|c| c.code)
         .collect();
-    assert_eq!(skipped, vec!["FRI_STATE", "CAMERA_INFO", "IMAGE_RATE", "HAND_EYE"]);
+    assert_eq!(
+        skipped,
+        vec!["FRI_STATE", "CAMERA_INFO", "IMAGE_RATE", "STEREO", "HAND_EYE"]
+    );
 }
 
 #[test]
@@ -279,4 +289,71 @@ fn lbr_state_lost_on_the_way_passes_but_a_slow_driver_or_a_starved_controller_fa
     let (ok, detail) = lbr_check(&o);
     assert!(!ok && detail.contains("80 Hz received"), "{detail}");
     assert_eq!(failed(&o), vec!["LBR_STATE"]);
+}
+
+#[test]
+fn the_stereo_check_wants_a_right_image_with_nearly_every_left_one_and_a_baseline() {
+    let k = kin();
+    let with_right = |stamps: Vec<f64>, baseline: Option<Result<f64, String>>| {
+        let mut o = good(&k);
+        o.camera.as_mut().unwrap().right = Some(RightCamera {
+            topic: "/zedm/zed_node/right/image_rect_color".into(),
+            stamps,
+            baseline_m: baseline,
+        });
+        o
+    };
+    let stereo = |o: &Observations| {
+        let r = evaluate(o, &Limits::default(), &TareParams::default(), &k);
+        let c = r.checks.iter().find(|c| c.code == "STEREO").unwrap().clone();
+        (c, failed(o))
+    };
+    // A marker set-up (no right image read): not checked, and the set-up passes.
+    let (c, f) = stereo(&good(&k));
+    assert_eq!(c.verdict, Verdict::NotChecked);
+    assert!(f.is_empty(), "{f:?}");
+    // Every left image with its right image, stamped alike to within 0.5 ms: passes.
+    let b = Some(Ok(0.063));
+    let paired: Vec<f64> = left_stamps().iter().map(|t| t + 5e-4).collect();
+    let (c, f) = stereo(&with_right(paired.clone(), b.clone()));
+    assert_eq!(c.verdict, Verdict::Pass, "{c}");
+    assert!(f.is_empty(), "{f:?}");
+    assert!(c.detail.contains("16 of 16") && c.detail.contains("63.0 mm"), "{c}");
+    // The right subscriber connected after the fourth left image: counted from the first
+    // right image on, still every pair.
+    let (c, _) = stereo(&with_right(paired[4..].to_vec(), b.clone()));
+    assert_eq!(c.verdict, Verdict::Pass, "{c}");
+    assert!(c.detail.contains("12 of 12"), "{c}");
+    // One of 16 missing passes (the rate tolerance, 10 %); one in three missing fails, and
+    // it fails STEREO alone.
+    let mut one_lost = paired.clone();
+    one_lost.remove(9);
+    assert_eq!(stereo(&with_right(one_lost, b.clone())).0.verdict, Verdict::Pass);
+    let third_lost: Vec<f64> = paired
+        .iter()
+        .copied()
+        .enumerate()
+        .filter(|(i, _)| i % 3 != 1)
+        .map(|(_, t)| t)
+        .collect();
+    assert_eq!(stereo(&with_right(third_lost, b.clone())).1, vec!["STEREO"]);
+    // Right images of other stamps (2 ms off: another capture), none at all, a CameraInfo
+    // without a baseline or none: each fails STEREO alone, saying why.
+    let skewed: Vec<f64> = left_stamps().iter().map(|t| t + 2e-3).collect();
+    let (c, f) = stereo(&with_right(skewed, b.clone()));
+    assert_eq!(f, vec!["STEREO"]);
+    // (the first left image precedes the first right one by more than the skew: left out)
+    assert!(c.detail.contains("0 of 15"), "{c}");
+    let (c, f) = stereo(&with_right(vec![], b));
+    assert_eq!(f, vec!["STEREO"]);
+    assert!(
+        c.detail.contains("0 of 16") && c.fix.contains("right_image_topic"),
+        "{c}"
+    );
+    let (c, f) = stereo(&with_right(paired.clone(), Some(Err("baseline 0.0 mm".into()))));
+    assert_eq!(f, vec!["STEREO"]);
+    assert!(c.detail.contains("right camera_info: baseline 0.0 mm"), "{c}");
+    let (c, f) = stereo(&with_right(paired, None));
+    assert_eq!(f, vec!["STEREO"]);
+    assert!(c.detail.contains("no right camera_info"), "{c}");
 }

@@ -39,7 +39,7 @@ use crate::vision::markerless::measurement::{self, EstimatorMethod, MarkerlessPa
 use crate::vision::markerless::{MarkerlessEstimator, TrocarModel};
 use crate::vision::{
     CameraModel, EstimateStatus, EstimatorParams, ImageView, MarkerDetection, MarkerDetector, MarkerSpec, RgbImage,
-    TrackingDetector, TrocarEstimator,
+    TrackingDetector, TrocarEstimator, STEREO_MAX_SKEW_S,
 };
 
 /// Parameters of the node (its private namespace; `config/trocar_estimator.yaml`, whose
@@ -443,10 +443,6 @@ struct StereoRight {
     camera: CameraModel,
     image: Option<sensor_msgs::Image>,
 }
-
-/// A stereo camera stamps the two images of one capture alike: a right image pairs with the
-/// left image whose stamp is within this, s.
-const STEREO_MAX_SKEW_S: f64 = 1e-3;
 
 /// How long a left image waits for its right image before it is estimated mono.
 const STEREO_WAIT: Duration = Duration::from_millis(5);

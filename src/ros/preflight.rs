@@ -13,8 +13,9 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use crate::kinematics::Kinematics;
-use crate::preflight::{self, Camera, CameraInfo, JointStates, LbrState, Observations, Report, Stream};
+use crate::preflight::{self, Camera, CameraInfo, JointStates, LbrState, Observations, Report, RightCamera, Stream};
 use crate::ros::controller_node::node_params::{ControllerNodeParams, PreflightParams};
+use crate::ros::estimator_node::EstimatorNodeParams;
 use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs};
 use crate::ros::node::{lock, ros_err, NodeError};
 use crate::ros::{convert, params, topics};
@@ -58,7 +59,10 @@ struct Seen {
     sample_time: f64,
     tau_ext: Vec<Vec<f64>>,
     images: Stamps,
+    image_stamps: Vec<f64>,
     image_size: Option<(u32, u32)>,
+    right_stamps: Vec<f64>,
+    right_baseline: Option<Result<f64, String>>,
     info: Option<CameraInfo>,
     poses: Stamps,
     pose: Option<nalgebra::Isometry3<f64>>,
@@ -80,7 +84,8 @@ impl Seen {
         self.positions.clone_from(&m.position);
     }
 
-    fn observations(&self, camera: bool) -> Streams {
+    /// What was seen; `right`: the estimator's right image topic, where it reads one.
+    fn observations(&self, camera: bool, right: Option<&str>) -> Streams {
         let joints = (self.joints.count > 0).then(|| JointStates {
             stream: self.joints.stream(),
             names: self.names.clone(),
@@ -97,6 +102,12 @@ impl Seen {
             info: self.info,
             images: self.images.stream(),
             image_size: self.image_size,
+            image_stamps: self.image_stamps.clone(),
+            right: right.map(|topic| RightCamera {
+                topic: topic.to_string(),
+                stamps: self.right_stamps.clone(),
+                baseline_m: self.right_baseline.clone(),
+            }),
         });
         Streams {
             joint_states: joints,
@@ -121,6 +132,8 @@ struct Topics {
     base_frame: String,
     image: String,
     camera_info: String,
+    /// The stereo pair's right image and CameraInfo, where the estimator reads them.
+    right: Option<(String, String)>,
 }
 
 /// Subscribe `topic`, handing each message to `f` with the collection.
@@ -137,7 +150,18 @@ fn watch<T: rosrust::Message>(
 /// Subscribe the topics; the subscribers live as long as the returned handles.
 fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
     let (topic, frame) = (t.trocar_pose.clone(), t.base_frame.clone());
-    Ok(vec![
+    let mut subs = match &t.right {
+        Some((image, info)) => vec![
+            watch(image, 2, seen, |s, m: sensor_msgs::Image| {
+                s.right_stamps.push(convert::seconds(m.header.stamp));
+            })?,
+            watch(info, 2, seen, |s, m: sensor_msgs::CameraInfo| {
+                s.right_baseline = Some(right_baseline(&m));
+            })?,
+        ],
+        None => vec![],
+    };
+    subs.extend([
         watch(
             &t.joint_states,
             topics::DRIVER_QUEUE,
@@ -164,7 +188,9 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
             },
         )?,
         watch(&t.image, 2, seen, |s, m: sensor_msgs::Image| {
-            s.images.add(convert::seconds(m.header.stamp));
+            let t = convert::seconds(m.header.stamp);
+            s.images.add(t);
+            s.image_stamps.push(t);
             s.image_size = Some((m.width, m.height));
         })?,
         watch(&t.camera_info, 2, seen, |s, m: sensor_msgs::CameraInfo| {
@@ -175,7 +201,25 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
                 height: m.height,
             });
         })?,
-    ])
+    ]);
+    Ok(subs)
+}
+
+/// The stereo baseline a right camera's CameraInfo gives (its projection's `Tx`), m, checked
+/// as the estimator checks it; or why it gives none.
+fn right_baseline(m: &sensor_msgs::CameraInfo) -> Result<f64, String> {
+    let c = convert::image::camera_model(m).map_err(|e| e.to_string())?;
+    c.check_stereo_right().map_err(|e| e.to_string())?;
+    Ok(c.baseline_m)
+}
+
+/// The estimator's right image and CameraInfo topics, where it reads a stereo pair's right
+/// image (its parameters on the server: method markerless or fused, both topics set).
+fn stereo_topics(estimator_node: &str) -> Option<(String, String)> {
+    let tree = rosrust::param(estimator_node)?.get::<serde_json::Value>().ok()?;
+    let p: EstimatorNodeParams = params::from_value(estimator_node, tree).ok()?;
+    p.stereo()
+        .then(|| (p.right_image_topic.clone(), p.right_camera_info_topic.clone()))
 }
 
 /// A parameter's value, if it is set.
@@ -253,6 +297,7 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         base_frame: node.base_frame.clone(),
         image: param(&est("image_topic")).unwrap_or_else(|| topics::CAMERA_IMAGE.into()),
         camera_info: param(&est("camera_info_topic")).unwrap_or_else(|| topics::CAMERA_INFO.into()),
+        right: stereo_topics(&p.estimator_node),
     };
     let seen = Arc::new(Mutex::new(Seen::default()));
     let subs = subscribe(&topics, &seen)?;
@@ -267,6 +312,7 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
                 && s.lbr.count > 0
                 && s.poses.count > 0
                 && (!camera || (s.images.count > 0 && s.info.is_some()))
+                && (!camera || topics.right.is_none() || (!s.right_stamps.is_empty() && s.right_baseline.is_some()))
         };
         if all_there || t0.elapsed().as_secs_f64() >= p.wait_s || !rosrust::is_ok() {
             break;
@@ -285,7 +331,7 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         joint_states,
         lbr_state,
         camera: camera_obs,
-    } = s.observations(camera);
+    } = s.observations(camera, topics.right.as_ref().map(|r| r.0.as_str()));
     let state = rosrust::state().map_err(ros_err)?;
     let command_subscribers = nodes_on(&state, &node.command_topic, false)
         .into_iter()
@@ -375,6 +421,37 @@ mod tests {
     }
 
     #[test]
+    fn the_right_camera_is_seen_where_the_estimator_reads_one() {
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+        let right = crate::vision::CameraModel::from_yaml_file(&dir.join("camera_zedm_right.yaml")).unwrap();
+        let info = convert::image::camera_info(convert::ros_time(5.0), "zedm_right", &right);
+        assert!((right_baseline(&info).unwrap() - 0.063).abs() < 1e-9);
+        // The left camera's CameraInfo has no baseline: refused as the estimator refuses it.
+        let left = crate::vision::CameraModel::from_yaml_file(&dir.join("camera_zedm.yaml")).unwrap();
+        let e = right_baseline(&convert::image::camera_info(convert::ros_time(5.0), "zedm", &left)).unwrap_err();
+        assert!(e.contains("baseline 0.0 mm"), "{e}");
+        let mut s = Seen::default();
+        for t in [5.0, 5.0667] {
+            s.images.add(t);
+            s.image_stamps.push(t);
+        }
+        s.right_stamps.push(5.0);
+        s.right_baseline = Some(Ok(0.063));
+        // Mono (no right topic): no right camera; stereo: its stamps and baseline.
+        assert!(s.observations(true, None).camera.unwrap().right.is_none());
+        let c = s.observations(true, Some("/r")).camera.unwrap();
+        assert_eq!(c.image_stamps, vec![5.0, 5.0667]);
+        assert_eq!(
+            c.right,
+            Some(RightCamera {
+                topic: "/r".into(),
+                stamps: vec![5.0],
+                baseline_m: Some(Ok(0.063))
+            })
+        );
+    }
+
+    #[test]
     fn joint_states_give_the_rate_of_their_stamps_and_the_motion() {
         let mut s = Seen::default();
         let msg = |t: f64, q: f64| sensor_msgs::JointState {
@@ -387,7 +464,7 @@ mod tests {
         for (t, q) in [(10.0, 0.0), (10.02, 0.003), (10.01, -0.001)] {
             s.joint_states(&msg(t, q));
         }
-        let seen = s.observations(false);
+        let seen = s.observations(false, None);
         let j = seen.joint_states.unwrap();
         assert!((j.stream.rate_hz() - 100.0).abs() < 1e-6, "{}", j.stream.rate_hz());
         assert!((j.motion_rad - 0.004).abs() < 1e-12);
@@ -397,7 +474,7 @@ mod tests {
         let mut m = msg(10.03, 5.0);
         m.name = vec!["x".into(), "y".into()];
         s.joint_states(&m);
-        assert_eq!(s.observations(true).joint_states.unwrap().motion_rad, 0.0);
-        assert!(s.observations(true).camera.is_some());
+        assert_eq!(s.observations(true, None).joint_states.unwrap().motion_rad, 0.0);
+        assert!(s.observations(true, None).camera.is_some());
     }
 }

@@ -47,6 +47,11 @@ fn default_model() -> String {
     "plumb_bob".into()
 }
 
+/// A stereo camera stamps the two images of one capture alike: a right image pairs with the
+/// left image whose stamp is within this, s (the estimator node pairs them so, and the
+/// preflight counts the pairs so).
+pub const STEREO_MAX_SKEW_S: f64 = 1e-3;
+
 /// Pinhole intrinsics with OpenCV-ordered distortion (k1 k2 p1 p2 [k3 [k4 k5 k6]]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct CameraModel {

@@ -133,6 +133,8 @@ pub struct CheckParams {
     pub joy_config: String,
     /// `preflight`: the check that must fail ('' = every check must pass).
     pub preflight_failure: String,
+    /// `preflight`: a check that must pass, not be skipped ('' = none named).
+    pub preflight_pass: String,
     /// `reconfigure`: the force stop set through dynparam, N.
     pub reconfigure_force_stop: f64,
     /// `dry_run`: the controller's commands in a dry run (JointTrajectory).
@@ -221,6 +223,7 @@ impl Default for CheckParams {
             retract_timeout: 30.0,
             joy_config: String::new(),
             preflight_failure: String::new(),
+            preflight_pass: String::new(),
             reconfigure_force_stop: 1.0,
             preview_topic: "/docking_controller/preview".into(),
             preview_joint_states_topic: "/docking_controller/preview_joint_states".into(),

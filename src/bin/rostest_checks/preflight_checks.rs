@@ -54,6 +54,10 @@ pub fn preflight(p: &CheckParams) -> Result<String, String> {
             ));
         }
     }
+    let must_pass = format!("PASS {} ", p.preflight_pass);
+    if !p.preflight_pass.is_empty() && !text.lines().any(|l| l.starts_with(&must_pass)) {
+        return Err(format!("preflight did not pass {}:\n{text}", p.preflight_pass));
+    }
     let summary = text
         .lines()
         .filter(|l| l.starts_with("FAIL") || l.starts_with("preflight"))
