@@ -23,7 +23,7 @@ use crate::sim::SimWorld;
 use crate::trials::config::SimConfig;
 use crate::vision::estimator::marker_in_camera;
 use crate::vision::render::add_gaussian_noise;
-use crate::vision::sim_camera::{blank_frame, TrocarCamera};
+use crate::vision::sim_camera::{blank_frame, right_noise_seed, TrocarCamera};
 use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions, VisionError};
 
 use super::node::{ros_err, CommandType, NodeError};
@@ -122,14 +122,24 @@ struct CameraJob {
 
 /// What the simulated camera draws.
 enum SimScene {
-    /// The marker on its plate (`marker_t_trocar`: the port in the marker frame).
+    /// The marker on its plate (`marker_t_trocar`: the port in the marker frame), and the
+    /// stereo pair's right camera, which sees it too.
     Marker {
         spec: MarkerSpec,
         opts: RenderOptions,
         marker_t_trocar: Isometry3<f64>,
+        right: Option<CameraModel>,
     },
     /// The trocar without a marker.
     Trocar(Box<TrocarCamera>),
+    /// The marker until the camera first comes within `within_m` of the port, then the
+    /// trocar without it for good (`camera.marker_hidden_within_m`).
+    MarkerUntil {
+        marker: Box<SimScene>,
+        trocar: Box<TrocarCamera>,
+        within_m: f64,
+        hidden: std::sync::atomic::AtomicBool,
+    },
 }
 
 impl SimScene {
@@ -141,22 +151,69 @@ impl SimScene {
         model: &CameraModel,
         marker_t_trocar: Isometry3<f64>,
     ) -> Result<Self, NodeError> {
-        if c.show_marker {
-            return Ok(Self::Marker {
-                spec: c.marker.clone(),
-                opts: RenderOptions {
-                    blur_sigma: c.blur_sigma_px,
-                    plane_scale: c.plane_scale,
-                    ..RenderOptions::default()
-                },
-                marker_t_trocar,
-            });
-        }
-        // Noise is added per frame by the camera thread.
         let invalid = |e: crate::vision::sim_camera::CameraSetupError| NodeError::Invalid(e.to_string());
-        let right = c.right_camera().map_err(invalid)?;
-        let camera = TrocarCamera::new(c, seed, model, right.as_ref()).map_err(invalid)?;
-        Ok(Self::Trocar(Box::new(camera)))
+        let hidden_within = c.marker_hidden_within().map_err(invalid)?;
+        // Noise is added per frame by the camera thread.
+        let trocar = || -> Result<Box<TrocarCamera>, NodeError> {
+            let right = c.right_camera().map_err(invalid)?;
+            Ok(Box::new(
+                TrocarCamera::new(c, seed, model, right.as_ref()).map_err(invalid)?,
+            ))
+        };
+        if !c.show_marker {
+            return Ok(Self::Trocar(trocar()?));
+        }
+        let marker = Self::Marker {
+            spec: c.marker.clone(),
+            opts: RenderOptions {
+                blur_sigma: c.blur_sigma_px,
+                plane_scale: c.plane_scale,
+                ..RenderOptions::default()
+            },
+            marker_t_trocar,
+            right: c.right_camera().map_err(invalid)?,
+        };
+        Ok(match hidden_within {
+            None => marker,
+            Some(within_m) => Self::MarkerUntil {
+                marker: Box::new(marker),
+                trocar: trocar()?,
+                within_m,
+                hidden: std::sync::atomic::AtomicBool::new(false),
+            },
+        })
+    }
+
+    /// The scene a frame with the port at `camera_t_trocar` shows, and whether the marker was
+    /// hidden by this frame: the marker's scene hides the marker for good once the camera is
+    /// within its distance of the port.
+    fn at(&self, camera_t_trocar: &Isometry3<f64>) -> (&Self, bool) {
+        use std::sync::atomic::Ordering;
+        match self {
+            Self::MarkerUntil {
+                marker,
+                within_m,
+                hidden,
+                ..
+            } => {
+                let now =
+                    camera_t_trocar.translation.vector.norm() < *within_m && !hidden.swap(true, Ordering::Relaxed);
+                if hidden.load(Ordering::Relaxed) {
+                    (self, now)
+                } else {
+                    (marker, false)
+                }
+            }
+            _ => (self, false),
+        }
+    }
+
+    /// The trocar camera of a scene that renders the trocar now (a marker hidden).
+    fn trocar(&self) -> Option<&TrocarCamera> {
+        match self {
+            Self::Trocar(camera) | Self::MarkerUntil { trocar: camera, .. } => Some(camera),
+            Self::Marker { .. } => None,
+        }
     }
 
     /// A port pose in the camera that must render: the marker or the trocar 0.3 m ahead.
@@ -166,6 +223,7 @@ impl SimScene {
                 crate::vision::facing_pose(0.3, 0.0, 0.0, 0.0, 0.0, 0.0) * marker_t_trocar
             }
             Self::Trocar(_) => Isometry3::translation(0.0, 0.0, 0.3),
+            Self::MarkerUntil { marker, .. } => marker.check_pose(),
         }
     }
 
@@ -174,7 +232,7 @@ impl SimScene {
     fn add_noise(&self, grey: &mut [u8], sigma: f64, seq: u64) {
         match self {
             Self::Marker { .. } => add_gaussian_noise(grey, sigma, seq),
-            Self::Trocar(_) => TrocarCamera::add_noise(grey, sigma, seq),
+            Self::Trocar(_) | Self::MarkerUntil { .. } => TrocarCamera::add_noise(grey, sigma, seq),
         }
     }
 
@@ -185,16 +243,38 @@ impl SimScene {
                 spec,
                 opts,
                 marker_t_trocar,
+                ..
             } => render_marker_image(spec, model, &(camera_t_trocar * marker_t_trocar.inverse()), opts).map(|g| g.data),
-            Self::Trocar(camera) => camera.render(camera_t_trocar),
+            Self::Trocar(camera) | Self::MarkerUntil { trocar: camera, .. } => camera.render(camera_t_trocar),
         }
     }
 
     /// The right camera of the stereo pair, if the scene renders its image.
     fn right_camera(&self) -> Option<&CameraModel> {
         match self {
-            Self::Marker { .. } => None,
-            Self::Trocar(camera) => camera.right_camera(),
+            Self::Marker { right, .. } => right.as_ref(),
+            Self::Trocar(camera) | Self::MarkerUntil { trocar: camera, .. } => camera.right_camera(),
+        }
+    }
+
+    /// The right camera's image of the port at `camera_t_trocar` (left camera frame), with
+    /// its own pixel noise of `sigma` (`noise_seed`: the left frame's); `None` without a right
+    /// camera. A frame that cannot render is blank, as the left one.
+    fn right_frame(&self, camera_t_trocar: &Isometry3<f64>, sigma: f64, noise_seed: u64) -> Option<Vec<u8>> {
+        match self {
+            Self::Marker { right, .. } => {
+                let r = right.as_ref()?;
+                let mut grey = self
+                    .render(r, &(r.stereo_right_t_left() * camera_t_trocar))
+                    .unwrap_or_else(|_| blank_frame(r));
+                if sigma > 0.0 {
+                    self.add_noise(&mut grey, sigma, right_noise_seed(noise_seed));
+                }
+                Some(grey)
+            }
+            Self::Trocar(camera) | Self::MarkerUntil { trocar: camera, .. } => {
+                camera.right_frame(camera_t_trocar, sigma, noise_seed)
+            }
         }
     }
 }
@@ -226,13 +306,19 @@ impl CameraOutput {
     /// Render and publish every job until the simulator drops its sender.
     fn run(&self, jobs: &std::sync::mpsc::Receiver<CameraJob>, scene: &SimScene, pool: &rayon::ThreadPool, noise: f64) {
         let (c, model) = (&self.params, &self.model);
-        if !c.show_marker {
+        if scene.trocar().is_some() {
             lower_priority();
         }
         let mut render_ms = super::stats::LoopStats::new(1.0, 1000);
         for job in jobs {
             // Out of view or behind the camera: the camera still delivers a (blank) frame.
             let t0 = Instant::now();
+            let (scene, hidden_now) = scene.at(&job.camera_t_trocar);
+            if hidden_now {
+                rosrust::ros_info!(
+                    "lbr_med_sim camera: the marker is hidden from now on (camera.marker_hidden_within_m)"
+                );
+            }
             let left = || {
                 scene
                     .render(model, &job.camera_t_trocar)
@@ -240,9 +326,10 @@ impl CameraOutput {
             };
             // The right image of a stereo scene with every `right_every`-th frame, rendered
             // beside the left one (the pool has a thread per camera).
-            let (mut grey, right) = match (&self.right, scene) {
-                (Some(_), SimScene::Trocar(camera)) if c.right_due(job.seq) => {
-                    pool.install(|| rayon::join(left, || camera.right_frame(&job.camera_t_trocar, noise, job.seq)))
+            // (Only for a subscriber: a marker-only estimator reads no right image.)
+            let (mut grey, right) = match &self.right {
+                Some((image, _)) if c.right_due(job.seq) && image.subscriber_count() > 0 => {
+                    pool.install(|| rayon::join(left, || scene.right_frame(&job.camera_t_trocar, noise, job.seq)))
                 }
                 _ => (pool.install(left), None),
             };
@@ -318,6 +405,11 @@ impl SimCamera {
         scene
             .render(&model, &scene.check_pose())
             .map_err(|e| invalid("render", &e))?;
+        if let SimScene::MarkerUntil { marker, .. } = &scene {
+            marker
+                .render(&model, &marker.check_pose())
+                .map_err(|e| invalid("render", &e))?;
+        }
         let pub_img = rosrust::publish::<sensor_msgs::Image>(&p.image_topic, 2).map_err(ros_err)?;
         let pub_info = rosrust::publish::<sensor_msgs::CameraInfo>(&p.camera_info_topic, 2).map_err(ros_err)?;
         let right = match scene.right_camera() {
@@ -746,7 +838,7 @@ mod tests {
     }
 
     #[test]
-    fn the_right_camera_renders_without_the_marker_only_and_a_bad_one_names_its_key() {
+    fn the_right_camera_renders_the_marker_and_the_trocar_and_a_bad_one_names_its_key() {
         let p = shipped();
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
         let cam = CameraModel::from_yaml_file(&dir.join("camera_zedm.yaml")).unwrap();
@@ -756,8 +848,19 @@ mod tests {
             right_calibration_file: dir.join("camera_zedm_right.yaml").to_string_lossy().into_owned(),
             ..p.camera.clone()
         };
+        // The marker's scene renders the right image too (a stereo camera sends both, and
+        // `fused` reads it): the marker where the right camera sees it, 63 mm to the left.
         let marker = SimScene::of(&stereo, 1, &cam, marker_t_trocar).unwrap();
-        assert!(marker.right_camera().is_none(), "the marker's scene is mono");
+        let right = marker.right_camera().unwrap().clone();
+        let port = marker.check_pose();
+        let grey = marker.right_frame(&port, 0.0, 1).unwrap();
+        let view = crate::vision::ImageView::new(&grey, right.width, right.height, 1).unwrap();
+        let mut det = crate::vision::MarkerDetector::new(p.camera.marker.clone(), &right).unwrap();
+        let found = det.detect(&view).unwrap();
+        let want = right.stereo_right_t_left() * port * marker_t_trocar.inverse();
+        assert_eq!(found.len(), 1);
+        let d = found[0].pose_camera_marker.translation.vector - want.translation.vector;
+        assert!(d.norm() < 2e-3, "{d:?}");
         let trocar = SimScene::of(
             &SimCameraParams {
                 show_marker: false,
@@ -783,6 +886,65 @@ mod tests {
             e.contains("camera.right_calibration_file") && e.contains("baseline"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn a_marker_hidden_within_a_distance_stays_hidden_and_the_trocar_shows() {
+        let p = shipped();
+        assert_eq!(p.camera.marker_hidden_within_m, 0.0, "never, as shipped");
+        let cam = CameraModel::from_yaml_file(
+            &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml"),
+        )
+        .unwrap();
+        let marker_t_trocar = p.camera.marker_t_trocar.to_isometry().unwrap();
+        let hidden = SimCameraParams {
+            marker_hidden_within_m: 0.25,
+            ..p.camera.clone()
+        };
+        let scene = SimScene::of(&hidden, 1, &cam, marker_t_trocar).unwrap();
+        let (far, near) = (
+            Isometry3::translation(0.0, 0.0, 0.3),
+            Isometry3::translation(0.0, 0.0, 0.2),
+        );
+        // 0.3 m away: the marker; within 0.25 m: the trocar, and from then on whatever the
+        // distance (the marker is gone for good).
+        assert!(matches!(scene.at(&far), (SimScene::Marker { .. }, false)));
+        assert!(scene.at(&far).0.trocar().is_none());
+        assert!(matches!(scene.at(&near), (SimScene::MarkerUntil { .. }, true)));
+        let (back, again) = scene.at(&far);
+        assert!(back.trocar().is_some() && !again);
+        let trocar = SimScene::of(
+            &SimCameraParams {
+                show_marker: false,
+                ..p.camera.clone()
+            },
+            1,
+            &cam,
+            marker_t_trocar,
+        )
+        .unwrap();
+        assert!(back.render(&cam, &far).unwrap() == trocar.render(&cam, &far).unwrap());
+        // Without the marker, or at 0: nothing to hide. Negative or NaN: refused, naming it.
+        let none = SimCameraParams {
+            show_marker: false,
+            ..hidden.clone()
+        };
+        assert!(matches!(
+            SimScene::of(&none, 1, &cam, marker_t_trocar).unwrap(),
+            SimScene::Trocar(_)
+        ));
+        assert!(matches!(
+            SimScene::of(&p.camera, 1, &cam, marker_t_trocar).unwrap(),
+            SimScene::Marker { .. }
+        ));
+        for bad in [-0.1, f64::NAN] {
+            let c = SimCameraParams {
+                marker_hidden_within_m: bad,
+                ..p.camera.clone()
+            };
+            let e = SimScene::of(&c, 1, &cam, marker_t_trocar).err().unwrap().to_string();
+            assert!(e.contains("camera.marker_hidden_within_m"), "{e}");
+        }
     }
 
     #[test]

@@ -40,6 +40,11 @@ pub struct SimCameraParams {
     /// (the markerless renderer: shaded head and cannula, the dark opening, the abdominal
     /// wall, lighting drawn from `seed` per run).
     pub show_marker: bool,
+    /// With the marker: once the camera comes this close to the port, m, the marker is gone
+    /// for the rest of the run (covered, or knocked off) and the trocar is rendered without
+    /// it, as with `show_marker: false` (0 = never): what the estimator's `fused` method
+    /// falls back on.
+    pub marker_hidden_within_m: f64,
     /// The trocar model YAML the markerless image shows ('' = the shipped
     /// `config/trocar_model.yaml`, built in).
     pub trocar_model_file: String,
@@ -81,6 +86,19 @@ impl SimCameraParams {
             });
         }
         Ok(Some(m))
+    }
+
+    /// The camera-to-port distance within which the marker is hidden for good
+    /// (`marker_hidden_within_m`; `None`: never, 0 or no marker shown).
+    pub fn marker_hidden_within(&self) -> Result<Option<f64>, CameraSetupError> {
+        let d = self.marker_hidden_within_m;
+        if !(d.is_finite() && d >= 0.0) {
+            return Err(CameraSetupError {
+                key: "marker_hidden_within_m",
+                error: VisionError::InvalidInput(format!("must be finite and >= 0 (0 = never), got {d}")),
+            });
+        }
+        Ok((self.show_marker && d > 0.0).then_some(d))
     }
 
     /// Whether frame number `seq` (from 1) of a stereo camera comes with a right image

@@ -144,6 +144,11 @@ pub struct CheckParams {
     /// `docking`: the largest accepted distance at DONE of the true port from the estimated
     /// insertion axis (`pose_topic` against `true_pose_topic`), m (0 = not checked).
     pub max_axis_error_m: f64,
+    /// `docking`: the sources (`marker`, `markerless`, comma-separated) that must each have
+    /// had a pose published during the run, by the estimator's status lines ('' = not checked).
+    pub estimator_published: String,
+    /// `docking`: the estimator's status topic (std_msgs/String, one line per frame).
+    pub estimator_status_topic: String,
     /// `hand_eye`: the calibration node's name (its services are `<name>/auto` etc.).
     pub hand_eye_node: String,
     /// `hand_eye`: the file the node's `~save` writes.
@@ -228,6 +233,8 @@ impl Default for CheckParams {
             preview_topic: "/docking_controller/preview".into(),
             preview_joint_states_topic: "/docking_controller/preview_joint_states".into(),
             max_axis_error_m: 0.0,
+            estimator_published: String::new(),
+            estimator_status_topic: "/trocar_estimator/status".into(),
             hand_eye_node: "/hand_eye_calibration".into(),
             hand_eye_output: String::new(),
             max_mount_error_m: 0.0005,

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{joint_names, JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
-use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, std_msgs, trajectory_msgs, trocar_docking};
 use ::trocar_docking::ros::topics;
 
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
@@ -192,6 +192,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     let (seen, _sub_seen) = subscribe_docking_seen(&p.status_topic)?;
     let (estimate, _sub_estimate) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.pose_topic)?;
     let (truth, _sub_truth) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.true_pose_topic)?;
+    let published = PublishedBy::for_params(p)?;
     wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
     if p.call_start {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
@@ -236,6 +237,9 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     if p.max_axis_error_m > 0.0 {
         note.push_str(&judge_axis(estimate.get(), truth.get(), p.max_axis_error_m)?);
     }
+    if let Some(published) = published {
+        note.push_str(&published.judge()?);
+    }
     Ok(format!(
         "success: DONE in {:.2} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), max force {:.2} N, \
          tip {:.1} mm from the goal, latency trocar->command p50 {:.2} / p99 {:.2} ms, loop {:.1} Hz, {} steps{}",
@@ -251,6 +255,61 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         done.steps,
         note
     ))
+}
+
+/// The estimator's poses by source, counted from its status lines (`marker: published ...`,
+/// `markerless: published ...`) since the subscription.
+struct PublishedBy {
+    /// The sources that must have published.
+    sources: Vec<String>,
+    counts: Arc<Mutex<std::collections::BTreeMap<String, usize>>>,
+    _sub: rosrust::Subscriber,
+}
+
+impl PublishedBy {
+    /// Counting on `estimator_status_topic`, where `estimator_published` names sources.
+    fn for_params(p: &CheckParams) -> Result<Option<Self>, String> {
+        let sources: Vec<String> = p
+            .estimator_published
+            .split(',')
+            .map(str::trim)
+            .filter(|s| !s.is_empty())
+            .map(String::from)
+            .collect();
+        if sources.is_empty() {
+            return Ok(None);
+        }
+        let topic = &p.estimator_status_topic;
+        let counts: Arc<Mutex<std::collections::BTreeMap<String, usize>>> = Arc::default();
+        let c = counts.clone();
+        let sub = rosrust::subscribe(topic, 100, move |m: std_msgs::String| {
+            if let Some((source, _)) = m.data.split_once(": published") {
+                if let Ok(mut c) = c.lock() {
+                    *c.entry(source.to_string()).or_default() += 1;
+                }
+            }
+        })
+        .map_err(|e| format!("{topic}: {e}"))?;
+        Ok(Some(Self {
+            sources,
+            counts,
+            _sub: sub,
+        }))
+    }
+
+    /// Every source named published at least one pose: the counts, or which did not.
+    fn judge(&self) -> Result<String, String> {
+        let counts = self.counts.lock().map_err(|_| "status counts poisoned")?.clone();
+        let text = counts
+            .iter()
+            .map(|(k, n)| format!("{n} {k}"))
+            .collect::<Vec<_>>()
+            .join(", ");
+        match self.sources.iter().find(|s| counts.get(*s).is_none_or(|n| *n == 0)) {
+            Some(missing) => Err(format!("DONE, but no pose published by {missing} (poses: {text})")),
+            None => Ok(format!("; poses published: {text}")),
+        }
+    }
 }
 
 /// The true port's distance from the estimated insertion axis (z of the estimated trocar
