@@ -256,6 +256,9 @@ pub struct Marker {
     pub configured_size_m: Option<f64>,
     /// The simulated marker's size, m (the simulator's camera), to compare with.
     pub simulated_size_m: Option<f64>,
+    /// The estimator finds the trocar by its shape alone (method `markerless`): no marker,
+    /// so no size to check.
+    pub markerless: bool,
 }
 
 /// What the hand-eye file says.
@@ -603,12 +606,26 @@ fn stereo(obs: &Observations, lim: &Limits) -> Check {
 
 fn marker(obs: &Observations, lim: &Limits) -> Check {
     let m = &obs.marker;
-    let fix = "put the marker in the camera's view, lit, uncovered; its size (marker.size_m) must be the printed one";
+    let fix = if m.markerless {
+        "put the trocar in the camera's view, lit, uncovered, its opening facing the camera; the trocar model \
+         (trocar_model_file) must be the trocar's measured sizes (docs/markerless.md)"
+    } else {
+        "put the marker in the camera's view, lit, uncovered; its size (marker.size_m) must be the printed one"
+    };
     let r = m.stream.rate_hz();
     if m.last.is_none() {
-        return check("MARKER", false, "no trocar pose (marker not seen)".into(), fix);
+        let what = if m.markerless {
+            "trocar not found"
+        } else {
+            "marker not seen"
+        };
+        return check("MARKER", false, format!("no trocar pose ({what})"), fix);
     }
     let size = match (m.configured_size_m, m.simulated_size_m) {
+        _ if m.markerless => (
+            true,
+            "markerless: the trocar's shape, no marker size to check".to_string(),
+        ),
         (None, _) => (true, "size not checked (the pose comes directly)".to_string()),
         (Some(s), None) => (
             s.is_finite() && s > 0.0,

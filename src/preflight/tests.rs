@@ -60,6 +60,7 @@ fn good(kin: &dyn Kinematics) -> Observations {
             last: Some(s.trocar_rest),
             configured_size_m: Some(0.04),
             simulated_size_m: Some(0.04),
+            markerless: false,
         },
         hand_eye: Some(Ok(HandEye {
             path: "hand_eye.yaml".into(),
@@ -356,4 +357,28 @@ fn the_stereo_check_wants_a_right_image_with_nearly_every_left_one_and_a_baselin
     let (c, f) = stereo(&with_right(paired, None));
     assert_eq!(f, vec!["STEREO"]);
     assert!(c.detail.contains("no right camera_info"), "{c}");
+}
+
+#[test]
+fn a_markerless_estimator_has_no_marker_size_to_check_and_says_what_to_look_at() {
+    let k = kin();
+    let mut o = good(&k);
+    o.marker.markerless = true;
+    o.marker.configured_size_m = None;
+    let r = evaluate(&o, &Limits::default(), &TareParams::default(), &k);
+    let c = r.checks.iter().find(|c| c.code == "MARKER").unwrap();
+    assert_eq!(c.verdict, Verdict::Pass, "{c}");
+    assert!(c.detail.contains("markerless"), "{c}");
+    // A simulated marker of another size does not matter without a marker.
+    o.marker.simulated_size_m = Some(0.05);
+    assert!(failed(&o).is_empty());
+    // No pose: the trocar was not found, and the fix names the trocar model.
+    o.marker.last = None;
+    let r = evaluate(&o, &Limits::default(), &TareParams::default(), &k);
+    let c = r.checks.iter().find(|c| c.code == "MARKER").unwrap();
+    assert_eq!(c.verdict, Verdict::Fail);
+    assert!(
+        c.detail.contains("trocar not found") && c.fix.contains("trocar_model_file"),
+        "{c}"
+    );
 }

@@ -213,13 +213,17 @@ fn right_baseline(m: &sensor_msgs::CameraInfo) -> Result<f64, String> {
     Ok(c.baseline_m)
 }
 
-/// The estimator's right image and CameraInfo topics, where it reads a stereo pair's right
-/// image (its parameters on the server: method markerless or fused, both topics set).
-fn stereo_topics(estimator_node: &str) -> Option<(String, String)> {
+/// The estimator's parameters on the server, if it has any there.
+fn estimator_params(estimator_node: &str) -> Option<EstimatorNodeParams> {
     let tree = rosrust::param(estimator_node)?.get::<serde_json::Value>().ok()?;
-    let p: EstimatorNodeParams = params::from_value(estimator_node, tree).ok()?;
-    p.stereo()
-        .then(|| (p.right_image_topic.clone(), p.right_camera_info_topic.clone()))
+    params::from_value(estimator_node, tree).ok()
+}
+
+/// The estimator's right image and CameraInfo topics, where it reads a stereo pair's right
+/// image (method markerless or fused, both topics set).
+fn stereo_topics(p: Option<&EstimatorNodeParams>) -> Option<(String, String)> {
+    p.filter(|p| p.stereo())
+        .map(|p| (p.right_image_topic.clone(), p.right_camera_info_topic.clone()))
 }
 
 /// A parameter's value, if it is set.
@@ -290,6 +294,8 @@ fn who_runs(
 /// whose chain is `kin`. Blocks for up to `wait_s + window_s` (wall time).
 pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematics) -> Result<Report, NodeError> {
     let est = |k: &str| format!("{}/{k}", p.estimator_node);
+    let est_params = estimator_params(&p.estimator_node);
+    let markerless = est_params.as_ref().is_some_and(|e| !e.method.uses_marker());
     let topics = Topics {
         joint_states: node.joint_states_topic.clone(),
         lbr_state: node.lbr_state_topic.clone(),
@@ -297,7 +303,7 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         base_frame: node.base_frame.clone(),
         image: param(&est("image_topic")).unwrap_or_else(|| topics::CAMERA_IMAGE.into()),
         camera_info: param(&est("camera_info_topic")).unwrap_or_else(|| topics::CAMERA_INFO.into()),
-        right: stereo_topics(&p.estimator_node),
+        right: stereo_topics(est_params.as_ref()),
     };
     let seen = Arc::new(Mutex::new(Seen::default()));
     let subs = subscribe(&topics, &seen)?;
@@ -346,10 +352,15 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         marker: preflight::Marker {
             stream: s.poses.stream(),
             last: s.pose,
-            configured_size_m: if estimator { param(&est("marker/size_m")) } else { None },
+            configured_size_m: if estimator && !markerless {
+                param(&est("marker/size_m"))
+            } else {
+                None
+            },
             simulated_size_m: simulator
                 .filter(|s| s.camera)
                 .and_then(|_| param(&format!("{}/camera/marker/size_m", p.simulator_node))),
+            markerless: estimator && markerless,
         },
         hand_eye: hand_eye(p, estimator, camera),
         command_subscribers,
