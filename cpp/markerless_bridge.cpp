@@ -27,6 +27,15 @@ MarkerlessDetectorCpp::~MarkerlessDetectorCpp() = default;
 
 namespace {
 
+// OpenCV on the calling thread only (as the marker detector: vision_bridge.cpp), set once
+// while the process is still single-threaded: cv::setNumThreads rebuilds a process-wide
+// pool, and called from a constructor it raced with OpenCV work on other threads (a
+// SIGSEGV in the tests, where estimators are built in parallel).
+const bool opencv_on_the_calling_thread = [] {
+  cv::setNumThreads(1);
+  return true;
+}();
+
 void require(bool ok, const std::string &what) {
   if (!ok) throw std::invalid_argument(what);
 }
@@ -101,7 +110,6 @@ std::unique_ptr<MarkerlessDetectorCpp> new_markerless_detector(rust::Slice<const
           "distortion must have 0, 4, 5, 8, 12 or 14 coefficients");
   require(width >= 8 && height >= 8 && width <= 20000 && height <= 20000,
           "image size " + std::to_string(width) + "x" + std::to_string(height) + " out of range (8..=20000 px)");
-  cv::setNumThreads(1);
   auto impl = std::make_unique<MarkerlessDetectorCpp::Impl>();
   impl->K = cv::Matx33d(intrinsics[0], 0, intrinsics[2], 0, intrinsics[1], intrinsics[3], 0, 0, 1);
   impl->dist = cv::Mat(1, static_cast<int>(nd), CV_64F);

@@ -28,10 +28,21 @@
 namespace trocar_docking {
 
 rust::String vision_backend_versions() {
-  return rust::String("ViSP " + std::to_string(VISP_VERSION_MAJOR) + "." + std::to_string(VISP_VERSION_MINOR) + "." + std::to_string(VISP_VERSION_PATCH) + ", OpenCV " + CV_VERSION);
+  return rust::String("ViSP " + std::to_string(VISP_VERSION_MAJOR) + "." + std::to_string(VISP_VERSION_MINOR) + "." +
+                      std::to_string(VISP_VERSION_PATCH) + ", OpenCV " + CV_VERSION + " (threads: " +
+                      std::to_string(cv::getNumThreads()) + ")");
 }
 
 namespace {
+
+// One thread: OpenCV's pool splits a few-ms detection into tasks that wait for cores busy
+// with the control loop, which made the latency tail (p99) several times the median. Set
+// once while the process is still single-threaded (a static initialiser): cv::setNumThreads
+// rebuilds a process-wide pool and must not race with OpenCV work on other threads.
+const bool opencv_on_the_calling_thread = [] {
+  cv::setNumThreads(1);
+  return true;
+}();
 
 const std::string kAprilTag = "tag36h11";
 
@@ -231,9 +242,6 @@ MarkerDetectorCpp::~MarkerDetectorCpp() = default;
 std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::Slice<const double> intrinsics,
                                                        rust::Slice<const double> dist, int width, int height) {
   check_intrinsics(intrinsics, dist, width, height);
-  // One thread: OpenCV's pool splits a few-ms detection into tasks that wait for cores
-  // busy with the control loop, which made the latency tail (p99) several times the median.
-  cv::setNumThreads(1);
   auto impl = std::make_unique<MarkerDetectorCpp::Impl>();
   const std::string fam(family);
   impl->K = camera_matrix(intrinsics);

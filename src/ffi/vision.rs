@@ -6,7 +6,7 @@ pub mod ffi {
     unsafe extern "C++" {
         include!("trocar_docking/cpp/vision_bridge.h");
 
-        /// The versions of the vision libraries this build links.
+        /// The versions of the vision libraries this build links, and OpenCV's thread count.
         fn vision_backend_versions() -> String;
 
         /// A configured detector (family + camera model).
@@ -142,6 +142,13 @@ mod tests {
             ffi::detect_markers(d.pin_mut(), &grey, 64, 48, 1, -1, f64::NAN, &[]),
             "marker size",
         );
+    }
+
+    #[test]
+    fn opencv_runs_on_the_calling_thread_from_the_start() {
+        // Set once at load time, before any detector exists (none is built here).
+        let v = ffi::vision_backend_versions();
+        assert!(v.starts_with("ViSP 3.") && v.ends_with("(threads: 1)"), "{v}");
     }
 
     #[test]

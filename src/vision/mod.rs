@@ -25,7 +25,7 @@ pub use render::{facing_pose, render_marker_image, RenderOptions};
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 
-/// The OpenCV and ViSP versions the vision bridge was built against.
+/// The OpenCV and ViSP versions the vision bridge was built against, and the threads OpenCV uses.
 pub fn backend_versions() -> String {
     crate::ffi::vision::ffi::vision_backend_versions()
 }
