@@ -208,7 +208,8 @@ impl SimScene {
         }
     }
 
-    /// The trocar camera of a scene that renders the trocar now (a marker hidden).
+    /// The trocar camera of a scene that renders the trocar, or will once its marker is
+    /// hidden ([`SimScene::at`] gives the scene of a frame).
     fn trocar(&self) -> Option<&TrocarCamera> {
         match self {
             Self::Trocar(camera) | Self::MarkerUntil { trocar: camera, .. } => Some(camera),
