@@ -503,9 +503,12 @@ fn torques_at_rest(obs: &Observations, tare: &TareParams) -> Check {
     )
 }
 
+/// Why the camera's checks are skipped in the simulator's direct mode.
+const NO_CAMERA: &str = "no camera: the simulator publishes the trocar pose directly (trocar_source direct)";
+
 fn camera(obs: &Observations, lim: &Limits) -> Vec<Check> {
     let Some(c) = &obs.camera else {
-        let why = "no camera: the simulator publishes the trocar pose directly (trocar_source direct)";
+        let why = NO_CAMERA;
         return vec![
             not_checked("CAMERA_INFO", why.into()),
             not_checked("IMAGE_RATE", why.into()),
@@ -553,10 +556,7 @@ fn stereo(obs: &Observations, lim: &Limits) -> Check {
                right/camera_info) or set the estimator's right_image_topic and right_camera_info_topic to them; \
                '' for both runs mono on purpose (it docks less often: docs/markerless.md)";
     let Some(c) = &obs.camera else {
-        return not_checked(
-            "STEREO",
-            "no camera: the simulator publishes the trocar pose directly".into(),
-        );
+        return not_checked("STEREO", NO_CAMERA.into());
     };
     let Some(r) = &c.right else {
         return not_checked(
