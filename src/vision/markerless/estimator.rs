@@ -4,7 +4,7 @@
 //! DOF), the better explained kept, and a confidence from the fit, the edge support and
 //! the ambiguity margin.
 
-use nalgebra::{Isometry3, Matrix5, Point3, Unit, Vector2, Vector3, Vector5};
+use nalgebra::{Isometry3, Matrix5, Unit, Vector2, Vector3, Vector5};
 
 use super::geometry::{
     basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
@@ -125,6 +125,29 @@ impl RightEye {
     }
 }
 
+/// One image a pose is refined on: its eye, and where that eye sees the points of the frame
+/// the pose is in (`None`: the pose is in this eye's frame).
+#[derive(Clone, Copy)]
+struct View<'a> {
+    eye: &'a Eye,
+    from_pose_frame: Option<&'a Isometry3<f64>>,
+}
+
+impl<'a> View<'a> {
+    /// The image of `eye`, the pose in its own frame.
+    fn of(eye: &'a Eye) -> Self {
+        Self {
+            eye,
+            from_pose_frame: None,
+        }
+    }
+
+    /// `axis` (the pose's frame) in this eye's frame.
+    fn axis(&self, axis: &Axis) -> Axis {
+        self.from_pose_frame.map_or(*axis, |t| axis.transformed(t))
+    }
+}
+
 /// The two circle poses of one ellipse, each refined on the image (those that found the
 /// opening), and whether they were within 3 deg of each other from the start (`harmless`).
 struct Candidate {
@@ -137,6 +160,10 @@ struct Candidate {
 const STEREO_AGREE_DEG: f64 = 4.0;
 /// The stereo margin is the other pose's disagreement minus the chosen one's over this (deg).
 const STEREO_MARGIN_DEG: f64 = 5.0;
+/// The ambiguity margin of a pose fitted to both images of a stereo pair on which every
+/// start settled: between an ellipse's two poses left apart by nothing (0.5) and two within
+/// 3 deg from the start (1).
+const JOINT_ONE_AXIS_MARGIN: f64 = 0.75;
 
 /// One pose hypothesis and how well the image supports it.
 #[derive(Debug, Clone, Copy)]
@@ -223,7 +250,8 @@ impl MarkerlessEstimator {
     /// say, and the port centre is where the two eyes' lines of sight to it cross
     /// ([`triangulate`]); where the right image finds no opening there, the left image's
     /// estimate stands; where it sees the same opening but none of its poses is within
-    /// 4 deg of either, the left image does not decide. Where the left image gives no
+    /// 4 deg of either, the left image does not decide: one axis is refined on both images
+    /// at once from each eye's poses. Where the left image gives no
     /// confident estimate, the right image's own confident one of an opening the left image
     /// found too stands (carried into the left frame).
     pub fn estimate_stereo(
@@ -250,8 +278,13 @@ impl MarkerlessEstimator {
                     let choice = stereo_choice(&c.hyps, r, &origin);
                     // The right image sees this opening but none of its poses agrees with
                     // either of the left image's: one eye is off, and the left alone does not
-                    // decide (the right image's own estimate may, below).
+                    // decide; one axis fitted to both images does.
                     if choice.is_none() && same_opening(&c.hyps[0].axis.point, r) {
+                        if let Some(e) = self.joint(&c.hyps, r)? {
+                            if best.as_ref().is_none_or(|b| e.edge_support > b.edge_support) {
+                                best = Some(e);
+                            }
+                        }
                         continue;
                     }
                     choice
@@ -288,6 +321,42 @@ impl MarkerlessEstimator {
         Ok(best)
     }
 
+    /// Where the two eyes' poses of one opening disagree: one axis refined on both images at
+    /// once (the right image loaded), from each of the left image's poses `hyps` and each of
+    /// the right image's poses `right` (left frame) of the same opening; the best supported
+    /// is graded against the best that settled more than 3 deg from it (margin 1 when every
+    /// start settled on one axis, 0.5 when only one found the opening in both images).
+    fn joint(&self, hyps: &[Hypothesis], right: &[Axis]) -> Result<Option<MarkerlessEstimate>, VisionError> {
+        let (Some(r), Some(first)) = (self.right.as_ref(), hyps.first()) else {
+            return Ok(None);
+        };
+        let views = [
+            View::of(&self.left),
+            View {
+                eye: &r.eye,
+                from_pose_frame: Some(&r.right_t_left),
+            },
+        ];
+        let same = right.iter().filter(|a| same_port(&a.point, &first.axis.point));
+        let mut found = vec![];
+        for start in hyps.iter().map(|h| h.axis).chain(same.copied()) {
+            if let Some(h) = self.refine(&views, start)? {
+                found.push(h);
+            }
+        }
+        found.sort_by(|a, b| b.score.total_cmp(&a.score));
+        let Some(best) = found.first() else { return Ok(None) };
+        let other = found.iter().find(|h| h.axis.angle_to(&best.axis) > 3f64.to_radians());
+        Ok(Some(match other {
+            Some(o) => graded(best, ((best.score - o.score) / 0.25).clamp(0.0, 1.0)),
+            // Every start settled on one axis: no other pose explains the two images, but a
+            // wrong axis can draw every start (seen at 0.34 m with the axis 11 deg from the
+            // line of sight, where the opening's ellipses barely tell the tilt).
+            None if found.len() > 1 => graded(best, JOINT_ONE_AXIS_MARGIN),
+            None => graded(best, 0.5),
+        }))
+    }
+
     /// The right camera's image `img`: its candidates (each circle pose refined on it) and
     /// all their poses, in the left camera's frame.
     fn right_candidates(&mut self, img: &ImageView) -> Result<(Vec<Candidate>, Vec<Axis>), VisionError> {
@@ -299,10 +368,7 @@ impl MarkerlessEstimator {
             let left_t_right = r.right_t_left.inverse();
             let mut cands = self.candidates(&r.eye, &recs)?;
             for h in cands.iter_mut().flat_map(|c| c.hyps.iter_mut()) {
-                h.axis = Axis {
-                    point: (left_t_right * Point3::from(h.axis.point)).coords,
-                    direction: left_t_right.rotation * h.axis.direction,
-                };
+                h.axis = h.axis.transformed(&left_t_right);
             }
             let poses = cands.iter().flat_map(|c| c.hyps.iter().map(|h| h.axis)).collect();
             Ok((cands, poses))
@@ -323,7 +389,7 @@ impl MarkerlessEstimator {
             let harmless = sols[0].angle_to(&sols[1]) < 3f64.to_radians();
             let mut hyps: Vec<Hypothesis> = vec![];
             for s in sols {
-                if let Some(h) = self.refine(eye, s)? {
+                if let Some(h) = self.refine(&[View::of(eye)], s)? {
                     hyps.push(h);
                 }
             }
@@ -473,50 +539,60 @@ impl MarkerlessEstimator {
     }
 
     /// Refine one circle pose on the image's edges; `None` when the opening is not there.
-    fn refine(&self, eye: &Eye, start: Axis) -> Result<Option<Hypothesis>, VisionError> {
+    /// `views`: the images it is refined on (one, or the two of a stereo pair), the axis in the
+    /// first one's frame; each must show the opening.
+    fn refine(&self, views: &[View<'_>], start: Axis) -> Result<Option<Hypothesis>, VisionError> {
         let mut axis = start;
-        let mut matched: Vec<(Vector2<f64>, Part)> = vec![];
+        let mut matched: Vec<(usize, Vector2<f64>, Part)> = vec![];
         for range in [3.0, 2.0, 1.5] {
-            let samples = self.samples(&axis);
-            let found = Self::search(eye, &samples, range)?;
-            matched = samples
-                .iter()
-                .zip(&found)
-                .filter_map(|(s, f)| f.map(|p| (p, s.part)))
-                // The outline's edges decide between the hypotheses; near the rim's tangent
-                // points they lie within a few pixels of the face's edge, so the fit leaves them out.
-                .filter(|(_, part)| matches!(part, Part::Opening | Part::Rim))
-                .collect();
-            let n_open = matched.iter().filter(|m| m.1 == Part::Opening).count();
-            if n_open < OPENING_POINTS / 3 {
-                return Ok(None);
+            matched.clear();
+            for (i, view) in views.iter().enumerate() {
+                let samples = self.samples(&view.axis(&axis));
+                let found = Self::search(view.eye, &samples, range)?;
+                let before = matched.len();
+                matched.extend(
+                    samples
+                        .iter()
+                        .zip(&found)
+                        .filter_map(|(s, f)| f.map(|p| (i, p, s.part)))
+                        // The outline's edges decide between the hypotheses; near the rim's
+                        // tangent points they lie within a few pixels of the face's edge, so
+                        // the fit leaves them out.
+                        .filter(|(_, _, part)| matches!(part, Part::Opening | Part::Rim)),
+                );
+                let n_open = matched[before..].iter().filter(|m| m.2 == Part::Opening).count();
+                if n_open < OPENING_POINTS / 3 {
+                    return Ok(None);
+                }
             }
-            axis = self.fit(eye.camera.fx, axis, &matched);
+            axis = self.fit(views, axis, &matched);
         }
         // Grade: the samples of the final pose, found within 1 px of the model.
-        let samples = self.samples(&axis);
-        let found = Self::search(eye, &samples, 1.0)?;
-        let f = eye.camera.fx;
         let mut counts = [0usize; 4];
         let mut totals = [0usize; 4];
         let mut sq = 0.0;
         let mut n_open = 0;
-        for (s, p) in samples.iter().zip(&found) {
-            let k = match s.part {
-                Part::Opening => 0,
-                Part::Rim => 1,
-                Part::Limb(_) => 2,
-                Part::Bottom => 3,
-            };
-            totals[k] += 1;
-            if let Some(p) = p {
-                let res = self.residual(&axis, p, s.part).unwrap_or(f64::INFINITY) * f;
-                if res.abs() <= 1.0 {
-                    counts[k] += 1;
-                }
-                if k == 0 && res.is_finite() {
-                    sq += res * res;
-                    n_open += 1;
+        for view in views {
+            let (at, f) = (view.axis(&axis), view.eye.camera.fx);
+            let samples = self.samples(&at);
+            let found = Self::search(view.eye, &samples, 1.0)?;
+            for (s, p) in samples.iter().zip(&found) {
+                let k = match s.part {
+                    Part::Opening => 0,
+                    Part::Rim => 1,
+                    Part::Limb(_) => 2,
+                    Part::Bottom => 3,
+                };
+                totals[k] += 1;
+                if let Some(p) = p {
+                    let res = self.residual(&at, p, s.part).unwrap_or(f64::INFINITY) * f;
+                    if res.abs() <= 1.0 {
+                        counts[k] += 1;
+                    }
+                    if k == 0 && res.is_finite() {
+                        sq += res * res;
+                        n_open += 1;
+                    }
                 }
             }
         }
@@ -580,13 +656,14 @@ impl MarkerlessEstimator {
         }
     }
 
-    /// Robust Levenberg-Marquardt (Cauchy weights, 1 px scale) of the axis on the matched
-    /// edge points.
-    fn fit(&self, f: f64, start: Axis, matched: &[(Vector2<f64>, Part)]) -> Axis {
+    /// Robust Levenberg-Marquardt (Cauchy weights, 1 px scale) of the axis (the first view's
+    /// frame) on the matched edge points: (view, point, part).
+    fn fit(&self, views: &[View<'_>], start: Axis, matched: &[(usize, Vector2<f64>, Part)]) -> Axis {
         let residuals = |a: &Axis| -> Vec<f64> {
+            let at: Vec<(Axis, f64)> = views.iter().map(|v| (v.axis(a), v.eye.camera.fx)).collect();
             matched
                 .iter()
-                .map(|(p, part)| self.residual(a, p, *part).map_or(0.0, |r| r * f))
+                .map(|(i, p, part)| self.residual(&at[*i].0, p, *part).map_or(0.0, |r| r * at[*i].1))
                 .collect()
         };
         let cost = |r: &[f64]| r.iter().map(|x| (1.0 + x * x).ln()).sum::<f64>();
@@ -752,6 +829,12 @@ fn grade(
         Some(o) => margin(h, o),
         None => 0.5,
     };
+    graded(h, margin)
+}
+
+/// The estimate of hypothesis `h` with the ambiguity margin `margin`: confidence = edge
+/// support x fit x margin.
+fn graded(h: &Hypothesis, margin: f64) -> MarkerlessEstimate {
     let fit = 1.0 / (1.0 + (h.rms_px / 0.6).powi(2));
     MarkerlessEstimate {
         axis: h.axis,

@@ -2,7 +2,7 @@
 //! coordinates (x/z, y/z): a circle's image conic and the two circle poses an ellipse
 //! admits, and the outline (limbs) of a cylinder.
 
-use nalgebra::{Matrix3, SymmetricEigen, Unit, Vector2, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, SymmetricEigen, Unit, Vector2, Vector3};
 
 /// The trocar's axis in the camera frame: the port centre and the unit direction into the body.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -22,6 +22,14 @@ impl Axis {
     /// A point on the axis `t` metres from the port, into the body.
     pub fn at(&self, t: f64) -> Vector3<f64> {
         self.point + t * self.direction.into_inner()
+    }
+
+    /// The same axis in another frame: `b_t_a` maps this axis's frame `a` into `b`.
+    pub fn transformed(&self, b_t_a: &Isometry3<f64>) -> Axis {
+        Axis {
+            point: (b_t_a * Point3::from(self.point)).coords,
+            direction: b_t_a.rotation * self.direction,
+        }
     }
 }
 
