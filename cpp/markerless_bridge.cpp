@@ -1,6 +1,7 @@
 #include "trocar_docking/cpp/markerless_bridge.h"
 
 #include <algorithm>
+#include <initializer_list>
 #include <cmath>
 #include <stdexcept>
 #include <string>
@@ -19,7 +20,17 @@ struct MarkerlessDetectorCpp::Impl {
   cv::Mat grey8;   // the loaded image, grey
   cv::Mat smooth;  // smoothed, CV_32F
   cv::Mat smooth8; // smoothed, CV_8U (Canny)
+  cv::Mat occluded; // CV_8U, non-zero where a known occluder hides the scene; empty = none
+  cv::Mat beside;   // the same grown by 3 px: where an edge cut by the occluder ends
   bool loaded = false;
+
+  bool masked(double x, double y) const { return in(occluded, x, y); }
+
+  static bool in(const cv::Mat &m, double x, double y) {
+    if (m.empty()) return false;
+    const int xi = static_cast<int>(std::lround(x)), yi = static_cast<int>(std::lround(y));
+    return xi >= 0 && yi >= 0 && xi < m.cols && yi < m.rows && m.at<uint8_t>(yi, xi) != 0;
+  }
 };
 
 MarkerlessDetectorCpp::MarkerlessDetectorCpp(std::unique_ptr<Impl> i) : impl(std::move(i)) {}
@@ -62,8 +73,9 @@ inline cv::Point2d ellipse_frame(const cv::RotatedRect &r, const cv::Point2f &p)
 }
 
 // RMS first-order distance (px) of the points to the ellipse, and how many of 16 sectors
-// of the ellipse's parameter they cover.
-void ellipse_fit_quality(const cv::RotatedRect &r, const std::vector<cv::Point2f> &pts, double &rms, int &sectors) {
+// of the ellipse's parameter they cover (with `d`: or the occluder hides).
+void ellipse_fit_quality(const cv::RotatedRect &r, const std::vector<cv::Point2f> &pts, double &rms, int &sectors,
+                         const MarkerlessDetectorCpp::Impl *d = nullptr) {
   const double a = 0.5 * r.size.width, b = 0.5 * r.size.height;
   double sum = 0;
   unsigned hit = 0;
@@ -78,23 +90,38 @@ void ellipse_fit_quality(const cv::RotatedRect &r, const std::vector<cv::Point2f
     hit |= 1u << k;
   }
   rms = std::sqrt(sum / std::max<size_t>(1, pts.size()));
+  if (d != nullptr && !d->occluded.empty()) {
+    const double t = r.angle * CV_PI / 180.0, c = std::cos(t), s = std::sin(t);
+    for (int k = 0; k < 16; ++k) {
+      const double phi = -CV_PI + (k + 0.5) * 2 * CV_PI / 16, x = a * std::cos(phi), y = b * std::sin(phi);
+      if (d->masked(r.center.x + c * x - s * y, r.center.y + s * x + c * y)) hit |= 1u << k;
+    }
+  }
   sectors = __builtin_popcount(hit);
 }
 
-// Mean grey on the ellipse scaled by `scale` about its centre (32 samples), NaN if outside.
-double mean_on_ellipse(const cv::Mat &f, const cv::RotatedRect &r, double scale) {
+// Mean grey on the ellipses scaled by each of `scales` about the centre (32 samples each,
+// those the occluder hides left out), NaN unless at least 3 in 4 of the others, and 8, are
+// in the image.
+double mean_on_ellipse(const MarkerlessDetectorCpp::Impl &d, const cv::RotatedRect &r,
+                       std::initializer_list<double> scales) {
   const double t = r.angle * CV_PI / 180.0, c = std::cos(t), s = std::sin(t);
-  const double a = 0.5 * r.size.width * scale, b = 0.5 * r.size.height * scale;
   double sum = 0, v = 0;
-  int n = 0;
-  for (int k = 0; k < 32; ++k) {
-    const double phi = 2 * CV_PI * k / 32, x = a * std::cos(phi), y = b * std::sin(phi);
-    if (bilinear(f, r.center.x + c * x - s * y, r.center.y + s * x + c * y, v)) {
-      sum += v;
-      ++n;
+  int n = 0, open = 0;
+  for (double scale : scales) {
+    const double a = 0.5 * r.size.width * scale, b = 0.5 * r.size.height * scale;
+    for (int k = 0; k < 32; ++k) {
+      const double phi = 2 * CV_PI * k / 32, x = a * std::cos(phi), y = b * std::sin(phi);
+      const double px = r.center.x + c * x - s * y, py = r.center.y + s * x + c * y;
+      if (d.masked(px, py)) continue;
+      ++open;
+      if (bilinear(d.smooth, px, py, v)) {
+        sum += v;
+        ++n;
+      }
     }
   }
-  return n >= 24 ? sum / n : std::nan("");
+  return n >= 8 && 4 * n >= 3 * open ? sum / n : std::nan("");
 }
 
 }  // namespace
@@ -154,6 +181,41 @@ rust::Vec<double> markerless_ellipses(MarkerlessDetectorCpp &det, double min_axi
   cv::Canny(d.smooth8, edges, 20, 50, 3, true);
   std::vector<std::vector<cv::Point>> contours;
   cv::findContours(edges, contours, cv::RETR_LIST, cv::CHAIN_APPROX_NONE);
+  if (!d.occluded.empty()) {
+    // Leave out what the occluder hides; an opening it cuts across falls apart into arcs that
+    // end beside it: each two such arcs are tried together as well (the largest 12 of them).
+    // A contour the occluder crosses is split into the runs between its hidden points.
+    std::vector<std::vector<cv::Point>> runs;
+    for (const auto &c : contours) {
+      std::vector<cv::Point> run;
+      for (const auto &p : c) {
+        if (!d.masked(p.x, p.y)) {
+          run.push_back(p);
+        } else if (!run.empty()) {
+          runs.push_back(std::move(run));
+          run.clear();
+        }
+      }
+      if (!run.empty()) runs.push_back(std::move(run));
+    }
+    contours = std::move(runs);
+    std::vector<size_t> cut;
+    for (size_t ci = 0; ci < contours.size(); ++ci) {
+      const auto &c = contours[ci];
+      const bool ends_beside = c.size() >= 8 && std::any_of(c.begin(), c.end(), [&](const cv::Point &p) {
+                                 return MarkerlessDetectorCpp::Impl::in(d.beside, p.x, p.y);
+                               });
+      if (ends_beside) cut.push_back(ci);
+    }
+    std::sort(cut.begin(), cut.end(), [&](size_t x, size_t y) { return contours[x].size() > contours[y].size(); });
+    if (cut.size() > 12) cut.resize(12);
+    for (size_t i = 0; i < cut.size(); ++i)
+      for (size_t j = i + 1; j < cut.size(); ++j) {
+        std::vector<cv::Point> both(contours[cut[i]]);
+        both.insert(both.end(), contours[cut[j]].begin(), contours[cut[j]].end());
+        contours.push_back(std::move(both));
+      }
+  }
   struct Cand {
     cv::RotatedRect r;
     double contrast;
@@ -171,9 +233,11 @@ rust::Vec<double> markerless_ellipses(MarkerlessDetectorCpp &det, double min_axi
       continue;
     double rms = 0;
     int sectors = 0;
-    ellipse_fit_quality(r, pts, rms, sectors);
+    ellipse_fit_quality(r, pts, rms, sectors, &d);
     if (rms > 1.0 || sectors < 13) continue;
-    const double inside = mean_on_ellipse(d.smooth, r, 0.5), ring = mean_on_ellipse(d.smooth, r, 1.25);
+    // Inside, where the occluder may cover the middle: rings at 0.3 and 0.7 as well.
+    const double inside = d.occluded.empty() ? mean_on_ellipse(d, r, {0.5}) : mean_on_ellipse(d, r, {0.3, 0.5, 0.7});
+    const double ring = mean_on_ellipse(d, r, {1.25});
     if (!(ring - inside > 10.0)) continue;
     cands.push_back({r, ring - inside, ci});
   }
@@ -213,6 +277,49 @@ rust::Vec<double> markerless_ellipses(MarkerlessDetectorCpp &det, double min_axi
   return out;
 }
 
+void markerless_set_occluder(MarkerlessDetectorCpp &det, rust::Slice<const double> points, int section_len,
+                             double margin_px) {
+  auto &d = *det.impl;
+  require(all_finite(points), "occluder points must be finite");
+  require(points.size() % 3 == 0, "occluder points must be 3 numbers each (x, y, z)");
+  require(std::isfinite(margin_px) && margin_px >= 0.0 && margin_px <= 50.0, "occluder margin must be in [0, 50] px");
+  const size_t n = points.size() / 3;
+  if (n == 0) {
+    d.occluded.release();
+    d.beside.release();
+    return;
+  }
+  require(section_len >= 3 && n % static_cast<size_t>(section_len) == 0 && n / section_len >= 2,
+          "occluder points must come in two or more sections of at least 3 points");
+  std::vector<cv::Point3d> p3(n);
+  for (size_t i = 0; i < n; ++i) {
+    p3[i] = {points[3 * i], points[3 * i + 1], points[3 * i + 2]};
+    require(p3[i].z > 1e-3, "occluder points must lie in front of the camera (z > 1 mm)");
+  }
+  std::vector<cv::Point2d> px;
+  cv::projectPoints(p3, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), d.K, d.dist, px);
+  cv::Mat mask = cv::Mat::zeros(d.height, d.width, CV_8U);
+  const size_t m = static_cast<size_t>(section_len);
+  std::vector<cv::Point> two, hull;
+  for (size_t s = 0; s + 1 < n / m; ++s) {
+    two.clear();
+    for (size_t i = s * m; i < (s + 2) * m; ++i) {
+      // Far outside the image the projection means nothing: clamp to a frame around it.
+      const double x = std::max(-4.0 * d.width, std::min(5.0 * d.width, px[i].x));
+      const double y = std::max(-4.0 * d.height, std::min(5.0 * d.height, px[i].y));
+      two.emplace_back(static_cast<int>(std::lround(x)), static_cast<int>(std::lround(y)));
+    }
+    cv::convexHull(two, hull);
+    cv::fillConvexPoly(mask, hull, cv::Scalar(255));
+  }
+  if (margin_px > 0.0) {
+    const int r = static_cast<int>(std::ceil(margin_px));
+    cv::dilate(mask, mask, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(2 * r + 1, 2 * r + 1)));
+  }
+  d.occluded = mask;
+  cv::dilate(mask, d.beside, cv::getStructuringElement(cv::MORPH_ELLIPSE, cv::Size(7, 7)));
+}
+
 rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust::Slice<const double> points,
                                           double range_px, int polarity, double min_strength) {
   const auto &d = *det.impl;
@@ -243,12 +350,21 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
   std::vector<cv::Point2d> found_px;
   std::vector<size_t> found_idx;
   std::vector<double> found_strength;
+  std::vector<size_t> masked_idx;
   for (size_t i = 0; i < n; ++i) {
     const cv::Point2d p = px[2 * i];
     cv::Point2d u = px[2 * i + 1] - p;
     const double len = cv::norm(u);
     if (!(len > 1e-9)) continue;
     u /= len;
+    if (!d.occluded.empty()) {
+      bool hidden = false;
+      for (int j = -half; j <= half && !hidden; ++j) hidden = d.masked(p.x + j * step * u.x, p.y + j * step * u.y);
+      if (hidden) {
+        masked_idx.push_back(i);
+        continue;
+      }
+    }
     bool inside = true;
     for (int j = -half; j <= half && inside; ++j) {
       const double s = j * step;
@@ -285,6 +401,7 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
                         cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-12));
   out.reserve(4 * n);
   for (size_t i = 0; i < 4 * n; ++i) out.push_back(0.0);
+  for (size_t i : masked_idx) out[4 * i] = 2.0;
   for (size_t k = 0; k < found_idx.size(); ++k) {
     const size_t i = found_idx[k];
     out[4 * i] = 1.0;

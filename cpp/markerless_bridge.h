@@ -36,11 +36,21 @@ void markerless_load(MarkerlessDetectorCpp &det, rust::Slice<const uint8_t> pixe
 rust::Vec<double> markerless_ellipses(MarkerlessDetectorCpp &det, double min_axis_px, double max_axis_px,
                                       int max_count);
 
+// A known occluder in view (the endoscope's own shaft): `points` are 3-D points in the
+// camera frame (x, y, z, m; z > 0), in sections of `section_len` points each (the rims of a
+// cylinder's cross-sections along its axis); the image region each two consecutive sections
+// cover (the convex hull of their projections through the distortion), grown by `margin_px`,
+// is masked for every later image: contour points in it are left out of the ellipses, and
+// edge searches that touch it report 2 (masked). Empty `points` clears the mask.
+void markerless_set_occluder(MarkerlessDetectorCpp &det, rust::Slice<const double> points, int section_len,
+                             double margin_px);
+
 // Moving edges: for each of the n points (4 numbers each: x, y, normal nx, ny; normalised
 // coordinates) search the image within +-range_px along the normal for the strongest grey
 // gradient of the given polarity (+1: dark to light along the normal, -1: light to dark,
-// 0: either) of at least min_strength grey levels per px. 4 numbers each out: found (0/1),
-// x, y (normalised, sub-pixel), strength (grey levels / px, signed along the normal).
+// 0: either) of at least min_strength grey levels per px. 4 numbers each out: found (0/1;
+// 2: the search touches the occluder's mask, nothing found), x, y (normalised, sub-pixel),
+// strength (grey levels / px, signed along the normal).
 rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust::Slice<const double> points,
                                           double range_px, int polarity, double min_strength);
 

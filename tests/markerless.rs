@@ -7,7 +7,9 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 use trocar_docking::stats::finite_quantile;
 use trocar_docking::vision::markerless::approach::docking_approach;
 use trocar_docking::vision::markerless::render::ToolCylinder;
-use trocar_docking::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer, HIGH_CONFIDENCE};
+use trocar_docking::vision::markerless::{
+    MarkerlessEstimator, Occluder, Scene, TrocarModel, TrocarRenderer, HIGH_CONFIDENCE,
+};
 use trocar_docking::vision::{CameraModel, GreyImage};
 
 fn camera() -> CameraModel {
@@ -675,4 +677,113 @@ fn the_two_eyes_put_the_port_at_its_depth() {
         q(&ds, 0.5),
         q(&dm, 0.5)
     );
+}
+
+/// The endoscope's shaft (5 mm, 0.25 m from the flange to the tip) as the camera on
+/// `mount()` sees it, and the port `ahead_m` beyond its tip on its axis (the docking's final
+/// approach: 0.02 = the stand-off point; negative: the tip inside), camera frame.
+fn endoscope_and_port(ahead_m: f64) -> (ToolCylinder, Isometry3<f64>) {
+    let camera_t_flange = mount().inverse();
+    let at = |z: f64| camera_t_flange * nalgebra::Point3::new(0.0, 0.0, z);
+    let (tip, back) = (at(0.25), at(0.0));
+    let tool = ToolCylinder {
+        start: tip.coords.into(),
+        end: back.coords.into(),
+        radius: 0.0025,
+    };
+    let port = Isometry3::from_parts(Translation3::from(at(0.25 + ahead_m).coords), camera_t_flange.rotation);
+    (tool, port)
+}
+
+#[test]
+fn the_endoscope_in_view_is_masked_out_and_the_port_found_behind_it() {
+    // From the stand-off point to 25 mm in, the shaft covers the top of the opening and of
+    // the face: unmasked, its edges spoil the opening's contour and nothing is found; masked
+    // (the shaft where the mount and the tool put it, 1.5 mm wider), the port is found.
+    let cam = camera();
+    let model = TrocarModel::shipped();
+    let r = TrocarRenderer::new(&cam).unwrap();
+    let mut plain = MarkerlessEstimator::new(&cam, &model).unwrap();
+    let (tool, _) = endoscope_and_port(0.0);
+    let occluder = Occluder {
+        start: Vector3::from(tool.start),
+        end: Vector3::from(tool.end),
+        radius: 0.004,
+        margin_px: 2.0,
+    };
+    let mut masked = MarkerlessEstimator::new(&cam, &model)
+        .unwrap()
+        .with_occluder(Some(occluder))
+        .unwrap();
+    let (mut lost, mut worst) = (0, (0.0f64, 0.0f64));
+    for (k, ahead) in [0.02, 0.01, 0.0, -0.01, -0.025].into_iter().enumerate() {
+        let (tool, port) = endoscope_and_port(ahead);
+        let mut s = Scene::random(40 + k as u64, 2.0);
+        s.tool = Some(tool);
+        let img = r.render(&model, &port, &s).unwrap();
+        let dir = port.rotation * Vector3::z();
+        let error = |e: &trocar_docking::vision::markerless::MarkerlessEstimate| {
+            (
+                (e.axis.point - port.translation.vector).norm() * 1e3,
+                e.axis.direction.angle(&dir).to_degrees(),
+            )
+        };
+        // The docking's estimate so far is the prior (here the true axis, 3 deg off).
+        let prior = nalgebra::Unit::new_normalize(
+            nalgebra::Rotation3::from_axis_angle(&Vector3::x_axis(), 3f64.to_radians()) * dir,
+        );
+        let p = plain.estimate(&img.view(), Some(&prior)).unwrap();
+        let m = masked.estimate(&img.view(), Some(&prior)).unwrap();
+        eprintln!(
+            "{ahead:+.3} m: unmasked {:?}, masked {:?}",
+            p.as_ref().map(|e| (error(e), e.confidence)),
+            m.as_ref()
+                .map(|e| (error(e), e.confidence, e.edge_support, e.ambiguity_margin, e.fit_rms_px))
+        );
+        if p.as_ref().is_none_or(|e| e.confidence < HIGH_CONFIDENCE) {
+            lost += 1;
+        }
+        let m = m.expect("masked: the port is found");
+        assert!(m.confidence >= HIGH_CONFIDENCE, "{ahead}: confidence {}", m.confidence);
+        let (dp, da) = error(&m);
+        worst = (worst.0.max(dp), worst.1.max(da));
+    }
+    eprintln!(
+        "unmasked lost {lost} of 5; masked worst {:.2} mm {:.2} deg",
+        worst.0, worst.1
+    );
+    assert!(
+        lost >= 4,
+        "the shaft did not hide the port from the plain estimator: {lost} of 5"
+    );
+    assert!(worst.0 < 1.0 && worst.1 < 2.0, "{worst:?}");
+    // An occluder behind the camera masks nothing; a bad one is refused.
+    let behind = Occluder {
+        start: Vector3::new(0.0, 0.0, -0.1),
+        end: Vector3::new(0.0, 0.1, -0.2),
+        ..occluder
+    };
+    assert!(MarkerlessEstimator::new(&cam, &model)
+        .unwrap()
+        .with_occluder(Some(behind))
+        .is_ok());
+    for bad in [
+        Occluder {
+            radius: f64::NAN,
+            ..occluder
+        },
+        Occluder {
+            end: occluder.start,
+            ..occluder
+        },
+        Occluder {
+            margin_px: -1.0,
+            ..occluder
+        },
+    ] {
+        assert!(MarkerlessEstimator::new(&cam, &model)
+            .unwrap()
+            .with_occluder(Some(bad))
+            .is_err());
+    }
 }

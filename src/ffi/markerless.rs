@@ -37,8 +37,19 @@ pub mod ffi {
             max_count: i32,
         ) -> Result<Vec<f64>>;
 
+        /// A known occluder in view (the endoscope's shaft): 3-D points (camera frame) in
+        /// sections of `section_len`; the region consecutive sections cover, grown by
+        /// `margin_px`, is masked in every later image. Empty `points` clears it.
+        fn markerless_set_occluder(
+            det: Pin<&mut MarkerlessDetectorCpp>,
+            points: &[f64],
+            section_len: i32,
+            margin_px: f64,
+        ) -> Result<()>;
+
         /// Moving edges along normals: in 4 per point (x, y, nx, ny), out 4 per point
-        /// (found, x, y, signed strength).
+        /// (found: 0, 1, or 2 where the occluder's mask hides the search; x, y, signed
+        /// strength).
         fn markerless_search_edges(
             det: &MarkerlessDetectorCpp,
             points: &[f64],
@@ -93,6 +104,33 @@ mod tests {
         refused(ffi::markerless_load(d.pin_mut(), &grey, 64, 48, 1, f64::NAN), "sigma");
         ffi::markerless_load(d.pin_mut(), &grey, 64, 48, 1, 1.0).unwrap();
         assert!(ffi::markerless_ellipses(d.pin_mut(), 3.0, 10.0, 4).unwrap().is_empty());
+        // The occluder: whole points, whole sections, in front of the camera, a sane margin.
+        let sec = |z: f64| [0.0, 0.0, z, 0.01, 0.0, z, 0.0, 0.01, z];
+        let two: Vec<f64> = sec(0.2).into_iter().chain(sec(0.3)).collect();
+        refused(
+            ffi::markerless_set_occluder(d.pin_mut(), &two[1..], 3, 1.0),
+            "3 numbers each",
+        );
+        refused(
+            ffi::markerless_set_occluder(d.pin_mut(), &two[..9], 3, 1.0),
+            "two or more sections",
+        );
+        refused(ffi::markerless_set_occluder(d.pin_mut(), &two, 3, -1.0), "margin");
+        let behind: Vec<f64> = sec(-0.2).into_iter().chain(sec(0.3)).collect();
+        refused(
+            ffi::markerless_set_occluder(d.pin_mut(), &behind, 3, 1.0),
+            "in front of the camera",
+        );
+        let nan: Vec<f64> = two.iter().map(|v| if *v == 0.01 { f64::NAN } else { *v }).collect();
+        refused(ffi::markerless_set_occluder(d.pin_mut(), &nan, 3, 1.0), "finite");
+        // Set, the image centre's search reports it hidden (2); cleared, searched again (0/1).
+        ffi::markerless_set_occluder(d.pin_mut(), &two, 3, 1.0).unwrap();
+        assert_eq!(
+            ffi::markerless_search_edges(&d, &[0.0, 0.0, 1.0, 0.0], 2.0, 0, 1.0).unwrap()[0],
+            2.0
+        );
+        ffi::markerless_set_occluder(d.pin_mut(), &[], 3, 0.0).unwrap();
+        assert!(ffi::markerless_search_edges(&d, &[0.0, 0.0, 1.0, 0.0], 2.0, 0, 1.0).unwrap()[0] < 1.5);
         refused(ffi::markerless_ellipses(d.pin_mut(), 10.0, 3.0, 4), "semi-axis");
         refused(ffi::markerless_ellipses(d.pin_mut(), 3.0, 10.0, 0), "max_count");
         refused(ffi::markerless_search_edges(&d, &[0.0; 5], 2.0, 0, 1.0), "4 numbers");

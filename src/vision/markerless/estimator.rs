@@ -4,7 +4,7 @@
 //! DOF), the better explained kept, and a confidence from the fit, the edge support and
 //! the ambiguity margin.
 
-use nalgebra::{Isometry3, Matrix5, Unit, Vector2, Vector3, Vector5};
+use nalgebra::{Isometry3, Matrix5, Point3, Unit, Vector2, Vector3, Vector5};
 
 use super::geometry::{
     basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
@@ -43,6 +43,26 @@ struct EdgeSample {
     polarity: i32,
 }
 
+/// What the search along one model edge sample found.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Edge {
+    /// No edge within the range.
+    None,
+    /// The edge, normalised image coordinates.
+    At(Vector2<f64>),
+    /// The occluder hides the search: neither found nor missed.
+    Hidden,
+}
+
+impl Edge {
+    fn at(self) -> Option<Vector2<f64>> {
+        match self {
+            Edge::At(p) => Some(p),
+            _ => None,
+        }
+    }
+}
+
 /// One estimate of the trocar's axis.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct MarkerlessEstimate {
@@ -62,12 +82,81 @@ pub struct MarkerlessEstimate {
     pub ambiguity_margin: f64,
 }
 
+/// A known cylinder in view that hides the scene behind it: the endoscope's own shaft, rigid
+/// to the camera on its mount. In the left camera's frame, m.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Occluder {
+    /// One end of the axis (the endoscope's tip).
+    pub start: Vector3<f64>,
+    /// The other end (towards the flange; the part behind the camera is left out).
+    pub end: Vector3<f64>,
+    /// Radius, m.
+    pub radius: f64,
+    /// The masked image region grows by this much around its outline, px.
+    pub margin_px: f64,
+}
+
+impl Occluder {
+    /// The rims of the cross-sections along the part in front of `eye_t_left`'s camera (at
+    /// least 2 cm away), in its frame: `(points x, y, z, section length)`; `None` when none of
+    /// it is in front of the camera.
+    fn sections(&self, eye_t_left: &Isometry3<f64>) -> Option<(Vec<f64>, i32)> {
+        const SECTIONS: usize = 16;
+        const RIM: usize = 16;
+        const NEAR_M: f64 = 0.02;
+        let (mut a, mut b) = (
+            (eye_t_left * Point3::from(self.start)).coords,
+            (eye_t_left * Point3::from(self.end)).coords,
+        );
+        if a.z < NEAR_M && b.z < NEAR_M {
+            return None;
+        }
+        // Clip the axis to z >= NEAR_M.
+        let clip = |p: Vector3<f64>, q: Vector3<f64>| p + (q - p) * ((NEAR_M - p.z) / (q.z - p.z));
+        if a.z < NEAR_M {
+            a = clip(a, b);
+        } else if b.z < NEAR_M {
+            b = clip(b, a);
+        }
+        let axis = Unit::try_new(b - a, 1e-9)?;
+        let (u, v) = basis(&axis);
+        let mut pts = Vec::with_capacity(3 * SECTIONS * RIM);
+        for k in 0..SECTIONS {
+            let c = a + (b - a) * (k as f64 / (SECTIONS - 1) as f64);
+            for j in 0..RIM {
+                let phi = std::f64::consts::TAU * j as f64 / RIM as f64;
+                let p = c + self.radius * (phi.cos() * u + phi.sin() * v);
+                // The rim may dip behind the near plane: keep it just in front.
+                pts.extend([p.x, p.y, p.z.max(NEAR_M / 2.0)]);
+            }
+        }
+        Some((pts, RIM as i32))
+    }
+
+    fn validate(&self) -> Result<(), VisionError> {
+        let finite = self.start.iter().chain(self.end.iter()).all(|v| v.is_finite());
+        if !finite || (self.start - self.end).norm() < 1e-6 {
+            return Err(VisionError::InvalidInput(
+                "the occluder's ends must be finite and distinct".into(),
+            ));
+        }
+        crate::validate::positive_at_most("occluder radius_m", self.radius, 0.05)?;
+        if !(self.margin_px.is_finite() && (0.0..=50.0).contains(&self.margin_px)) {
+            return Err(VisionError::InvalidInput(
+                "the occluder's margin must be in [0, 50] px".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// The estimator for one camera (optionally with the right camera of a stereo pair) and one
 /// trocar model.
 pub struct MarkerlessEstimator {
     left: Eye,
     right: Option<RightEye>,
     model: TrocarModel,
+    occluder: Option<Occluder>,
 }
 
 /// One camera's detector (it holds the camera's last image) and model.
@@ -89,6 +178,17 @@ impl Eye {
             det,
             camera: camera.clone(),
         })
+    }
+
+    /// Mask what `occluder` (the left camera's frame) hides in this eye, which sees the left
+    /// camera's points through `eye_t_left`; `None` clears the mask.
+    fn set_occluder(&mut self, occluder: Option<&Occluder>, eye_t_left: &Isometry3<f64>) -> Result<(), VisionError> {
+        let (pts, len, margin) = match occluder.and_then(|o| o.sections(eye_t_left).map(|s| (s, o.margin_px))) {
+            Some(((pts, len), margin)) => (pts, len, margin),
+            None => (vec![], 3, 0.0),
+        };
+        ffi::markerless_set_occluder(self.det.pin_mut(), &pts, len, margin)?;
+        Ok(())
     }
 
     /// Load `image` (the camera's size) into the detector.
@@ -183,6 +283,7 @@ impl MarkerlessEstimator {
             left: Eye::new(camera)?,
             right: None,
             model: *model,
+            occluder: None,
         })
     }
 
@@ -203,10 +304,28 @@ impl MarkerlessEstimator {
                 "the stereo pair's right_t_left must be finite with a baseline under 1 m".into(),
             ));
         }
+        let mut eye = Eye::new(right)?;
+        eye.set_occluder(self.occluder.as_ref(), right_t_left)?;
         self.right = Some(RightEye {
-            eye: Eye::new(right)?,
+            eye,
             right_t_left: *right_t_left,
         });
+        Ok(self)
+    }
+
+    /// The same estimator with a known occluder in view (the endoscope's own shaft, in the
+    /// left camera's frame; `None`: none): the image region it covers, grown by its margin,
+    /// is left out in both images (no opening contour, no edge found there), and the model's
+    /// edge samples there count neither for nor against an estimate.
+    pub fn with_occluder(mut self, occluder: Option<Occluder>) -> Result<Self, VisionError> {
+        if let Some(o) = &occluder {
+            o.validate()?;
+        }
+        self.left.set_occluder(occluder.as_ref(), &Isometry3::identity())?;
+        if let Some(r) = self.right.as_mut() {
+            r.eye.set_occluder(occluder.as_ref(), &r.right_t_left)?;
+        }
+        self.occluder = occluder;
         Ok(self)
     }
 
@@ -511,9 +630,10 @@ impl MarkerlessEstimator {
         out
     }
 
-    /// Search the image for the edges of `samples` (within `range_px`).
-    fn search(eye: &Eye, samples: &[EdgeSample], range_px: f64) -> Result<Vec<Option<Vector2<f64>>>, VisionError> {
-        let mut found = vec![None; samples.len()];
+    /// Search the image for the edges of `samples` (within `range_px`): per sample the edge
+    /// found, nothing, or [`Edge::Hidden`] where the occluder hides the search.
+    fn search(eye: &Eye, samples: &[EdgeSample], range_px: f64) -> Result<Vec<Edge>, VisionError> {
+        let mut found = vec![Edge::None; samples.len()];
         for pol in [-1, 0, 1] {
             let idx: Vec<usize> = (0..samples.len()).filter(|&i| samples[i].polarity == pol).collect();
             if idx.is_empty() {
@@ -530,9 +650,13 @@ impl MarkerlessEstimator {
                 .collect();
             let out = ffi::markerless_search_edges(&eye.det, &pts, range_px, pol, 4.0)?;
             for (k, rec) in out.chunks_exact(EDGE_RECORD_LEN).enumerate() {
-                if rec[0] > 0.5 {
-                    found[idx[k]] = Some(Vector2::new(rec[1], rec[2]));
-                }
+                found[idx[k]] = if rec[0] > 1.5 {
+                    Edge::Hidden
+                } else if rec[0] > 0.5 {
+                    Edge::At(Vector2::new(rec[1], rec[2]))
+                } else {
+                    Edge::None
+                };
             }
         }
         Ok(found)
@@ -554,7 +678,7 @@ impl MarkerlessEstimator {
                     samples
                         .iter()
                         .zip(&found)
-                        .filter_map(|(s, f)| f.map(|p| (i, p, s.part)))
+                        .filter_map(|(s, f)| f.at().map(|p| (i, p, s.part)))
                         // The outline's edges decide between the hypotheses; near the rim's
                         // tangent points they lie within a few pixels of the face's edge, so
                         // the fit leaves them out.
@@ -577,6 +701,9 @@ impl MarkerlessEstimator {
             let samples = self.samples(&at);
             let found = Self::search(view.eye, &samples, 1.0)?;
             for (s, p) in samples.iter().zip(&found) {
+                if *p == Edge::Hidden {
+                    continue;
+                }
                 let k = match s.part {
                     Part::Opening => 0,
                     Part::Rim => 1,
@@ -584,7 +711,7 @@ impl MarkerlessEstimator {
                     Part::Bottom => 3,
                 };
                 totals[k] += 1;
-                if let Some(p) = p {
+                if let Edge::At(p) = p {
                     let res = self.residual(&at, p, s.part).unwrap_or(f64::INFINITY) * f;
                     if res.abs() <= 1.0 {
                         counts[k] += 1;

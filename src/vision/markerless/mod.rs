@@ -9,7 +9,7 @@ pub mod measurement;
 pub mod model;
 pub mod render;
 
-pub use estimator::{MarkerlessEstimate, MarkerlessEstimator, HIGH_CONFIDENCE};
+pub use estimator::{MarkerlessEstimate, MarkerlessEstimator, Occluder, HIGH_CONFIDENCE};
 pub use geometry::Axis;
 pub use measurement::{EstimatorMethod, MarkerlessParams};
 pub use model::TrocarModel;
