@@ -757,7 +757,18 @@ fn the_endoscope_in_view_is_masked_out_and_the_port_found_behind_it() {
         "the shaft did not hide the port from the plain estimator: {lost} of 5"
     );
     assert!(worst.0 < 1.0 && worst.1 < 2.0, "{worst:?}");
-    // An occluder behind the camera masks nothing; a bad one is refused.
+}
+
+#[test]
+fn an_occluder_behind_the_camera_masks_nothing_and_a_bad_one_is_refused() {
+    let (cam, model) = (camera(), TrocarModel::shipped());
+    let (tool, _) = endoscope_and_port(0.0);
+    let occluder = Occluder {
+        start: Vector3::from(tool.start),
+        end: Vector3::from(tool.end),
+        radius: 0.004,
+        margin_px: 2.0,
+    };
     let behind = Occluder {
         start: Vector3::new(0.0, 0.0, -0.1),
         end: Vector3::new(0.0, 0.1, -0.2),
