@@ -321,7 +321,8 @@ void markerless_set_occluder(MarkerlessDetectorCpp &det, rust::Slice<const doubl
 }
 
 rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust::Slice<const double> points,
-                                          double range_px, int polarity, double min_strength) {
+                                          double range_px, int polarity, double min_strength,
+                                          bool through_occluder) {
   const auto &d = *det.impl;
   require(d.loaded, "no image loaded");
   require(points.size() % 4 == 0, "points must be 4 numbers each (x, y, nx, ny)");
@@ -357,7 +358,7 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
     const double len = cv::norm(u);
     if (!(len > 1e-9)) continue;
     u /= len;
-    if (!d.occluded.empty()) {
+    if (!d.occluded.empty() && !through_occluder) {
       bool hidden = false;
       for (int j = -half; j <= half && !hidden; ++j) hidden = d.masked(p.x + j * step * u.x, p.y + j * step * u.y);
       if (hidden) {

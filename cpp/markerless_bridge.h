@@ -51,7 +51,10 @@ void markerless_set_occluder(MarkerlessDetectorCpp &det, rust::Slice<const doubl
 // 0: either) of at least min_strength grey levels per px. 4 numbers each out: found (0/1;
 // 2: the search touches the occluder's mask, nothing found), x, y (normalised, sub-pixel),
 // strength (grey levels / px, signed along the normal).
+// `through_occluder`: search where the occluder's mask is too (to find the occluder's own
+// outline).
 rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust::Slice<const double> points,
-                                          double range_px, int polarity, double min_strength);
+                                          double range_px, int polarity, double min_strength,
+                                          bool through_occluder);
 
 }  // namespace trocar_docking

@@ -56,6 +56,7 @@ pub mod ffi {
             range_px: f64,
             polarity: i32,
             min_strength: f64,
+            through_occluder: bool,
         ) -> Result<Vec<f64>>;
     }
 }
@@ -91,7 +92,7 @@ mod tests {
         let mut d = ffi::new_markerless_detector(&K, &[], 64, 48).unwrap();
         refused(ffi::markerless_ellipses(d.pin_mut(), 3.0, 10.0, 4), "no image loaded");
         refused(
-            ffi::markerless_search_edges(&d, &[0.0; 4], 2.0, 0, 1.0),
+            ffi::markerless_search_edges(&d, &[0.0; 4], 2.0, 0, 1.0, false),
             "no image loaded",
         );
         let grey = vec![100u8; 64 * 48];
@@ -125,20 +126,35 @@ mod tests {
         refused(ffi::markerless_set_occluder(d.pin_mut(), &nan, 3, 1.0), "finite");
         // Set, the image centre's search reports it hidden (2); cleared, searched again (0/1).
         ffi::markerless_set_occluder(d.pin_mut(), &two, 3, 1.0).unwrap();
+        let centre = [0.0, 0.0, 1.0, 0.0];
         assert_eq!(
-            ffi::markerless_search_edges(&d, &[0.0, 0.0, 1.0, 0.0], 2.0, 0, 1.0).unwrap()[0],
+            ffi::markerless_search_edges(&d, &centre, 2.0, 0, 1.0, false).unwrap()[0],
             2.0
         );
+        // Searched through the mask (the occluder's own outline): not hidden.
+        assert!(ffi::markerless_search_edges(&d, &centre, 2.0, 0, 1.0, true).unwrap()[0] < 1.5);
         ffi::markerless_set_occluder(d.pin_mut(), &[], 3, 0.0).unwrap();
-        assert!(ffi::markerless_search_edges(&d, &[0.0, 0.0, 1.0, 0.0], 2.0, 0, 1.0).unwrap()[0] < 1.5);
+        assert!(ffi::markerless_search_edges(&d, &centre, 2.0, 0, 1.0, false).unwrap()[0] < 1.5);
         refused(ffi::markerless_ellipses(d.pin_mut(), 10.0, 3.0, 4), "semi-axis");
         refused(ffi::markerless_ellipses(d.pin_mut(), 3.0, 10.0, 0), "max_count");
-        refused(ffi::markerless_search_edges(&d, &[0.0; 5], 2.0, 0, 1.0), "4 numbers");
-        refused(ffi::markerless_search_edges(&d, &[f64::NAN; 4], 2.0, 0, 1.0), "finite");
-        refused(ffi::markerless_search_edges(&d, &[0.0; 4], 0.0, 0, 1.0), "search range");
-        refused(ffi::markerless_search_edges(&d, &[0.0; 4], 2.0, 2, 1.0), "polarity");
+        refused(
+            ffi::markerless_search_edges(&d, &[0.0; 5], 2.0, 0, 1.0, false),
+            "4 numbers",
+        );
+        refused(
+            ffi::markerless_search_edges(&d, &[f64::NAN; 4], 2.0, 0, 1.0, false),
+            "finite",
+        );
+        refused(
+            ffi::markerless_search_edges(&d, &[0.0; 4], 0.0, 0, 1.0, false),
+            "search range",
+        );
+        refused(
+            ffi::markerless_search_edges(&d, &[0.0; 4], 2.0, 2, 1.0, false),
+            "polarity",
+        );
         // A flat image has no edge anywhere.
-        let out = ffi::markerless_search_edges(&d, &[0.0, 0.0, 1.0, 0.0], 3.0, 0, 1.0).unwrap();
+        let out = ffi::markerless_search_edges(&d, &[0.0, 0.0, 1.0, 0.0], 3.0, 0, 1.0, false).unwrap();
         assert_eq!(out, vec![0.0; 4]);
     }
 }

@@ -4,7 +4,7 @@
 //! DOF), the better explained kept, and a confidence from the fit, the edge support and
 //! the ambiguity margin.
 
-use nalgebra::{Isometry3, Matrix5, Point3, Unit, Vector2, Vector3, Vector5};
+use nalgebra::{Isometry3, Matrix5, Point3, Translation3, Unit, UnitQuaternion, Vector2, Vector3, Vector5};
 
 use super::geometry::{
     basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
@@ -96,7 +96,28 @@ pub struct Occluder {
     pub margin_px: f64,
 }
 
+/// How far past its tip the endoscope is masked, m: its outline across the shaft is found in
+/// the image, its tip's place along it is not, and a hand-eye error of 2 mm and 1 deg moves
+/// that by up to 2 + 3.8 mm at the 0.22 m from the camera to the tip.
+pub const ENDOSCOPE_TIP_MARGIN_M: f64 = 0.006;
+/// The masked region's margin around the endoscope's outline, px.
+pub const ENDOSCOPE_MARGIN_PX: f64 = 2.0;
+
 impl Occluder {
+    /// The endoscope on the flange (a straight shaft along the flange's z axis from the
+    /// flange to its tip `length_m` away, `radius_m` thick) seen from the camera at
+    /// `flange_t_camera`, masked [`ENDOSCOPE_TIP_MARGIN_M`] past its tip.
+    pub fn endoscope(flange_t_camera: &Isometry3<f64>, length_m: f64, radius_m: f64) -> Self {
+        let camera_t_flange = flange_t_camera.inverse();
+        let at = |z: f64| (camera_t_flange * Point3::new(0.0, 0.0, z)).coords;
+        Self {
+            start: at(length_m + ENDOSCOPE_TIP_MARGIN_M),
+            end: at(0.0),
+            radius: radius_m,
+            margin_px: ENDOSCOPE_MARGIN_PX,
+        }
+    }
+
     /// The rims of the cross-sections along the part in front of `eye_t_left`'s camera (at
     /// least 2 cm away), in its frame: `(points x, y, z, section length)`; `None` when none of
     /// it is in front of the camera.
@@ -133,6 +154,39 @@ impl Occluder {
         Some((pts, RIM as i32))
     }
 
+    /// Points on its two outline lines (normalised image coordinates, with the outline's unit
+    /// normal, the same for both) in `eye_t_left`'s camera, away from the tip: from 35 to 95 %
+    /// of the part at least 5 cm in front of the camera, where nothing else is near it.
+    fn outline_samples(&self, eye_t_left: &Isometry3<f64>) -> Option<Vec<(Vector2<f64>, Vector2<f64>)>> {
+        const PER_LIMB: usize = 24;
+        const NEAR_M: f64 = 0.05;
+        let a = (eye_t_left * Point3::from(self.start)).coords;
+        let b = (eye_t_left * Point3::from(self.end)).coords;
+        if a.z < NEAR_M {
+            return None;
+        }
+        let length = if b.z < NEAR_M {
+            (b - a).norm() * (a.z - NEAR_M) / (a.z - b.z)
+        } else {
+            (b - a).norm()
+        };
+        let axis = Axis {
+            point: a,
+            direction: Unit::try_new(b - a, 1e-9)?,
+        };
+        let limbs = cylinder_limbs(&axis, self.radius, 0.35 * length, 0.95 * length)?;
+        let dir = project(&limbs[0][1])? - project(&limbs[0][0])?;
+        let normal = Vector2::new(-dir.y, dir.x).try_normalize(1e-12)?;
+        let mut out = Vec::with_capacity(2 * PER_LIMB);
+        for [p, q] in limbs {
+            for k in 0..PER_LIMB {
+                let t = (k as f64 + 0.5) / PER_LIMB as f64;
+                out.push((project(&(p + t * (q - p)))?, normal));
+            }
+        }
+        Some(out)
+    }
+
     fn validate(&self) -> Result<(), VisionError> {
         let finite = self.start.iter().chain(self.end.iter()).all(|v| v.is_finite());
         if !finite || (self.start - self.end).norm() < 1e-6 {
@@ -163,7 +217,19 @@ pub struct MarkerlessEstimator {
 struct Eye {
     det: cxx::UniquePtr<ffi::MarkerlessDetectorCpp>,
     camera: CameraModel,
+    occluder: Option<EyeOccluder>,
 }
+
+/// The occluder as one eye masks it: where the hand-eye puts it, and the image shift across
+/// the shaft at which its outline was last found (normalised units).
+struct EyeOccluder {
+    occluder: Occluder,
+    eye_t_left: Isometry3<f64>,
+    shift: Vector2<f64>,
+}
+
+/// How far across the shaft its outline is searched for around where the hand-eye puts it, px.
+const OCCLUDER_SEARCH_PX: f64 = 25.0;
 
 impl Eye {
     fn new(camera: &CameraModel) -> Result<Self, VisionError> {
@@ -177,17 +243,84 @@ impl Eye {
         Ok(Self {
             det,
             camera: camera.clone(),
+            occluder: None,
         })
     }
 
     /// Mask what `occluder` (the left camera's frame) hides in this eye, which sees the left
     /// camera's points through `eye_t_left`; `None` clears the mask.
     fn set_occluder(&mut self, occluder: Option<&Occluder>, eye_t_left: &Isometry3<f64>) -> Result<(), VisionError> {
-        let (pts, len, margin) = match occluder.and_then(|o| o.sections(eye_t_left).map(|s| (s, o.margin_px))) {
-            Some(((pts, len), margin)) => (pts, len, margin),
-            None => (vec![], 3, 0.0),
-        };
+        self.occluder = occluder.map(|o| EyeOccluder {
+            occluder: *o,
+            eye_t_left: *eye_t_left,
+            shift: Vector2::zeros(),
+        });
+        self.apply_occluder()
+    }
+
+    /// Build the occluder's mask at its current shift (none without an occluder).
+    fn apply_occluder(&mut self) -> Result<(), VisionError> {
+        let sections = self.occluder.as_ref().and_then(|o| {
+            let t = o.shift;
+            let angle = t.norm();
+            let turn = Unit::try_new(Vector3::new(-t.y, t.x, 0.0), 1e-12)
+                .map_or_else(UnitQuaternion::identity, |axis| {
+                    UnitQuaternion::from_axis_angle(&axis, angle)
+                });
+            let eye_t_left = Isometry3::from_parts(Translation3::identity(), turn) * o.eye_t_left;
+            o.occluder.sections(&eye_t_left).map(|s| (s, o.occluder.margin_px))
+        });
+        let ((pts, len), margin) = sections.unwrap_or(((vec![], 3), 0.0));
         ffi::markerless_set_occluder(self.det.pin_mut(), &pts, len, margin)?;
+        Ok(())
+    }
+
+    /// Find the occluder's outline in the loaded image across the shaft, within
+    /// [`OCCLUDER_SEARCH_PX`] of where the hand-eye puts it (a hand-eye error of a degree
+    /// moves it by several pixels), and move the mask there. Kept where the hand-eye puts it
+    /// when too little of the outline is found.
+    fn register_occluder(&mut self) -> Result<(), VisionError> {
+        let Some(o) = &self.occluder else { return Ok(()) };
+        let Some(samples) = o.occluder.outline_samples(&o.eye_t_left) else {
+            return Ok(());
+        };
+        let f = self.camera.fx;
+        // The median offset of one outline line's edges of one polarity (None: too few found).
+        let offset = |limb: &[(Vector2<f64>, Vector2<f64>)], polarity: i32| -> Result<Option<f64>, VisionError> {
+            let pts: Vec<f64> = limb.iter().flat_map(|(p, n)| [p.x, p.y, n.x, n.y]).collect();
+            let out = ffi::markerless_search_edges(&self.det, &pts, OCCLUDER_SEARCH_PX, polarity, 4.0, true)?;
+            let mut d: Vec<f64> = out
+                .chunks_exact(EDGE_RECORD_LEN)
+                .zip(limb)
+                .filter(|(rec, _)| rec[0] > 0.5 && rec[0] < 1.5)
+                .map(|(rec, (p, n))| (Vector2::new(rec[1], rec[2]) - p).dot(n))
+                .collect();
+            if d.len() * 2 < limb.len() {
+                return Ok(None);
+            }
+            d.sort_by(f64::total_cmp);
+            Ok(Some(d[d.len() / 2]))
+        };
+        // The two lines' edges have opposite polarities (a shaft lighter or darker than what
+        // is behind it): the pairing whose two lines move alike is the shaft's.
+        let (first, second) = samples.split_at(samples.len() / 2);
+        let mut best: Option<(f64, f64)> = None;
+        for pol in [1, -1] {
+            if let (Some(a), Some(b)) = (offset(first, pol)?, offset(second, -pol)?) {
+                let spread = (a - b).abs() * f;
+                if spread <= 3.0 && best.is_none_or(|(s, _)| spread < s) {
+                    best = Some((spread, 0.5 * (a + b)));
+                }
+            }
+        }
+        let Some((_, s)) = best else { return Ok(()) };
+        let shift = s * samples[0].1;
+        if ((shift - o.shift).norm() * f) > 0.3 {
+            if let Some(o) = self.occluder.as_mut() {
+                o.shift = shift;
+            }
+            self.apply_occluder()?;
+        }
         Ok(())
     }
 
@@ -262,8 +395,9 @@ const STEREO_AGREE_DEG: f64 = 4.0;
 const STEREO_MARGIN_DEG: f64 = 5.0;
 /// The ambiguity margin of a pose fitted to both images of a stereo pair on which every
 /// start settled: between an ellipse's two poses left apart by nothing (0.5) and two within
-/// 3 deg from the start (1).
-const JOINT_ONE_AXIS_MARGIN: f64 = 0.75;
+/// 3 deg from the start (1); a wrong axis can draw every start. Not given to one image
+/// alone: at 0.4 m both of an ellipse's poses can settle on one axis 13 deg off.
+const ONE_AXIS_MARGIN: f64 = 0.75;
 
 /// One pose hypothesis and how well the image supports it.
 #[derive(Debug, Clone, Copy)]
@@ -380,6 +514,7 @@ impl MarkerlessEstimator {
         prior: Option<&Unit<Vector3<f64>>>,
     ) -> Result<Option<MarkerlessEstimate>, VisionError> {
         self.left.load(image)?;
+        self.left.register_occluder()?;
         let recs = ellipses(&mut self.left, &self.model)?;
         let cands = self.candidates(&self.left, &recs)?;
         let right = right.filter(|_| self.right.is_some());
@@ -471,7 +606,7 @@ impl MarkerlessEstimator {
             // Every start settled on one axis: no other pose explains the two images, but a
             // wrong axis can draw every start (seen at 0.34 m with the axis 11 deg from the
             // line of sight, where the opening's ellipses barely tell the tilt).
-            None if found.len() > 1 => graded(best, JOINT_ONE_AXIS_MARGIN),
+            None if found.len() > 1 => graded(best, ONE_AXIS_MARGIN),
             None => graded(best, 0.5),
         }))
     }
@@ -483,6 +618,7 @@ impl MarkerlessEstimator {
             return Ok((vec![], vec![]));
         };
         let out = r.eye.load(img).and_then(|()| {
+            r.eye.register_occluder()?;
             let recs = ellipses(&mut r.eye, &self.model)?;
             let left_t_right = r.right_t_left.inverse();
             let mut cands = self.candidates(&r.eye, &recs)?;
@@ -648,7 +784,7 @@ impl MarkerlessEstimator {
                     [p.x, p.y, n.x, n.y]
                 })
                 .collect();
-            let out = ffi::markerless_search_edges(&eye.det, &pts, range_px, pol, 4.0)?;
+            let out = ffi::markerless_search_edges(&eye.det, &pts, range_px, pol, 4.0, false)?;
             for (k, rec) in out.chunks_exact(EDGE_RECORD_LEN).enumerate() {
                 found[idx[k]] = if rec[0] > 1.5 {
                     Edge::Hidden
