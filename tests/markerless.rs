@@ -777,14 +777,15 @@ fn an_occluder_behind_the_camera_masks_nothing_and_a_bad_one_is_refused() {
     let (cam, model) = (camera(), TrocarModel::shipped());
     let (tool, _) = endoscope_and_port(0.0);
     let occluder = Occluder {
-        start: Vector3::from(tool.start),
-        end: Vector3::from(tool.end),
-        radius: 0.004,
+        shaft: ToolCylinder { radius: 0.004, ..tool },
         margin_px: 2.0,
     };
     let behind = Occluder {
-        start: Vector3::new(0.0, 0.0, -0.1),
-        end: Vector3::new(0.0, 0.1, -0.2),
+        shaft: ToolCylinder {
+            start: [0.0, 0.0, -0.1],
+            end: [0.0, 0.1, -0.2],
+            ..tool
+        },
         ..occluder
     };
     assert!(MarkerlessEstimator::new(&cam, &model)
@@ -793,11 +794,17 @@ fn an_occluder_behind_the_camera_masks_nothing_and_a_bad_one_is_refused() {
         .is_ok());
     for bad in [
         Occluder {
-            radius: f64::NAN,
+            shaft: ToolCylinder {
+                radius: f64::NAN,
+                ..tool
+            },
             ..occluder
         },
         Occluder {
-            end: occluder.start,
+            shaft: ToolCylinder {
+                end: tool.start,
+                ..tool
+            },
             ..occluder
         },
         Occluder {

@@ -10,6 +10,7 @@ use super::geometry::{
     basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
 };
 use super::model::TrocarModel;
+use super::render::ToolCylinder;
 use crate::ffi::markerless::{ffi, EDGE_RECORD_LEN, ELLIPSE_RECORD_LEN};
 use crate::vision::{CameraModel, ImageView, VisionError};
 
@@ -83,15 +84,12 @@ pub struct MarkerlessEstimate {
 }
 
 /// A known cylinder in view that hides the scene behind it: the endoscope's own shaft, rigid
-/// to the camera on its mount. In the left camera's frame, m.
+/// to the camera on its mount.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Occluder {
-    /// One end of the axis (the endoscope's tip).
-    pub start: Vector3<f64>,
-    /// The other end (towards the flange; the part behind the camera is left out).
-    pub end: Vector3<f64>,
-    /// Radius, m.
-    pub radius: f64,
+    /// The shaft in the left camera's frame: `start` its tip end, `end` towards the flange
+    /// (the part behind the camera is left out).
+    pub shaft: ToolCylinder,
     /// The masked image region grows by this much around its outline, px.
     pub margin_px: f64,
 }
@@ -109,13 +107,21 @@ impl Occluder {
     /// `flange_t_camera`, masked [`ENDOSCOPE_TIP_MARGIN_M`] past its tip.
     pub fn endoscope(flange_t_camera: &Isometry3<f64>, length_m: f64, radius_m: f64) -> Self {
         let camera_t_flange = flange_t_camera.inverse();
-        let at = |z: f64| (camera_t_flange * Point3::new(0.0, 0.0, z)).coords;
+        let at = |z: f64| (camera_t_flange * Point3::new(0.0, 0.0, z)).coords.into();
         Self {
-            start: at(length_m + ENDOSCOPE_TIP_MARGIN_M),
-            end: at(0.0),
-            radius: radius_m,
+            shaft: ToolCylinder {
+                start: at(length_m + ENDOSCOPE_TIP_MARGIN_M),
+                end: at(0.0),
+                radius: radius_m,
+            },
             margin_px: ENDOSCOPE_MARGIN_PX,
         }
+    }
+
+    /// The shaft's two ends in the camera at `eye_t_left` (the left camera's points there).
+    fn ends(&self, eye_t_left: &Isometry3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+        let at = |p: [f64; 3]| (eye_t_left * Point3::from(Vector3::from(p))).coords;
+        (at(self.shaft.start), at(self.shaft.end))
     }
 
     /// The rims of the cross-sections along the part in front of `eye_t_left`'s camera (at
@@ -125,10 +131,7 @@ impl Occluder {
         const SECTIONS: usize = 16;
         const RIM: usize = 16;
         const NEAR_M: f64 = 0.02;
-        let (mut a, mut b) = (
-            (eye_t_left * Point3::from(self.start)).coords,
-            (eye_t_left * Point3::from(self.end)).coords,
-        );
+        let (mut a, mut b) = self.ends(eye_t_left);
         if a.z < NEAR_M && b.z < NEAR_M {
             return None;
         }
@@ -146,7 +149,7 @@ impl Occluder {
             let c = a + (b - a) * (k as f64 / (SECTIONS - 1) as f64);
             for j in 0..RIM {
                 let phi = std::f64::consts::TAU * j as f64 / RIM as f64;
-                let p = c + self.radius * (phi.cos() * u + phi.sin() * v);
+                let p = c + self.shaft.radius * (phi.cos() * u + phi.sin() * v);
                 // The rim may dip behind the near plane: keep it just in front.
                 pts.extend([p.x, p.y, p.z.max(NEAR_M / 2.0)]);
             }
@@ -160,8 +163,7 @@ impl Occluder {
     fn outline_samples(&self, eye_t_left: &Isometry3<f64>) -> Option<Vec<(Vector2<f64>, Vector2<f64>)>> {
         const PER_LIMB: usize = 24;
         const NEAR_M: f64 = 0.05;
-        let a = (eye_t_left * Point3::from(self.start)).coords;
-        let b = (eye_t_left * Point3::from(self.end)).coords;
+        let (a, b) = self.ends(eye_t_left);
         if a.z < NEAR_M {
             return None;
         }
@@ -174,7 +176,7 @@ impl Occluder {
             point: a,
             direction: Unit::try_new(b - a, 1e-9)?,
         };
-        let limbs = cylinder_limbs(&axis, self.radius, 0.35 * length, 0.95 * length)?;
+        let limbs = cylinder_limbs(&axis, self.shaft.radius, 0.35 * length, 0.95 * length)?;
         let dir = project(&limbs[0][1])? - project(&limbs[0][0])?;
         let normal = Vector2::new(-dir.y, dir.x).try_normalize(1e-12)?;
         let mut out = Vec::with_capacity(2 * PER_LIMB);
@@ -188,13 +190,7 @@ impl Occluder {
     }
 
     fn validate(&self) -> Result<(), VisionError> {
-        let finite = self.start.iter().chain(self.end.iter()).all(|v| v.is_finite());
-        if !finite || (self.start - self.end).norm() < 1e-6 {
-            return Err(VisionError::InvalidInput(
-                "the occluder's ends must be finite and distinct".into(),
-            ));
-        }
-        crate::validate::positive_at_most("occluder radius_m", self.radius, 0.05)?;
+        self.shaft.validate()?;
         if !(self.margin_px.is_finite() && (0.0..=50.0).contains(&self.margin_px)) {
             return Err(VisionError::InvalidInput(
                 "the occluder's margin must be in [0, 50] px".into(),

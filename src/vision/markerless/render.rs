@@ -38,6 +38,19 @@ pub struct ToolCylinder {
     pub radius: f64,
 }
 
+impl ToolCylinder {
+    /// Check it: the radius positive and at most 0.1 m, the ends finite and distinct.
+    pub fn validate(&self) -> Result<(), VisionError> {
+        crate::validate::positive_at_most("tool radius", self.radius, 0.1)?;
+        if self.start.iter().chain(self.end.iter()).any(|v| !v.is_finite()) || self.start == self.end {
+            return Err(VisionError::InvalidInput(
+                "tool ends must be finite and distinct".into(),
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// What one image shows besides the trocar's pose.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Scene {
@@ -523,12 +536,7 @@ fn check_scene(s: &Scene) -> Result<(), VisionError> {
         return Err(VisionError::InvalidInput("motion_blur_angle must be finite".into()));
     }
     if let Some(t) = &s.tool {
-        crate::validate::positive_at_most("tool radius", t.radius, 0.1)?;
-        if t.start.iter().chain(t.end.iter()).any(|v| !v.is_finite()) || t.start == t.end {
-            return Err(VisionError::InvalidInput(
-                "tool ends must be finite and distinct".into(),
-            ));
-        }
+        t.validate()?;
     }
     Ok(())
 }
