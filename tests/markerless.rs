@@ -754,22 +754,49 @@ fn the_endoscope_in_view_is_masked_out_and_the_port_found_behind_it() {
         "the shaft did not hide the port from the plain estimator: {lost} of 5"
     );
     assert!(worst.0 < 1.0 && worst.1 < 2.0, "{worst:?}");
-    // Masked where a hand-eye 2 mm and 1 deg off puts the shaft: its outline is found across
-    // the shaft in the image and the mask moved there; at the stand-off point the port is
-    // found as with the true mount.
-    let believed = mount()
-        * Isometry3::new(
-            Vector3::new(0.0012, -0.0012, 0.001),
-            Vector3::new(0.7, -0.7, 0.1).normalize() * 1f64.to_radians(),
-        );
-    let mut off = MarkerlessEstimator::new(&cam, &model)
-        .unwrap()
-        .with_occluder(Some(Occluder::endoscope(&believed, 0.25, 0.0025)))
-        .unwrap();
-    let m = with_endoscope(&r, &mut off, 0.02, 40);
-    eprintln!("hand-eye off, stand-off point: {m:?}");
-    let (dp, da, conf) = m.expect("found");
-    assert!(conf >= HIGH_CONFIDENCE && dp < 1.0 && da < 2.0, "{m:?}");
+}
+
+#[test]
+fn the_endoscope_is_found_in_the_image_where_the_hand_eye_is_wrong() {
+    // A hand-eye up to 2 mm and 1 deg off (the calibration error the realistic protocol
+    // draws) puts the shaft up to ~12 px from where the camera sees it at the tip. Its
+    // outline is found in the image, and the mask moved there: 12 hand-eyes drawn at random,
+    // each for 7 frames of the final approach (6 cm before the port to 25 mm in).
+    use rand::{RngExt, SeedableRng};
+    let (cam, model) = (camera(), TrocarModel::shipped());
+    let r = TrocarRenderer::new(&cam).unwrap();
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12345);
+    let mut unit = || {
+        Vector3::new(
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+            rng.random_range(-1.0..1.0),
+        )
+        .normalize()
+    };
+    let (mut found, mut frames, mut worst) = (0, 0, (0.0f64, 0.0f64));
+    for trial in 0..12u64 {
+        let (dt, dr) = (unit(), unit());
+        let s = (trial as f64 + 0.5) / 12.0;
+        let believed = mount() * Isometry3::new(dt * 0.002 * s, dr * 1f64.to_radians() * (1.0 - s * 0.5));
+        let mut est = MarkerlessEstimator::new(&cam, &model)
+            .unwrap()
+            .with_occluder(Some(Occluder::endoscope(&believed, 0.25, 0.0025)))
+            .unwrap();
+        for (k, ahead) in [0.06, 0.04, 0.02, 0.01, 0.0, -0.01, -0.025].into_iter().enumerate() {
+            frames += 1;
+            let m = with_endoscope(&r, &mut est, ahead, 40 + k as u64 + 7 * trial);
+            if let Some((dp, da, _)) = m.filter(|m| m.2 >= HIGH_CONFIDENCE) {
+                found += 1;
+                worst = (worst.0.max(dp), worst.1.max(da));
+            }
+        }
+    }
+    eprintln!("found {found} of {frames}; worst {:.2} mm {:.2} deg", worst.0, worst.1);
+    // Measured: 81 of 84, worst 1.83 mm 1.76 deg; 84 of 84 with the true mount. With the
+    // mask left where the hand-eye puts it: 43 of 84.
+    assert!(found * 10 >= frames * 9, "found {found} of {frames}");
+    assert!(worst.0 < 2.5 && worst.1 < 2.5, "{worst:?}");
 }
 
 #[test]

@@ -4,7 +4,7 @@
 //! DOF), the better explained kept, and a confidence from the fit, the edge support and
 //! the ambiguity margin.
 
-use nalgebra::{Isometry3, Matrix5, Point3, Translation3, Unit, UnitQuaternion, Vector2, Vector3, Vector5};
+use nalgebra::{Isometry3, Matrix5, Point3, Unit, Vector2, Vector3, Vector5};
 
 use super::geometry::{
     basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
@@ -118,75 +118,14 @@ impl Occluder {
         }
     }
 
-    /// The shaft's two ends in the camera at `eye_t_left` (the left camera's points there).
-    fn ends(&self, eye_t_left: &Isometry3<f64>) -> (Vector3<f64>, Vector3<f64>) {
-        let at = |p: [f64; 3]| (eye_t_left * Point3::from(Vector3::from(p))).coords;
-        (at(self.shaft.start), at(self.shaft.end))
-    }
-
-    /// The rims of the cross-sections along the part in front of `eye_t_left`'s camera (at
-    /// least 2 cm away), in its frame: `(points x, y, z, section length)`; `None` when none of
-    /// it is in front of the camera.
-    fn sections(&self, eye_t_left: &Isometry3<f64>) -> Option<(Vec<f64>, i32)> {
-        const SECTIONS: usize = 16;
-        const RIM: usize = 16;
-        const NEAR_M: f64 = 0.02;
-        let (mut a, mut b) = self.ends(eye_t_left);
-        if a.z < NEAR_M && b.z < NEAR_M {
-            return None;
+    /// The shaft in the camera at `eye_t_left` (the left camera's points there).
+    fn in_eye(&self, eye_t_left: &Isometry3<f64>) -> ToolCylinder {
+        let at = |p: [f64; 3]| (eye_t_left * Point3::from(Vector3::from(p))).coords.into();
+        ToolCylinder {
+            start: at(self.shaft.start),
+            end: at(self.shaft.end),
+            ..self.shaft
         }
-        // Clip the axis to z >= NEAR_M.
-        let clip = |p: Vector3<f64>, q: Vector3<f64>| p + (q - p) * ((NEAR_M - p.z) / (q.z - p.z));
-        if a.z < NEAR_M {
-            a = clip(a, b);
-        } else if b.z < NEAR_M {
-            b = clip(b, a);
-        }
-        let axis = Unit::try_new(b - a, 1e-9)?;
-        let (u, v) = basis(&axis);
-        let mut pts = Vec::with_capacity(3 * SECTIONS * RIM);
-        for k in 0..SECTIONS {
-            let c = a + (b - a) * (k as f64 / (SECTIONS - 1) as f64);
-            for j in 0..RIM {
-                let phi = std::f64::consts::TAU * j as f64 / RIM as f64;
-                let p = c + self.shaft.radius * (phi.cos() * u + phi.sin() * v);
-                // The rim may dip behind the near plane: keep it just in front.
-                pts.extend([p.x, p.y, p.z.max(NEAR_M / 2.0)]);
-            }
-        }
-        Some((pts, RIM as i32))
-    }
-
-    /// Points on its two outline lines (normalised image coordinates, with the outline's unit
-    /// normal, the same for both) in `eye_t_left`'s camera, away from the tip: from 35 to 95 %
-    /// of the part at least 5 cm in front of the camera, where nothing else is near it.
-    fn outline_samples(&self, eye_t_left: &Isometry3<f64>) -> Option<Vec<(Vector2<f64>, Vector2<f64>)>> {
-        const PER_LIMB: usize = 24;
-        const NEAR_M: f64 = 0.05;
-        let (a, b) = self.ends(eye_t_left);
-        if a.z < NEAR_M {
-            return None;
-        }
-        let length = if b.z < NEAR_M {
-            (b - a).norm() * (a.z - NEAR_M) / (a.z - b.z)
-        } else {
-            (b - a).norm()
-        };
-        let axis = Axis {
-            point: a,
-            direction: Unit::try_new(b - a, 1e-9)?,
-        };
-        let limbs = cylinder_limbs(&axis, self.shaft.radius, 0.35 * length, 0.95 * length)?;
-        let dir = project(&limbs[0][1])? - project(&limbs[0][0])?;
-        let normal = Vector2::new(-dir.y, dir.x).try_normalize(1e-12)?;
-        let mut out = Vec::with_capacity(2 * PER_LIMB);
-        for [p, q] in limbs {
-            for k in 0..PER_LIMB {
-                let t = (k as f64 + 0.5) / PER_LIMB as f64;
-                out.push((project(&(p + t * (q - p)))?, normal));
-            }
-        }
-        Some(out)
     }
 
     fn validate(&self) -> Result<(), VisionError> {
@@ -198,6 +137,177 @@ impl Occluder {
         }
         Ok(())
     }
+}
+
+/// The ends of `shaft` (camera frame): its tip end and the other.
+fn shaft_ends(shaft: &ToolCylinder) -> (Vector3<f64>, Vector3<f64>) {
+    (Vector3::from(shaft.start), Vector3::from(shaft.end))
+}
+
+/// The rims of the cross-sections along the part of `shaft` (camera frame) in front of the
+/// camera (at least 2 cm away): `(points x, y, z, section length)`; `None` when none of it
+/// is in front of the camera.
+fn shaft_sections(shaft: &ToolCylinder) -> Option<(Vec<f64>, i32)> {
+    const SECTIONS: usize = 16;
+    const RIM: usize = 16;
+    const NEAR_M: f64 = 0.02;
+    let (mut a, mut b) = shaft_ends(shaft);
+    if a.z < NEAR_M && b.z < NEAR_M {
+        return None;
+    }
+    // Clip the axis to z >= NEAR_M.
+    let clip = |p: Vector3<f64>, q: Vector3<f64>| p + (q - p) * ((NEAR_M - p.z) / (q.z - p.z));
+    if a.z < NEAR_M {
+        a = clip(a, b);
+    } else if b.z < NEAR_M {
+        b = clip(b, a);
+    }
+    let axis = Unit::try_new(b - a, 1e-9)?;
+    let (u, v) = basis(&axis);
+    let mut pts = Vec::with_capacity(3 * SECTIONS * RIM);
+    for k in 0..SECTIONS {
+        let c = a + (b - a) * (k as f64 / (SECTIONS - 1) as f64);
+        for j in 0..RIM {
+            let phi = std::f64::consts::TAU * j as f64 / RIM as f64;
+            let p = c + shaft.radius * (phi.cos() * u + phi.sin() * v);
+            // The rim may dip behind the near plane: keep it just in front.
+            pts.extend([p.x, p.y, p.z.max(NEAR_M / 2.0)]);
+        }
+    }
+    Some((pts, RIM as i32))
+}
+
+/// One outline line of a shaft in the image (normalised coordinates): the segment it is
+/// searched along and the outline's unit normal (the same for both lines).
+#[derive(Debug, Clone, Copy)]
+struct OutlineLine {
+    from: Vector2<f64>,
+    to: Vector2<f64>,
+    normal: Vector2<f64>,
+}
+
+/// Samples per outline line.
+const OUTLINE_SAMPLES: usize = 32;
+
+impl OutlineLine {
+    /// Sample `k` of [`OUTLINE_SAMPLES`] and its place along the segment (0-1).
+    fn sample(&self, k: usize) -> (Vector2<f64>, f64) {
+        let t = (k as f64 + 0.5) / OUTLINE_SAMPLES as f64;
+        (self.from + t * (self.to - self.from), t)
+    }
+}
+
+/// The two outline lines of `shaft` (camera frame) from 10 to 95 % of the part at least
+/// 5 cm in front of the camera, counted from the masked tip (the tip's margin left out).
+fn shaft_outline(shaft: &ToolCylinder) -> Option<[OutlineLine; 2]> {
+    const NEAR_M: f64 = 0.05;
+    let (a, b) = shaft_ends(shaft);
+    if a.z < NEAR_M {
+        return None;
+    }
+    let length = if b.z < NEAR_M {
+        (b - a).norm() * (a.z - NEAR_M) / (a.z - b.z)
+    } else {
+        (b - a).norm()
+    };
+    let axis = Axis {
+        point: a,
+        direction: Unit::try_new(b - a, 1e-9)?,
+    };
+    let [l0, l1] = cylinder_limbs(&axis, shaft.radius, 0.1 * length, 0.95 * length)?;
+    let (a0, b0) = (project(&l0[0])?, project(&l0[1])?);
+    let normal = Vector2::new(a0.y - b0.y, b0.x - a0.x).try_normalize(1e-12)?;
+    Some([
+        OutlineLine {
+            from: a0,
+            to: b0,
+            normal,
+        },
+        OutlineLine {
+            from: project(&l1[0])?,
+            to: project(&l1[1])?,
+            normal,
+        },
+    ])
+}
+
+/// The line `offset = a + b t` (along the normal, against the place `t` along the segment)
+/// through most of `found` within `tol`, least squares on those: `(a, b, inliers)`.
+fn robust_line(found: &[(f64, f64)], tol: f64) -> Option<(f64, f64, usize)> {
+    let mut best: Option<(usize, f64, f64)> = None;
+    for (i, &(ti, di)) in found.iter().enumerate() {
+        for &(tj, dj) in &found[i + 1..] {
+            if (tj - ti).abs() < 0.2 {
+                continue;
+            }
+            let b = (dj - di) / (tj - ti);
+            let a = di - b * ti;
+            let n = found.iter().filter(|(t, d)| (a + b * t - d).abs() <= tol).count();
+            if best.is_none_or(|(m, _, _)| n > m) {
+                best = Some((n, a, b));
+            }
+        }
+    }
+    let (_, a, b) = best?;
+    let inl: Vec<(f64, f64)> = found
+        .iter()
+        .copied()
+        .filter(|(t, d)| (a + b * t - d).abs() <= tol)
+        .collect();
+    let n = inl.len() as f64;
+    let (st, sd) = inl.iter().fold((0.0, 0.0), |(x, y), (t, d)| (x + t, y + d));
+    let (mt, md) = (st / n, sd / n);
+    let (sxx, sxy) = inl.iter().fold((0.0, 0.0), |(x, y), (t, d)| {
+        (x + (t - mt).powi(2), y + (t - mt) * (d - md))
+    });
+    let b = if sxx > 1e-12 { sxy / sxx } else { b };
+    Some((md - b * mt, b, inl.len()))
+}
+
+/// The cylinder of radius `shaft.radius` whose outline is the two image lines `lines`
+/// (normalised coordinates, each by two points), near `shaft` (camera frame): its axis lies
+/// at `radius` from both planes through the camera centre and a line; its tip end is where
+/// `shaft`'s tip end appears, moved onto the new outline's middle; `None` when the lines do
+/// not make a shaft within 5 deg and 2 cm of `shaft`.
+fn shaft_from_outline(shaft: &ToolCylinder, lines: [[Vector2<f64>; 2]; 2]) -> Option<ToolCylinder> {
+    let (tip, back) = shaft_ends(shaft);
+    let along = Unit::try_new(back - tip, 1e-12)?;
+    // The plane through the camera centre and one line, its normal away from the other line
+    // (the shaft lies between them).
+    let plane = |l: [Vector2<f64>; 2], other: Vector2<f64>| -> Option<Vector3<f64>> {
+        let n = Vector3::new(l[0].x, l[0].y, 1.0)
+            .cross(&Vector3::new(l[1].x, l[1].y, 1.0))
+            .try_normalize(1e-12)?;
+        Some(if n.dot(&Vector3::new(other.x, other.y, 1.0)) > 0.0 {
+            -n
+        } else {
+            n
+        })
+    };
+    let (n0, n1) = (plane(lines[0], lines[1][0])?, plane(lines[1], lines[0][0])?);
+    let mut d = n0.cross(&n1).try_normalize(1e-9)?;
+    if d.dot(&along) < 0.0 {
+        d = -d;
+    }
+    let r = shaft.radius;
+    let m = nalgebra::Matrix3::from_rows(&[n0.transpose(), n1.transpose(), d.transpose()]);
+    let c = m.try_inverse()? * Vector3::new(-r, -r, 0.0);
+    // The tip where its image was, on the new outline's middle line.
+    let tip_img = project(&tip)?;
+    let (p, q) = (0.5 * (lines[0][0] + lines[1][0]), 0.5 * (lines[0][1] + lines[1][1]));
+    let u = (q - p).try_normalize(1e-12)?;
+    let on = p + u * (tip_img - p).dot(&u);
+    let v = Vector3::new(on.x, on.y, 1.0);
+    // The axis point nearest the line of sight through `on`.
+    let (b, e, vv, dc) = (d.dot(&v), v.dot(&c), v.dot(&v), d.dot(&c));
+    let s = (b * e - vv * dc) / (vv - b * b);
+    let new_tip = c + s * d;
+    let ok = s.is_finite() && d.angle(&along) <= 5f64.to_radians() && (new_tip - tip).norm() <= 0.02 && new_tip.z > 0.0;
+    ok.then(|| ToolCylinder {
+        start: new_tip.into(),
+        end: (new_tip + d * (back - tip).norm()).into(),
+        radius: r,
+    })
 }
 
 /// The estimator for one camera (optionally with the right camera of a stereo pair) and one
@@ -216,12 +326,13 @@ struct Eye {
     occluder: Option<EyeOccluder>,
 }
 
-/// The occluder as one eye masks it: where the hand-eye puts it, and the image shift across
-/// the shaft at which its outline was last found (normalised units).
+/// The occluder as one eye masks it, in this eye's frame: where the hand-eye puts it, and
+/// where its outline was last found in this eye's images (the shaft is rigid to the camera:
+/// it stays there until found elsewhere).
 struct EyeOccluder {
-    occluder: Occluder,
-    eye_t_left: Isometry3<f64>,
-    shift: Vector2<f64>,
+    predicted: ToolCylinder,
+    margin_px: f64,
+    found: Option<ToolCylinder>,
 }
 
 /// How far across the shaft its outline is searched for around where the hand-eye puts it, px.
@@ -247,73 +358,89 @@ impl Eye {
     /// camera's points through `eye_t_left`; `None` clears the mask.
     fn set_occluder(&mut self, occluder: Option<&Occluder>, eye_t_left: &Isometry3<f64>) -> Result<(), VisionError> {
         self.occluder = occluder.map(|o| EyeOccluder {
-            occluder: *o,
-            eye_t_left: *eye_t_left,
-            shift: Vector2::zeros(),
+            predicted: o.in_eye(eye_t_left),
+            margin_px: o.margin_px,
+            found: None,
         });
         self.apply_occluder()
     }
 
-    /// Build the occluder's mask at its current shift (none without an occluder).
+    /// Build the occluder's mask where it was last found, else where the hand-eye puts it
+    /// (none without an occluder).
     fn apply_occluder(&mut self) -> Result<(), VisionError> {
-        let sections = self.occluder.as_ref().and_then(|o| {
-            let t = o.shift;
-            let angle = t.norm();
-            let turn = Unit::try_new(Vector3::new(-t.y, t.x, 0.0), 1e-12)
-                .map_or_else(UnitQuaternion::identity, |axis| {
-                    UnitQuaternion::from_axis_angle(&axis, angle)
-                });
-            let eye_t_left = Isometry3::from_parts(Translation3::identity(), turn) * o.eye_t_left;
-            o.occluder.sections(&eye_t_left).map(|s| (s, o.occluder.margin_px))
-        });
+        let sections = self
+            .occluder
+            .as_ref()
+            .and_then(|o| shaft_sections(&o.found.unwrap_or(o.predicted)).map(|s| (s, o.margin_px)));
         let ((pts, len), margin) = sections.unwrap_or(((vec![], 3), 0.0));
         ffi::markerless_set_occluder(self.det.pin_mut(), &pts, len, margin)?;
         Ok(())
     }
 
-    /// Find the occluder's outline in the loaded image across the shaft, within
-    /// [`OCCLUDER_SEARCH_PX`] of where the hand-eye puts it (a hand-eye error of a degree
-    /// moves it by several pixels), and move the mask there. Kept where the hand-eye puts it
-    /// when too little of the outline is found.
+    /// Find the occluder's outline in the loaded image: its two lines within
+    /// [`OCCLUDER_SEARCH_PX`] across the shaft of where the hand-eye puts it (a hand-eye error
+    /// of a degree moves it by several pixels), moved together by the straight line of
+    /// offsets through most of the edges found on both, and move the mask to the shaft that
+    /// has that outline. The mask stays where it was when under half the outline's samples in
+    /// the image (or 12) lie on that line, or the shaft it gives is over 5 deg or 2 cm from
+    /// where the hand-eye puts it. The tip's place along the shaft is kept where the hand-eye
+    /// puts it.
     fn register_occluder(&mut self) -> Result<(), VisionError> {
         let Some(o) = &self.occluder else { return Ok(()) };
-        let Some(samples) = o.occluder.outline_samples(&o.eye_t_left) else {
+        let Some(lines) = shaft_outline(&o.predicted) else {
             return Ok(());
         };
-        let f = self.camera.fx;
-        // The median offset of one outline line's edges of one polarity (None: too few found).
-        let offset = |limb: &[(Vector2<f64>, Vector2<f64>)], polarity: i32| -> Result<Option<f64>, VisionError> {
-            let pts: Vec<f64> = limb.iter().flat_map(|(p, n)| [p.x, p.y, n.x, n.y]).collect();
-            let out = ffi::markerless_search_edges(&self.det, &pts, OCCLUDER_SEARCH_PX, polarity, 4.0, true)?;
-            let mut d: Vec<f64> = out
-                .chunks_exact(EDGE_RECORD_LEN)
-                .zip(limb)
-                .filter(|(rec, _)| rec[0] > 0.5 && rec[0] < 1.5)
-                .map(|(rec, (p, n))| (Vector2::new(rec[1], rec[2]) - p).dot(n))
-                .collect();
-            if d.len() * 2 < limb.len() {
-                return Ok(None);
-            }
-            d.sort_by(f64::total_cmp);
-            Ok(Some(d[d.len() / 2]))
+        let cam = &self.camera;
+        let in_image = |p: &Vector2<f64>| {
+            let (u, v) = (cam.fx * p.x + cam.cx, cam.fy * p.y + cam.cy);
+            u >= 0.0 && v >= 0.0 && u < f64::from(cam.width) && v < f64::from(cam.height)
         };
-        // The two lines' edges have opposite polarities (a shaft lighter or darker than what
-        // is behind it): the pairing whose two lines move alike is the shaft's.
-        let (first, second) = samples.split_at(samples.len() / 2);
-        let mut best: Option<(f64, f64)> = None;
-        for pol in [1, -1] {
-            if let (Some(a), Some(b)) = (offset(first, pol)?, offset(second, -pol)?) {
-                let spread = (a - b).abs() * f;
-                if spread <= 3.0 && best.is_none_or(|(s, _)| spread < s) {
-                    best = Some((spread, 0.5 * (a + b)));
+        // The edges found along one line of one polarity: (place along it, offset along the
+        // normal in normalised units), and how many of its samples lie in the image.
+        let search = |l: &OutlineLine, polarity: i32| -> Result<(Vec<(f64, f64)>, usize), VisionError> {
+            let samples: Vec<(Vector2<f64>, f64)> = (0..OUTLINE_SAMPLES)
+                .map(|k| l.sample(k))
+                .filter(|(p, _)| in_image(p))
+                .collect();
+            let pts: Vec<f64> = samples
+                .iter()
+                .flat_map(|(p, _)| [p.x, p.y, l.normal.x, l.normal.y])
+                .collect();
+            let out = ffi::markerless_search_edges(&self.det, &pts, OCCLUDER_SEARCH_PX, polarity, 4.0, true)?;
+            let found = out
+                .chunks_exact(EDGE_RECORD_LEN)
+                .zip(&samples)
+                .filter(|(rec, _)| rec[0] > 0.5 && rec[0] < 1.5)
+                .map(|(rec, (p, t))| (*t, (Vector2::new(rec[1], rec[2]) - p).dot(&l.normal)))
+                .collect();
+            Ok((found, samples.len()))
+        };
+        let [l0, l1] = &lines;
+        let (a, b) = ((search(l0, 1)?, search(l0, -1)?), (search(l1, 1)?, search(l1, -1)?));
+        let searched = a.0 .1 + b.0 .1;
+        // The shaft's image moves as a whole (a hand-eye error of a few mm barely changes its
+        // width): one offset `a + b t` along the normal for both lines, fitted to both lines'
+        // edges, each of the polarity that fits best (a shaded shaft can be lighter than what
+        // is behind it on one side and darker on the other).
+        let mut best: Option<(f64, f64, usize)> = None;
+        for first in [&a.0 .0, &a.1 .0] {
+            for second in [&b.0 .0, &b.1 .0] {
+                let both: Vec<(f64, f64)> = first.iter().chain(second.iter()).copied().collect();
+                if let Some(f) = robust_line(&both, 1.0 / cam.fx) {
+                    if best.is_none_or(|b| f.2 > b.2) {
+                        best = Some(f);
+                    }
                 }
             }
         }
-        let Some((_, s)) = best else { return Ok(()) };
-        let shift = s * samples[0].1;
-        if ((shift - o.shift).norm() * f) > 0.3 {
+        let Some((a, b, _)) = best.filter(|f| f.2 >= 12 && 2 * f.2 >= searched) else {
+            return Ok(());
+        };
+        let moved = |l: &OutlineLine| [l.from + a * l.normal, l.to + (a + b) * l.normal];
+        let found = shaft_from_outline(&o.predicted, [moved(l0), moved(l1)]);
+        if found.is_some() {
             if let Some(o) = self.occluder.as_mut() {
-                o.shift = shift;
+                o.found = found;
             }
             self.apply_occluder()?;
         }
