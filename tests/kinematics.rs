@@ -202,3 +202,26 @@ fn one_chain_is_shared_safely_between_threads() {
         }
     });
 }
+
+#[test]
+fn the_endoscope_length_is_read_from_the_flange_to_the_tip() {
+    // The built-in model and its URDF file: the default endoscope's 0.25 m.
+    let built_in = LbrKinematics::flange_to_tip_m(LbrModel::Med7, "").unwrap();
+    assert!((built_in - ToolParams::default().length_m).abs() < 1e-9, "{built_in}");
+    let file = LbrKinematics::flange_to_tip_m(LbrModel::Med7, med7_file().to_str().unwrap()).unwrap();
+    assert!((file - built_in).abs() < 1e-9, "{file}");
+    // A longer scope written into a URDF is read as such.
+    let dir = std::env::temp_dir().join(format!("trocar_docking_scope_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("long_scope.urdf");
+    let tool = ToolParams {
+        length_m: 0.33,
+        diameter_m: 0.01,
+    };
+    std::fs::write(&path, urdf(LbrModel::Med14, &tool).unwrap()).unwrap();
+    let long = LbrKinematics::flange_to_tip_m(LbrModel::Med7, path.to_str().unwrap()).unwrap();
+    assert!((long - 0.33).abs() < 1e-9, "{long}");
+    // A missing URDF is a typed error.
+    assert!(LbrKinematics::flange_to_tip_m(LbrModel::Med7, "/nonexistent.urdf").is_err());
+    std::fs::remove_dir_all(&dir).ok();
+}

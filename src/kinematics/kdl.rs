@@ -8,7 +8,9 @@ use std::sync::Arc;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 
 use super::lbr::{self, LbrModel, ToolParams};
-use super::{Jacobian, JointLimits, JointVector, Kinematics, KinematicsError, BASE_LINK, N_JOINTS, TIP_LINK};
+use super::{
+    Jacobian, JointLimits, JointVector, Kinematics, KinematicsError, BASE_LINK, FLANGE_LINK, N_JOINTS, TIP_LINK,
+};
 use crate::ffi::kdl::ffi as kdl;
 
 /// A KDL chain of any length, built once from a URDF.
@@ -196,6 +198,15 @@ impl LbrKinematics {
         } else {
             Self::from_urdf_file(Path::new(urdf_file), tip)
         }
+    }
+
+    /// The distance from the flange to the tool's tip (`FLANGE_LINK` to `TIP_LINK`) of
+    /// `urdf_file`, or of the built-in `model` when it is empty, m: the endoscope's length.
+    pub fn flange_to_tip_m(model: LbrModel, urdf_file: &str) -> Result<f64, KinematicsError> {
+        let q = JointVector::zeros();
+        let flange = Self::from_model_or_file(model, urdf_file, FLANGE_LINK)?.fk(&q)?;
+        let tip = Self::from_model_or_file(model, urdf_file, TIP_LINK)?.fk(&q)?;
+        Ok((flange.inverse() * tip).translation.vector.norm())
     }
 
     /// The underlying chain.

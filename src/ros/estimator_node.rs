@@ -201,6 +201,8 @@ struct Pipeline {
     /// Frames that came with a right image of their stamp (since the last report).
     stereo_frames: u64,
     flange: LbrKinematics,
+    /// The flange-to-tip distance of the URDF chain: the endoscope's length, m.
+    endoscope_length_m: f64,
     detector: Option<TrackingDetector>,
     markerless: Option<MarkerlessEstimator>,
     model: TrocarModel,
@@ -370,7 +372,13 @@ impl Pipeline {
             .as_ref()
             .is_none_or(|m| m.camera() != camera || m.right_camera() != right_camera)
         {
-            let e = MarkerlessEstimator::for_cameras(camera, right_camera, &self.model);
+            // The endoscope in view, masked where the hand-eye puts it.
+            let occluder = self
+                .p
+                .markerless
+                .endoscope(&self.estimator.flange_t_camera(), self.endoscope_length_m);
+            let e = MarkerlessEstimator::for_cameras(camera, right_camera, &self.model)
+                .and_then(|e| e.with_occluder(occluder));
             self.markerless = Some(e.map_err(|e| e.to_string())?);
         }
         let right_pixels = match right.and_then(|r| r.image.as_ref()) {
@@ -463,12 +471,14 @@ impl Shared {
         let estimator =
             TrocarEstimator::new(p.estimator_params()?).map_err(|e| NodeError::Invalid(format!("estimator: {e}")))?;
         let flange = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, FLANGE_LINK)?;
+        let endoscope_length_m = LbrKinematics::flange_to_tip_m(p.model, &p.urdf_file)?;
         let capacity = (p.joint_history_s * 1000.0).ceil() as usize;
         let history = JointHistory::new(capacity, p.max_joint_gap_s, p.max_joint_extrapolation_s);
         let pipeline = Pipeline {
             p: p.clone(),
             stereo_frames: 0,
             flange,
+            endoscope_length_m,
             detector: None,
             markerless: None,
             model: p.trocar_model()?,

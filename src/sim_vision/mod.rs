@@ -12,6 +12,8 @@
 //! believes (the true mount times the protocol's calibration bias, drawn as the noise-model
 //! sensor draws it for the same seed) and the joints the arm reports, and delivers the
 //! filtered pose after the protocol's latency. A frame the pipeline rejects delivers nothing.
+//! The endoscope's shaft is in the images (`camera.show_endoscope`) and the estimator masks
+//! it where the believed hand-eye puts it, fitted to each image (`markerless.endoscope_radius_m`).
 //!
 //! Its own layer: it imports the simulator and the vision (which do not import each other)
 //! and is wired by the command line.
@@ -123,18 +125,23 @@ impl CameraPoseSource {
         // The same first draw as the noise-model sensor of this seed: the same bias.
         let bias = measurement.draw_bias(&mut measurement_stream(seed));
         let true_mount = setup.camera.flange_t_camera.to_isometry().map_err(|e| e.to_string())?;
+        let believed = true_mount * bias;
         let filter = TrocarEstimator::new(EstimatorParams {
-            flange_t_camera: PoseYaml::from_isometry(&(true_mount * bias)),
+            flange_t_camera: PoseYaml::from_isometry(&believed),
             ..setup.estimator.clone()
         })
         .map_err(|e| format!("estimator: {e}"))?;
         setup.markerless.validate().map_err(|e| e.to_string())?;
+        // The endoscope in view, masked where the believed hand-eye puts it.
+        let length = LbrKinematics::flange_to_tip_m(setup.model, "").map_err(|e| e.to_string())?;
+        let occluder = setup.markerless.endoscope(&believed, length);
         Ok(Self {
             flange: LbrKinematics::from_model_or_file(setup.model, "", FLANGE_LINK).map_err(|e| e.to_string())?,
             true_mount,
             camera: TrocarCamera::new(&setup.camera, seed, &setup.calibration, setup.right.as_ref())
                 .map_err(|e| e.to_string())?,
             estimator: MarkerlessEstimator::for_cameras(&setup.calibration, setup.right.as_ref(), &setup.trocar)
+                .and_then(|e| e.with_occluder(occluder))
                 .map_err(|e| e.to_string())?,
             right_every: setup.camera.right_every,
             filter,

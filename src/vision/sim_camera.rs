@@ -6,7 +6,10 @@
 
 use nalgebra::Isometry3;
 
+use crate::kinematics::lbr::ToolParams;
+
 use super::estimator::PoseYaml;
+use super::markerless::render::ToolCylinder;
 use super::markerless::{Scene, TrocarModel, TrocarRenderer};
 use super::render::add_fast_gaussian_noise;
 use super::{CameraModel, MarkerSpec, VisionError};
@@ -58,6 +61,10 @@ pub struct SimCameraParams {
     /// every frame, as a real stereo camera delivers it; more keeps the render time within
     /// the frame period).
     pub right_every: u64,
+    /// Without the marker: draw the endoscope's own shaft (the simulated arm's tool,
+    /// [`ToolParams`]: 0.25 m from the flange, 5 mm across) where the true mount puts it in
+    /// each image, as the real camera beside it sees it.
+    pub show_endoscope: bool,
 }
 
 impl SimCameraParams {
@@ -152,14 +159,17 @@ pub struct TrocarCamera {
     right: Option<TrocarRenderer>,
     model: TrocarModel,
     scene: Scene,
+    /// The scene as the right camera sees it (its endoscope in the right camera's frame).
+    right_scene: Scene,
 }
 
 impl TrocarCamera {
     /// The scene of the camera parameters `c` for a camera `model`: the trocar of
     /// `c.trocar_model_file`, lighting, materials and the wall drawn once from `seed`, the
     /// blur of `c.blur_sigma_px`, the wall traced every `c.wall_step_px` (the pixel noise is
-    /// added per frame, [`TrocarCamera::add_noise`]); `right`: the right camera of a stereo
-    /// pair ([`SimCameraParams::right_camera`]), which sees the same scene.
+    /// added per frame, [`TrocarCamera::add_noise`]), the endoscope with `c.show_endoscope`;
+    /// `right`: the right camera of a stereo pair ([`SimCameraParams::right_camera`]), which
+    /// sees the same scene.
     pub fn new(
         c: &SimCameraParams,
         seed: u64,
@@ -178,6 +188,14 @@ impl TrocarCamera {
         };
         let mut scene = Scene::random(seed, 0.0);
         scene.blur_sigma = c.blur_sigma_px;
+        if c.show_endoscope {
+            let mount = c.flange_t_camera.to_isometry().map_err(|error| CameraSetupError {
+                key: "flange_t_camera",
+                error,
+            })?;
+            let tool = ToolParams::default();
+            scene.tool = Some(ToolCylinder::endoscope(&mount, tool.length_m, 0.5 * tool.diameter_m));
+        }
         let renderer = TrocarRenderer::new(model).map_err(|error| CameraSetupError {
             key: "calibration_file",
             error,
@@ -192,11 +210,19 @@ impl TrocarCamera {
                     })
             })
             .transpose()?;
+        let right_scene = Scene {
+            tool: match (&right, scene.tool) {
+                (Some(r), Some(t)) => Some(t.transformed(&r.camera().stereo_right_t_left())),
+                (_, tool) => tool,
+            },
+            ..scene.clone()
+        };
         Ok(Self {
             renderer: renderer.with_wall_step(c.wall_step_px),
             right,
             model: trocar,
             scene,
+            right_scene,
         })
     }
 
@@ -239,7 +265,10 @@ impl TrocarCamera {
     pub fn render_right(&self, camera_t_trocar: &Isometry3<f64>) -> Option<Result<Vec<u8>, VisionError>> {
         let r = self.right.as_ref()?;
         let right_t_trocar = r.camera().stereo_right_t_left() * camera_t_trocar;
-        Some(r.render(&self.model, &right_t_trocar, &self.scene).map(|g| g.data))
+        Some(
+            r.render(&self.model, &right_t_trocar, &self.right_scene)
+                .map(|g| g.data),
+        )
     }
 
     /// The right camera's frame captured with the left frame [`TrocarCamera::frame`] of the
@@ -280,6 +309,9 @@ mod tests {
             ..SimCameraParams::default()
         }
     }
+
+    use crate::kinematics::lbr::ToolParams;
+    use crate::vision::markerless::render::ToolCylinder;
 
     #[test]
     fn the_right_camera_is_read_with_its_baseline_and_a_mono_or_bad_one_is_refused() {
@@ -364,5 +396,71 @@ mod tests {
         assert!(dp < 3e-3, "{dp} m");
         assert!(e.axis.direction.angle(&z) < 2f64.to_radians());
         assert!((truth.translation.x - camera_t_trocar.translation.x + 0.063).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_endoscope_is_drawn_where_the_true_mount_puts_it_in_both_images() {
+        let c = stereo();
+        let left = CameraModel::from_yaml_file(std::path::Path::new(&config("camera_zedm.yaml"))).unwrap();
+        let right = c.right_camera().unwrap().unwrap();
+        let without = SimCameraParams {
+            show_endoscope: false,
+            ..c.clone()
+        };
+        let (with, bare) = (
+            TrocarCamera::new(&c, 3, &left, Some(&right)).unwrap(),
+            TrocarCamera::new(&without, 3, &left, Some(&right)).unwrap(),
+        );
+        // The stand-off point: the port 2 cm beyond the tip, on the endoscope's axis.
+        let mount = c.flange_t_camera.to_isometry().unwrap();
+        let tool = ToolParams::default();
+        let camera_t_trocar = mount.inverse()
+            * Isometry3::from_parts(
+                nalgebra::Translation3::new(0.0, 0.0, tool.length_m + 0.02),
+                UnitQuaternion::identity(),
+            );
+        let shaft = ToolCylinder::endoscope(&mount, tool.length_m, 0.5 * tool.diameter_m);
+        let images = [
+            (
+                &left,
+                with.render(&camera_t_trocar).unwrap(),
+                bare.render(&camera_t_trocar).unwrap(),
+                shaft,
+            ),
+            (
+                &right,
+                with.render_right(&camera_t_trocar).unwrap().unwrap(),
+                bare.render_right(&camera_t_trocar).unwrap().unwrap(),
+                shaft.transformed(&right.stereo_right_t_left()),
+            ),
+        ];
+        for (cam, a, b, shaft) in images {
+            // The shaft's image: from its tip to where it is 5 cm from the camera.
+            let (tip, back) = (Vector3::from(shaft.start), Vector3::from(shaft.end));
+            let near = tip + (back - tip) * ((tip.z - 0.05) / (tip.z - back.z));
+            let px = |p: Vector3<f64>| nalgebra::Vector2::new(cam.fx * p.x / p.z + cam.cx, cam.fy * p.y / p.z + cam.cy);
+            let (p, q) = (px(tip), px(near));
+            let half_width = cam.fx * shaft.radius / tip.z;
+            let dist = |x: nalgebra::Vector2<f64>| {
+                let t = ((x - p).dot(&(q - p)) / (q - p).norm_squared()).clamp(0.0, 1.0);
+                (x - (p + t * (q - p))).norm()
+            };
+            let changed: Vec<nalgebra::Vector2<f64>> = (0..a.len())
+                .filter(|&i| a[i].abs_diff(b[i]) > 8)
+                .map(|i| {
+                    let w = cam.width as usize;
+                    nalgebra::Vector2::new((i % w) as f64 + 0.5, (i / w) as f64 + 0.5)
+                })
+                .collect();
+            // Where the shaft is (a band ~10 px wide and hundreds long), and nowhere else
+            // (its shadow is not drawn; the blur spreads its edge by a pixel or two).
+            assert!(changed.len() > 2000, "{} pixels changed", changed.len());
+            let far = changed.iter().filter(|x| dist(**x) > 4.0 * half_width + 4.0).count();
+            assert_eq!(far, 0, "{far} changed pixels away from the shaft");
+            assert!(
+                changed.iter().any(|x| dist(*x) < 1.0 && (x - p).norm() < 3.0),
+                "the tip is drawn"
+            );
+        }
     }
 }

@@ -4,7 +4,7 @@
 //! DOF), the better explained kept, and a confidence from the fit, the edge support and
 //! the ambiguity margin.
 
-use nalgebra::{Isometry3, Matrix5, Point3, Unit, Vector2, Vector3, Vector5};
+use nalgebra::{Isometry3, Matrix5, Unit, Vector2, Vector3, Vector5};
 
 use super::geometry::{
     basis, circle_conic, circle_poses, conic_distance, conic_normal, cylinder_limbs, ellipse_conic, project, Axis,
@@ -106,26 +106,15 @@ impl Occluder {
     /// flange to its tip `length_m` away, `radius_m` thick) seen from the camera at
     /// `flange_t_camera`, masked [`ENDOSCOPE_TIP_MARGIN_M`] past its tip.
     pub fn endoscope(flange_t_camera: &Isometry3<f64>, length_m: f64, radius_m: f64) -> Self {
-        let camera_t_flange = flange_t_camera.inverse();
-        let at = |z: f64| (camera_t_flange * Point3::new(0.0, 0.0, z)).coords.into();
         Self {
-            shaft: ToolCylinder {
-                start: at(length_m + ENDOSCOPE_TIP_MARGIN_M),
-                end: at(0.0),
-                radius: radius_m,
-            },
+            shaft: ToolCylinder::endoscope(flange_t_camera, length_m + ENDOSCOPE_TIP_MARGIN_M, radius_m),
             margin_px: ENDOSCOPE_MARGIN_PX,
         }
     }
 
     /// The shaft in the camera at `eye_t_left` (the left camera's points there).
     fn in_eye(&self, eye_t_left: &Isometry3<f64>) -> ToolCylinder {
-        let at = |p: [f64; 3]| (eye_t_left * Point3::from(Vector3::from(p))).coords.into();
-        ToolCylinder {
-            start: at(self.shaft.start),
-            end: at(self.shaft.end),
-            ..self.shaft
-        }
+        self.shaft.transformed(eye_t_left)
     }
 
     fn validate(&self) -> Result<(), VisionError> {

@@ -16,7 +16,7 @@
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::estimator::{MarkerlessEstimate, MarkerlessEstimator};
+use super::estimator::{MarkerlessEstimate, MarkerlessEstimator, Occluder};
 use super::Axis;
 use crate::validate;
 use crate::vision::estimator::{EstimateStatus, TrocarEstimator};
@@ -68,6 +68,9 @@ pub struct MarkerlessParams {
     pub sigma_position_m: f64,
     /// Standard deviation of the axis direction at confidence 1, rad (scaled by 1 / confidence).
     pub sigma_direction_rad: f64,
+    /// The radius of the endoscope's shaft, m, whose outline in view is masked out of the
+    /// images ([`MarkerlessParams::endoscope`]; 0 = not in view).
+    pub endoscope_radius_m: f64,
 }
 
 crate::shipped_defaults!(MarkerlessParams, crate::config::TROCAR_ESTIMATOR, ["markerless"]);
@@ -78,7 +81,20 @@ impl MarkerlessParams {
         validate::positive_at_most("markerless.min_confidence", self.min_confidence, 1.0)?;
         validate::positive_at_most("markerless.sigma_position_m", self.sigma_position_m, 0.1)?;
         validate::positive_at_most("markerless.sigma_direction_rad", self.sigma_direction_rad, 0.5)?;
+        let r = self.endoscope_radius_m;
+        if !(r.is_finite() && (0.0..=0.05).contains(&r)) {
+            return Err(VisionError::InvalidInput(format!(
+                "markerless.endoscope_radius_m must be in [0, 0.05] m (0 = not in view), got {r}"
+            )));
+        }
         Ok(())
+    }
+
+    /// The endoscope in view as the estimator masks it: a straight shaft of
+    /// `endoscope_radius_m` along the flange's z axis, `length_m` from the flange to its tip,
+    /// seen from the camera at `flange_t_camera` (the hand-eye); `None` with a radius of 0.
+    pub fn endoscope(&self, flange_t_camera: &Isometry3<f64>, length_m: f64) -> Option<Occluder> {
+        (self.endoscope_radius_m > 0.0).then(|| Occluder::endoscope(flange_t_camera, length_m, self.endoscope_radius_m))
     }
 }
 
@@ -399,10 +415,41 @@ mod tests {
                 },
                 "sigma_direction_rad",
             ),
+            (
+                MarkerlessParams {
+                    endoscope_radius_m: f64::NAN,
+                    ..Default::default()
+                },
+                "endoscope_radius_m",
+            ),
+            (
+                MarkerlessParams {
+                    endoscope_radius_m: -0.001,
+                    ..Default::default()
+                },
+                "endoscope_radius_m",
+            ),
         ] {
             let e = p.validate().unwrap_err().to_string();
             assert!(e.contains(key), "{e}");
         }
         assert!(MarkerlessParams::default().validate().is_ok());
+    }
+
+    #[test]
+    fn the_shipped_estimator_masks_a_5_mm_endoscope_and_a_radius_of_0_masks_nothing() {
+        let mount = Isometry3::translation(0.0, 0.07, 0.04);
+        let p = MarkerlessParams::default();
+        let o = p
+            .endoscope(&mount, 0.25)
+            .expect("the shipped estimator masks the endoscope");
+        assert_eq!(o.shaft.radius, 0.0025);
+        // Its tip end lies past the tip on the flange's z axis, seen from the camera.
+        assert!((o.shaft.start[2] - (0.25 - 0.04)).abs() <= 0.01, "{:?}", o.shaft.start);
+        let none = MarkerlessParams {
+            endoscope_radius_m: 0.0,
+            ..p
+        };
+        assert!(none.endoscope(&mount, 0.25).is_none());
     }
 }

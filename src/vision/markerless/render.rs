@@ -39,6 +39,29 @@ pub struct ToolCylinder {
 }
 
 impl ToolCylinder {
+    /// The endoscope on the flange (a straight shaft along the flange's z axis from the
+    /// flange to its tip `length_m` away, `radius_m` thick) in the frame of the camera at
+    /// `flange_t_camera`: `start` its tip, `end` the flange.
+    pub fn endoscope(flange_t_camera: &Isometry3<f64>, length_m: f64, radius_m: f64) -> Self {
+        let camera_t_flange = flange_t_camera.inverse();
+        let at = |z: f64| (camera_t_flange * Point3::new(0.0, 0.0, z)).coords.into();
+        Self {
+            start: at(length_m),
+            end: at(0.0),
+            radius: radius_m,
+        }
+    }
+
+    /// The same cylinder in the frame `b`, seen from which this one's frame is `b_t_a`.
+    pub fn transformed(&self, b_t_a: &Isometry3<f64>) -> Self {
+        let at = |p: [f64; 3]| (b_t_a * Point3::from(Vector3::from(p))).coords.into();
+        Self {
+            start: at(self.start),
+            end: at(self.end),
+            radius: self.radius,
+        }
+    }
+
     /// Check it: the radius positive and at most 0.1 m, the ends finite and distinct.
     pub fn validate(&self) -> Result<(), VisionError> {
         crate::validate::positive_at_most("tool radius", self.radius, 0.1)?;
