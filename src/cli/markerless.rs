@@ -6,10 +6,12 @@ use std::path::{Path, PathBuf};
 
 use nalgebra::{Isometry3, Unit, Vector3};
 
+use crate::kinematics::lbr::{LbrModel, ToolParams};
+use crate::kinematics::LbrKinematics;
 use crate::vision::estimator::PoseYaml;
 use crate::vision::markerless::approach::docking_approach;
 use crate::vision::markerless::render::ToolCylinder;
-use crate::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer};
+use crate::vision::markerless::{MarkerlessEstimator, MarkerlessParams, Scene, TrocarModel, TrocarRenderer};
 use crate::vision::{CameraModel, GreyImage};
 
 /// Arguments of `render-trocar`.
@@ -56,6 +58,10 @@ pub struct RenderTrocarArgs {
     /// the same scene seen from the baseline to the right.
     #[arg(long)]
     pub right_camera: Option<PathBuf>,
+    /// Draw the endoscope's own shaft where the camera on --mount sees it (the built-in
+    /// arm's tool: 0.25 m from the flange to the tip, 5 mm across), in both images.
+    #[arg(long, conflicts_with = "tool")]
+    pub endoscope: bool,
 }
 
 /// Arguments of `trocar-pose`.
@@ -84,6 +90,12 @@ pub struct TrocarPoseArgs {
     /// Folder of the right camera's images, paired with --images in name order (as many).
     #[arg(long, requires = "right_camera")]
     pub right_images: Option<PathBuf>,
+    /// Mask the endoscope in view as the estimator node does, seen through the hand-eye of
+    /// this file (`flange_t_camera` of a hand-eye result, or `camera.flange_t_camera` of a
+    /// lbr_med_sim parameter file): the built-in arm's flange-to-tip length and the radius
+    /// `markerless.endoscope_radius_m` of config/trocar_estimator.yaml.
+    #[arg(long)]
+    pub endoscope_mount: Option<PathBuf>,
 }
 
 /// The right camera of a stereo pair from its calibration YAML (a baseline of 1 mm to 1 m).
@@ -110,16 +122,24 @@ pub fn parse_pose(v: &[f64], what: &str) -> Result<Isometry3<f64>, String> {
     .map_err(|e| format!("{what}: {e}"))
 }
 
-/// The camera mount `camera.flange_t_camera` of a lbr_med_sim parameter file.
+/// The camera mount of a parameter file: `camera.flange_t_camera` (a lbr_med_sim parameter
+/// file) or `flange_t_camera` (a hand-eye result).
 pub fn read_mount(path: &Path) -> Result<Isometry3<f64>, String> {
     let v: crate::config::Value = crate::config::from_yaml_file(path).map_err(|e| e.to_string())?;
     let m = v
         .get("camera")
         .and_then(|c| c.get("flange_t_camera"))
-        .ok_or_else(|| format!("{}: no camera.flange_t_camera", path.display()))?;
+        .or_else(|| v.get("flange_t_camera"))
+        .ok_or_else(|| format!("{}: no camera.flange_t_camera or flange_t_camera", path.display()))?;
     let p: PoseYaml =
         crate::config::from_yaml_value(&path.display().to_string(), m.clone()).map_err(|e| e.to_string())?;
     p.to_isometry().map_err(|e| format!("{}: {e}", path.display()))
+}
+
+/// The built-in arm's endoscope seen from the camera at `mount` (its tip `start`).
+fn endoscope_seen_from(mount: &Isometry3<f64>) -> ToolCylinder {
+    let tool = ToolParams::default();
+    ToolCylinder::endoscope(mount, tool.length_m, 0.5 * tool.diameter_m)
 }
 
 fn scene_of(a: &RenderTrocarArgs, seed: u64) -> Result<Scene, String> {
@@ -131,6 +151,9 @@ fn scene_of(a: &RenderTrocarArgs, seed: u64) -> Result<Scene, String> {
         }
         s.motion_blur_px = mb[0];
         s.motion_blur_angle = mb[1].to_radians();
+    }
+    if a.endoscope {
+        s.tool = Some(endoscope_seen_from(&read_mount(&a.mount)?));
     }
     if let Some(t) = &a.tool {
         if t.len() != 7 {
@@ -185,7 +208,11 @@ pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
             let name = format!("frame_{k:04}.png");
             img.write(&a.out.join(&name))?;
             if let Some((r, right_t_left, dir)) = &right {
-                r.render(&model, &(right_t_left * p), &scene)?.write(&dir.join(&name))?;
+                let seen = Scene {
+                    tool: scene.tool.map(|t| t.transformed(right_t_left)),
+                    ..scene.clone()
+                };
+                r.render(&model, &(right_t_left * p), &seen)?.write(&dir.join(&name))?;
             }
             let mut t = truth_json(p);
             t["image"] = name.into();
@@ -268,7 +295,15 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
     };
     let files = image_files(&a.images)?;
     let pair = stereo_pair(a, files.len())?;
-    let mut est = MarkerlessEstimator::for_cameras(&camera, pair.as_ref().map(|p| &p.0), &model)?;
+    let occluder = match &a.endoscope_mount {
+        Some(path) => MarkerlessParams::default().endoscope(
+            &read_mount(path)?,
+            LbrKinematics::flange_to_tip_m(LbrModel::Med7, "").map_err(|e| e.to_string())?,
+        ),
+        None => None,
+    };
+    let mut est =
+        MarkerlessEstimator::for_cameras(&camera, pair.as_ref().map(|p| &p.0), &model)?.with_occluder(occluder)?;
     let right_files = pair.map(|p| p.1);
     let mut failures = 0usize;
     for (k, f) in files.iter().enumerate() {
