@@ -315,13 +315,49 @@ struct Eye {
     occluder: Option<EyeOccluder>,
 }
 
-/// The occluder as one eye masks it, in this eye's frame: where the hand-eye puts it, and
-/// where its outline was last found in this eye's images (the shaft is rigid to the camera:
-/// it stays there until found elsewhere).
+/// The occluder as one eye masks it, in this eye's frame: where the hand-eye puts it, where
+/// its outline was last found in this eye's images (the shaft is rigid to the camera: it
+/// stays there until found elsewhere), where the track puts the port, and the shaft the mask
+/// was last built of.
 struct EyeOccluder {
     predicted: ToolCylinder,
     margin_px: f64,
     found: Option<ToolCylinder>,
+    port: Option<Axis>,
+    applied: Option<ToolCylinder>,
+}
+
+impl EyeOccluder {
+    /// The part of the shaft in view: where it was found (else where the hand-eye puts it),
+    /// ended [`ENDOSCOPE_TIP_MARGIN_M`] past the port's face where it goes into the port.
+    fn in_view(&self) -> ToolCylinder {
+        inside_port_hidden(&self.found.unwrap_or(self.predicted), self.port.as_ref())
+    }
+}
+
+/// `shaft` (camera frame) without its part past the face of the port on `port` (inside the
+/// trocar, which hides it), but for [`ENDOSCOPE_TIP_MARGIN_M`]: unchanged unless it runs from
+/// before the face's plane to past it.
+fn inside_port_hidden(shaft: &ToolCylinder, port: Option<&Axis>) -> ToolCylinder {
+    let Some(port) = port else { return *shaft };
+    let (tip, back) = shaft_ends(shaft);
+    let n = port.direction.into_inner();
+    let (dt, db) = ((tip - port.point).dot(&n), (back - port.point).dot(&n));
+    if dt <= 0.0 || db >= 0.0 {
+        return *shaft;
+    }
+    let cross = tip + (back - tip) * (dt / (dt - db));
+    let Some(along) = (tip - back).try_normalize(1e-12) else {
+        return *shaft;
+    };
+    let cut = cross + along * ENDOSCOPE_TIP_MARGIN_M;
+    if (cut - back).norm() >= (tip - back).norm() {
+        return *shaft;
+    }
+    ToolCylinder {
+        start: cut.into(),
+        ..*shaft
+    }
 }
 
 /// How far across the shaft its outline is searched for around where the hand-eye puts it, px.
@@ -350,17 +386,36 @@ impl Eye {
             predicted: o.in_eye(eye_t_left),
             margin_px: o.margin_px,
             found: None,
+            port: None,
+            applied: None,
         });
         self.apply_occluder()
+    }
+
+    /// Where the track puts the port (this eye's frame; `None`: nowhere): the mask ends where
+    /// the shaft goes into it. Rebuilt when its tip end moves by 0.2 mm or more.
+    fn set_port(&mut self, port: Option<Axis>) -> Result<(), VisionError> {
+        let Some(o) = self.occluder.as_mut() else { return Ok(()) };
+        o.port = port;
+        let moved = o
+            .applied
+            .is_none_or(|a| (Vector3::from(a.start) - Vector3::from(o.in_view().start)).norm() >= 2e-4);
+        if moved {
+            self.apply_occluder()?;
+        }
+        Ok(())
     }
 
     /// Build the occluder's mask where it was last found, else where the hand-eye puts it
     /// (none without an occluder).
     fn apply_occluder(&mut self) -> Result<(), VisionError> {
+        if let Some(o) = self.occluder.as_mut() {
+            o.applied = Some(o.in_view());
+        }
         let sections = self
             .occluder
             .as_ref()
-            .and_then(|o| shaft_sections(&o.found.unwrap_or(o.predicted)).map(|s| (s, o.margin_px)));
+            .and_then(|o| shaft_sections(&o.in_view()).map(|s| (s, o.margin_px)));
         let ((pts, len), margin) = sections.unwrap_or(((vec![], 3), 0.0));
         ffi::markerless_set_occluder(self.det.pin_mut(), &pts, len, margin)?;
         Ok(())
@@ -376,7 +431,7 @@ impl Eye {
     /// puts it.
     fn register_occluder(&mut self) -> Result<(), VisionError> {
         let Some(o) = &self.occluder else { return Ok(()) };
-        let Some(lines) = shaft_outline(&o.predicted) else {
+        let Some(lines) = shaft_outline(&inside_port_hidden(&o.predicted, o.port.as_ref())) else {
             return Ok(());
         };
         let cam = &self.camera;
@@ -573,6 +628,19 @@ impl MarkerlessEstimator {
         }
         self.occluder = occluder;
         Ok(self)
+    }
+
+    /// Where the track puts the port (its axis in the left camera's frame; `None`: nowhere
+    /// yet): the endoscope's shaft past the port's face is inside the trocar, which hides it,
+    /// so its mask ends [`ENDOSCOPE_TIP_MARGIN_M`] past where the shaft crosses the face's
+    /// plane (without it, the mask of a scope inside the port reaches over the opening's far
+    /// rim). No effect without an occluder.
+    pub fn set_port_hint(&mut self, port: Option<&Axis>) -> Result<(), VisionError> {
+        self.left.set_port(port.copied())?;
+        if let Some(r) = self.right.as_mut() {
+            r.eye.set_port(port.map(|a| a.transformed(&r.right_t_left)))?;
+        }
+        Ok(())
     }
 
     /// An estimator for `camera` and `model`, with `right` the right camera of a rectified

@@ -213,7 +213,8 @@ pub struct Tracked {
 /// One frame `view`, captured at `stamp` from a camera at `base_t_camera` (with `right`, the
 /// stereo pair's right image captured with it, if any), through the markerless estimate into
 /// the trocar estimator `filter`: the filter's estimate carried into the camera as the prior
-/// ([`prior_direction`]), the estimate ([`MarkerlessEstimator::estimate_stereo`]), the confidence gate
+/// ([`prior_direction`]) and as the port the endoscope goes into
+/// ([`MarkerlessEstimator::set_port_hint`]), the estimate ([`MarkerlessEstimator::estimate_stereo`]), the confidence gate
 /// ([`accept`]), then the filter's outlier gate and update ([`TrocarEstimator::fuse`]).
 /// `Err`: why the frame gives no measurement (the filter unchanged).
 pub fn track(
@@ -225,9 +226,19 @@ pub fn track(
     base_t_camera: &Isometry3<f64>,
     p: &MarkerlessParams,
 ) -> Result<Tracked, String> {
-    let prior = filter
-        .estimate(stamp)
+    let tracked = filter.estimate(stamp);
+    let prior = tracked
+        .as_ref()
         .map(|e| prior_direction(base_t_camera, &e.pose_base_trocar));
+    // Where the track puts the port: the endoscope's shaft inside it is hidden by it.
+    let port = tracked.map(|e| {
+        let camera_t_port = base_t_camera.inverse() * e.pose_base_trocar;
+        Axis {
+            point: camera_t_port.translation.vector,
+            direction: Unit::new_normalize(camera_t_port.rotation * Vector3::z()),
+        }
+    });
+    estimator.set_port_hint(port.as_ref()).map_err(|e| e.to_string())?;
     let e = estimator
         .estimate_stereo(view, right, prior.as_ref())
         .map_err(|e| e.to_string())?;
