@@ -254,20 +254,33 @@ impl TrocarRenderer {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         // With a coarse wall, only the region that can see the trocar or the tool is traced:
         // outside it every pixel sees the wall alone (there are no shadows).
-        let roi = if self.wall_step > 1 {
+        let region = if self.wall_step > 1 {
             let margin = (3.0 * scene.blur_sigma).ceil() as usize + 4;
             self.region_of_interest(model, camera_t_port, scene, margin)
         } else {
-            Rect::full(w, h)
+            Region::full(w, h)
         };
-        // The surface at every pixel corner of the region, traced once (a corner is shared
-        // by 4 pixels).
+        let roi = region.bbox;
+        // The surface at every pixel corner of the region's parts, traced once (a corner is
+        // shared by 4 pixels); between the parts the wall.
         let stride = roi.width() + 1;
         let mut ids = vec![Surface::Nothing; stride * (roi.height() + 1)];
         ids.par_chunks_mut(stride).enumerate().for_each(|(j, row)| {
+            let y = roi.y0 + j;
+            // The corners of row y belong to the pixels of rows y - 1 and y.
+            let spans: Vec<(usize, usize)> = region
+                .spans(y)
+                .into_iter()
+                .chain(region.spans(y.wrapping_sub(1)))
+                .collect();
             for (i, id) in row.iter_mut().enumerate() {
-                let [cx, cy] = self.corners[(roi.y0 + j) * (w + 1) + roi.x0 + i];
-                *id = caster.hit(&Vector3::new(cx, cy, 1.0)).surface;
+                let x = roi.x0 + i;
+                *id = if spans.iter().any(|&(a, b)| x >= a && x <= b) {
+                    let [cx, cy] = self.corners[y * (w + 1) + x];
+                    caster.hit(&Vector3::new(cx, cy, 1.0)).surface
+                } else {
+                    Surface::Wall
+                };
             }
         });
         let ids = CornerIds { ids, roi, stride };
@@ -309,21 +322,20 @@ impl TrocarRenderer {
     }
 
     /// The pixels that can see the trocar (if shown) or the tool, with `margin` px around
-    /// them: the bounding box of the pixel corners whose rays fall within the bounding box
-    /// (undistorted, normalised) of the projected circles that enclose the head, the cannula
-    /// and the tool (polygons circumscribing them, so their hull holds every surface). The
-    /// whole image when any of these points is not in front of the camera.
+    /// them: the pixel corners whose rays fall within the bounding boxes (undistorted,
+    /// normalised) of the projected circles that enclose the head and the cannula, and of
+    /// pieces of the tool's part in front of the camera (polygons circumscribing them, so
+    /// their hull holds every surface). The whole image when any of these points is not in
+    /// front of the camera.
     fn region_of_interest(
         &self,
         model: &TrocarModel,
         camera_t_port: &Isometry3<f64>,
         scene: &Scene,
         margin: usize,
-    ) -> Rect {
-        const SIDES: usize = 32;
+    ) -> Region {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
-        let circumscribe = 1.0 / (std::f64::consts::PI / SIDES as f64).cos();
-        let mut circles: Vec<Circle> = vec![];
+        let mut boxes: Vec<NormBox> = vec![];
         if scene.show_trocar {
             let m = model;
             let (ex, ey) = (
@@ -331,70 +343,123 @@ impl TrocarRenderer {
                 camera_t_port.rotation * Vector3::y(),
             );
             let end = m.head.height + m.cannula.length;
-            for (z, r) in [
+            let circles: Vec<Circle> = [
                 (0.0, m.head.radius),
                 (m.head.height, m.head.radius),
                 (end, m.cannula.radius),
-            ] {
-                let c = camera_t_port.transform_point(&Point3::new(0.0, 0.0, z)).coords;
-                circles.push(Circle {
-                    centre: c,
-                    span: [ex, ey],
-                    radius_m: r,
-                });
-            }
+            ]
+            .into_iter()
+            .map(|(z, r)| Circle {
+                centre: camera_t_port.transform_point(&Point3::new(0.0, 0.0, z)).coords,
+                span: [ex, ey],
+                radius_m: r,
+            })
+            .collect();
+            let Some(bx) = circles_bounds(&circles) else {
+                return Region::full(w, h);
+            };
+            boxes.push(bx);
         }
         if let Some(t) = &scene.tool {
-            let (a, b) = (Vector3::from(t.start), Vector3::from(t.end));
-            let (u, v) = super::geometry::basis(&nalgebra::Unit::new_normalize(b - a));
-            for centre in [a, b] {
-                circles.push(Circle {
+            let Some(pieces) = self.tool_boxes(t) else {
+                return Region::full(w, h);
+            };
+            boxes.extend(pieces);
+        }
+        self.pixels_of(&boxes, margin)
+    }
+
+    /// The normalised bounding boxes of `tool`'s part at least 5 mm in front of the camera
+    /// (an endoscope's shaft runs back past the camera to the flange) in 32 pieces, those that
+    /// meet the image (the pieces near the camera project far outside it); `None` when a
+    /// piece's outline is not in front of the camera.
+    fn tool_boxes(&self, tool: &ToolCylinder) -> Option<Vec<NormBox>> {
+        const NEAR_M: f64 = 0.005;
+        const PIECES: usize = 32;
+        let (mut a, mut b) = (Vector3::from(tool.start), Vector3::from(tool.end));
+        let clip = |p: Vector3<f64>, q: Vector3<f64>| q + (p - q) * ((q.z - NEAR_M) / (q.z - p.z));
+        if a.z < NEAR_M && b.z >= NEAR_M {
+            a = clip(a, b);
+        } else if b.z < NEAR_M && a.z >= NEAR_M {
+            b = clip(b, a);
+        }
+        if a.z < NEAR_M - 1e-12 || b.z < NEAR_M - 1e-12 {
+            return Some(vec![]);
+        }
+        let (u, v) = super::geometry::basis(&nalgebra::Unit::new_normalize(b - a));
+        let cam = &self.camera;
+        let (w_n, h_n) = (f64::from(cam.width) / cam.fx, f64::from(cam.height) / cam.fy);
+        let (ix, iy) = (-cam.cx / cam.fx, -cam.cy / cam.fy);
+        // The image's normalised extent, a fifth wider each way for the distortion.
+        let image = ([ix - 0.2 * w_n, iy - 0.2 * h_n], [ix + 1.2 * w_n, iy + 1.2 * h_n]);
+        let at = |k: usize| a + (b - a) * (k as f64 / PIECES as f64);
+        let mut out = vec![];
+        for k in 0..PIECES {
+            let circles: Vec<Circle> = [at(k), at(k + 1)]
+                .into_iter()
+                .map(|centre| Circle {
                     centre,
                     span: [u, v],
-                    radius_m: t.radius,
-                });
+                    radius_m: tool.radius,
+                })
+                .collect();
+            let bx = circles_bounds(&circles)?;
+            if (0..2).all(|i| bx.0[i] <= image.1[i] && bx.1[i] >= image.0[i]) {
+                out.push(bx);
             }
         }
-        if circles.is_empty() {
-            return Rect::default();
-        }
-        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        for Circle {
-            centre: c,
-            span: [u, v],
-            radius_m: r,
-        } in &circles
-        {
-            for k in 0..SIDES {
-                let a = k as f64 * std::f64::consts::TAU / SIDES as f64;
-                let p = c + r * circumscribe * (a.cos() * u + a.sin() * v);
-                if p.z < 1e-3 {
-                    return Rect::full(w, h);
-                }
-                for (i, q) in [p.x / p.z, p.y / p.z].into_iter().enumerate() {
-                    lo[i] = lo[i].min(q);
-                    hi[i] = hi[i].max(q);
-                }
+        Some(out)
+    }
+
+    /// The pixels whose corners' rays fall within `boxes` (normalised), grown by `margin` px:
+    /// one rectangle per box, and their bounding box.
+    fn pixels_of(&self, boxes: &[NormBox], margin: usize) -> Region {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let Some(&(mut lo, mut hi)) = boxes.first() else {
+            return Region::default();
+        };
+        for (l, u) in &boxes[1..] {
+            for i in 0..2 {
+                lo[i] = lo[i].min(l[i]);
+                hi[i] = hi[i].max(u[i]);
             }
         }
         let pad = [margin as f64 / self.camera.fx, margin as f64 / self.camera.fy];
-        let inside = |c: &[f64; 2]| (0..2).all(|i| c[i] >= lo[i] - pad[i] && c[i] <= hi[i] + pad[i]);
+        let inside = |c: &[f64; 2], lo: &[f64; 2], hi: &[f64; 2]| {
+            (0..2).all(|i| c[i] >= lo[i] - pad[i] && c[i] <= hi[i] + pad[i])
+        };
         // Corner (i, j) is shared by pixels i-1 and i of rows j-1 and j.
-        let (mut x0, mut x1, mut y0, mut y1) = (usize::MAX, 0, usize::MAX, 0);
+        let mut rects = vec![(usize::MAX, 0, usize::MAX, 0); boxes.len()];
         for (j, row) in self.corners.chunks(w + 1).enumerate() {
             for (i, c) in row.iter().enumerate() {
-                if inside(c) {
-                    x0 = x0.min(i.saturating_sub(1));
-                    x1 = x1.max((i + 1).min(w));
-                    y0 = y0.min(j.saturating_sub(1));
-                    y1 = y1.max((j + 1).min(h));
+                if !inside(c, &lo, &hi) {
+                    continue;
+                }
+                for ((blo, bhi), r) in boxes.iter().zip(rects.iter_mut()) {
+                    if inside(c, blo, bhi) {
+                        r.0 = r.0.min(i.saturating_sub(1));
+                        r.1 = r.1.max((i + 1).min(w));
+                        r.2 = r.2.min(j.saturating_sub(1));
+                        r.3 = r.3.max((j + 1).min(h));
+                    }
                 }
             }
         }
-        if x0 >= x1 || y0 >= y1 {
-            return Rect::default();
-        }
-        Rect { x0, x1, y0, y1 }
+        let parts: Vec<Rect> = rects
+            .into_iter()
+            .filter(|r| r.0 < r.1 && r.2 < r.3)
+            .map(|(x0, x1, y0, y1)| Rect { x0, x1, y0, y1 })
+            .collect();
+        let Some(first) = parts.first() else {
+            return Region::default();
+        };
+        let bbox = parts.iter().fold(*first, |a, b| Rect {
+            x0: a.x0.min(b.x0),
+            x1: a.x1.max(b.x1),
+            y0: a.y0.min(b.y0),
+            y1: a.y1.max(b.y1),
+        });
+        Region { bbox, parts }
     }
 
     /// Radiance of pixel (x, y): one ray when its four corners (`ids`, traced once) hit the
@@ -463,6 +528,63 @@ impl TrocarRenderer {
 }
 
 /// A rectangle of pixels, [x0, x1) x [y0, y1) (empty by default).
+/// A box in normalised image coordinates: lower and upper corners.
+type NormBox = ([f64; 2], [f64; 2]);
+
+/// The normalised bounding box of `circles` (each as a circumscribing 32-gon); `None` when a
+/// point of one is not in front of the camera.
+fn circles_bounds(circles: &[Circle]) -> Option<NormBox> {
+    const SIDES: usize = 32;
+    let circumscribe = 1.0 / (std::f64::consts::PI / SIDES as f64).cos();
+    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+    for Circle {
+        centre: c,
+        span: [u, v],
+        radius_m: r,
+    } in circles
+    {
+        for k in 0..SIDES {
+            let a = k as f64 * std::f64::consts::TAU / SIDES as f64;
+            let p = c + r * circumscribe * (a.cos() * u + a.sin() * v);
+            if p.z < 1e-3 {
+                return None;
+            }
+            for (i, q) in [p.x / p.z, p.y / p.z].into_iter().enumerate() {
+                lo[i] = lo[i].min(q);
+                hi[i] = hi[i].max(q);
+            }
+        }
+    }
+    Some((lo, hi))
+}
+
+/// What the renderer traces: the bounding box of the parts of the image that can see the
+/// trocar or the tool (each with a margin); the rest of the box sees the wall alone.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+struct Region {
+    bbox: Rect,
+    parts: Vec<Rect>,
+}
+
+impl Region {
+    /// The pixel columns `[x0, x1)` of the parts that hold row `y`.
+    fn spans(&self, y: usize) -> Vec<(usize, usize)> {
+        self.parts
+            .iter()
+            .filter(|p| y >= p.y0 && y < p.y1)
+            .map(|p| (p.x0, p.x1))
+            .collect()
+    }
+
+    /// The whole `w` x `h` image.
+    fn full(w: usize, h: usize) -> Self {
+        Self {
+            bbox: Rect::full(w, h),
+            parts: vec![Rect::full(w, h)],
+        }
+    }
+}
+
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 struct Rect {
     x0: usize,
@@ -981,12 +1103,24 @@ mod tests {
             end: [-0.01, -0.08, 0.2],
             radius: 0.0025,
         };
+        // The endoscope as the camera beside it sees it: its far end behind the camera, the
+        // shaft running into the image from its top edge, the tip over the port.
+        let mount = Isometry3::from_parts(
+            nalgebra::Translation3::new(0.001, 0.0695, 0.0405),
+            nalgebra::UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 15.2f64.to_radians()),
+        );
+        let scope = ToolCylinder::endoscope(&mount, 0.25, 0.0025);
+        let port = Isometry3::from_parts(
+            nalgebra::Translation3::from(Vector3::from(scope.start) * 1.08),
+            mount.inverse().rotation,
+        );
         // Near and tilted (the cannula's far end well off the head), cut by the image's
-        // left edge, and a tool beside the trocar.
+        // left edge, a tool beside the trocar, and the endoscope.
         let cases = [
             (tilted(0.005, 0.0, 0.1, 0.35, -0.2), None),
             (tilted(-0.052, 0.01, 0.15, 0.1, 0.3), None),
             (tilted(0.02, 0.0, 0.2, -0.2, 0.1), Some(tool)),
+            (port, Some(scope)),
         ];
         for (k, (pose, tool)) in cases.into_iter().enumerate() {
             let mut scene = Scene::random(40 + k as u64, 0.0);
