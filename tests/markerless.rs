@@ -323,6 +323,27 @@ fn depth_errors(out: &std::process::Output, frames: &[serde_json::Value]) -> Vec
         .collect()
 }
 
+/// `render-trocar --sequence N --range R --seed S` with the ZED Mini's two cameras into `dir`
+/// (and `extra` arguments), from the repository: the frames' truth.
+fn render_stereo_sequence(dir: &Path, n: &str, range: &str, seed: &str, extra: &[&str]) -> serde_json::Value {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_trocar_docking"))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .args(["render-trocar", "--sequence", n, "--range", range, "--seed", seed])
+        .args([
+            "--camera",
+            "config/camera_zedm.yaml",
+            "--right-camera",
+            "config/camera_zedm_right.yaml",
+        ])
+        .args(extra)
+        .arg("--out")
+        .arg(dir)
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap()).unwrap()
+}
+
 /// The CLI with the stereo pair: `render-trocar --right-camera` writes the right camera's
 /// images beside the left ones, and `trocar-pose --right-camera --right-images` pairs them in
 /// name order and puts the port where the two lines of sight cross; a right calibration with
@@ -336,30 +357,9 @@ fn trocar_pose_takes_the_right_images_of_a_stereo_pair() {
         root.join("config/camera_zedm.yaml"),
         root.join("config/camera_zedm_right.yaml"),
     );
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_trocar_docking"))
-        .current_dir(root)
-        .args([
-            "render-trocar",
-            "--sequence",
-            "4",
-            "--range",
-            "0.35,0.2",
-            "--seed",
-            "9",
-            "--camera",
-        ])
-        .arg(&cam)
-        .arg("--right-camera")
-        .arg(&right)
-        .arg("--out")
-        .arg(&dir)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let truth = render_stereo_sequence(&dir, "4", "0.35,0.2", "9", &[]);
     let right_dir = dir.join("right");
     assert_eq!(std::fs::read_dir(&right_dir).unwrap().count(), 4);
-    let truth: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap()).unwrap();
     let frames = truth["frames"].as_array().unwrap();
     let with = |cam: &Path| {
         trocar_pose_cli(
@@ -852,32 +852,9 @@ fn an_occluder_behind_the_camera_masks_nothing_and_a_bad_one_is_refused() {
 /// a file without a mount is refused, naming what it lacks.
 #[test]
 fn trocar_pose_masks_the_endoscope_through_a_hand_eye_file() {
-    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
     let dir = std::env::temp_dir().join(format!("markerless_scope_{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let out = std::process::Command::new(env!("CARGO_BIN_EXE_trocar_docking"))
-        .current_dir(root)
-        .args([
-            "render-trocar",
-            "--sequence",
-            "4",
-            "--range",
-            "0.26,0.2",
-            "--seed",
-            "5",
-            "--endoscope",
-            "--camera",
-            "config/camera_zedm.yaml",
-            "--right-camera",
-            "config/camera_zedm_right.yaml",
-            "--out",
-        ])
-        .arg(&dir)
-        .output()
-        .unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let truth: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.join("truth.json")).unwrap()).unwrap();
+    let truth = render_stereo_sequence(&dir, "4", "0.26,0.2", "5", &["--endoscope"]);
     let frames = truth["frames"].as_array().unwrap();
     let right_dir = dir.join("right");
     let stereo = |extra: &[&str]| {
