@@ -543,7 +543,7 @@ mod tests {
     fn with_the_endoscope_in_the_port_every_frame_still_gives_a_pose() {
         // The stereo camera sees the endoscope go into the port (seed 40 of the realistic
         // trials, its hand-eye 2 mm / 1 deg off at most). Masked to its tip, the shaft's mask
-        // reached over the opening's far rim once the tip was in: 13 of 60 frames gave no
+        // reached over the opening's far rim once the tip was in: 13 of 61 frames gave no
         // pose, the last 0.5 s before DONE none, and DONE came on a stale, breathing port
         // (5.1 mm deep of the goal). Ended where it goes into the port, every frame fuses.
         let path = |f: &str| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config").join(f);
