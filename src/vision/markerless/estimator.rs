@@ -11,6 +11,7 @@ use super::geometry::{
 };
 use super::model::TrocarModel;
 use super::render::ToolCylinder;
+use super::scope_in_view::{stereo_axis, ScopeInView, SCOPE_MIN_FRAMES};
 use crate::ffi::markerless::{ffi, EDGE_RECORD_LEN, ELLIPSE_RECORD_LEN};
 use crate::vision::{CameraModel, ImageView, VisionError};
 
@@ -92,6 +93,9 @@ pub struct Occluder {
     pub shaft: ToolCylinder,
     /// The masked image region grows by this much around its outline, px.
     pub margin_px: f64,
+    /// How far `shaft.start` lies past the shaft's real tip end, m (the mask's margin there;
+    /// the tip end is looked for in the image that far back).
+    pub tip_margin_m: f64,
 }
 
 /// How far past its tip the endoscope is masked, m: its outline across the shaft is found in
@@ -109,6 +113,7 @@ impl Occluder {
         Self {
             shaft: ToolCylinder::endoscope(flange_t_camera, length_m + ENDOSCOPE_TIP_MARGIN_M, radius_m),
             margin_px: ENDOSCOPE_MARGIN_PX,
+            tip_margin_m: ENDOSCOPE_TIP_MARGIN_M,
         }
     }
 
@@ -122,6 +127,12 @@ impl Occluder {
         if !(self.margin_px.is_finite() && (0.0..=50.0).contains(&self.margin_px)) {
             return Err(VisionError::InvalidInput(
                 "the occluder's margin must be in [0, 50] px".into(),
+            ));
+        }
+        let length = (Vector3::from(self.shaft.end) - Vector3::from(self.shaft.start)).norm();
+        if !(self.tip_margin_m.is_finite() && self.tip_margin_m >= 0.0 && self.tip_margin_m < length) {
+            return Err(VisionError::InvalidInput(
+                "the occluder's tip margin must be in [0, its length) m".into(),
             ));
         }
         Ok(())
@@ -253,16 +264,11 @@ fn robust_line(found: &[(f64, f64)], tol: f64) -> Option<(f64, f64, usize)> {
     Some((md - b * mt, b, inl.len()))
 }
 
-/// The cylinder of radius `shaft.radius` whose outline is the two image lines `lines`
-/// (normalised coordinates, each by two points), near `shaft` (camera frame): its axis lies
-/// at `radius` from both planes through the camera centre and a line; its tip end is where
-/// `shaft`'s tip end appears, moved onto the new outline's middle; `None` when the lines do
-/// not make a shaft within 5 deg and 2 cm of `shaft`.
-fn shaft_from_outline(shaft: &ToolCylinder, lines: [[Vector2<f64>; 2]; 2]) -> Option<ToolCylinder> {
-    let (tip, back) = shaft_ends(shaft);
-    let along = Unit::try_new(back - tip, 1e-12)?;
-    // The plane through the camera centre and one line, its normal away from the other line
-    // (the shaft lies between them).
+/// The unit normals of the two planes through the camera centre and each of the outline
+/// lines `lines` (normalised coordinates, each by two points), each pointing away from the
+/// other line: a cylinder with that outline has its axis at its radius behind both planes
+/// (`n . x = -r`), so in the plane through the centre of normal `n0 - n1`.
+fn outline_planes(lines: [[Vector2<f64>; 2]; 2]) -> Option<(Vector3<f64>, Vector3<f64>)> {
     let plane = |l: [Vector2<f64>; 2], other: Vector2<f64>| -> Option<Vector3<f64>> {
         let n = Vector3::new(l[0].x, l[0].y, 1.0)
             .cross(&Vector3::new(l[1].x, l[1].y, 1.0))
@@ -273,7 +279,18 @@ fn shaft_from_outline(shaft: &ToolCylinder, lines: [[Vector2<f64>; 2]; 2]) -> Op
             n
         })
     };
-    let (n0, n1) = (plane(lines[0], lines[1][0])?, plane(lines[1], lines[0][0])?);
+    Some((plane(lines[0], lines[1][0])?, plane(lines[1], lines[0][0])?))
+}
+
+/// The cylinder of radius `shaft.radius` whose outline is the two image lines `lines`
+/// (normalised coordinates, each by two points), near `shaft` (camera frame): its axis lies
+/// at `radius` from both planes through the camera centre and a line; its tip end is where
+/// `shaft`'s tip end appears, moved onto the new outline's middle; `None` when the lines do
+/// not make a shaft within 5 deg and 2 cm of `shaft`.
+fn shaft_from_outline(shaft: &ToolCylinder, lines: [[Vector2<f64>; 2]; 2]) -> Option<ToolCylinder> {
+    let (tip, back) = shaft_ends(shaft);
+    let along = Unit::try_new(back - tip, 1e-12)?;
+    let (n0, n1) = outline_planes(lines)?;
     let mut d = n0.cross(&n1).try_normalize(1e-9)?;
     if d.dot(&along) < 0.0 {
         d = -d;
@@ -306,6 +323,8 @@ pub struct MarkerlessEstimator {
     right: Option<RightEye>,
     model: TrocarModel,
     occluder: Option<Occluder>,
+    /// The hand-eye's error as the endoscope in view tells it (stereo only).
+    scope: Option<ScopeInView>,
 }
 
 /// One camera's detector (it holds the camera's last image) and model.
@@ -325,6 +344,10 @@ struct EyeOccluder {
     found: Option<ToolCylinder>,
     port: Option<Axis>,
     applied: Option<ToolCylinder>,
+    tip_margin_m: f64,
+    /// The unit normal of the plane through this eye's centre and the shaft's axis, from the
+    /// outline found in the image loaded last (`None`: not found there).
+    axis_plane: Option<Vector3<f64>>,
 }
 
 impl EyeOccluder {
@@ -388,6 +411,8 @@ impl Eye {
             found: None,
             port: None,
             applied: None,
+            tip_margin_m: o.tip_margin_m,
+            axis_plane: None,
         });
         self.apply_occluder()
     }
@@ -430,6 +455,7 @@ impl Eye {
     /// where the hand-eye puts it. The tip's place along the shaft is kept where the hand-eye
     /// puts it.
     fn register_occluder(&mut self) -> Result<(), VisionError> {
+        self.forget_axis_plane();
         let Some(o) = &self.occluder else { return Ok(()) };
         let Some(lines) = shaft_outline(&inside_port_hidden(&o.predicted, o.port.as_ref())) else {
             return Ok(());
@@ -481,14 +507,93 @@ impl Eye {
             return Ok(());
         };
         let moved = |l: &OutlineLine| [l.from + a * l.normal, l.to + (a + b) * l.normal];
-        let found = shaft_from_outline(&o.predicted, [moved(l0), moved(l1)]);
+        let outline = [moved(l0), moved(l1)];
+        let found = shaft_from_outline(&o.predicted, outline);
         if found.is_some() {
             if let Some(o) = self.occluder.as_mut() {
                 o.found = found;
+                o.axis_plane = outline_planes(outline).and_then(|(n0, n1)| (n0 - n1).try_normalize(1e-12));
             }
             self.apply_occluder()?;
         }
         Ok(())
+    }
+
+    /// Forget what the image loaded last told of the shaft (no image of this frame).
+    fn forget_axis_plane(&mut self) {
+        if let Some(o) = self.occluder.as_mut() {
+            o.axis_plane = None;
+        }
+    }
+
+    /// Where the shaft's tip end is in the loaded image, along the shaft: the shaft on its
+    /// axis as the two eyes see it (`found`, this eye's frame, its masked tip
+    /// [`EyeOccluder::tip_margin_m`] past where the hand-eye puts the real one) ends in an
+    /// edge across its image where its tip's rim is; that edge is searched for along the
+    /// axis's image around where the rim's far side appears, and its distance from there
+    /// turned into the tip's slide along the shaft (towards the flange, m). `None` when
+    /// the tip is out of the image, inside the port or within 2 mm of its face (the port
+    /// hint), when its image barely moves with a slide (under 0.3 px per mm), or when no
+    /// edge is found within 6 mm of slide.
+    fn tip_slide(&self, found: &ToolCylinder) -> Result<Option<f64>, VisionError> {
+        const RIM: usize = 32;
+        const MAX_SLIDE_M: f64 = 0.006;
+        let Some(o) = &self.occluder else { return Ok(None) };
+        let (start, back) = shaft_ends(found);
+        let Some(dir) = (back - start).try_normalize(1e-12) else {
+            return Ok(None);
+        };
+        let tip = start + dir * o.tip_margin_m;
+        if let Some(port) = &o.port {
+            if (tip - port.point).dot(&port.direction) > -0.002 {
+                return Ok(None);
+            }
+        }
+        let (Some(c), Some(b)) = (project(&tip), project(&(tip + dir * 0.05))) else {
+            return Ok(None);
+        };
+        // The image direction from the flange towards the tip.
+        let Some(u) = (c - b).try_normalize(1e-12) else {
+            return Ok(None);
+        };
+        let (e1, e2) = basis(&Unit::new_unchecked(dir));
+        // How far along `u` the rim's far side appears with the tip slid by `s`.
+        let far = |s: f64| -> Option<f64> {
+            let mut best = f64::NEG_INFINITY;
+            for k in 0..RIM {
+                let phi = std::f64::consts::TAU * k as f64 / RIM as f64;
+                let p = tip + dir * s + found.radius * (phi.cos() * e1 + phi.sin() * e2);
+                best = best.max(project(&p)?.dot(&u));
+            }
+            Some(best)
+        };
+        let (Some(e0), Some(e1)) = (far(0.0), far(0.001)) else {
+            return Ok(None);
+        };
+        let per_m = (e1 - e0) / 0.001;
+        let cam = &self.camera;
+        if (per_m * cam.fx).abs() < 0.3e3 {
+            return Ok(None);
+        }
+        let at = c + u * (e0 - c.dot(&u));
+        let (px, py) = (cam.fx * at.x + cam.cx, cam.fy * at.y + cam.cy);
+        let range_px = (MAX_SLIDE_M * per_m * cam.fx).abs();
+        let margin = range_px + 4.0;
+        let inside =
+            px >= margin && py >= margin && px < f64::from(cam.width) - margin && py < f64::from(cam.height) - margin;
+        if !inside || range_px > 50.0 {
+            return Ok(None);
+        }
+        let out = ffi::markerless_search_edges(&self.det, &[at.x, at.y, u.x, u.y], range_px.max(0.5), 0, 4.0, true)?;
+        let Some(rec) = out
+            .chunks_exact(EDGE_RECORD_LEN)
+            .next()
+            .filter(|r| r[0] > 0.5 && r[0] < 1.5)
+        else {
+            return Ok(None);
+        };
+        let slide = (Vector2::new(rec[1], rec[2]) - at).dot(&u) / per_m;
+        Ok((slide.abs() <= MAX_SLIDE_M).then_some(slide))
     }
 
     /// Load `image` (the camera's size) into the detector.
@@ -585,6 +690,7 @@ impl MarkerlessEstimator {
             right: None,
             model: *model,
             occluder: None,
+            scope: None,
         })
     }
 
@@ -626,6 +732,7 @@ impl MarkerlessEstimator {
         if let Some(r) = self.right.as_mut() {
             r.eye.set_occluder(occluder.as_ref(), &r.right_t_left)?;
         }
+        self.scope = occluder.as_ref().and_then(|o| ScopeInView::new(&o.shaft));
         self.occluder = occluder;
         Ok(self)
     }
@@ -655,6 +762,55 @@ impl MarkerlessEstimator {
             Some(r) => e.with_right_camera(r, &r.stereo_right_t_left()),
             None => Ok(e),
         }
+    }
+
+    /// The endoscope's shaft where its outline was last found in the left image (left
+    /// camera frame; `None`: no occluder, or not found yet).
+    pub fn registered_shaft(&self) -> Option<ToolCylinder> {
+        self.left.occluder.as_ref().and_then(|o| o.found)
+    }
+
+    /// The hand-eye's error as the endoscope in view tells it: the points of the camera frame
+    /// the occluder was given in (the believed camera) in the frame the images are seen in
+    /// (the true camera), [`ScopeInView::camera_t_believed`]; the identity without an
+    /// occluder or a stereo pair, or until both eyes have found the shaft in
+    /// [`super::scope_in_view::SCOPE_MIN_FRAMES`] frames. The camera's pose is the believed one times
+    /// its inverse.
+    pub fn camera_t_believed(&self) -> Isometry3<f64> {
+        self.scope
+            .as_ref()
+            .map_or(Isometry3::identity(), ScopeInView::camera_t_believed)
+    }
+
+    /// The shaft's axis where both eyes found it in the images loaded last (left frame):
+    /// added to the correction.
+    fn see_scope(&mut self) -> Result<(), VisionError> {
+        let (Some(scope), Some(r)) = (self.scope.as_mut(), self.right.as_ref()) else {
+            return Ok(());
+        };
+        let left = self.left.occluder.as_ref().and_then(|o| o.axis_plane);
+        let right = r.eye.occluder.as_ref().and_then(|o| o.axis_plane);
+        let (Some(left), Some(right), Some(o)) = (left, right, self.occluder.as_ref()) else {
+            return Ok(());
+        };
+        let left_t_right = r.right_t_left.inverse();
+        let right = left_t_right.rotation * right;
+        let near = Vector3::from(o.shaft.start);
+        let Some((p, d)) = stereo_axis(&left, &right, &left_t_right.translation.vector, &near) else {
+            return Ok(());
+        };
+        if !scope.add(&p, &d) || scope.frames() < SCOPE_MIN_FRAMES {
+            return Ok(());
+        }
+        // The shaft moved across onto the axis seen (the window's): where its tip end appears
+        // along it in each image tells the slide the axis cannot.
+        let on_axis = o.shaft.transformed(&scope.across_only());
+        for (eye, eye_t_left) in [(&self.left, Isometry3::identity()), (&r.eye, r.right_t_left)] {
+            if let Some(slide) = eye.tip_slide(&on_axis.transformed(&eye_t_left))? {
+                scope.add_slide(slide);
+            }
+        }
+        Ok(())
     }
 
     /// The camera it was built for (the left one of a stereo pair).
@@ -695,6 +851,9 @@ impl MarkerlessEstimator {
     ) -> Result<Option<MarkerlessEstimate>, VisionError> {
         self.left.load(image)?;
         self.left.register_occluder()?;
+        if let Some(r) = self.right.as_mut() {
+            r.eye.forget_axis_plane();
+        }
         let recs = ellipses(&mut self.left, &self.model)?;
         let cands = self.candidates(&self.left, &recs)?;
         let right = right.filter(|_| self.right.is_some());
@@ -752,6 +911,7 @@ impl MarkerlessEstimator {
                 }
             }
         }
+        self.see_scope()?;
         Ok(best)
     }
 

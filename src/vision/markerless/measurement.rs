@@ -210,9 +210,10 @@ pub struct Tracked {
     pub pose: Option<Isometry3<f64>>,
 }
 
-/// One frame `view`, captured at `stamp` from a camera at `base_t_camera` (with `right`, the
-/// stereo pair's right image captured with it, if any), through the markerless estimate into
-/// the trocar estimator `filter`: the filter's estimate carried into the camera as the prior
+/// One frame `view`, captured at `stamp` from a camera at `base_t_camera` (the hand-eye as
+/// believed, corrected by the endoscope in view: [`MarkerlessEstimator::camera_t_believed`];
+/// with `right`, the stereo pair's right image captured with it, if any), through the
+/// markerless estimate into the trocar estimator `filter`: the filter's estimate carried into the camera as the prior
 /// ([`prior_direction`]) and as the port the endoscope goes into
 /// ([`MarkerlessEstimator::set_port_hint`]), the estimate ([`MarkerlessEstimator::estimate_stereo`]), the confidence gate
 /// ([`accept`]), then the filter's outlier gate and update ([`TrocarEstimator::fuse`]).
@@ -226,6 +227,9 @@ pub fn track(
     base_t_camera: &Isometry3<f64>,
     p: &MarkerlessParams,
 ) -> Result<Tracked, String> {
+    // The camera where the endoscope in view puts it (the hand-eye as believed until then).
+    let believed = *base_t_camera;
+    let base_t_camera = &(believed * estimator.camera_t_believed().inverse());
     let tracked = filter.estimate(stamp);
     let prior = tracked
         .as_ref()
@@ -242,6 +246,8 @@ pub fn track(
     let e = estimator
         .estimate_stereo(view, right, prior.as_ref())
         .map_err(|e| e.to_string())?;
+    // This frame's view of the endoscope may have moved the correction.
+    let base_t_camera = &(believed * estimator.camera_t_believed().inverse());
     let m = accept(e.as_ref(), base_t_camera, p)?;
     let status = filter.fuse(stamp, m.pose);
     let pose = match status {

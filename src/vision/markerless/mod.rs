@@ -8,6 +8,7 @@ pub mod geometry;
 pub mod measurement;
 pub mod model;
 pub mod render;
+pub mod scope_in_view;
 
 pub use estimator::{MarkerlessEstimate, MarkerlessEstimator, Occluder, HIGH_CONFIDENCE};
 pub use geometry::Axis;

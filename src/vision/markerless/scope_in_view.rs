@@ -1,0 +1,308 @@
+//! The endoscope seen in view corrects the hand-eye (pure Rust).
+//!
+//! The camera and the endoscope ride on the same flange, so the shaft's place in the camera's
+//! frame is fixed, and where the hand-eye puts it differs from where the camera sees it by the
+//! hand-eye's error. The stereo pair sees the shaft's axis as a line in space (each eye's
+//! outline gives the plane through that eye's centre and the axis; the two planes meet in the
+//! axis, [`stereo_axis`]). The rigid motion taking the axis where the hand-eye puts it onto
+//! the axis seen, [`ScopeInView::camera_t_believed`], is the hand-eye's error in four of its
+//! six degrees of freedom: the axis's direction and its place across it. What it cannot tell
+//! are the two motions that carry the axis onto itself, a roll about it (which does not move
+//! the tip) and a slide along it (which does: that share of the error stays).
+//!
+//! Why it matters: the port is seen in the camera's frame and the tip is known in the
+//! flange's, so the depth the controller believes is off by the hand-eye's error. A
+//! rotation error of 1 deg moves the port by 1.2 mm along the insertion axis through the
+//! camera's 7 cm offset from the shaft, which this correction removes.
+//!
+//! Robust and bounded: each frame's axis is kept in a window of the last
+//! [`SCOPE_WINDOW`] frames and the correction is their median, component by component, once
+//! [`SCOPE_MIN_FRAMES`] are in; an axis more than [`SCOPE_MAX_OFFSET_M`] or
+//! [`SCOPE_MAX_ANGLE_DEG`] from where the hand-eye puts it is not the shaft (or the hand-eye
+//! is too far off to correct: recalibrate) and is left out. No allocation per frame.
+
+use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
+
+use super::render::ToolCylinder;
+
+/// Frames whose median is the correction.
+pub const SCOPE_WINDOW: usize = 15;
+/// Frames needed before the correction applies (before: the hand-eye as it is).
+pub const SCOPE_MIN_FRAMES: usize = 3;
+/// The largest offset of the axis seen from where the hand-eye puts it, at the tip, m.
+pub const SCOPE_MAX_OFFSET_M: f64 = 0.008;
+/// The largest angle between the axis seen and where the hand-eye puts it, deg.
+pub const SCOPE_MAX_ANGLE_DEG: f64 = 3.0;
+
+/// The shaft's axis where two eyes see it: the line where the plane through the left
+/// camera's centre (the origin) of unit normal `left` meets the plane through the right
+/// camera's centre `right_origin` (left frame) of unit normal `right` (left frame): its point
+/// nearest `near` and its direction. `None` when the planes meet at under 5 deg (the line is
+/// not well defined).
+pub fn stereo_axis(
+    left: &Vector3<f64>,
+    right: &Vector3<f64>,
+    right_origin: &Vector3<f64>,
+    near: &Vector3<f64>,
+) -> Option<(Vector3<f64>, Unit<Vector3<f64>>)> {
+    let d = left.cross(right);
+    if d.norm() < 5f64.to_radians().sin() {
+        return None;
+    }
+    let d = Unit::new_normalize(d);
+    // x = near + a left + b right on both planes: left . x = 0, right . x = right . o.
+    let c = left.dot(right);
+    let (r0, r1) = (-left.dot(near), right.dot(right_origin) - right.dot(near));
+    let det = 1.0 - c * c;
+    let (a, b) = ((r0 - c * r1) / det, (r1 - c * r0) / det);
+    let p = near + a * left + b * right;
+    p.iter().all(|v| v.is_finite()).then_some((p, d))
+}
+
+/// The hand-eye's error as the endoscope in view tells it (see the module doc).
+#[derive(Debug, Clone)]
+pub struct ScopeInView {
+    /// The shaft's tip where the hand-eye puts it (camera frame).
+    tip: Vector3<f64>,
+    /// The shaft's direction where the hand-eye puts it, from the tip back.
+    direction: Unit<Vector3<f64>>,
+    /// Per frame: the seen axis's point nearest the predicted tip minus the tip, and the
+    /// seen direction.
+    window: [[f64; 6]; SCOPE_WINDOW],
+    len: usize,
+    next: usize,
+    /// Per frame: the tip's slide along the shaft (towards the flange), m.
+    slides: [f64; SCOPE_WINDOW],
+    slides_len: usize,
+    slides_next: usize,
+    camera_t_believed: Isometry3<f64>,
+    /// The same without the slide.
+    across: Isometry3<f64>,
+}
+
+impl ScopeInView {
+    /// The correction for the endoscope `shaft` where the hand-eye puts it (the camera's
+    /// frame; `start` its tip): none yet.
+    pub fn new(shaft: &ToolCylinder) -> Option<Self> {
+        let tip = Vector3::from(shaft.start);
+        let direction = Unit::try_new(Vector3::from(shaft.end) - tip, 1e-9)?;
+        Some(Self {
+            tip,
+            direction,
+            window: [[0.0; 6]; SCOPE_WINDOW],
+            len: 0,
+            next: 0,
+            slides: [0.0; SCOPE_WINDOW],
+            slides_len: 0,
+            slides_next: 0,
+            camera_t_believed: Isometry3::identity(),
+            across: Isometry3::identity(),
+        })
+    }
+
+    /// Add one frame's axis seen (a point on it and its direction, the camera's frame):
+    /// `false` when it is left out (too far from where the hand-eye puts the shaft, or not
+    /// finite).
+    pub fn add(&mut self, point: &Vector3<f64>, direction: &Unit<Vector3<f64>>) -> bool {
+        let d = if direction.dot(&self.direction) < 0.0 {
+            -direction.into_inner()
+        } else {
+            direction.into_inner()
+        };
+        // The seen axis's point nearest the predicted tip.
+        let foot = point + d * (self.tip - point).dot(&d);
+        let offset = foot - self.tip;
+        let ok = offset.iter().chain(d.iter()).all(|v| v.is_finite())
+            && offset.norm() <= SCOPE_MAX_OFFSET_M
+            && d.angle(&self.direction) <= SCOPE_MAX_ANGLE_DEG.to_radians();
+        if !ok {
+            return false;
+        }
+        self.window[self.next] = [offset.x, offset.y, offset.z, d.x, d.y, d.z];
+        self.next = (self.next + 1) % SCOPE_WINDOW;
+        self.len = (self.len + 1).min(SCOPE_WINDOW);
+        self.update();
+        true
+    }
+
+    /// Add one frame's slide of the tip end along the shaft (towards the flange, m) from
+    /// where the hand-eye puts it: `false` when it is left out (over
+    /// [`SCOPE_MAX_OFFSET_M`], or not finite).
+    pub fn add_slide(&mut self, slide: f64) -> bool {
+        if !(slide.is_finite() && slide.abs() <= SCOPE_MAX_OFFSET_M) {
+            return false;
+        }
+        self.slides[self.slides_next] = slide;
+        self.slides_next = (self.slides_next + 1) % SCOPE_WINDOW;
+        self.slides_len = (self.slides_len + 1).min(SCOPE_WINDOW);
+        self.update();
+        true
+    }
+
+    /// Frames in the window of the axis seen.
+    pub fn frames(&self) -> usize {
+        self.len
+    }
+
+    /// Frames in the window of the tip end seen.
+    pub fn tip_frames(&self) -> usize {
+        self.slides_len
+    }
+
+    /// The correction: the believed camera frame's points in the true camera's frame (the
+    /// rigid motion taking the shaft where the hand-eye puts it onto where it is seen,
+    /// rotating about the tip and moving across the axis, not along it); the identity until
+    /// [`SCOPE_MIN_FRAMES`] frames are in. The camera's true pose is the believed one times
+    /// its inverse.
+    pub fn camera_t_believed(&self) -> Isometry3<f64> {
+        self.camera_t_believed
+    }
+
+    /// [`ScopeInView::camera_t_believed`] without the slide along the shaft: the shaft where
+    /// it is seen across, its tip where the hand-eye puts it along it (where the tip end is
+    /// looked for).
+    pub fn across_only(&self) -> Isometry3<f64> {
+        self.across
+    }
+
+    fn update(&mut self) {
+        if self.len >= SCOPE_MIN_FRAMES {
+            let (across, all) = self.median_correction();
+            (self.across, self.camera_t_believed) = (across, all);
+        }
+    }
+
+    /// The medians' correction: without the slide, and with it.
+    fn median_correction(&self) -> (Isometry3<f64>, Isometry3<f64>) {
+        let mut m = [0.0; 6];
+        for (k, out) in m.iter_mut().enumerate() {
+            let mut col = [0.0; SCOPE_WINDOW];
+            for (c, w) in col.iter_mut().zip(&self.window[..self.len]) {
+                *c = w[k];
+            }
+            *out = median(&mut col[..self.len]);
+        }
+        // The slide once as many frames saw the tip end as the axis needs.
+        let slide = if self.slides_len >= SCOPE_MIN_FRAMES {
+            let mut col = self.slides;
+            median(&mut col[..self.slides_len])
+        } else {
+            0.0
+        };
+        let (offset, seen) = (Vector3::new(m[0], m[1], m[2]), Vector3::new(m[3], m[4], m[5]));
+        let rot = UnitQuaternion::rotation_between(&self.direction, &seen).unwrap_or_else(UnitQuaternion::identity);
+        // The offset is across the predicted axis up to the rotation's second order: keep it
+        // off the seen axis's direction (no slide along it).
+        let seen = seen.try_normalize(1e-12).unwrap_or(self.direction.into_inner());
+        let across = offset - seen * offset.dot(&seen);
+        let at =
+            |slide: f64| Translation3::from(self.tip + across + seen * slide) * rot * Translation3::from(-self.tip);
+        (at(0.0), at(slide))
+    }
+}
+
+/// The median of `v` (the upper one of an even count), in place, no allocation.
+fn median(v: &mut [f64]) -> f64 {
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f64::total_cmp).1
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn shaft() -> ToolCylinder {
+        ToolCylinder {
+            start: [0.0, 0.06, 0.22],
+            end: [0.0, -0.0, -0.02],
+            radius: 0.0025,
+        }
+    }
+
+    /// The plane through `origin` and the line (point, direction): its unit normal.
+    fn plane(origin: &Vector3<f64>, p: &Vector3<f64>, d: &Vector3<f64>) -> Vector3<f64> {
+        (p - origin).cross(d).normalize()
+    }
+
+    #[test]
+    fn two_eyes_planes_meet_in_the_axis_and_parallel_planes_give_none() {
+        let (p, d) = (
+            Vector3::new(0.003, 0.06, 0.2),
+            Vector3::new(0.01, -0.1, -1.0).normalize(),
+        );
+        let o = Vector3::new(0.063, 0.0, 0.0);
+        let (l, r) = (plane(&Vector3::zeros(), &p, &d), plane(&o, &p, &d));
+        let near = Vector3::new(0.0, 0.06, 0.22);
+        let (q, e) = stereo_axis(&l, &r, &o, &near).unwrap();
+        // On the axis, and its point nearest `near`.
+        assert!((q - p).cross(&d).norm() < 1e-9);
+        assert!((q - near).dot(&d).abs() < 1e-9);
+        assert!(e.cross(&d).norm() < 1e-9);
+        assert!(stereo_axis(&l, &l, &o, &near).is_none());
+    }
+
+    #[test]
+    fn the_correction_carries_the_believed_shaft_onto_the_seen_one_without_a_slide() {
+        let s = shaft();
+        let (tip, back) = (Vector3::from(s.start), Vector3::from(s.end));
+        // A hand-eye error: the true camera sees the believed frame's points moved by this.
+        let err = Isometry3::new(
+            Vector3::new(0.0012, -0.0008, 0.0015),
+            Vector3::new(0.012, -0.006, 0.004),
+        );
+        let (t, b) = (err * nalgebra::Point3::from(tip), err * nalgebra::Point3::from(back));
+        let dir = Unit::new_normalize(b - t);
+        let mut scope = ScopeInView::new(&s).unwrap();
+        assert!(scope.add(&t.coords, &dir));
+        assert!(scope.add(&t.coords, &dir));
+        // Not yet: the hand-eye as it is.
+        assert_eq!(scope.camera_t_believed(), Isometry3::identity());
+        // A wrong line (another edge) is left out; the median stands on the rest.
+        assert!(!scope.add(&(t.coords + Vector3::new(0.02, 0.0, 0.0)), &dir));
+        assert!(!scope.add(&(t.coords + Vector3::new(f64::NAN, 0.0, 0.0)), &dir));
+        assert!(scope.add(&t.coords, &dir));
+        assert_eq!(scope.frames(), 3);
+        let c = scope.camera_t_believed();
+        // The corrected shaft lies on the seen axis, parallel to it.
+        let (ct, cb) = (c * nalgebra::Point3::from(tip), c * nalgebra::Point3::from(back));
+        assert!((ct - t).cross(&dir).norm() < 1e-9, "{}", (ct - t).cross(&dir).norm());
+        assert!((cb - ct).normalize().cross(&dir).norm() < 1e-9);
+        // Its tip moved across the axis only: what the slide along it was stays.
+        let moved = ct - nalgebra::Point3::from(tip);
+        assert!(moved.dot(&dir).abs() < 1e-6);
+        let true_slide = (t - nalgebra::Point3::from(tip)).dot(&dir);
+        assert!(true_slide.abs() > 1e-4, "the test's error slides the tip");
+        // The tip end seen tells the slide: once three frames saw it, the tip lands on the
+        // seen tip; a slide past the gate or not finite is left out.
+        assert!(!scope.add_slide(0.02) && !scope.add_slide(f64::NAN));
+        for _ in 0..2 {
+            assert!(scope.add_slide(true_slide));
+            assert_eq!(scope.camera_t_believed(), c);
+        }
+        assert!(scope.add_slide(true_slide));
+        assert_eq!(scope.tip_frames(), 3);
+        let slid = scope.camera_t_believed() * nalgebra::Point3::from(tip);
+        assert!((slid - t).norm() < 1e-9, "{}", (slid - t).norm());
+        assert_eq!(scope.across_only(), c);
+    }
+
+    #[test]
+    fn the_median_stands_on_the_shaft_when_a_few_frames_are_off() {
+        let s = shaft();
+        let tip = Vector3::from(s.start);
+        let dir = Unit::new_normalize(Vector3::from(s.end) - tip);
+        let mut scope = ScopeInView::new(&s).unwrap();
+        let seen = tip + Vector3::new(0.001, 0.0, 0.0);
+        for k in 0..SCOPE_WINDOW {
+            // Every fifth frame on a wrong edge 4 mm off (inside the gate).
+            let p = if k % 5 == 0 {
+                seen + Vector3::new(0.004, 0.0, 0.0)
+            } else {
+                seen
+            };
+            assert!(scope.add(&p, &dir));
+        }
+        let c = scope.camera_t_believed();
+        assert!(((c * nalgebra::Point3::from(tip)).coords - seen).norm() < 1e-9);
+    }
+}
