@@ -806,7 +806,6 @@ fn an_occluder_behind_the_camera_masks_nothing_and_a_bad_one_is_refused() {
     let occluder = Occluder {
         shaft: ToolCylinder { radius: 0.004, ..tool },
         margin_px: 2.0,
-        tip_margin_m: 0.006,
     };
     let behind = Occluder {
         shaft: ToolCylinder {
@@ -927,12 +926,12 @@ fn stereo_approach_with_endoscope(
     }
 }
 
-/// The endoscope in view corrects the hand-eye: 12 hand-eyes drawn as the realistic
-/// protocol draws its calibration error (up to 2 mm and 1 deg), each for a stereo approach
-/// from 10 cm before the port to the stand-off point with the port where the track puts it;
-/// after it, the port at the tip's place seen through the corrected hand-eye against the
-/// truth, along the shaft (the docking's depth) and across it. With the true mount, the
-/// correction stays within a fraction of a millimetre of none.
+/// The endoscope in view corrects the hand-eye across the shaft: 12 hand-eyes drawn as the
+/// realistic protocol draws its calibration error (up to 2 mm and 1 deg), each for a stereo
+/// approach from 10 cm before the port to the stand-off point; after it, the port at the
+/// tip's place seen through the corrected hand-eye against the truth, across the shaft (where
+/// the correction acts) and along it (the slide the axis cannot tell: unchanged). With the
+/// true mount, the correction stays within a fraction of a millimetre of none.
 #[test]
 fn the_endoscope_in_view_corrects_the_hand_eye() {
     use rand::{RngExt, SeedableRng};
@@ -983,25 +982,29 @@ fn the_endoscope_in_view_corrects_the_hand_eye() {
             b.0, a.0, b.1, a.1
         );
         if trial == 12 {
-            assert!(a.0.abs() < 0.5 && a.1 < 0.3, "the true mount moved by {a:?}");
+            assert!(a.0.abs() < 0.05 && a.1 < 0.3, "the true mount moved by {a:?}");
         } else {
             before.push(b);
             after.push(a);
         }
     }
-    let mean = |v: &[(f64, f64)], f: fn(&(f64, f64)) -> f64| v.iter().map(f).sum::<f64>() / v.len() as f64;
-    let worst = |v: &[(f64, f64)], f: fn(&(f64, f64)) -> f64| v.iter().map(f).fold(0.0, f64::max);
-    let (ab, aa) = (mean(&before, |e| e.0.abs()), mean(&after, |e| e.0.abs()));
-    let (cb, ca) = (mean(&before, |e| e.1), mean(&after, |e| e.1));
+    let mean = |v: &[(f64, f64)]| v.iter().map(|e| e.1).sum::<f64>() / v.len() as f64;
+    let worst = |v: &[(f64, f64)]| v.iter().map(|e| e.1).fold(0.0, f64::max);
+    let moved_along = before
+        .iter()
+        .zip(&after)
+        .map(|(b, a)| (a.0 - b.0).abs())
+        .fold(0.0, f64::max);
     eprintln!(
-        "mean |along| {ab:.2} -> {aa:.2} mm (worst {:.2}), mean across {cb:.2} -> {ca:.2} mm (worst {:.2})",
-        worst(&after, |e| e.0.abs()),
-        worst(&after, |e| e.1)
+        "across: mean {:.2} -> {:.2} mm, worst {:.2} -> {:.2} mm; along moved by at most {moved_along:.2} mm",
+        mean(&before),
+        mean(&after),
+        worst(&before),
+        worst(&after)
     );
-    assert!(2.0 * aa < ab, "along: {ab:.2} -> {aa:.2} mm");
-    assert!(worst(&after, |e| e.0.abs()) < 1.0, "along, worst");
-    assert!(
-        5.0 * ca < cb && worst(&after, |e| e.1) < 0.5,
-        "across: {cb:.2} -> {ca:.2} mm"
-    );
+    // Measured: across mean 2.03 -> 0.10 mm, worst 3.30 -> 0.37 mm; along moved by at most
+    // 0.05 mm.
+    assert!(5.0 * mean(&after) < mean(&before), "across, mean");
+    assert!(worst(&after) < 0.5, "across, worst");
+    assert!(moved_along < 0.1, "the correction slid the tip along the shaft");
 }

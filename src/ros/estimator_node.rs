@@ -297,6 +297,15 @@ impl Pipeline {
         detector.detect(view).map_err(|e| e.to_string())
     }
 
+    /// The hand-eye's error as the endoscope in view tells it
+    /// ([`MarkerlessEstimator::camera_t_believed`]; the identity without a markerless
+    /// estimator).
+    fn camera_correction(&self) -> Isometry3<f64> {
+        self.markerless
+            .as_ref()
+            .map_or(Isometry3::identity(), MarkerlessEstimator::camera_t_believed)
+    }
+
     /// The base-to-camera pose at `stamp` (the joint history, FK, the hand-eye).
     fn camera_at(&self, stamp: f64, history: &Mutex<JointHistory>) -> Result<Isometry3<f64>, String> {
         let q: JointVector = lock(history).at(stamp).map_err(|e| e.to_string())?;
@@ -322,6 +331,12 @@ impl Pipeline {
         }
         let q: JointVector = lock(history).at(stamp).map_err(|e| e.to_string())?;
         let base_t_flange = self.flange.fk(&q).map_err(|e| e.to_string())?;
+        // Through the hand-eye the endoscope in view corrected, as the markerless estimate
+        // is (none unless a markerless estimator has seen it: `fused`).
+        let det = &MarkerDetection {
+            pose_camera_marker: self.camera_correction().inverse() * det.pose_camera_marker,
+            ..det.clone()
+        };
         let status = if roll_convention {
             if !det.reprojection_error_px.is_finite()
                 || det.reprojection_error_px > self.estimator.params().max_reprojection_error_px
@@ -713,6 +728,15 @@ fn report(pipeline: &Mutex<Pipeline>) {
             lat.max,
             age.p50,
             age.p99
+        );
+    }
+    if let Some(m) = pl.markerless.as_ref().filter(|m| m.scope_frames() > 0) {
+        let c = m.camera_t_believed();
+        rosrust::ros_info!(
+            "trocar_estimator: the endoscope in view moves the hand-eye by {:.2} mm and {:.2} deg (camera frame; the median of the last {} frames whose images both showed its axis)",
+            c.translation.vector.norm() * 1e3,
+            c.rotation.angle().to_degrees(),
+            m.scope_frames()
         );
     }
     pl.counts = FrameCounts::default();

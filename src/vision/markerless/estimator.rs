@@ -11,7 +11,7 @@ use super::geometry::{
 };
 use super::model::TrocarModel;
 use super::render::ToolCylinder;
-use super::scope_in_view::{stereo_axis, ScopeInView, SCOPE_MIN_FRAMES};
+use super::scope_in_view::{stereo_axis, ScopeInView};
 use crate::ffi::markerless::{ffi, EDGE_RECORD_LEN, ELLIPSE_RECORD_LEN};
 use crate::vision::{CameraModel, ImageView, VisionError};
 
@@ -93,9 +93,6 @@ pub struct Occluder {
     pub shaft: ToolCylinder,
     /// The masked image region grows by this much around its outline, px.
     pub margin_px: f64,
-    /// How far `shaft.start` lies past the shaft's real tip end, m (the mask's margin there;
-    /// the tip end is looked for in the image that far back).
-    pub tip_margin_m: f64,
 }
 
 /// How far past its tip the endoscope is masked, m: its outline across the shaft is found in
@@ -113,7 +110,6 @@ impl Occluder {
         Self {
             shaft: ToolCylinder::endoscope(flange_t_camera, length_m + ENDOSCOPE_TIP_MARGIN_M, radius_m),
             margin_px: ENDOSCOPE_MARGIN_PX,
-            tip_margin_m: ENDOSCOPE_TIP_MARGIN_M,
         }
     }
 
@@ -127,12 +123,6 @@ impl Occluder {
         if !(self.margin_px.is_finite() && (0.0..=50.0).contains(&self.margin_px)) {
             return Err(VisionError::InvalidInput(
                 "the occluder's margin must be in [0, 50] px".into(),
-            ));
-        }
-        let length = (Vector3::from(self.shaft.end) - Vector3::from(self.shaft.start)).norm();
-        if !(self.tip_margin_m.is_finite() && self.tip_margin_m >= 0.0 && self.tip_margin_m < length) {
-            return Err(VisionError::InvalidInput(
-                "the occluder's tip margin must be in [0, its length) m".into(),
             ));
         }
         Ok(())
@@ -344,7 +334,6 @@ struct EyeOccluder {
     found: Option<ToolCylinder>,
     port: Option<Axis>,
     applied: Option<ToolCylinder>,
-    tip_margin_m: f64,
     /// The unit normal of the plane through this eye's centre and the shaft's axis, from the
     /// outline found in the image loaded last (`None`: not found there).
     axis_plane: Option<Vector3<f64>>,
@@ -411,7 +400,6 @@ impl Eye {
             found: None,
             port: None,
             applied: None,
-            tip_margin_m: o.tip_margin_m,
             axis_plane: None,
         });
         self.apply_occluder()
@@ -524,76 +512,6 @@ impl Eye {
         if let Some(o) = self.occluder.as_mut() {
             o.axis_plane = None;
         }
-    }
-
-    /// Where the shaft's tip end is in the loaded image, along the shaft: the shaft on its
-    /// axis as the two eyes see it (`found`, this eye's frame, its masked tip
-    /// [`EyeOccluder::tip_margin_m`] past where the hand-eye puts the real one) ends in an
-    /// edge across its image where its tip's rim is; that edge is searched for along the
-    /// axis's image around where the rim's far side appears, and its distance from there
-    /// turned into the tip's slide along the shaft (towards the flange, m). `None` when
-    /// the tip is out of the image, inside the port or within 2 mm of its face (the port
-    /// hint), when its image barely moves with a slide (under 0.3 px per mm), or when no
-    /// edge is found within 6 mm of slide.
-    fn tip_slide(&self, found: &ToolCylinder) -> Result<Option<f64>, VisionError> {
-        const RIM: usize = 32;
-        const MAX_SLIDE_M: f64 = 0.006;
-        let Some(o) = &self.occluder else { return Ok(None) };
-        let (start, back) = shaft_ends(found);
-        let Some(dir) = (back - start).try_normalize(1e-12) else {
-            return Ok(None);
-        };
-        let tip = start + dir * o.tip_margin_m;
-        if let Some(port) = &o.port {
-            if (tip - port.point).dot(&port.direction) > -0.002 {
-                return Ok(None);
-            }
-        }
-        let (Some(c), Some(b)) = (project(&tip), project(&(tip + dir * 0.05))) else {
-            return Ok(None);
-        };
-        // The image direction from the flange towards the tip.
-        let Some(u) = (c - b).try_normalize(1e-12) else {
-            return Ok(None);
-        };
-        let (e1, e2) = basis(&Unit::new_unchecked(dir));
-        // How far along `u` the rim's far side appears with the tip slid by `s`.
-        let far = |s: f64| -> Option<f64> {
-            let mut best = f64::NEG_INFINITY;
-            for k in 0..RIM {
-                let phi = std::f64::consts::TAU * k as f64 / RIM as f64;
-                let p = tip + dir * s + found.radius * (phi.cos() * e1 + phi.sin() * e2);
-                best = best.max(project(&p)?.dot(&u));
-            }
-            Some(best)
-        };
-        let (Some(e0), Some(e1)) = (far(0.0), far(0.001)) else {
-            return Ok(None);
-        };
-        let per_m = (e1 - e0) / 0.001;
-        let cam = &self.camera;
-        if (per_m * cam.fx).abs() < 0.3e3 {
-            return Ok(None);
-        }
-        let at = c + u * (e0 - c.dot(&u));
-        let (px, py) = (cam.fx * at.x + cam.cx, cam.fy * at.y + cam.cy);
-        let range_px = (MAX_SLIDE_M * per_m * cam.fx).abs();
-        let margin = range_px + 4.0;
-        let inside =
-            px >= margin && py >= margin && px < f64::from(cam.width) - margin && py < f64::from(cam.height) - margin;
-        if !inside || range_px > 50.0 {
-            return Ok(None);
-        }
-        let out = ffi::markerless_search_edges(&self.det, &[at.x, at.y, u.x, u.y], range_px.max(0.5), 0, 4.0, true)?;
-        let Some(rec) = out
-            .chunks_exact(EDGE_RECORD_LEN)
-            .next()
-            .filter(|r| r[0] > 0.5 && r[0] < 1.5)
-        else {
-            return Ok(None);
-        };
-        let slide = (Vector2::new(rec[1], rec[2]) - at).dot(&u) / per_m;
-        Ok((slide.abs() <= MAX_SLIDE_M).then_some(slide))
     }
 
     /// Load `image` (the camera's size) into the detector.
@@ -782,6 +700,14 @@ impl MarkerlessEstimator {
             .map_or(Isometry3::identity(), ScopeInView::camera_t_believed)
     }
 
+    /// Frames in the correction's window (0 without an occluder or a stereo pair).
+    pub fn scope_frames(&self) -> usize {
+        self.scope
+            .as_ref()
+            .filter(|_| self.right.is_some())
+            .map_or(0, ScopeInView::frames)
+    }
+
     /// The shaft's axis where both eyes found it in the images loaded last (left frame):
     /// added to the correction.
     fn see_scope(&mut self) -> Result<(), VisionError> {
@@ -799,17 +725,7 @@ impl MarkerlessEstimator {
         let Some((p, d)) = stereo_axis(&left, &right, &left_t_right.translation.vector, &near) else {
             return Ok(());
         };
-        if !scope.add(&p, &d) || scope.frames() < SCOPE_MIN_FRAMES {
-            return Ok(());
-        }
-        // The shaft moved across onto the axis seen (the window's): where its tip end appears
-        // along it in each image tells the slide the axis cannot.
-        let on_axis = o.shaft.transformed(&scope.across_only());
-        for (eye, eye_t_left) in [(&self.left, Isometry3::identity()), (&r.eye, r.right_t_left)] {
-            if let Some(slide) = eye.tip_slide(&on_axis.transformed(&eye_t_left))? {
-                scope.add_slide(slide);
-            }
-        }
+        scope.add(&p, &d);
         Ok(())
     }
 

@@ -7,13 +7,13 @@
 //! axis, [`stereo_axis`]). The rigid motion taking the axis where the hand-eye puts it onto
 //! the axis seen, [`ScopeInView::camera_t_believed`], is the hand-eye's error in four of its
 //! six degrees of freedom: the axis's direction and its place across it. What it cannot tell
-//! are the two motions that carry the axis onto itself, a roll about it (which does not move
-//! the tip) and a slide along it (which does: that share of the error stays).
+//! are the two motions that carry the axis onto itself: a roll about it (which moves nothing
+//! on it) and a slide along it, which moves the tip, and so the depth the controller believes,
+//! by the error's share along the shaft: that share stays.
 //!
-//! Why it matters: the port is seen in the camera's frame and the tip is known in the
-//! flange's, so the depth the controller believes is off by the hand-eye's error. A
-//! rotation error of 1 deg moves the port by 1.2 mm along the insertion axis through the
-//! camera's 7 cm offset from the shaft, which this correction removes.
+//! What it corrects is the port's place across the shaft and the axis's direction as the
+//! controller sees them relative to the tip: a hand-eye error of 2 mm and 1 deg puts the port
+//! up to about 4 mm beside the shaft's axis at the tip and tilts the axis by up to 1 deg.
 //!
 //! Robust and bounded: each frame's axis is kept in a window of the last
 //! [`SCOPE_WINDOW`] frames and the correction is their median, component by component, once
@@ -71,13 +71,7 @@ pub struct ScopeInView {
     window: [[f64; 6]; SCOPE_WINDOW],
     len: usize,
     next: usize,
-    /// Per frame: the tip's slide along the shaft (towards the flange), m.
-    slides: [f64; SCOPE_WINDOW],
-    slides_len: usize,
-    slides_next: usize,
     camera_t_believed: Isometry3<f64>,
-    /// The same without the slide.
-    across: Isometry3<f64>,
 }
 
 impl ScopeInView {
@@ -92,11 +86,7 @@ impl ScopeInView {
             window: [[0.0; 6]; SCOPE_WINDOW],
             len: 0,
             next: 0,
-            slides: [0.0; SCOPE_WINDOW],
-            slides_len: 0,
-            slides_next: 0,
             camera_t_believed: Isometry3::identity(),
-            across: Isometry3::identity(),
         })
     }
 
@@ -125,28 +115,9 @@ impl ScopeInView {
         true
     }
 
-    /// Add one frame's slide of the tip end along the shaft (towards the flange, m) from
-    /// where the hand-eye puts it: `false` when it is left out (over
-    /// [`SCOPE_MAX_OFFSET_M`], or not finite).
-    pub fn add_slide(&mut self, slide: f64) -> bool {
-        if !(slide.is_finite() && slide.abs() <= SCOPE_MAX_OFFSET_M) {
-            return false;
-        }
-        self.slides[self.slides_next] = slide;
-        self.slides_next = (self.slides_next + 1) % SCOPE_WINDOW;
-        self.slides_len = (self.slides_len + 1).min(SCOPE_WINDOW);
-        self.update();
-        true
-    }
-
-    /// Frames in the window of the axis seen.
+    /// Frames in the window.
     pub fn frames(&self) -> usize {
         self.len
-    }
-
-    /// Frames in the window of the tip end seen.
-    pub fn tip_frames(&self) -> usize {
-        self.slides_len
     }
 
     /// The correction: the believed camera frame's points in the true camera's frame (the
@@ -158,22 +129,14 @@ impl ScopeInView {
         self.camera_t_believed
     }
 
-    /// [`ScopeInView::camera_t_believed`] without the slide along the shaft: the shaft where
-    /// it is seen across, its tip where the hand-eye puts it along it (where the tip end is
-    /// looked for).
-    pub fn across_only(&self) -> Isometry3<f64> {
-        self.across
-    }
-
     fn update(&mut self) {
         if self.len >= SCOPE_MIN_FRAMES {
-            let (across, all) = self.median_correction();
-            (self.across, self.camera_t_believed) = (across, all);
+            self.camera_t_believed = self.median_correction();
         }
     }
 
-    /// The medians' correction: without the slide, and with it.
-    fn median_correction(&self) -> (Isometry3<f64>, Isometry3<f64>) {
+    /// The correction the medians make.
+    fn median_correction(&self) -> Isometry3<f64> {
         let mut m = [0.0; 6];
         for (k, out) in m.iter_mut().enumerate() {
             let mut col = [0.0; SCOPE_WINDOW];
@@ -182,22 +145,13 @@ impl ScopeInView {
             }
             *out = median(&mut col[..self.len]);
         }
-        // The slide once as many frames saw the tip end as the axis needs.
-        let slide = if self.slides_len >= SCOPE_MIN_FRAMES {
-            let mut col = self.slides;
-            median(&mut col[..self.slides_len])
-        } else {
-            0.0
-        };
         let (offset, seen) = (Vector3::new(m[0], m[1], m[2]), Vector3::new(m[3], m[4], m[5]));
         let rot = UnitQuaternion::rotation_between(&self.direction, &seen).unwrap_or_else(UnitQuaternion::identity);
         // The offset is across the predicted axis up to the rotation's second order: keep it
         // off the seen axis's direction (no slide along it).
         let seen = seen.try_normalize(1e-12).unwrap_or(self.direction.into_inner());
         let across = offset - seen * offset.dot(&seen);
-        let at =
-            |slide: f64| Translation3::from(self.tip + across + seen * slide) * rot * Translation3::from(-self.tip);
-        (at(0.0), at(slide))
+        Translation3::from(self.tip + across) * rot * Translation3::from(-self.tip)
     }
 }
 
@@ -272,18 +226,6 @@ mod tests {
         assert!(moved.dot(&dir).abs() < 1e-6);
         let true_slide = (t - nalgebra::Point3::from(tip)).dot(&dir);
         assert!(true_slide.abs() > 1e-4, "the test's error slides the tip");
-        // The tip end seen tells the slide: once three frames saw it, the tip lands on the
-        // seen tip; a slide past the gate or not finite is left out.
-        assert!(!scope.add_slide(0.02) && !scope.add_slide(f64::NAN));
-        for _ in 0..2 {
-            assert!(scope.add_slide(true_slide));
-            assert_eq!(scope.camera_t_believed(), c);
-        }
-        assert!(scope.add_slide(true_slide));
-        assert_eq!(scope.tip_frames(), 3);
-        let slid = scope.camera_t_believed() * nalgebra::Point3::from(tip);
-        assert!((slid - t).norm() < 1e-9, "{}", (slid - t).norm());
-        assert_eq!(scope.across_only(), c);
     }
 
     #[test]
