@@ -756,16 +756,12 @@ fn the_endoscope_in_view_is_masked_out_and_the_port_found_behind_it() {
     assert!(worst.0 < 1.0 && worst.1 < 2.0, "{worst:?}");
 }
 
-#[test]
-fn the_endoscope_is_found_in_the_image_where_the_hand_eye_is_wrong() {
-    // A hand-eye up to 2 mm and 1 deg off (the calibration error the realistic protocol
-    // draws) puts the shaft up to ~12 px from where the camera sees it at the tip. Its
-    // outline is found in the image, and the mask moved there: 12 hand-eyes drawn at random,
-    // each for 7 frames of the final approach (6 cm before the port to 25 mm in).
+/// 12 hand-eye errors (the believed camera's points in the true one) drawn from `seed` as the
+/// realistic protocol bounds its calibration error: the k-th (of 0-11) with s = (k + 0.5) / 12
+/// moves by 2 s mm and turns by (1 - s / 2) deg, each about a random direction.
+fn drawn_hand_eye_errors(seed: u64) -> Vec<Isometry3<f64>> {
     use rand::{RngExt, SeedableRng};
-    let (cam, model) = (camera(), TrocarModel::shipped());
-    let r = TrocarRenderer::new(&cam).unwrap();
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(12345);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let mut unit = || {
         Vector3::new(
             rng.random_range(-1.0..1.0),
@@ -774,11 +770,26 @@ fn the_endoscope_is_found_in_the_image_where_the_hand_eye_is_wrong() {
         )
         .normalize()
     };
+    (0..12)
+        .map(|k| {
+            let (dt, dr) = (unit(), unit());
+            let s = (f64::from(k) + 0.5) / 12.0;
+            Isometry3::new(dt * 0.002 * s, dr * 1f64.to_radians() * (1.0 - s * 0.5))
+        })
+        .collect()
+}
+
+#[test]
+fn the_endoscope_is_found_in_the_image_where_the_hand_eye_is_wrong() {
+    // A hand-eye up to 2 mm and 1 deg off (the calibration error the realistic protocol
+    // draws) puts the shaft up to ~12 px from where the camera sees it at the tip. Its
+    // outline is found in the image, and the mask moved there: 12 hand-eyes drawn at random,
+    // each for 7 frames of the final approach (6 cm before the port to 25 mm in).
+    let (cam, model) = (camera(), TrocarModel::shipped());
+    let r = TrocarRenderer::new(&cam).unwrap();
     let (mut found, mut frames, mut worst) = (0, 0, (0.0f64, 0.0f64));
-    for trial in 0..12u64 {
-        let (dt, dr) = (unit(), unit());
-        let s = (trial as f64 + 0.5) / 12.0;
-        let believed = mount() * Isometry3::new(dt * 0.002 * s, dr * 1f64.to_radians() * (1.0 - s * 0.5));
+    for (trial, bias) in (0u64..).zip(drawn_hand_eye_errors(12345)) {
+        let believed = mount() * bias;
         let mut est = MarkerlessEstimator::new(&cam, &model)
             .unwrap()
             .with_occluder(Some(Occluder::endoscope(&believed, 0.25, 0.0025)))
@@ -929,24 +940,15 @@ fn stereo_approach_with_endoscope(
 /// The endoscope in view corrects the hand-eye across the shaft: 12 hand-eyes drawn as the
 /// realistic protocol draws its calibration error (up to 2 mm and 1 deg), each for a stereo
 /// approach from 10 cm before the port to the stand-off point; after it, the port at the
-/// tip's place seen through the corrected hand-eye against the truth, across the shaft (where
-/// the correction acts) and along it (the slide the axis cannot tell: unchanged). With the
-/// true mount, the correction stays within a fraction of a millimetre of none.
+/// tip's place seen through the corrected hand-eye against the truth, across the shaft and
+/// along it, where what is left is the camera centre's own error along the shaft (the slide
+/// the axis cannot tell). With the true mount, the correction stays within a fraction of a
+/// millimetre of none.
 #[test]
 fn the_endoscope_in_view_corrects_the_hand_eye() {
-    use rand::{RngExt, SeedableRng};
     let (cam, model, rc) = (camera(), TrocarModel::shipped(), right_camera());
     let right_t_left = rc.stereo_right_t_left();
     let (rl, rr) = (TrocarRenderer::new(&cam).unwrap(), TrocarRenderer::new(&rc).unwrap());
-    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2027);
-    let mut unit = || {
-        Vector3::new(
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-            rng.random_range(-1.0..1.0),
-        )
-        .normalize()
-    };
     let (tool, _) = endoscope_and_port(0.0);
     let tip = nalgebra::Point3::from(Vector3::from(tool.start));
     let along = (Vector3::from(tool.end) - tip.coords).normalize();
@@ -957,15 +959,9 @@ fn the_endoscope_in_view_corrects_the_hand_eye() {
         (e.dot(&along) * 1e3, (e - along * e.dot(&along)).norm() * 1e3)
     };
     let (mut before, mut after) = (vec![], vec![]);
-    for trial in 0..13u64 {
-        let s = (trial as f64 + 0.5) / 12.0;
-        let (dt, dr) = (unit(), unit());
-        // The last one: the true mount.
-        let bias = if trial == 12 {
-            Isometry3::identity()
-        } else {
-            Isometry3::new(dt * 0.002 * s, dr * 1f64.to_radians() * (1.0 - s * 0.5))
-        };
+    // The last one: the true mount.
+    let errors = drawn_hand_eye_errors(2027).into_iter().chain([Isometry3::identity()]);
+    for (trial, bias) in (0u64..).zip(errors) {
         let mut est = MarkerlessEstimator::new(&cam, &model)
             .unwrap()
             .with_right_camera(&rc, &right_t_left)
@@ -977,34 +973,32 @@ fn the_endoscope_in_view_corrects_the_hand_eye() {
             error(&bias, &Isometry3::identity()),
             error(&bias, &est.camera_t_believed()),
         );
+        // What the axis cannot tell: the camera centre's error along the shaft.
+        let unseen = bias.translation.vector.dot(&along) * 1e3;
         eprintln!(
-            "hand-eye {trial}: along {:+.2} -> {:+.2} mm, across {:.2} -> {:.2} mm",
+            "hand-eye {trial}: along {:+.2} -> {:+.2} mm (the centre's error along {unseen:+.2} mm), across {:.2} -> {:.2} mm",
             b.0, a.0, b.1, a.1
         );
         if trial == 12 {
-            assert!(a.0.abs() < 0.05 && a.1 < 0.3, "the true mount moved by {a:?}");
+            assert!(a.0.abs() < 0.1 && a.1 < 0.3, "the true mount moved by {a:?}");
         } else {
             before.push(b);
-            after.push(a);
+            after.push((a.0 - unseen, a.1));
         }
     }
     let mean = |v: &[(f64, f64)]| v.iter().map(|e| e.1).sum::<f64>() / v.len() as f64;
     let worst = |v: &[(f64, f64)]| v.iter().map(|e| e.1).fold(0.0, f64::max);
-    let moved_along = before
-        .iter()
-        .zip(&after)
-        .map(|(b, a)| (a.0 - b.0).abs())
-        .fold(0.0, f64::max);
+    let left_along = after.iter().map(|e| e.0.abs()).fold(0.0, f64::max);
     eprintln!(
-        "across: mean {:.2} -> {:.2} mm, worst {:.2} -> {:.2} mm; along moved by at most {moved_along:.2} mm",
+        "across: mean {:.2} -> {:.2} mm, worst {:.2} -> {:.2} mm; along, beyond the centre's own error: at most {left_along:.2} mm",
         mean(&before),
         mean(&after),
         worst(&before),
         worst(&after)
     );
-    // Measured: across mean 2.03 -> 0.10 mm, worst 3.30 -> 0.37 mm; along moved by at most
-    // 0.05 mm.
+    // Measured: across mean 2.03 -> 0.10 mm, worst 3.30 -> 0.37 mm; along, beyond the
+    // centre's error, at most 0.09 mm (before: up to 1.3 mm).
     assert!(5.0 * mean(&after) < mean(&before), "across, mean");
     assert!(worst(&after) < 0.5, "across, worst");
-    assert!(moved_along < 0.1, "the correction slid the tip along the shaft");
+    assert!(left_along < 0.3, "along: the rotation's share left");
 }

@@ -146,12 +146,13 @@ impl ScopeInView {
             *out = median(&mut col[..self.len]);
         }
         let (offset, seen) = (Vector3::new(m[0], m[1], m[2]), Vector3::new(m[3], m[4], m[5]));
-        let rot = UnitQuaternion::rotation_between(&self.direction, &seen).unwrap_or_else(UnitQuaternion::identity);
-        // The offset is across the predicted axis up to the rotation's second order: keep it
-        // off the seen axis's direction (no slide along it).
         let seen = seen.try_normalize(1e-12).unwrap_or(self.direction.into_inner());
-        let across = offset - seen * offset.dot(&seen);
-        Translation3::from(self.tip + across) * rot * Translation3::from(-self.tip)
+        // The camera turned about its centre by the least rotation that gives the shaft the
+        // seen direction, then moved across the seen axis (not along it) onto it.
+        let rot = UnitQuaternion::rotation_between(&self.direction, &seen).unwrap_or_else(UnitQuaternion::identity);
+        let (foot, turned) = (self.tip + offset, rot * self.tip);
+        let onto = foot + seen * (turned - foot).dot(&seen);
+        Translation3::from(onto - turned) * rot
     }
 }
 
@@ -196,7 +197,7 @@ mod tests {
     }
 
     #[test]
-    fn the_correction_carries_the_believed_shaft_onto_the_seen_one_without_a_slide() {
+    fn the_correction_carries_the_believed_shaft_onto_the_seen_one_turning_about_the_camera_centre() {
         let s = shaft();
         let (tip, back) = (Vector3::from(s.start), Vector3::from(s.end));
         // A hand-eye error: the true camera sees the believed frame's points moved by this.
@@ -221,11 +222,17 @@ mod tests {
         let (ct, cb) = (c * nalgebra::Point3::from(tip), c * nalgebra::Point3::from(back));
         assert!((ct - t).cross(&dir).norm() < 1e-9, "{}", (ct - t).cross(&dir).norm());
         assert!((cb - ct).normalize().cross(&dir).norm() < 1e-9);
-        // Its tip moved across the axis only: what the slide along it was stays.
-        let moved = ct - nalgebra::Point3::from(tip);
-        assert!(moved.dot(&dir).abs() < 1e-6);
-        let true_slide = (t - nalgebra::Point3::from(tip)).dot(&dir);
-        assert!(true_slide.abs() > 1e-4, "the test's error slides the tip");
+        // Along the axis, the tip moved by the turn's share only (the camera turned about its
+        // centre): what the centre's own error along the shaft slid it by stays.
+        let turn = err.rotation * nalgebra::Point3::from(tip) - nalgebra::Point3::from(tip);
+        let moved = (ct - nalgebra::Point3::from(tip)).dot(&dir);
+        assert!((moved - turn.dot(&dir)).abs() < 1e-6, "{moved} vs {}", turn.dot(&dir));
+        let unseen = err.translation.vector.dot(&dir);
+        assert!(
+            unseen.abs() > 1e-4,
+            "the test's error slides the centre along the shaft"
+        );
+        assert!(((t - nalgebra::Point3::from(tip)).dot(&dir) - moved - unseen).abs() < 1e-6);
     }
 
     #[test]
