@@ -979,9 +979,17 @@ fn the_endoscope_in_view_corrects_the_hand_eye() {
             "hand-eye {trial}: along {:+.2} -> {:+.2} mm (the centre's error along {unseen:+.2} mm), across {:.2} -> {:.2} mm",
             b.0, a.0, b.1, a.1
         );
+        // Corrected once three frames' outlines held on both lines; else left as it is.
+        let corrected = est.scope_frames() >= 3;
+        if !corrected {
+            assert_eq!(est.camera_t_believed(), Isometry3::identity());
+        }
         if trial == 12 {
-            assert!(a.0.abs() < 0.1 && a.1 < 0.3, "the true mount moved by {a:?}");
-        } else {
+            assert!(
+                corrected && a.0.abs() < 0.1 && a.1 < 0.3,
+                "the true mount moved by {a:?}"
+            );
+        } else if corrected {
             before.push(b);
             after.push((a.0 - unseen, a.1));
         }
@@ -990,14 +998,18 @@ fn the_endoscope_in_view_corrects_the_hand_eye() {
     let worst = |v: &[(f64, f64)]| v.iter().map(|e| e.1).fold(0.0, f64::max);
     let left_along = after.iter().map(|e| e.0.abs()).fold(0.0, f64::max);
     eprintln!(
-        "across: mean {:.2} -> {:.2} mm, worst {:.2} -> {:.2} mm; along, beyond the centre's own error: at most {left_along:.2} mm",
+        "corrected {} of 12; across: mean {:.2} -> {:.2} mm, worst {:.2} -> {:.2} mm; along, beyond the centre's own error: at most {left_along:.2} mm",
+        after.len(),
         mean(&before),
         mean(&after),
         worst(&before),
         worst(&after)
     );
-    // Measured: across mean 2.03 -> 0.10 mm, worst 3.30 -> 0.37 mm; along, beyond the
-    // centre's error, at most 0.09 mm (before: up to 1.3 mm).
+    // Measured: corrected 9 of 12 (the other 3: no frame whose outline both lines held; one
+    // offset for both cannot follow a shaft moved in depth); of those, across mean 2.06 ->
+    // 0.10 mm, worst 2.98 -> 0.21 mm; along, beyond the centre's error, at most 0.06 mm
+    // (before: up to 1.3 mm).
+    assert!(after.len() >= 9, "corrected {} of 12", after.len());
     assert!(5.0 * mean(&after) < mean(&before), "across, mean");
     assert!(worst(&after) < 0.5, "across, worst");
     assert!(left_along < 0.3, "along: the rotation's share left");

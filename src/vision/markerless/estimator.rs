@@ -480,18 +480,24 @@ impl Eye {
         // width): one offset `a + b t` along the normal for both lines, fitted to both lines'
         // edges, each of the polarity that fits best (a shaded shaft can be lighter than what
         // is behind it on one side and darker on the other).
-        let mut best: Option<(f64, f64, usize)> = None;
+        let tol = 1.0 / cam.fx;
+        let on = |found: &[(f64, f64)], (a, b): (f64, f64)| {
+            found.iter().filter(|(t, d)| (a + b * t - d).abs() <= tol).count()
+        };
+        // The fit, and whether each line holds a third of its samples in the image on it.
+        let mut best: Option<((f64, f64, usize), bool)> = None;
         for first in [&a.0 .0, &a.1 .0] {
             for second in [&b.0 .0, &b.1 .0] {
                 let both: Vec<(f64, f64)> = first.iter().chain(second.iter()).copied().collect();
-                if let Some(f) = robust_line(&both, 1.0 / cam.fx) {
-                    if best.is_none_or(|b| f.2 > b.2) {
-                        best = Some(f);
+                if let Some(f) = robust_line(&both, tol) {
+                    if best.is_none_or(|b| f.2 > b.0 .2) {
+                        let each = 3 * on(first, (f.0, f.1)) >= a.0 .1 && 3 * on(second, (f.0, f.1)) >= b.0 .1;
+                        best = Some((f, each));
                     }
                 }
             }
         }
-        let Some((a, b, _)) = best.filter(|f| f.2 >= 12 && 2 * f.2 >= searched) else {
+        let Some(((a, b, _), each)) = best.filter(|f| f.0 .2 >= 12 && 2 * f.0 .2 >= searched) else {
             return Ok(());
         };
         let moved = |l: &OutlineLine| [l.from + a * l.normal, l.to + (a + b) * l.normal];
@@ -500,7 +506,13 @@ impl Eye {
         if found.is_some() {
             if let Some(o) = self.occluder.as_mut() {
                 o.found = found;
-                o.axis_plane = outline_planes(outline).and_then(|(n0, n1)| (n0 - n1).try_normalize(1e-12));
+                // The axis's plane only from an outline both lines hold: one line's edges alone
+                // can fit it moved by about the shaft's width (a hand-eye error that moves the
+                // shaft in depth changes its width, which one offset cannot follow), and that
+                // puts the shaft beside itself (seen: 8 mm at the tip).
+                o.axis_plane = outline_planes(outline)
+                    .and_then(|(n0, n1)| (n0 - n1).try_normalize(1e-12))
+                    .filter(|_| each);
             }
             self.apply_occluder()?;
         }

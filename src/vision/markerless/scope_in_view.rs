@@ -30,7 +30,7 @@ pub const SCOPE_WINDOW: usize = 15;
 /// Frames needed before the correction applies (before: the hand-eye as it is).
 pub const SCOPE_MIN_FRAMES: usize = 3;
 /// The largest offset of the axis seen from where the hand-eye puts it, at the tip, m.
-pub const SCOPE_MAX_OFFSET_M: f64 = 0.008;
+pub const SCOPE_MAX_OFFSET_M: f64 = 0.006;
 /// The largest angle between the axis seen and where the hand-eye puts it, deg.
 pub const SCOPE_MAX_ANGLE_DEG: f64 = 3.0;
 
