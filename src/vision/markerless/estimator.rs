@@ -694,12 +694,6 @@ impl MarkerlessEstimator {
         }
     }
 
-    /// The endoscope's shaft where its outline was last found in the left image (left
-    /// camera frame; `None`: no occluder, or not found yet).
-    pub fn registered_shaft(&self) -> Option<ToolCylinder> {
-        self.left.occluder.as_ref().and_then(|o| o.found)
-    }
-
     /// The hand-eye's error as the endoscope in view tells it: the points of the camera frame
     /// the occluder was given in (the believed camera) in the frame the images are seen in
     /// (the true camera), [`ScopeInView::camera_t_believed`]; the identity without an
@@ -722,23 +716,21 @@ impl MarkerlessEstimator {
 
     /// The shaft's axis where both eyes found it in the images loaded last (left frame):
     /// added to the correction.
-    fn see_scope(&mut self) -> Result<(), VisionError> {
+    fn see_scope(&mut self) {
         let (Some(scope), Some(r)) = (self.scope.as_mut(), self.right.as_ref()) else {
-            return Ok(());
+            return;
         };
         let left = self.left.occluder.as_ref().and_then(|o| o.axis_plane);
         let right = r.eye.occluder.as_ref().and_then(|o| o.axis_plane);
         let (Some(left), Some(right), Some(o)) = (left, right, self.occluder.as_ref()) else {
-            return Ok(());
+            return;
         };
         let left_t_right = r.right_t_left.inverse();
         let right = left_t_right.rotation * right;
         let near = Vector3::from(o.shaft.start);
-        let Some((p, d)) = stereo_axis(&left, &right, &left_t_right.translation.vector, &near) else {
-            return Ok(());
-        };
-        scope.add(&p, &d);
-        Ok(())
+        if let Some((p, d)) = stereo_axis(&left, &right, &left_t_right.translation.vector, &near) {
+            scope.add(&p, &d);
+        }
     }
 
     /// The camera it was built for (the left one of a stereo pair).
@@ -839,7 +831,7 @@ impl MarkerlessEstimator {
                 }
             }
         }
-        self.see_scope()?;
+        self.see_scope();
         Ok(best)
     }
 
