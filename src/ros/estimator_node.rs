@@ -299,10 +299,11 @@ impl Pipeline {
 
     /// The hand-eye's error as the endoscope in view tells it
     /// ([`MarkerlessEstimator::camera_t_believed`]; the identity without a markerless
-    /// estimator).
+    /// estimator or with `markerless.endoscope_corrects_hand_eye` off).
     fn camera_correction(&self) -> Isometry3<f64> {
         self.markerless
             .as_ref()
+            .filter(|_| self.p.markerless.endoscope_corrects_hand_eye)
             .map_or(Isometry3::identity(), MarkerlessEstimator::camera_t_believed)
     }
 
@@ -733,10 +734,11 @@ fn report(pipeline: &Mutex<Pipeline>) {
     if let Some(m) = pl.markerless.as_ref().filter(|m| m.scope_frames() > 0) {
         let c = m.camera_t_believed();
         rosrust::ros_info!(
-            "trocar_estimator: the endoscope in view moves the hand-eye by {:.2} mm and {:.2} deg (camera frame; the median of the last {} frames whose images both showed its axis)",
+            "trocar_estimator: the endoscope in view puts the hand-eye {:.2} mm and {:.2} deg off (camera frame; the median of the last {} frames whose images both showed its axis; applied: {})",
             c.translation.vector.norm() * 1e3,
             c.rotation.angle().to_degrees(),
-            m.scope_frames()
+            m.scope_frames(),
+            pl.p.markerless.endoscope_corrects_hand_eye
         );
     }
     pl.counts = FrameCounts::default();

@@ -71,6 +71,9 @@ pub struct MarkerlessParams {
     /// The radius of the endoscope's shaft, m, whose outline in view is masked out of the
     /// images ([`MarkerlessParams::endoscope`]; 0 = not in view).
     pub endoscope_radius_m: f64,
+    /// Correct the hand-eye by the endoscope's axis as both eyes of a stereo pair see it
+    /// ([`MarkerlessEstimator::camera_t_believed`]): off, the hand-eye is used as it is.
+    pub endoscope_corrects_hand_eye: bool,
 }
 
 crate::shipped_defaults!(MarkerlessParams, crate::config::TROCAR_ESTIMATOR, ["markerless"]);
@@ -211,7 +214,8 @@ pub struct Tracked {
 }
 
 /// One frame `view`, captured at `stamp` from a camera at `base_t_camera` (the hand-eye as
-/// believed, corrected by the endoscope in view: [`MarkerlessEstimator::camera_t_believed`];
+/// believed, corrected by the endoscope in view when `p.endoscope_corrects_hand_eye`:
+/// [`MarkerlessEstimator::camera_t_believed`];
 /// with `right`, the stereo pair's right image captured with it, if any), through the
 /// markerless estimate into the trocar estimator `filter`: the filter's estimate carried into the camera as the prior
 /// ([`prior_direction`]) and as the port the endoscope goes into
@@ -227,9 +231,17 @@ pub fn track(
     base_t_camera: &Isometry3<f64>,
     p: &MarkerlessParams,
 ) -> Result<Tracked, String> {
-    // The camera where the endoscope in view puts it (the hand-eye as believed until then).
+    // The camera where the endoscope in view puts it (the hand-eye as believed until then,
+    // or when the correction is off).
     let believed = *base_t_camera;
-    let base_t_camera = &(believed * estimator.camera_t_believed().inverse());
+    let correction = |e: &MarkerlessEstimator| {
+        if p.endoscope_corrects_hand_eye {
+            e.camera_t_believed().inverse()
+        } else {
+            Isometry3::identity()
+        }
+    };
+    let base_t_camera = &(believed * correction(estimator));
     let tracked = filter.estimate(stamp);
     let prior = tracked
         .as_ref()
@@ -247,7 +259,7 @@ pub fn track(
         .estimate_stereo(view, right, prior.as_ref())
         .map_err(|e| e.to_string())?;
     // This frame's view of the endoscope may have moved the correction.
-    let base_t_camera = &(believed * estimator.camera_t_believed().inverse());
+    let base_t_camera = &(believed * correction(estimator));
     let m = accept(e.as_ref(), base_t_camera, p)?;
     let status = filter.fuse(stamp, m.pose);
     let pose = match status {
