@@ -328,6 +328,40 @@ mod tests {
     }
 
     #[test]
+    fn the_endoscope_in_view_corrects_the_hand_eye_only_when_told_to() {
+        // The starts of seeds with the protocol's calibration bias (a hand-eye error up to
+        // 2 mm and 1 deg), 1 s with the stereo pair: the last pose delivered with the
+        // correction on and off (`markerless.endoscope_corrects_hand_eye`).
+        let last = |seed: u64, on: bool| {
+            let setup = CameraSetup {
+                markerless: MarkerlessParams {
+                    endoscope_corrects_hand_eye: on,
+                    ..MarkerlessParams::default()
+                },
+                ..stereo()
+            };
+            let scene = Still::of(&world(seed));
+            let mut s = CameraPoseSource::new(&setup, &config().sim.measurement, seed).unwrap();
+            let d = run(&mut s, &scene, 1.0);
+            d.last().map(|(_, m)| error(m, &scene.trocar))
+        };
+        // Measured: seeds 2, 4 and 6 corrected, the port 2.80 -> 0.12, 4.56 -> 0.93 and
+        // 2.96 -> 0.87 mm off; seeds 1, 3 and 5 give no frame both of the shaft's lines hold
+        // in both eyes: the same poses either way.
+        for seed in [2, 4, 6] {
+            let (off, on) = (last(seed, false).unwrap(), last(seed, true).unwrap());
+            eprintln!("seed {seed}: off {off:?}, on {on:?}");
+            assert!(
+                off.0 > 2e-3 && on.0 < 0.4 * off.0,
+                "seed {seed}: off {off:?}, on {on:?}"
+            );
+        }
+        for seed in [1, 3, 5] {
+            assert_eq!(last(seed, false), last(seed, true), "seed {seed}");
+        }
+    }
+
+    #[test]
     fn a_still_scene_is_delivered_within_the_measured_error_of_the_truth() {
         // Measured on the starts of seeds 1, 3 and 4 (the trocar 0.13-0.15 m from the tip,
         // no calibration bias), 1 s at 15 Hz: 14-15 poses delivered, the worst 1.53 mm and
@@ -387,7 +421,8 @@ mod tests {
         // The starts of seeds 7810 and 7870 (0.34 m): the left image's two circle poses and
         // the right image's disagree by more than 4 deg; one axis refined on both images
         // from each of them settles on one. Measured: 15 poses in 1 s each, the worst
-        // 0.19 mm / 1.59 deg and 0.33 mm / 0.93 deg off (filter start included).
+        // 0.21 mm / 1.59 deg and 0.33 mm / 0.93 deg off (filter start included; the true
+        // mount believed, the endoscope in view correcting it by 0.03 mm at 7810's tip).
         for seed in [7810, 7870] {
             let (n, dp, da) = on_the_start(&stereo(), seed);
             assert!(n >= 12, "seed {seed}: {n} poses in 1 s");

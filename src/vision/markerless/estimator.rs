@@ -11,7 +11,7 @@ use super::geometry::{
 };
 use super::model::TrocarModel;
 use super::render::ToolCylinder;
-use super::scope_in_view::{stereo_axis, ScopeInView};
+use super::scope_in_view::{stereo_axis, ScopeInView, SCOPE_MAX_OFFSET_M};
 use crate::ffi::markerless::{ffi, EDGE_RECORD_LEN, ELLIPSE_RECORD_LEN};
 use crate::vision::{CameraModel, ImageView, VisionError};
 
@@ -254,6 +254,80 @@ fn robust_line(found: &[(f64, f64)], tol: f64) -> Option<(f64, f64, usize)> {
     Some((md - b * mt, b, inl.len()))
 }
 
+/// The shaft's two outline lines `lines` moved onto the edges found, for the axis's plane:
+/// each line fitted to its own edges `edges` (either polarity; `in_image`: each line's
+/// samples in the image) within what its width may change by of the joint fit `joint`. The
+/// width may change by what moving a shaft of `radius` by [`SCOPE_MAX_OFFSET_M`] in depth
+/// changes it by (a width `w` at depth `z = 2 radius / w`, normalised units:
+/// `w^2 dz / (2 radius)`), plus half a pixel (`tol` is a pixel). Where the two fits' width is
+/// within that at both ends of the edges found, each line moves by its own fit (the pair
+/// follows the shaft's width). Where it is not, one line's edges are not its outline (a
+/// shaded shaft's lit side can be as light as what lies behind it, and then its strongest
+/// edge lies a pixel or more inside the outline, scattered): both lines move by the tighter
+/// fit (the lower residual), if it holds two thirds of its samples. `None` unless each line
+/// holds a third of its samples on its own fit (one line's edges alone can be the other
+/// line's, moved by the shaft's width).
+fn limbs_fitted(
+    lines: &[OutlineLine; 2],
+    edges: [[&[(f64, f64)]; 2]; 2],
+    joint: (f64, f64),
+    in_image: [usize; 2],
+    radius: f64,
+    tol: f64,
+) -> Option<[[Vector2<f64>; 2]; 2]> {
+    let at = |l: &OutlineLine, t: f64| l.from + t * (l.to - l.from);
+    let allowed = |t: f64| {
+        let w = (at(&lines[1], t) - at(&lines[0], t)).dot(&lines[0].normal);
+        w * w * SCOPE_MAX_OFFSET_M / (2.0 * radius) + 0.5 * tol
+    };
+    // A line's fit of the polarity holding more edges: (a, b, inliers, rms).
+    let fit = |e: [&[(f64, f64)]; 2]| {
+        e.into_iter()
+            .filter_map(|e| {
+                let near: Vec<(f64, f64)> = e
+                    .iter()
+                    .copied()
+                    .filter(|(t, d)| (joint.0 + joint.1 * t - d).abs() <= allowed(*t) + tol)
+                    .collect();
+                let (a, b, n) = robust_line(&near, tol)?;
+                let r: Vec<f64> = near
+                    .iter()
+                    .map(|(t, d)| a + b * t - d)
+                    .filter(|r| r.abs() <= tol)
+                    .collect();
+                Some((
+                    a,
+                    b,
+                    n,
+                    (r.iter().map(|r| r * r).sum::<f64>() / r.len().max(1) as f64).sqrt(),
+                ))
+            })
+            .max_by_key(|f| f.2)
+    };
+    let (f0, f1) = (fit(edges[0])?, fit(edges[1])?);
+    if 3 * f0.2 < in_image[0] || 3 * f1.2 < in_image[1] {
+        return None;
+    }
+    let (lo, hi) = edges
+        .iter()
+        .flatten()
+        .flat_map(|e| e.iter().map(|x| x.0))
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), t| (l.min(t), h.max(t)));
+    let width_kept = [lo, hi]
+        .into_iter()
+        .all(|t| (f1.0 + f1.1 * t - f0.0 - f0.1 * t).abs() <= allowed(t));
+    let moved = |l: &OutlineLine, f: (f64, f64, usize, f64)| [l.from + f.0 * l.normal, l.to + (f.0 + f.1) * l.normal];
+    if width_kept {
+        return Some([moved(&lines[0], f0), moved(&lines[1], f1)]);
+    }
+    let (carrier, n) = if f0.3 <= f1.3 {
+        (f0, in_image[0])
+    } else {
+        (f1, in_image[1])
+    };
+    (3 * carrier.2 >= 2 * n).then(|| [moved(&lines[0], carrier), moved(&lines[1], carrier)])
+}
+
 /// The unit normals of the two planes through the camera centre and each of the outline
 /// lines `lines` (normalised coordinates, each by two points), each pointing away from the
 /// other line: a cylinder with that outline has its axis at its radius behind both planes
@@ -475,31 +549,29 @@ impl Eye {
         };
         let [l0, l1] = &lines;
         let (a, b) = ((search(l0, 1)?, search(l0, -1)?), (search(l1, 1)?, search(l1, -1)?));
-        let searched = a.0 .1 + b.0 .1;
+        let (searched, in_image) = (a.0 .1 + b.0 .1, [a.0 .1, b.0 .1]);
         // The shaft's image moves as a whole (a hand-eye error of a few mm barely changes its
         // width): one offset `a + b t` along the normal for both lines, fitted to both lines'
         // edges, each of the polarity that fits best (a shaded shaft can be lighter than what
         // is behind it on one side and darker on the other).
         let tol = 1.0 / cam.fx;
-        let on = |found: &[(f64, f64)], (a, b): (f64, f64)| {
-            found.iter().filter(|(t, d)| (a + b * t - d).abs() <= tol).count()
-        };
-        // The fit, and whether each line holds a third of its samples in the image on it.
-        let mut best: Option<((f64, f64, usize), bool)> = None;
+        // The fit, and the two lines' edges it was fitted to.
+        let mut best: Option<(f64, f64, usize)> = None;
         for first in [&a.0 .0, &a.1 .0] {
             for second in [&b.0 .0, &b.1 .0] {
                 let both: Vec<(f64, f64)> = first.iter().chain(second.iter()).copied().collect();
                 if let Some(f) = robust_line(&both, tol) {
-                    if best.is_none_or(|b| f.2 > b.0 .2) {
-                        let each = 3 * on(first, (f.0, f.1)) >= a.0 .1 && 3 * on(second, (f.0, f.1)) >= b.0 .1;
-                        best = Some((f, each));
+                    if best.is_none_or(|b| f.2 > b.2) {
+                        best = Some(f);
                     }
                 }
             }
         }
-        let Some(((a, b, _), each)) = best.filter(|f| f.0 .2 >= 12 && 2 * f.0 .2 >= searched) else {
+        let edges = [[&a.0 .0[..], &a.1 .0[..]], [&b.0 .0[..], &b.1 .0[..]]];
+        let Some((a, b, _)) = best.filter(|f| f.2 >= 12 && 2 * f.2 >= searched) else {
             return Ok(());
         };
+        let limbs = limbs_fitted(&lines, edges, (a, b), in_image, o.predicted.radius, tol);
         let moved = |l: &OutlineLine| [l.from + a * l.normal, l.to + (a + b) * l.normal];
         let outline = [moved(l0), moved(l1)];
         let found = shaft_from_outline(&o.predicted, outline);
@@ -510,9 +582,9 @@ impl Eye {
                 // can fit it moved by about the shaft's width (a hand-eye error that moves the
                 // shaft in depth changes its width, which one offset cannot follow), and that
                 // puts the shaft beside itself (seen: 8 mm at the tip).
-                o.axis_plane = outline_planes(outline)
-                    .and_then(|(n0, n1)| (n0 - n1).try_normalize(1e-12))
-                    .filter(|_| each);
+                o.axis_plane = limbs
+                    .and_then(outline_planes)
+                    .and_then(|(n0, n1)| (n0 - n1).try_normalize(1e-12));
             }
             self.apply_occluder()?;
         }
@@ -1392,5 +1464,55 @@ mod tests {
         let far = right_origin + 0.9 * (Vector3::new(0.05, -0.01, 0.3) - right_origin);
         assert!(triangulate(&left, &right_origin, &far).is_none());
         assert!(triangulate(&Vector3::zeros(), &right_origin, &right).is_none());
+    }
+
+    #[test]
+    fn both_outline_lines_move_by_their_own_edges_unless_one_is_not_the_outline() {
+        // A shaft 17 px wide at its tip end, 38 px at the other (fx 700, radius 2.5 mm): the
+        // width may change by ~1 px at the tip end, ~3 px at the other.
+        let px = 1.0 / 700.0;
+        let line = |x: f64, spread: f64| OutlineLine {
+            from: Vector2::new(x, 0.1),
+            to: Vector2::new(x * spread, -0.4),
+            normal: Vector2::new(1.0, 0.0),
+        };
+        let lines = [line(-8.5 * px, 19.0 / 8.5), line(8.5 * px, 19.0 / 8.5)];
+        // 16 samples' edges at `d(t, k)` px along the normal.
+        let edges = |d: &dyn Fn(f64, usize) -> f64| -> Vec<(f64, f64)> {
+            (0..16)
+                .map(|k| {
+                    let t = (k as f64 + 0.5) / 32.0;
+                    (t, d(t, k) * px)
+                })
+                .collect()
+        };
+        let none: Vec<(f64, f64)> = vec![];
+        let fit = |e0: &[(f64, f64)], e1: &[(f64, f64)], joint: (f64, f64)| {
+            limbs_fitted(
+                &lines,
+                [[e0, &none], [&none, e1]],
+                (joint.0 * px, joint.1 * px),
+                [16, 16],
+                0.0025,
+                px,
+            )
+        };
+        let offset = |l: &[Vector2<f64>; 2], k: usize| (l[0].x - lines[k].from.x) / px;
+        // The shaft moved by 2 px and 0.4 px wider (in depth): each line by its own edges.
+        let (e0, e1) = (edges(&|_, _| 1.8), edges(&|_, _| 2.2));
+        let m = fit(&e0, &e1, (2.0, 0.0)).unwrap();
+        assert!((offset(&m[0], 0) - 1.8).abs() < 1e-6 && (offset(&m[1], 1) - 2.2).abs() < 1e-6);
+        // One line's edges 2 px inside it and scattered (a lit side as light as the
+        // background): both lines move by the other, tight one.
+        let scattered = edges(&|_, k| 1.2 + 0.15 * (k % 5) as f64 + 0.1 * (k % 3) as f64);
+        let tight = edges(&|_, k| 0.05 * (k % 2) as f64);
+        let m = fit(&tight, &scattered, (0.5, 0.0)).unwrap();
+        assert!(offset(&m[0], 0).abs() < 0.1 && offset(&m[1], 1).abs() < 0.1, "{m:?}");
+        // A line with edges at under a third of its samples: nothing, whatever the other.
+        let few: Vec<(f64, f64)> = tight[..4].to_vec();
+        assert!(fit(&few, &tight, (0.0, 0.0)).is_none());
+        assert!(fit(&tight, &few, (0.0, 0.0)).is_none());
+        // Edges far from the joint fit are not the line's.
+        assert!(fit(&edges(&|_, _| 9.0), &tight, (0.0, 0.0)).is_none());
     }
 }
