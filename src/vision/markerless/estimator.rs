@@ -578,10 +578,9 @@ impl Eye {
         if found.is_some() {
             if let Some(o) = self.occluder.as_mut() {
                 o.found = found;
-                // The axis's plane only from an outline both lines hold: one line's edges alone
-                // can fit it moved by about the shaft's width (a hand-eye error that moves the
-                // shaft in depth changes its width, which one offset cannot follow), and that
-                // puts the shaft beside itself (seen: 8 mm at the tip).
+                // The axis's plane from each line's own fit ([`limbs_fitted`]): one offset for
+                // both lines cannot follow a shaft the hand-eye error moves in depth, nor a
+                // line whose edges are not the outline.
                 o.axis_plane = limbs
                     .and_then(outline_planes)
                     .and_then(|(n0, n1)| (n0 - n1).try_normalize(1e-12));
