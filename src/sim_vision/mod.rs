@@ -345,10 +345,10 @@ mod tests {
             let d = run(&mut s, &scene, 1.0);
             d.last().map(|(_, m)| error(m, &scene.trocar))
         };
-        // Measured: seeds 2, 4 and 6 corrected, the port 2.80 -> 0.12, 4.56 -> 0.93 and
-        // 2.96 -> 0.87 mm off; seeds 1, 3 and 5 give no frame both of the shaft's lines hold
-        // in both eyes: the same poses either way.
-        for seed in [2, 4, 6] {
+        // Measured: seeds 1, 2, 4 and 6 corrected, the port 4.90 -> 1.15, 2.80 -> 0.12,
+        // 4.56 -> 0.93 and 2.96 -> 0.87 mm off; seeds 3 and 5 give no frame both of the
+        // shaft's lines hold in both eyes: the same poses either way.
+        for seed in [1, 2, 4, 6] {
             let (off, on) = (last(seed, false).unwrap(), last(seed, true).unwrap());
             eprintln!("seed {seed}: off {off:?}, on {on:?}");
             assert!(
@@ -356,7 +356,7 @@ mod tests {
                 "seed {seed}: off {off:?}, on {on:?}"
             );
         }
-        for seed in [1, 3, 5] {
+        for seed in [3, 5] {
             assert_eq!(last(seed, false), last(seed, true), "seed {seed}");
         }
     }

@@ -176,6 +176,9 @@ struct OutlineLine {
     normal: Vector2<f64>,
 }
 
+/// Two image lines, each by two points (normalised coordinates).
+type LinePair = [[Vector2<f64>; 2]; 2];
+
 /// Samples per outline line.
 const OUTLINE_SAMPLES: usize = 32;
 
@@ -274,7 +277,7 @@ fn limbs_fitted(
     in_image: [usize; 2],
     radius: f64,
     tol: f64,
-) -> Option<[[Vector2<f64>; 2]; 2]> {
+) -> Option<LinePair> {
     let at = |l: &OutlineLine, t: f64| l.from + t * (l.to - l.from);
     let allowed = |t: f64| {
         let w = (at(&lines[1], t) - at(&lines[0], t)).dot(&lines[0].normal);
@@ -411,6 +414,8 @@ struct EyeOccluder {
     /// The unit normal of the plane through this eye's centre and the shaft's axis, from the
     /// outline found in the image loaded last (`None`: not found there).
     axis_plane: Option<Vector3<f64>>,
+    /// Whether `found` came of a fit both outline lines hold.
+    found_held: bool,
 }
 
 impl EyeOccluder {
@@ -475,6 +480,7 @@ impl Eye {
             port: None,
             applied: None,
             axis_plane: None,
+            found_held: false,
         });
         self.apply_occluder()
     }
@@ -512,10 +518,12 @@ impl Eye {
     /// [`OCCLUDER_SEARCH_PX`] across the shaft of where the hand-eye puts it (a hand-eye error
     /// of a degree moves it by several pixels), moved together by the straight line of
     /// offsets through most of the edges found on both, and move the mask to the shaft that
-    /// has that outline. The mask stays where it was when under half the outline's samples in
-    /// the image (or 12) lie on that line, or the shaft it gives is over 5 deg or 2 cm from
-    /// where the hand-eye puts it. The tip's place along the shaft is kept where the hand-eye
-    /// puts it.
+    /// has that outline: the best such line that both outline lines hold ([`limbs_fitted`]),
+    /// else the best, until one both lines hold has placed the mask. The mask stays where it
+    /// was when under half the outline's samples in the image (or 12) lie on that line, or
+    /// the shaft it gives is over 5 deg or 2 cm from where the hand-eye puts it. The tip's
+    /// place along the shaft is kept where the hand-eye puts it. The axis's plane is taken
+    /// only from a line both outline lines hold.
     fn register_occluder(&mut self) -> Result<(), VisionError> {
         self.forget_axis_plane();
         let Some(o) = &self.occluder else { return Ok(()) };
@@ -554,30 +562,44 @@ impl Eye {
         // width): one offset `a + b t` along the normal for both lines, fitted to both lines'
         // edges, each of the polarity that fits best (a shaded shaft can be lighter than what
         // is behind it on one side and darker on the other).
+        // Of the fits of each pair of polarities, the best that both lines hold
+        // ([`limbs_fitted`]), else the best: one line's edges alone can fit it moved by about
+        // the shaft's width or turned across it, and a mask moved there leaves the shaft's own
+        // edges beside it, which run into the opening's outline (seen near the port: the
+        // opening lost for seconds). Only a fit both lines hold gives the axis's plane.
         let tol = 1.0 / cam.fx;
-        // The fit, and the two lines' edges it was fitted to.
+        let edges = [[&a.0 .0[..], &a.1 .0[..]], [&b.0 .0[..], &b.1 .0[..]]];
+        let mut held: Option<((f64, f64, usize), LinePair)> = None;
         let mut best: Option<(f64, f64, usize)> = None;
         for first in [&a.0 .0, &a.1 .0] {
             for second in [&b.0 .0, &b.1 .0] {
                 let both: Vec<(f64, f64)> = first.iter().chain(second.iter()).copied().collect();
-                if let Some(f) = robust_line(&both, tol) {
-                    if best.is_none_or(|b| f.2 > b.2) {
-                        best = Some(f);
+                let Some(f) = robust_line(&both, tol).filter(|f| f.2 >= 12 && 2 * f.2 >= searched) else {
+                    continue;
+                };
+                if best.is_none_or(|b| f.2 > b.2) {
+                    best = Some(f);
+                }
+                if held.is_none_or(|h| f.2 > h.0 .2) {
+                    if let Some(l) = limbs_fitted(&lines, edges, (f.0, f.1), in_image, o.predicted.radius, tol) {
+                        held = Some((f, l));
                     }
                 }
             }
         }
-        let edges = [[&a.0 .0[..], &a.1 .0[..]], [&b.0 .0[..], &b.1 .0[..]]];
-        let Some((a, b, _)) = best.filter(|f| f.2 >= 12 && 2 * f.2 >= searched) else {
+        // Once placed by a fit both lines hold, the shaft (rigid to the camera) stays there
+        // until another such fit moves it.
+        let Some((a, b, _)) = held.map(|h| h.0).or(best.filter(|_| !o.found_held)) else {
             return Ok(());
         };
-        let limbs = limbs_fitted(&lines, edges, (a, b), in_image, o.predicted.radius, tol);
+        let limbs = held.map(|h| h.1);
         let moved = |l: &OutlineLine| [l.from + a * l.normal, l.to + (a + b) * l.normal];
         let outline = [moved(l0), moved(l1)];
         let found = shaft_from_outline(&o.predicted, outline);
         if found.is_some() {
             if let Some(o) = self.occluder.as_mut() {
                 o.found = found;
+                o.found_held = limbs.is_some();
                 // The axis's plane from each line's own fit ([`limbs_fitted`]): one offset for
                 // both lines cannot follow a shaft the hand-eye error moves in depth, nor a
                 // line whose edges are not the outline.
