@@ -293,17 +293,13 @@ fn limbs_fitted(
                     .filter(|(t, d)| (joint.0 + joint.1 * t - d).abs() <= allowed(*t) + tol)
                     .collect();
                 let (a, b, n) = robust_line(&near, tol)?;
-                let r: Vec<f64> = near
+                // The residual over the edges within `tol` of the fit.
+                let (ss, k) = near
                     .iter()
                     .map(|(t, d)| a + b * t - d)
                     .filter(|r| r.abs() <= tol)
-                    .collect();
-                Some((
-                    a,
-                    b,
-                    n,
-                    (r.iter().map(|r| r * r).sum::<f64>() / r.len().max(1) as f64).sqrt(),
-                ))
+                    .fold((0.0, 0usize), |(ss, k), r| (ss + r * r, k + 1));
+                Some((a, b, n, (ss / k.max(1) as f64).sqrt()))
             })
             .max_by_key(|f| f.2)
     };
@@ -561,8 +557,8 @@ impl Eye {
         // The shaft's image moves as a whole (a hand-eye error of a few mm barely changes its
         // width): one offset `a + b t` along the normal for both lines, fitted to both lines'
         // edges, each of the polarity that fits best (a shaded shaft can be lighter than what
-        // is behind it on one side and darker on the other).
-        // Of the fits of each pair of polarities, the best that both lines hold
+        // is behind it on one side and darker on the other). Of the fits of each pair of
+        // polarities, the best that both lines hold
         // ([`limbs_fitted`]), else the best: one line's edges alone can fit it moved by about
         // the shaft's width or turned across it, and a mask moved there leaves the shaft's own
         // edges beside it, which run into the opening's outline (seen near the port: the
