@@ -1,4 +1,5 @@
 #include "trocar_docking/cpp/markerless_bridge.h"
+#include "trocar_docking/cpp/bridge_common.h"
 
 #include <algorithm>
 #include <initializer_list>
@@ -47,13 +48,8 @@ const bool opencv_on_the_calling_thread = [] {
   return true;
 }();
 
-void require(bool ok, const std::string &what) {
-  if (!ok) throw std::invalid_argument(what);
-}
-
-bool all_finite(rust::Slice<const double> v) {
-  return std::all_of(v.begin(), v.end(), [](double x) { return std::isfinite(x); });
-}
+using bridge::all_finite;
+using bridge::require;
 
 // Bilinear sample of a float image at (x, y), pixel centres at integers; false outside.
 inline bool bilinear(const cv::Mat &f, double x, double y, double &out) {
@@ -129,18 +125,8 @@ double mean_on_ellipse(const MarkerlessDetectorCpp::Impl &d, const cv::RotatedRe
 std::unique_ptr<MarkerlessDetectorCpp> new_markerless_detector(rust::Slice<const double> intrinsics,
                                                                rust::Slice<const double> dist, int width,
                                                                int height) {
-  require(intrinsics.size() == 4, "intrinsics must be fx, fy, cx, cy");
-  require(all_finite(intrinsics) && all_finite(dist), "intrinsics and distortion must be finite");
-  require(intrinsics[0] > 1.0 && intrinsics[1] > 1.0, "focal lengths must be > 1 px");
-  const size_t nd = dist.size();
-  require(nd == 0 || nd == 4 || nd == 5 || nd == 8 || nd == 12 || nd == 14,
-          "distortion must have 0, 4, 5, 8, 12 or 14 coefficients");
-  require(width >= 8 && height >= 8 && width <= 20000 && height <= 20000,
-          "image size " + std::to_string(width) + "x" + std::to_string(height) + " out of range (8..=20000 px)");
   auto impl = std::make_unique<MarkerlessDetectorCpp::Impl>();
-  impl->K = cv::Matx33d(intrinsics[0], 0, intrinsics[2], 0, intrinsics[1], intrinsics[3], 0, 0, 1);
-  impl->dist = cv::Mat(1, static_cast<int>(nd), CV_64F);
-  for (size_t i = 0; i < nd; ++i) impl->dist.at<double>(0, static_cast<int>(i)) = dist[i];
+  bridge::camera_model(intrinsics, dist, width, height, impl->K, impl->dist);
   impl->width = width;
   impl->height = height;
   return std::make_unique<MarkerlessDetectorCpp>(std::move(impl));
@@ -149,20 +135,9 @@ std::unique_ptr<MarkerlessDetectorCpp> new_markerless_detector(rust::Slice<const
 void markerless_load(MarkerlessDetectorCpp &det, rust::Slice<const uint8_t> pixels, int width, int height,
                      int channels, double smooth_sigma) {
   auto &d = *det.impl;
-  require(width == d.width && height == d.height,
-          "image " + std::to_string(width) + "x" + std::to_string(height) + " does not match the camera model (" +
-              std::to_string(d.width) + "x" + std::to_string(d.height) + ")");
-  require(channels == 1 || channels == 3 || channels == 4, "channels must be 1, 3 or 4");
-  require(pixels.size() == static_cast<size_t>(width) * height * channels,
-          "pixel buffer has " + std::to_string(pixels.size()) + " bytes, expected " +
-              std::to_string(static_cast<size_t>(width) * height * channels));
+  bridge::grey_image(pixels, width, height, channels, d.width, d.height, d.grey8);
   require(std::isfinite(smooth_sigma) && smooth_sigma >= 0.0 && smooth_sigma <= 10.0,
           "smoothing sigma must be in [0, 10] px");
-  cv::Mat m(height, width, CV_8UC(channels), const_cast<uint8_t *>(pixels.data()));
-  if (channels == 1)
-    m.copyTo(d.grey8);
-  else
-    cv::cvtColor(m, d.grey8, channels == 3 ? cv::COLOR_RGB2GRAY : cv::COLOR_RGBA2GRAY);
   d.grey8.convertTo(d.smooth, CV_32F);
   if (smooth_sigma > 0.0) cv::GaussianBlur(d.smooth, d.smooth, cv::Size(0, 0), smooth_sigma);
   d.smooth.convertTo(d.smooth8, CV_8U);

@@ -9,10 +9,13 @@ use nalgebra::{Isometry3, Unit, Vector3};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::LbrKinematics;
 use crate::vision::estimator::PoseYaml;
-use crate::vision::markerless::approach::docking_approach;
+use crate::vision::markerless::approach::{continuous_approach, docking_approach};
 use crate::vision::markerless::render::ToolCylinder;
-use crate::vision::markerless::{MarkerlessEstimator, MarkerlessParams, Scene, TrocarModel, TrocarRenderer};
-use crate::vision::{CameraModel, GreyImage};
+use crate::vision::markerless::tracker::{ModelTracker, TrackerParams, TrackingEstimator};
+use crate::vision::markerless::{
+    Axis, MarkerlessEstimate, MarkerlessEstimator, MarkerlessParams, Scene, TrocarModel, TrocarRenderer,
+};
+use crate::vision::{CameraModel, GreyImage, VisionError};
 
 /// Arguments of `render-trocar`.
 #[derive(Debug, clap::Args)]
@@ -50,6 +53,11 @@ pub struct RenderTrocarArgs {
     /// The camera mount (a lbr_med_sim parameter file: camera.flange_t_camera), for --sequence.
     #[arg(long, default_value = "config/lbr_med_sim.yaml")]
     pub mount: PathBuf,
+    /// With --sequence: one continuous approach (the misalignment drawn once, shrinking with
+    /// the distance) in one scene (lighting, wall and noise of --seed), as a video would
+    /// show it; else every frame its own view and scene.
+    #[arg(long, requires = "sequence")]
+    pub continuous: bool,
     /// Camera-to-port distances of the sequence, far,near (m).
     #[arg(long, value_delimiter = ',', default_value = "0.4,0.1")]
     pub range: Vec<f64>,
@@ -96,6 +104,12 @@ pub struct TrocarPoseArgs {
     /// `markerless.endoscope_radius_m` of config/trocar_estimator.yaml.
     #[arg(long)]
     pub endoscope_mount: Option<PathBuf>,
+    /// Images of one video in name order: where the per-frame estimate is not confident,
+    /// ViSP's model-based tracker (`vpMbGenericTracker`, moving edges) carries the track on
+    /// from the last confident one (at most 15 images in a row); each line says its
+    /// `source` (`detector` or `tracker`). One camera, no mask.
+    #[arg(long, conflicts_with_all = ["right_camera", "endoscope_mount"])]
+    pub tracker: bool,
 }
 
 /// The right camera of a stereo pair from its calibration YAML (a baseline of 1 mm to 1 m).
@@ -189,7 +203,11 @@ pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
             return Err("--range takes far,near".into());
         }
         let mount = read_mount(&a.mount)?;
-        let poses = docking_approach(&mount, a.range[0], a.range[1], n, a.seed)?;
+        let poses = if a.continuous {
+            continuous_approach(&mount, a.range[0], a.range[1], n, a.seed)?
+        } else {
+            docking_approach(&mount, a.range[0], a.range[1], n, a.seed)?
+        };
         std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: {e}", a.out.display()))?;
         let right = match &a.right_camera {
             Some(path) => {
@@ -202,7 +220,11 @@ pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
         };
         let mut frames = vec![];
         for (k, p) in poses.iter().enumerate() {
-            let seed = a.seed.wrapping_mul(1_000_003).wrapping_add(k as u64);
+            let seed = if a.continuous {
+                a.seed
+            } else {
+                a.seed.wrapping_mul(1_000_003).wrapping_add(k as u64)
+            };
             let scene = scene_of(a, seed)?;
             let img = renderer.render(&model, p, &scene)?;
             let name = format!("frame_{k:04}.png");
@@ -283,6 +305,76 @@ fn stereo_pair(a: &TrocarPoseArgs, n: usize) -> Result<Option<(CameraModel, Vec<
     Ok(Some((m, r)))
 }
 
+/// Images in a row the tracker of `trocar-pose --tracker` carries without a confident
+/// per-frame estimate (half a second at 30 Hz).
+const TRACKED_FRAMES: usize = 15;
+
+/// The estimator `trocar-pose` runs: frame by frame, or tracking.
+enum PoseSource {
+    Frames(Box<MarkerlessEstimator>),
+    Tracking(Box<TrackingEstimator>),
+}
+
+impl PoseSource {
+    /// The axis, its confidence and what else the estimate says (a JSON object), or `None`.
+    fn estimate(
+        &mut self,
+        img: &GreyImage,
+        right: Option<&GreyImage>,
+        prior: Option<&Unit<Vector3<f64>>>,
+    ) -> Result<Option<(Axis, f64, serde_json::Value)>, VisionError> {
+        let detail = |e: &MarkerlessEstimate| {
+            serde_json::json!({
+                "fit_rms_px": e.fit_rms_px, "edge_support": e.edge_support,
+                "opening_support": e.opening_support, "ambiguity_margin": e.ambiguity_margin,
+            })
+        };
+        Ok(match self {
+            PoseSource::Frames(est) => est
+                .estimate_stereo(&img.view(), right.map(GreyImage::view).as_ref(), prior)?
+                .map(|e| (e.axis, e.confidence, detail(&e))),
+            PoseSource::Tracking(est) => est.estimate(&img.view(), prior)?.map(|e| {
+                let mut v = e.detected.as_ref().map_or_else(|| serde_json::json!({}), detail);
+                v["source"] = serde_json::to_value(e.source).unwrap_or_default();
+                if let Some(t) = &e.tracked {
+                    v["projection_error_deg"] = t.projection_error_deg.into();
+                    v["sites"] = t.sites.into();
+                    v["kept_fraction"] = t.kept_fraction.into();
+                }
+                if let Some(why) = &est.last_lost {
+                    v["track_lost"] = why.clone().into();
+                }
+                (e.axis, e.confidence, v)
+            }),
+        })
+    }
+}
+
+/// One image's line of `trocar-pose`: the JSON object, or text.
+fn print_pose_line(json: bool, name: &str, ms: f64, v: &serde_json::Value) -> super::CliResult {
+    if json {
+        println!("{}", serde_json::to_string(&v)?);
+    } else if let Some(err) = v.get("error") {
+        println!("{name}: error: {}", err.as_str().unwrap_or_default());
+    } else if v["found"] == true {
+        let p = &v["axis_point"];
+        let d = &v["axis_direction"];
+        println!(
+            "{name}: port [m] {:+.4} {:+.4} {:+.4}  axis {:+.4} {:+.4} {:+.4}  confidence {:.2}  {ms:.1} ms",
+            p[0].as_f64().unwrap_or(f64::NAN),
+            p[1].as_f64().unwrap_or(f64::NAN),
+            p[2].as_f64().unwrap_or(f64::NAN),
+            d[0].as_f64().unwrap_or(f64::NAN),
+            d[1].as_f64().unwrap_or(f64::NAN),
+            d[2].as_f64().unwrap_or(f64::NAN),
+            v["confidence"].as_f64().unwrap_or(0.0)
+        );
+    } else {
+        println!("{name}: not found  {ms:.1} ms");
+    }
+    Ok(())
+}
+
 /// Run `trocar-pose`.
 pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
     let camera = CameraModel::from_yaml_file(&a.camera)?;
@@ -302,8 +394,17 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
         ),
         None => None,
     };
-    let mut est =
+    let est =
         MarkerlessEstimator::for_cameras(&camera, pair.as_ref().map(|p| &p.0), &model)?.with_occluder(occluder)?;
+    let mut est = if a.tracker {
+        PoseSource::Tracking(Box::new(TrackingEstimator::new(
+            est,
+            ModelTracker::new(&camera, &model, TrackerParams::default())?,
+            TRACKED_FRAMES,
+        )))
+    } else {
+        PoseSource::Frames(Box::new(est))
+    };
     let right_files = pair.map(|p| p.1);
     let mut failures = 0usize;
     for (k, f) in files.iter().enumerate() {
@@ -315,48 +416,26 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
         let right = right_files.as_ref().map(|r| GreyImage::read(&r[k])).transpose();
         let result = right.and_then(|right| {
             let img = GreyImage::read(f)?;
-            est.estimate_stereo(
-                &img.view(),
-                right.as_ref().map(GreyImage::view).as_ref(),
-                prior.as_ref(),
-            )
+            est.estimate(&img, right.as_ref(), prior.as_ref())
         });
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let v = match result {
-            Ok(Some(e)) => serde_json::json!({
-                "image": name, "found": true,
-                "axis_point": [e.axis.point.x, e.axis.point.y, e.axis.point.z],
-                "axis_direction": [e.axis.direction.x, e.axis.direction.y, e.axis.direction.z],
-                "confidence": e.confidence, "ms": ms,
-                "fit_rms_px": e.fit_rms_px, "edge_support": e.edge_support,
-                "opening_support": e.opening_support, "ambiguity_margin": e.ambiguity_margin,
-            }),
+            Ok(Some((axis, confidence, mut v))) => {
+                v["image"] = name.clone().into();
+                v["found"] = true.into();
+                v["axis_point"] = serde_json::json!([axis.point.x, axis.point.y, axis.point.z]);
+                v["axis_direction"] = serde_json::json!([axis.direction.x, axis.direction.y, axis.direction.z]);
+                v["confidence"] = confidence.into();
+                v["ms"] = ms.into();
+                v
+            }
             Ok(None) => serde_json::json!({"image": name, "found": false, "confidence": 0.0, "ms": ms}),
             Err(err) => {
                 failures += 1;
                 serde_json::json!({"image": name, "found": false, "error": err.to_string(), "ms": ms})
             }
         };
-        if a.json {
-            println!("{}", serde_json::to_string(&v)?);
-        } else if let Some(err) = v.get("error") {
-            println!("{name}: error: {}", err.as_str().unwrap_or_default());
-        } else if v["found"] == true {
-            let p = &v["axis_point"];
-            let d = &v["axis_direction"];
-            println!(
-                "{name}: port [m] {:+.4} {:+.4} {:+.4}  axis {:+.4} {:+.4} {:+.4}  confidence {:.2}  {ms:.1} ms",
-                p[0].as_f64().unwrap_or(f64::NAN),
-                p[1].as_f64().unwrap_or(f64::NAN),
-                p[2].as_f64().unwrap_or(f64::NAN),
-                d[0].as_f64().unwrap_or(f64::NAN),
-                d[1].as_f64().unwrap_or(f64::NAN),
-                d[2].as_f64().unwrap_or(f64::NAN),
-                v["confidence"].as_f64().unwrap_or(0.0)
-            );
-        } else {
-            println!("{name}: not found  {ms:.1} ms");
-        }
+        print_pose_line(a.json, &name, ms, &v)?;
     }
     if failures > 0 {
         return Err(format!("{failures} of {} images could not be read or used", files.len()).into());

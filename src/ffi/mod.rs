@@ -3,4 +3,5 @@
 
 pub mod kdl;
 pub mod markerless;
+pub mod model_tracker;
 pub mod vision;

@@ -1,0 +1,49 @@
+//! cxx bridge to ViSP's model-based tracker (`vpMbGenericTracker`, moving edges; see
+//! `cpp/model_tracker_bridge.h`). Poses cross as 12 numbers: the rotation row by row, then
+//! the translation (m), the model's frame in the camera frame.
+
+/// The raw cxx declarations.
+#[cxx::bridge(namespace = "trocar_docking")]
+pub mod ffi {
+    unsafe extern "C++" {
+        include!("trocar_docking/cpp/model_tracker_bridge.h");
+
+        /// The tracker, its camera and model.
+        type ModelTrackerCpp;
+
+        /// A tracker for a camera (`intrinsics` fx, fy, cx, cy; `dist` OpenCV order) and a
+        /// model (ViSP .cao text, m); `moving_edges`: the search range and site spacing
+        /// (px), the edge threshold (ViSP's likelihood) and the contrast tolerance (relative).
+        fn new_model_tracker(
+            intrinsics: &[f64],
+            dist: &[f64],
+            width: i32,
+            height: i32,
+            cao: &str,
+            moving_edges: &[f64],
+        ) -> Result<UniquePtr<ModelTrackerCpp>>;
+
+        /// Start on an image (the camera's size, 1, 3 or 4 channels) from a pose (12 numbers).
+        fn model_tracker_init(
+            t: Pin<&mut ModelTrackerCpp>,
+            pixels: &[u8],
+            width: i32,
+            height: i32,
+            channels: i32,
+            c_t_o: &[f64],
+        ) -> Result<()>;
+
+        /// Track into an image: the pose (12), kept (1/0), projection error (deg), edge
+        /// sites used, fraction the robust estimator kept.
+        fn model_tracker_track(
+            t: Pin<&mut ModelTrackerCpp>,
+            pixels: &[u8],
+            width: i32,
+            height: i32,
+            channels: i32,
+        ) -> Result<Vec<f64>>;
+    }
+}
+
+/// Numbers `model_tracker_track` returns.
+pub const TRACK_RECORD_LEN: usize = 16;
