@@ -28,6 +28,7 @@ struct ModelTrackerCpp::Impl {
   cv::Mat map1, map2;  // undistortion maps (when the camera has distortion)
   cv::Mat grey, straight;
   vpImage<unsigned char> image;
+  vpImage<bool> mask;  // true where the edges are searched
   vpCameraParameters cam;
   vpMbGenericTracker tracker{1, vpMbGenericTracker::EDGE_TRACKER};
   bool started = false;
@@ -196,6 +197,20 @@ void model_tracker_init(ModelTrackerCpp &tracker, rust::Slice<const uint8_t> pix
     throw std::runtime_error(std::string("the tracker could not start: ") + e.getMessage());
   }
   d.started = true;
+}
+
+void model_tracker_set_mask(ModelTrackerCpp &tracker, rust::Slice<const uint8_t> hidden) {
+  auto &d = *tracker.impl;
+  if (hidden.empty()) {
+    d.mask.resize(static_cast<unsigned int>(d.height), static_cast<unsigned int>(d.width), true);
+  } else {
+    require(hidden.size() == static_cast<size_t>(d.width) * d.height,
+            "the mask must be the camera's size (" + std::to_string(d.width) + "x" + std::to_string(d.height) + ")");
+    d.mask.resize(static_cast<unsigned int>(d.height), static_cast<unsigned int>(d.width));
+    for (int r = 0; r < d.height; ++r)
+      for (int c = 0; c < d.width; ++c) d.mask[r][c] = hidden[static_cast<size_t>(r) * d.width + c] == 0;
+  }
+  d.tracker.setMask(d.mask);
 }
 
 rust::Vec<double> model_tracker_track(ModelTrackerCpp &tracker, rust::Slice<const uint8_t> pixels, int width,

@@ -33,6 +33,10 @@ std::unique_ptr<ModelTrackerCpp> new_model_tracker(rust::Slice<const double> int
 void model_tracker_init(ModelTrackerCpp &t, rust::Slice<const uint8_t> pixels, int width, int height,
                         int channels, rust::Slice<const double> c_t_o);
 
+// Leave out of the edge search where `hidden` (width x height bytes, row by row) is
+// non-zero (a known occluder in view); empty: search everywhere.
+void model_tracker_set_mask(ModelTrackerCpp &t, rust::Slice<const uint8_t> hidden);
+
 // Track into this image from the last pose. 16 numbers: the pose (12), then whether the
 // tracker kept the track (1) or gave up (0: too few edge sites; the pose is the last one),
 // the mean angle (deg) between the image's gradient and the model's projected edges at the

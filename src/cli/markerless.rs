@@ -11,11 +11,11 @@ use crate::kinematics::LbrKinematics;
 use crate::vision::estimator::PoseYaml;
 use crate::vision::markerless::approach::{continuous_approach, docking_approach};
 use crate::vision::markerless::render::ToolCylinder;
-use crate::vision::markerless::tracker::{ModelTracker, TrackerParams, TrackingEstimator};
+use crate::vision::markerless::tracker::{ModelTracker, TrackerParams};
 use crate::vision::markerless::{
-    Axis, MarkerlessEstimate, MarkerlessEstimator, MarkerlessParams, Scene, TrocarModel, TrocarRenderer,
+    MarkerlessEstimate, MarkerlessEstimator, MarkerlessParams, Scene, TrocarModel, TrocarRenderer,
 };
-use crate::vision::{CameraModel, GreyImage, VisionError};
+use crate::vision::{CameraModel, GreyImage};
 
 /// Arguments of `render-trocar`.
 #[derive(Debug, clap::Args)]
@@ -105,10 +105,10 @@ pub struct TrocarPoseArgs {
     #[arg(long)]
     pub endoscope_mount: Option<PathBuf>,
     /// Images of one video in name order: where the per-frame estimate is not confident,
-    /// ViSP's model-based tracker (`vpMbGenericTracker`, moving edges) carries the track on
-    /// from the last confident one (at most 15 images in a row); each line says its
-    /// `source` (`detector` or `tracker`). One camera, no mask.
-    #[arg(long, conflicts_with_all = ["right_camera", "endoscope_mount"])]
+    /// ViSP's model-based tracker (`vpMbGenericTracker`, moving edges, on the left image)
+    /// carries the track on from the last confident one (at most 15 images in a row); each
+    /// line says its `source` (`detector` or `tracker`).
+    #[arg(long)]
     pub tracker: bool,
 }
 
@@ -309,45 +309,26 @@ fn stereo_pair(a: &TrocarPoseArgs, n: usize) -> Result<Option<(CameraModel, Vec<
 /// per-frame estimate (half a second at 30 Hz).
 const TRACKED_FRAMES: usize = 15;
 
-/// The estimator `trocar-pose` runs: frame by frame, or tracking.
-enum PoseSource {
-    Frames(Box<MarkerlessEstimator>),
-    Tracking(Box<TrackingEstimator>),
-}
-
-impl PoseSource {
-    /// The axis, its confidence and what else the estimate says (a JSON object), or `None`.
-    fn estimate(
-        &mut self,
-        img: &GreyImage,
-        right: Option<&GreyImage>,
-        prior: Option<&Unit<Vector3<f64>>>,
-    ) -> Result<Option<(Axis, f64, serde_json::Value)>, VisionError> {
-        let detail = |e: &MarkerlessEstimate| {
-            serde_json::json!({
-                "fit_rms_px": e.fit_rms_px, "edge_support": e.edge_support,
-                "opening_support": e.opening_support, "ambiguity_margin": e.ambiguity_margin,
-            })
-        };
-        Ok(match self {
-            PoseSource::Frames(est) => est
-                .estimate_stereo(&img.view(), right.map(GreyImage::view).as_ref(), prior)?
-                .map(|e| (e.axis, e.confidence, detail(&e))),
-            PoseSource::Tracking(est) => est.estimate(&img.view(), prior)?.map(|e| {
-                let mut v = e.detected.as_ref().map_or_else(|| serde_json::json!({}), detail);
-                v["source"] = serde_json::to_value(e.source).unwrap_or_default();
-                if let Some(t) = &e.tracked {
-                    v["projection_error_deg"] = t.projection_error_deg.into();
-                    v["sites"] = t.sites.into();
-                    v["kept_fraction"] = t.kept_fraction.into();
-                }
-                if let Some(why) = &est.last_lost {
-                    v["track_lost"] = why.clone().into();
-                }
-                (e.axis, e.confidence, v)
-            }),
-        })
+/// The JSON object of one image's estimate (with `tracker`: its `source` and the tracker's
+/// fit where it carried the image).
+fn pose_json(name: &str, ms: f64, e: &MarkerlessEstimate, tracker: bool) -> serde_json::Value {
+    let mut v = serde_json::json!({
+        "image": name, "found": true,
+        "axis_point": [e.axis.point.x, e.axis.point.y, e.axis.point.z],
+        "axis_direction": [e.axis.direction.x, e.axis.direction.y, e.axis.direction.z],
+        "confidence": e.confidence, "ms": ms,
+        "fit_rms_px": e.fit_rms_px, "edge_support": e.edge_support,
+        "opening_support": e.opening_support, "ambiguity_margin": e.ambiguity_margin,
+    });
+    if tracker {
+        v["source"] = if e.tracked.is_some() { "tracker" } else { "detector" }.into();
     }
+    if let Some(t) = &e.tracked {
+        v["projection_error_deg"] = t.projection_error_deg.into();
+        v["sites"] = t.sites.into();
+        v["kept_fraction"] = t.kept_fraction.into();
+    }
+    v
 }
 
 /// One image's line of `trocar-pose`: the JSON object, or text.
@@ -394,17 +375,14 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
         ),
         None => None,
     };
-    let est =
+    let mut est =
         MarkerlessEstimator::for_cameras(&camera, pair.as_ref().map(|p| &p.0), &model)?.with_occluder(occluder)?;
-    let mut est = if a.tracker {
-        PoseSource::Tracking(Box::new(TrackingEstimator::new(
-            est,
+    if a.tracker {
+        est = est.with_tracker(Some((
             ModelTracker::new(&camera, &model, TrackerParams::default())?,
             TRACKED_FRAMES,
-        )))
-    } else {
-        PoseSource::Frames(Box::new(est))
-    };
+        )));
+    }
     let right_files = pair.map(|p| p.1);
     let mut failures = 0usize;
     for (k, f) in files.iter().enumerate() {
@@ -416,19 +394,15 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
         let right = right_files.as_ref().map(|r| GreyImage::read(&r[k])).transpose();
         let result = right.and_then(|right| {
             let img = GreyImage::read(f)?;
-            est.estimate(&img, right.as_ref(), prior.as_ref())
+            est.estimate_stereo(
+                &img.view(),
+                right.as_ref().map(GreyImage::view).as_ref(),
+                prior.as_ref(),
+            )
         });
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let v = match result {
-            Ok(Some((axis, confidence, mut v))) => {
-                v["image"] = name.clone().into();
-                v["found"] = true.into();
-                v["axis_point"] = serde_json::json!([axis.point.x, axis.point.y, axis.point.z]);
-                v["axis_direction"] = serde_json::json!([axis.direction.x, axis.direction.y, axis.direction.z]);
-                v["confidence"] = confidence.into();
-                v["ms"] = ms.into();
-                v
-            }
+            Ok(Some(e)) => pose_json(&name, ms, &e, a.tracker),
             Ok(None) => serde_json::json!({"image": name, "found": false, "confidence": 0.0, "ms": ms}),
             Err(err) => {
                 failures += 1;

@@ -33,6 +33,9 @@ pub mod ffi {
             c_t_o: &[f64],
         ) -> Result<()>;
 
+        /// Leave out of the edge search where `hidden` (the camera's size) is non-zero.
+        fn model_tracker_set_mask(t: Pin<&mut ModelTrackerCpp>, hidden: &[u8]) -> Result<()>;
+
         /// Track into an image: the pose (12), kept (1/0), projection error (deg), edge
         /// sites used, fraction the robust estimator kept.
         fn model_tracker_track(
@@ -44,6 +47,11 @@ pub mod ffi {
         ) -> Result<Vec<f64>>;
     }
 }
+
+// SAFETY: a ModelTrackerCpp owns all its state (the ViSP tracker, its model, the image
+// buffers; ViSP's tracker keeps no thread-local state) and is mutated only through
+// `Pin<&mut>`, so moving it to another thread is sound.
+unsafe impl Send for ffi::ModelTrackerCpp {}
 
 /// Numbers `model_tracker_track` returns.
 pub const TRACK_RECORD_LEN: usize = 16;

@@ -17,10 +17,11 @@ use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion
 use serde::{Deserialize, Serialize};
 
 use super::estimator::{MarkerlessEstimate, MarkerlessEstimator, Occluder};
-use super::Axis;
+use super::tracker::{ModelTracker, TrackerParams};
+use super::{Axis, TrocarModel};
 use crate::validate;
 use crate::vision::estimator::{EstimateStatus, TrocarEstimator};
-use crate::vision::{ImageView, VisionError};
+use crate::vision::{CameraModel, ImageView, VisionError};
 
 /// How the trocar estimator measures the trocar.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -74,6 +75,10 @@ pub struct MarkerlessParams {
     /// Correct the hand-eye by the endoscope's axis as both eyes of a stereo pair see it
     /// ([`MarkerlessEstimator::camera_t_believed`]): off, the hand-eye is used as it is.
     pub endoscope_corrects_hand_eye: bool,
+    /// Images in a row ViSP's model-based tracker may carry the track through where the
+    /// image gives no confident estimate ([`MarkerlessEstimator::with_tracker`]); 0: no
+    /// tracker.
+    pub tracker_frames: usize,
 }
 
 crate::shipped_defaults!(MarkerlessParams, crate::config::TROCAR_ESTIMATOR, ["markerless"]);
@@ -84,6 +89,7 @@ impl MarkerlessParams {
         validate::positive_at_most("markerless.min_confidence", self.min_confidence, 1.0)?;
         validate::positive_at_most("markerless.sigma_position_m", self.sigma_position_m, 0.1)?;
         validate::positive_at_most("markerless.sigma_direction_rad", self.sigma_direction_rad, 0.5)?;
+        validate::integer_in_range("markerless.tracker_frames", self.tracker_frames as i64, 0, 300)?;
         let r = self.endoscope_radius_m;
         if !(r.is_finite() && (0.0..=0.05).contains(&r)) {
             return Err(VisionError::InvalidInput(format!(
@@ -91,6 +97,22 @@ impl MarkerlessParams {
             )));
         }
         Ok(())
+    }
+
+    /// The model-based tracker for `camera` and `model` and the images it may carry
+    /// ([`MarkerlessEstimator::with_tracker`]); `None` with `tracker_frames` 0.
+    pub fn tracker(
+        &self,
+        camera: &CameraModel,
+        model: &TrocarModel,
+    ) -> Result<Option<(ModelTracker, usize)>, VisionError> {
+        if self.tracker_frames == 0 {
+            return Ok(None);
+        }
+        Ok(Some((
+            ModelTracker::new(camera, model, TrackerParams::default())?,
+            self.tracker_frames,
+        )))
     }
 
     /// The endoscope in view as the estimator masks it: a straight shaft of
@@ -287,6 +309,7 @@ mod tests {
             edge_support: 0.9,
             opening_support: 0.95,
             ambiguity_margin: 1.0,
+            tracked: None,
         }
     }
 
@@ -458,11 +481,29 @@ mod tests {
                 },
                 "endoscope_radius_m",
             ),
+            (
+                MarkerlessParams {
+                    tracker_frames: 301,
+                    ..Default::default()
+                },
+                "tracker_frames",
+            ),
         ] {
             let e = p.validate().unwrap_err().to_string();
             assert!(e.contains(key), "{e}");
         }
         assert!(MarkerlessParams::default().validate().is_ok());
+    }
+
+    #[test]
+    fn the_shipped_estimator_has_a_tracker_and_0_frames_has_none() {
+        let camera = CameraModel::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0).unwrap();
+        let model = TrocarModel::shipped();
+        let p = MarkerlessParams::default();
+        let (_, n) = p.tracker(&camera, &model).unwrap().expect("shipped with a tracker");
+        assert_eq!(n, 15);
+        let off = MarkerlessParams { tracker_frames: 0, ..p };
+        assert!(off.tracker(&camera, &model).unwrap().is_none());
     }
 
     #[test]

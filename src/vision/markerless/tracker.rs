@@ -11,13 +11,15 @@
 //! A track is lost when the tracker gives up (too few edge sites), when its projection error
 //! (the mean angle between the image's gradient and the model's projected edges at the
 //! sites) exceeds [`TrackerParams::max_projection_error_deg`], when too few sites are left,
-//! or when the robust estimator rejects too many of them. [`TrackingEstimator`] then asks the
-//! per-frame estimator again and restarts the tracker from its confident estimate.
+//! or when the robust estimator rejects too many of them.
+//! [`MarkerlessEstimator::with_tracker`] restarts it from every confident per-frame estimate
+//! and lets it carry the images that give none.
 
 use cxx::UniquePtr;
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
 
-use super::estimator::{MarkerlessEstimate, MarkerlessEstimator, HIGH_CONFIDENCE};
+#[cfg(doc)]
+use super::estimator::MarkerlessEstimator;
 use super::geometry::Axis;
 use super::measurement::with_roll_convention;
 use super::model::TrocarModel;
@@ -291,6 +293,13 @@ impl ModelTracker {
         }))
     }
 
+    /// Leave out of the edge search where `hidden` (the camera's size, row by row) is
+    /// non-zero: a known occluder in view; empty: search everywhere.
+    pub fn set_mask(&mut self, hidden: &[u8]) -> Result<(), VisionError> {
+        ffi::model_tracker_set_mask(self.t.pin_mut(), hidden)?;
+        Ok(())
+    }
+
     /// Stop the track (the next image starts from an estimate).
     pub fn stop(&mut self) {
         self.tracking = false;
@@ -352,103 +361,4 @@ fn axis_of_numbers(v: &[f64]) -> Option<Axis> {
         point: Vector3::new(v[9], v[10], v[11]),
         direction: Unit::new_normalize(r * Vector3::z()),
     })
-}
-
-/// Where an estimate of [`TrackingEstimator`] came from.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Source {
-    /// The per-frame estimate of the opening's ellipse (the tracker was started from it).
-    Detector,
-    /// The model-based tracker.
-    Tracker,
-}
-
-/// One estimate of [`TrackingEstimator`].
-#[derive(Debug, Clone, PartialEq)]
-pub struct TrackingEstimate {
-    /// The axis, camera frame.
-    pub axis: Axis,
-    /// Confidence in [0, 1].
-    pub confidence: f64,
-    /// Where it came from.
-    pub source: Source,
-    /// The tracker's pose and fit, when it came from the tracker.
-    pub tracked: Option<TrackedPose>,
-    /// The per-frame estimate, when it came from the detector.
-    pub detected: Option<MarkerlessEstimate>,
-}
-
-/// The per-frame estimator and the model-based tracker together. The per-frame estimate
-/// is asked on every image and is the answer where it is confident (at least
-/// [`HIGH_CONFIDENCE`]); the tracker is (re)started from it there. Where it is not (the
-/// opening hidden or blurred), the tracker carries the track on from the last confident
-/// estimate, for at most `max_tracked_frames` images in a row: ViSP's moving edges are
-/// pixel-level, and from an image's true pose one step of the tracker lands 1-7 mm off at
-/// 0.4 m (the depth of a 22 px circle), so a track left alone drifts.
-pub struct TrackingEstimator {
-    detector: MarkerlessEstimator,
-    tracker: ModelTracker,
-    max_tracked_frames: usize,
-    tracked_frames: usize,
-    /// Why the track was last lost (cleared when it restarts).
-    pub last_lost: Option<String>,
-}
-
-impl TrackingEstimator {
-    /// The two for one camera; the tracker carries at most `max_tracked_frames` images
-    /// in a row.
-    pub fn new(detector: MarkerlessEstimator, tracker: ModelTracker, max_tracked_frames: usize) -> Self {
-        Self {
-            detector,
-            tracker,
-            max_tracked_frames,
-            tracked_frames: 0,
-            last_lost: None,
-        }
-    }
-
-    /// The estimate of `image`, or `None` (no confident per-frame estimate, no track, and
-    /// no per-frame estimate at all). `prior`: as [`MarkerlessEstimator::estimate`].
-    pub fn estimate(
-        &mut self,
-        image: &ImageView,
-        prior: Option<&Unit<Vector3<f64>>>,
-    ) -> Result<Option<TrackingEstimate>, VisionError> {
-        let detected = self.detector.estimate(image, prior)?;
-        if let Some(e) = detected.as_ref().filter(|e| e.confidence >= HIGH_CONFIDENCE) {
-            self.tracker.start(image, &e.axis)?;
-            self.tracked_frames = 0;
-            self.last_lost = None;
-        } else if self.tracker.is_tracking() {
-            if self.tracked_frames >= self.max_tracked_frames {
-                self.tracker.stop();
-                self.last_lost = Some(format!(
-                    "no confident per-frame estimate for {} images",
-                    self.tracked_frames + 1
-                ));
-            } else {
-                match self.tracker.track(image)? {
-                    TrackStep::Tracked(t) => {
-                        self.tracked_frames += 1;
-                        return Ok(Some(TrackingEstimate {
-                            axis: t.axis,
-                            confidence: t.confidence,
-                            source: Source::Tracker,
-                            tracked: Some(t),
-                            detected: None,
-                        }));
-                    }
-                    TrackStep::Lost(why) => self.last_lost = Some(why),
-                }
-            }
-        }
-        Ok(detected.map(|e| TrackingEstimate {
-            axis: e.axis,
-            confidence: e.confidence,
-            source: Source::Detector,
-            tracked: None,
-            detected: Some(e),
-        }))
-    }
 }
