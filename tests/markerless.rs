@@ -1,6 +1,8 @@
 //! The markerless trocar axis on rendered images: accuracy along the docking approach under
 //! varied lighting and noise, and no confident wrong estimate on bad input.
 
+mod common;
+
 use std::path::Path;
 
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -13,14 +15,11 @@ use trocar_docking::vision::markerless::{
 use trocar_docking::vision::{CameraModel, GreyImage};
 
 fn camera() -> CameraModel {
-    CameraModel::from_yaml_file(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml")).unwrap()
+    common::zedm_camera()
 }
 
 fn mount() -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::new(0.001, 0.0695, 0.0405),
-        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 15.2f64.to_radians()),
-    )
+    common::camera_mount()
 }
 
 /// Errors of one frame: port mm, axis deg, confidence; None when not found.

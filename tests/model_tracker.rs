@@ -2,9 +2,11 @@
 //! continuous approach, says when it has lost the trocar, and carries the track where the
 //! per-frame estimate is not confident, never confidently wrong.
 
+mod common;
+
 use std::path::Path;
 
-use nalgebra::{Isometry3, Point3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use trocar_docking::stats::finite_quantile;
 use trocar_docking::vision::markerless::approach::continuous_approach;
 use trocar_docking::vision::markerless::render::ToolCylinder;
@@ -15,15 +17,11 @@ use trocar_docking::vision::markerless::{
 use trocar_docking::vision::{CameraModel, GreyImage};
 
 fn camera() -> CameraModel {
-    CameraModel::from_yaml_file(&Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml")).unwrap()
+    common::zedm_camera()
 }
 
-/// The simulator's camera mount (config/lbr_med_sim.yaml).
 fn mount() -> Isometry3<f64> {
-    Isometry3::from_parts(
-        Translation3::new(0.001, 0.0695, 0.0405),
-        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 15.2f64.to_radians()),
-    )
+    common::camera_mount()
 }
 
 fn axis_of(p: &Isometry3<f64>) -> Axis {

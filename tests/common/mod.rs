@@ -1,5 +1,5 @@
-//! Fixtures the controller tests share: the arm, its start pose, a trocar below it, and an
-//! input without contact.
+//! Fixtures the tests share: the arm, its start pose, a trocar below it, and an input
+//! without contact; the simulated camera and its mount.
 
 // Each test file uses some of them.
 #![allow(dead_code)]
@@ -45,4 +45,20 @@ pub fn contact_free_input(now: f64, q: JointVector, trocar_stamp: f64, trocar: I
             value: trocar,
         }),
     }
+}
+
+/// The simulated camera (config/camera_zedm.yaml).
+pub fn zedm_camera() -> trocar_docking::vision::CameraModel {
+    trocar_docking::vision::CameraModel::from_yaml_file(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/camera_zedm.yaml"),
+    )
+    .unwrap()
+}
+
+/// The simulator's camera mount (config/lbr_med_sim.yaml `camera.flange_t_camera`).
+pub fn camera_mount() -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(0.001, 0.0695, 0.0405),
+        UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 15.2f64.to_radians()),
+    )
 }

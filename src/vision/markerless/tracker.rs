@@ -16,7 +16,7 @@
 //! and lets it carry the images that give none.
 
 use cxx::UniquePtr;
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 
 #[cfg(doc)]
 use super::estimator::MarkerlessEstimator;
@@ -24,7 +24,7 @@ use super::geometry::Axis;
 use super::measurement::with_roll_convention;
 use super::model::TrocarModel;
 use crate::ffi::model_tracker::{ffi, TRACK_RECORD_LEN};
-use crate::vision::{CameraModel, ImageView, VisionError};
+use crate::vision::{isometry_from_rt, rt_from_isometry, CameraModel, ImageView, VisionError};
 
 /// The tracker's settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -219,7 +219,7 @@ impl ModelTracker {
             image.width as i32,
             image.height as i32,
             image.channels as i32,
-            &pose_numbers(&pose),
+            &rt_from_isometry(&pose),
         )?;
         self.tracking = true;
         Ok(())
@@ -328,37 +328,12 @@ fn pose_of_axis(axis: &Axis) -> Isometry3<f64> {
     )
 }
 
-/// A pose as the bridge's 12 numbers.
-fn pose_numbers(pose: &Isometry3<f64>) -> [f64; 12] {
-    let r = pose.rotation.to_rotation_matrix();
-    let m = r.matrix();
-    let t = pose.translation.vector;
-    [
-        m[(0, 0)],
-        m[(0, 1)],
-        m[(0, 2)],
-        m[(1, 0)],
-        m[(1, 1)],
-        m[(1, 2)],
-        m[(2, 0)],
-        m[(2, 1)],
-        m[(2, 2)],
-        t.x,
-        t.y,
-        t.z,
-    ]
-}
-
-/// The axis of the bridge's 12 numbers: the origin and the z axis; `None` if not finite or
-/// not in front of the camera.
+/// The axis of the bridge's 12 numbers: the origin and the z axis; `None` if not finite, not
+/// a rotation, or not in front of the camera.
 fn axis_of_numbers(v: &[f64]) -> Option<Axis> {
-    if v.len() != 12 || !v.iter().all(|x| x.is_finite()) || v[11] <= 0.0 {
-        return None;
-    }
-    let m = Matrix3::new(v[0], v[1], v[2], v[3], v[4], v[5], v[6], v[7], v[8]);
-    let r = Rotation3::from_matrix(&m);
+    let pose = isometry_from_rt(v).filter(|p| p.translation.vector.z > 0.0)?;
     Some(Axis {
-        point: Vector3::new(v[9], v[10], v[11]),
-        direction: Unit::new_normalize(r * Vector3::z()),
+        point: pose.translation.vector,
+        direction: Unit::new_normalize(pose.rotation * Vector3::z()),
     })
 }
