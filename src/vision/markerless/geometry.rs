@@ -2,7 +2,7 @@
 //! coordinates (x/z, y/z): a circle's image conic and the two circle poses an ellipse
 //! admits, and the outline (limbs) of a cylinder.
 
-use nalgebra::{Isometry3, Matrix3, Point3, SymmetricEigen, Unit, Vector2, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, SymmetricEigen, Unit, UnitQuaternion, Vector2, Vector3};
 
 /// The trocar's axis in the camera frame: the port centre and the unit direction into the body.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -180,6 +180,29 @@ pub fn cylinder_limbs(axis: &Axis, radius: f64, t0: f64, t1: f64) -> Option<[[Ve
 /// The normalised image point of a camera-frame point (`None` behind the camera).
 pub fn project(p: &Vector3<f64>) -> Option<Vector2<f64>> {
     (p.z > 1e-9).then(|| Vector2::new(p.x / p.z, p.y / p.z))
+}
+
+/// `pose` with its origin and z axis kept and its roll about z set by the convention of
+/// the markerless estimator (x = base x projected normal to z; base y when z is within 25 deg of base x).
+pub fn with_roll_convention(pose: &Isometry3<f64>) -> Isometry3<f64> {
+    let z = pose.rotation * Vector3::z();
+    Isometry3::from_parts(pose.translation, rotation_of_axis(&Unit::new_normalize(z)))
+}
+
+/// The rotation whose z axis is `z`, with the roll of the convention.
+pub(super) fn rotation_of_axis(z: &Unit<Vector3<f64>>) -> UnitQuaternion<f64> {
+    let helper = if z.x.abs() < 25f64.to_radians().cos() {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let x = (helper - z.dot(&helper) * z.into_inner()).normalize();
+    let y = z.cross(&x);
+    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
+        x,
+        y,
+        z.into_inner(),
+    ])))
 }
 
 #[cfg(test)]

@@ -13,10 +13,12 @@
 //! convention is applied to marker measurements in the `fused` method, so switching between
 //! the two sources does not rotate the estimate.
 
-use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Matrix3, Translation3, Unit, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::estimator::{MarkerlessEstimate, MarkerlessEstimator, Occluder};
+use super::geometry::rotation_of_axis;
+pub use super::geometry::with_roll_convention;
 use super::tracker::{ModelTracker, TrackerParams};
 use super::{Axis, TrocarModel};
 use crate::validate;
@@ -125,29 +127,6 @@ impl MarkerlessParams {
 
 /// The variance given to the roll (rad^2): unobserved, as ROS marks an unknown DOF.
 pub const ROLL_VARIANCE: f64 = 1e6;
-
-/// `pose` with its origin and z axis kept and its roll about z set by the convention of
-/// this module (x = base x projected normal to z; base y when z is within 25 deg of base x).
-pub fn with_roll_convention(pose: &Isometry3<f64>) -> Isometry3<f64> {
-    let z = pose.rotation * Vector3::z();
-    Isometry3::from_parts(pose.translation, rotation_of_axis(&Unit::new_normalize(z)))
-}
-
-/// The rotation whose z axis is `z`, with the roll of the convention.
-fn rotation_of_axis(z: &Unit<Vector3<f64>>) -> UnitQuaternion<f64> {
-    let helper = if z.x.abs() < 25f64.to_radians().cos() {
-        Vector3::x()
-    } else {
-        Vector3::y()
-    };
-    let x = (helper - z.dot(&helper) * z.into_inner()).normalize();
-    let y = z.cross(&x);
-    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[
-        x,
-        y,
-        z.into_inner(),
-    ])))
-}
 
 /// The port pose in the base frame of an axis seen from a camera at `base_t_camera`.
 pub fn port_pose(base_t_camera: &Isometry3<f64>, axis: &Axis) -> Isometry3<f64> {
@@ -300,6 +279,7 @@ pub fn track(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use nalgebra::UnitQuaternion;
 
     fn estimate(axis: Axis, confidence: f64) -> MarkerlessEstimate {
         MarkerlessEstimate {

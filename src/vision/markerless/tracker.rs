@@ -1,6 +1,6 @@
 //! ViSP's model-based tracker (`vpMbGenericTracker`, moving edges, through the cxx bridge)
 //! on the trocar model, started and restarted from the per-frame estimate of the opening's
-//! ellipse ([`MarkerlessEstimator`]).
+//! ellipse (`MarkerlessEstimator`).
 //!
 //! The tracker's model is generated from [`TrocarModel`] as ViSP `.cao` text ([`cao`]):
 //! polygons of [`TrackerParams::polygon_sides`] sides for the face's rim, the opening and
@@ -12,16 +12,13 @@
 //! (the mean angle between the image's gradient and the model's projected edges at the
 //! sites) exceeds [`TrackerParams::max_projection_error_deg`], when too few sites are left,
 //! or when the robust estimator rejects too many of them.
-//! [`MarkerlessEstimator::with_tracker`] restarts it from every confident per-frame estimate
+//! `MarkerlessEstimator::with_tracker` restarts it from every confident per-frame estimate
 //! and lets it carry the images that give none.
 
 use cxx::UniquePtr;
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 
-#[cfg(doc)]
-use super::estimator::MarkerlessEstimator;
-use super::geometry::Axis;
-use super::measurement::with_roll_convention;
+use super::geometry::{with_roll_convention, Axis};
 use super::model::TrocarModel;
 use crate::ffi::model_tracker::{ffi, TRACK_RECORD_LEN};
 use crate::vision::{isometry_from_rt, rt_from_isometry, CameraModel, ImageView, VisionError};
