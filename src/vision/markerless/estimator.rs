@@ -929,7 +929,7 @@ impl MarkerlessEstimator {
         let TrackStep::Tracked(t) = c.tracker.track(image)? else {
             return Ok(own);
         };
-        if own.as_ref().is_some_and(|e| e.confidence >= t.confidence) {
+        if t.confidence <= 0.0 || own.as_ref().is_some_and(|e| e.confidence >= t.confidence) {
             return Ok(own);
         }
         let e = own.unwrap_or(MarkerlessEstimate {

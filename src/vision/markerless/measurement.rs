@@ -189,10 +189,21 @@ pub fn accept(
         return Err("markerless estimate not finite".into());
     }
     if e.confidence < p.min_confidence {
-        return Err(format!(
-            "markerless confidence {:.2} below {:.2} (edge support {:.2}, fit {:.2} px, ambiguity margin {:.2})",
-            e.confidence, p.min_confidence, e.edge_support, e.fit_rms_px, e.ambiguity_margin
-        ));
+        return Err(match &e.tracked {
+            Some(t) => format!(
+                "markerless confidence {:.2} below {:.2} (carried by the tracker: projection error {:.1} deg, \
+                 {} sites, {:.0} % kept)",
+                e.confidence,
+                p.min_confidence,
+                t.projection_error_deg,
+                t.sites,
+                100.0 * t.kept_fraction
+            ),
+            None => format!(
+                "markerless confidence {:.2} below {:.2} (edge support {:.2}, fit {:.2} px, ambiguity margin {:.2})",
+                e.confidence, p.min_confidence, e.edge_support, e.fit_rms_px, e.ambiguity_margin
+            ),
+        });
     }
     let pose = port_pose(base_t_camera, &e.axis);
     Ok(MarkerlessMeasurement {
@@ -407,6 +418,22 @@ mod tests {
         assert!(e.contains("no trocar opening"), "{e}");
         let e = accept(Some(&estimate(axis, 0.3)), &camera(), &p).unwrap_err();
         assert!(e.contains("confidence 0.30 below 0.50"), "{e}");
+        // A pose the model-based tracker carried says so, with its fit.
+        let carried = MarkerlessEstimate {
+            tracked: Some(super::super::tracker::TrackedPose {
+                axis,
+                projection_error_deg: 10.5,
+                sites: 320,
+                kept_fraction: 0.95,
+                confidence: 0.31,
+            }),
+            ..estimate(axis, 0.31)
+        };
+        let e = accept(Some(&carried), &camera(), &p).unwrap_err();
+        assert!(
+            e.contains("0.31 below 0.50 (carried by the tracker: projection error 10.5 deg, 320 sites, 95 % kept)"),
+            "{e}"
+        );
         let mut bad = estimate(axis, 0.9);
         bad.axis.point.x = f64::NAN;
         assert!(accept(Some(&bad), &camera(), &p).unwrap_err().contains("not finite"));
