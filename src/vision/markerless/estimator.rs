@@ -911,22 +911,29 @@ impl MarkerlessEstimator {
             c.carried = 0;
             return Ok(own);
         }
-        if c.carried >= c.max_frames {
+        if c.carried >= c.max_frames || (c.carried > 0 && !c.tracker.is_tracking()) {
             c.tracker.stop();
             return Ok(own);
         }
-        c.tracker.set_mask(&ffi::markerless_occluder_mask(&self.left.det))?;
-        if c.carried == 0 {
-            // The first image without a confident estimate: start on the last one that had it.
-            let Some((data, [w, h, ch], axis)) = &c.last else {
-                return Ok(own);
-            };
-            c.tracker.start(&ImageView::new(data, *w, *h, *ch)?, axis)?;
-        } else if !c.tracker.is_tracking() {
-            return Ok(own);
-        }
-        c.carried += 1;
-        let TrackStep::Tracked(t) = c.tracker.track(image)? else {
+        // The first image without a confident estimate starts the tracker on the last one
+        // that had it. A tracker that fails on an image stops; the image's own estimate
+        // stands.
+        let step = match &c.last {
+            None => return Ok(own),
+            Some((data, [w, h, ch], axis)) => {
+                let mask = ffi::markerless_occluder_mask(&self.left.det);
+                let first = c.carried == 0;
+                c.carried += 1;
+                c.tracker.set_mask(&mask).and_then(|()| {
+                    if first {
+                        c.tracker.start(&ImageView::new(data, *w, *h, *ch)?, axis)?;
+                    }
+                    c.tracker.track(image)
+                })
+            }
+        };
+        let Ok(TrackStep::Tracked(t)) = step else {
+            c.tracker.stop();
             return Ok(own);
         };
         if t.confidence <= 0.0 || own.as_ref().is_some_and(|e| e.confidence >= t.confidence) {
