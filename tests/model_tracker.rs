@@ -6,7 +6,7 @@ mod common;
 
 use std::path::Path;
 
-use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use nalgebra::{Isometry3, Point3, Vector3};
 use trocar_docking::stats::finite_quantile;
 use trocar_docking::vision::markerless::approach::continuous_approach;
 use trocar_docking::vision::markerless::render::ToolCylinder;
@@ -24,16 +24,9 @@ fn mount() -> Isometry3<f64> {
     common::camera_mount()
 }
 
-fn axis_of(p: &Isometry3<f64>) -> Axis {
-    Axis {
-        point: p.translation.vector,
-        direction: Unit::new_normalize(p.rotation * Vector3::z()),
-    }
-}
-
 /// Port error (mm) and axis error (deg) of `axis` against the true pose.
 fn errors(axis: &Axis, truth: &Isometry3<f64>) -> (f64, f64) {
-    let t = axis_of(truth);
+    let t = Axis::of_pose(truth);
     (
         (axis.point - t.point).norm() * 1e3,
         axis.direction.angle(&t.direction).to_degrees(),
@@ -127,7 +120,7 @@ fn track_approach(seed: u64) -> Vec<Option<(f64, f64, f64)>> {
     for (k, p) in poses.iter().enumerate() {
         let img = r.render(&model, p, &scene).unwrap();
         if k == 0 {
-            t.start(&img.view(), &axis_of(p)).unwrap();
+            t.start(&img.view(), &Axis::of_pose(p)).unwrap();
         }
         out.push(match t.track(&img.view()).unwrap() {
             TrackStep::Tracked(tp) => {
@@ -180,7 +173,7 @@ fn the_tracker_loses_a_trocar_that_leaves_the_view() {
     let mut scene = Scene::random(5, 2.0);
     let mut t = ModelTracker::new(&cam, &model, TrackerParams::default()).unwrap();
     let img = r.render(&model, &poses[0], &scene).unwrap();
-    t.start(&img.view(), &axis_of(&poses[0])).unwrap();
+    t.start(&img.view(), &Axis::of_pose(&poses[0])).unwrap();
     for p in &poses[1..5] {
         let img = r.render(&model, p, &scene).unwrap();
         let step = t.track(&img.view()).unwrap();

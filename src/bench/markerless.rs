@@ -87,16 +87,12 @@ fn tracker_cases(
     n: usize,
 ) -> Result<Vec<SuiteReport>, VisionError> {
     let mut t = ModelTracker::new(camera, model, TrackerParams::default())?;
-    let axis = |p: &Isometry3<f64>| Axis {
-        point: p.translation.vector,
-        direction: nalgebra::Unit::new_normalize(p.rotation * Vector3::z()),
-    };
     let idx: Vec<usize> = (0..n.clamp(1, 300)).map(|i| i % frames.len()).collect();
     let start = time_each(&idx, 3, |&i| {
-        t.start(&frames[i].view(), &axis(&poses[i])).map(|()| true)
+        t.start(&frames[i].view(), &Axis::of_pose(&poses[i])).map(|()| true)
     });
     let step = time_each(&idx, 3, |&i| {
-        t.start(&frames[i].view(), &axis(&poses[i]))?;
+        t.start(&frames[i].view(), &Axis::of_pose(&poses[i]))?;
         t.track(&frames[i].view()).map(|s| matches!(s, TrackStep::Tracked(_)))
     });
     let mut out = vec![];

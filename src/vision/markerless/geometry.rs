@@ -14,6 +14,14 @@ pub struct Axis {
 }
 
 impl Axis {
+    /// The axis of a port pose: its origin and its z axis.
+    pub fn of_pose(pose: &Isometry3<f64>) -> Axis {
+        Axis {
+            point: pose.translation.vector,
+            direction: Unit::new_normalize(pose.rotation * Vector3::z()),
+        }
+    }
+
     /// Angle between the two axes' directions, rad.
     pub fn angle_to(&self, other: &Axis) -> f64 {
         self.direction.dot(&other.direction).clamp(-1.0, 1.0).acos()

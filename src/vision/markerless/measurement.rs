@@ -259,13 +259,7 @@ pub fn track(
         .as_ref()
         .map(|e| prior_direction(base_t_camera, &e.pose_base_trocar));
     // Where the track puts the port: the endoscope's shaft inside it is hidden by it.
-    let port = tracked.map(|e| {
-        let camera_t_port = base_t_camera.inverse() * e.pose_base_trocar;
-        Axis {
-            point: camera_t_port.translation.vector,
-            direction: Unit::new_normalize(camera_t_port.rotation * Vector3::z()),
-        }
-    });
+    let port = tracked.map(|e| Axis::of_pose(&(base_t_camera.inverse() * e.pose_base_trocar)));
     estimator.set_port_hint(port.as_ref()).map_err(|e| e.to_string())?;
     let e = estimator
         .estimate_stereo(view, right, prior.as_ref())
@@ -363,11 +357,7 @@ mod tests {
             Translation3::new(0.62, -0.05, 0.25),
             UnitQuaternion::from_euler_angles(3.0, 0.15, 0.0),
         ));
-        let camera_t_port = base_t_camera.inverse() * truth;
-        let axis = Axis {
-            point: camera_t_port.translation.vector,
-            direction: Unit::new_normalize(camera_t_port.rotation * Vector3::z()),
-        };
+        let axis = Axis::of_pose(&(base_t_camera.inverse() * truth));
         let pose = port_pose(&base_t_camera, &axis);
         let (dt, dr) = crate::vision::pose_distance(&pose, &truth);
         assert!(dt < 1e-12 && dr < 1e-9, "{dt} {dr}");

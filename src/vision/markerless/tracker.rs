@@ -16,7 +16,7 @@
 //! and lets it carry the images that give none.
 
 use cxx::UniquePtr;
-use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use super::geometry::{with_roll_convention, Axis};
 use super::model::TrocarModel;
@@ -328,9 +328,7 @@ fn pose_of_axis(axis: &Axis) -> Isometry3<f64> {
 /// The axis of the bridge's 12 numbers: the origin and the z axis; `None` if not finite, not
 /// a rotation, or not in front of the camera.
 fn axis_of_numbers(v: &[f64]) -> Option<Axis> {
-    let pose = isometry_from_rt(v).filter(|p| p.translation.vector.z > 0.0)?;
-    Some(Axis {
-        point: pose.translation.vector,
-        direction: Unit::new_normalize(pose.rotation * Vector3::z()),
-    })
+    isometry_from_rt(v)
+        .filter(|p| p.translation.vector.z > 0.0)
+        .map(|p| Axis::of_pose(&p))
 }
