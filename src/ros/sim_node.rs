@@ -57,6 +57,15 @@ pub struct SimNodeParams {
     pub camera_enabled: bool,
     /// Camera rate, Hz.
     pub camera_rate_hz: f64,
+    /// With `publish_clock`: the simulated clock waits for the camera, as a simulator's
+    /// sensors do in lockstep (Gazebo's): a frame due while the last one is still rendering
+    /// is taken once the renderer is free, so every frame comes at `camera_rate_hz` of
+    /// simulated time and a slow host slows the simulation instead of dropping frames.
+    /// false, or on the wall clock: such a frame is dropped, as a real camera drops frames.
+    pub camera_lockstep: bool,
+    /// Tests only: wall-clock seconds each rendered frame takes on top of its render, to
+    /// stand for a slow or loaded host (0 = none).
+    pub camera_render_delay_s: f64,
     /// Image out.
     pub image_topic: String,
     /// CameraInfo out.
@@ -281,13 +290,15 @@ impl SimScene {
 }
 
 /// The simulated camera: renders on its own thread (a frame takes tens of ms) so the
-/// physics and the FRI topics keep their rate; a frame due while the last one is still
-/// rendering is skipped, as a real camera drops frames.
+/// physics and the FRI topics keep their rate between frames. A frame due while the last one
+/// is still rendering waits for the renderer in lockstep ([`SimNodeParams::camera_lockstep`]:
+/// the simulated clock stops meanwhile), else it is skipped, as a real camera drops frames.
 struct SimCamera {
     jobs: std::sync::mpsc::SyncSender<CameraJob>,
     flange_kin: LbrKinematics,
     flange_t_camera: Isometry3<f64>,
     seq: u64,
+    lockstep: bool,
 }
 
 /// The camera thread's side: its publishers, parameters and model.
@@ -301,6 +312,8 @@ struct CameraOutput {
     )>,
     params: SimCameraParams,
     model: CameraModel,
+    /// Tests only: a wall-clock delay added to each frame's render.
+    render_delay: Duration,
 }
 
 impl CameraOutput {
@@ -334,6 +347,9 @@ impl CameraOutput {
                 }
                 _ => (pool.install(left), None),
             };
+            if !self.render_delay.is_zero() {
+                std::thread::sleep(self.render_delay);
+            }
             render_ms.latency(t0.elapsed().as_secs_f64() * 1e3);
             if job.seq % 150 == 0 {
                 let l = render_ms.percentiles();
@@ -438,6 +454,7 @@ impl SimCamera {
             right,
             params: c,
             model,
+            render_delay: Duration::from_secs_f64(p.camera_render_delay_s),
         };
         std::thread::spawn(move || out.run(&rx, &scene, &pool, noise));
         Ok(Self {
@@ -445,14 +462,17 @@ impl SimCamera {
             flange_kin: LbrKinematics::from_model_or_file(p.model, "", FLANGE_LINK)?,
             flange_t_camera,
             seq: 0,
+            lockstep: p.camera_lockstep && p.publish_clock,
         })
     }
 
-    /// Capture a frame of `world` now (skipped while the last one renders).
-    fn capture(&mut self, world: &SimWorld, stamp: rosrust::Time) {
+    /// Capture a frame of `world` now: in lockstep it waits for the renderer to finish the
+    /// last frame, else the frame is skipped while the last one renders. Returns the wall
+    /// time waited.
+    fn capture(&mut self, world: &SimWorld, stamp: rosrust::Time) -> Duration {
         // The camera rides on the link side: where the (elastic) arm really is.
         let Ok(base_t_flange) = self.flange_kin.fk(&world.joint_positions_link()) else {
-            return;
+            return Duration::ZERO;
         };
         let camera_t_trocar = marker_in_camera(
             &base_t_flange,
@@ -461,11 +481,19 @@ impl SimCamera {
             &Isometry3::identity(),
         );
         self.seq += 1;
-        let _ = self.jobs.try_send(CameraJob {
+        let job = CameraJob {
             stamp,
             camera_t_trocar,
             seq: self.seq,
-        });
+        };
+        if !self.lockstep {
+            let _ = self.jobs.try_send(job);
+            return Duration::ZERO;
+        }
+        // The rendezvous channel takes the job once the renderer is free.
+        let t0 = Instant::now();
+        let _ = self.jobs.send(job);
+        t0.elapsed()
     }
 }
 
@@ -746,7 +774,10 @@ pub fn run() -> Result<(), NodeError> {
 
     // Simulated time starts at the wall clock, so stamps look like the real driver's.
     let t0 = convert::seconds(rosrust::Time::from(std::time::SystemTime::now()));
-    let wall0 = Instant::now();
+    // The wall-clock origin of the pace; moved on by the time the clock waited for the
+    // camera in lockstep, so that the simulation runs slower then instead of catching up
+    // in a burst.
+    let mut wall0 = Instant::now();
     let (mut fri, mut truth) = (Every::new(p.fri_rate_hz, t0), Every::new(10.0, t0));
     let mut frames = Every::new(p.camera_rate_hz, t0);
     let mut last_measurement = f64::NEG_INFINITY;
@@ -791,7 +822,7 @@ pub fn run() -> Result<(), NodeError> {
         );
         if let (true, Some(cam)) = (live, camera.as_mut()) {
             if frames.due(t) {
-                cam.capture(&world, stamp);
+                wall0 += cam.capture(&world, stamp);
             }
         }
         if live {
