@@ -57,6 +57,12 @@ pub struct SimNodeParams {
     pub camera_enabled: bool,
     /// Camera rate, Hz.
     pub camera_rate_hz: f64,
+    /// The simulated camera's clock offset from the simulator's, s (tests only; 0 as shipped):
+    /// added to every image's and camera_info's stamp, as a camera driver on a second machine
+    /// whose clock is this far ahead (negative: behind) stamps its frames. Under
+    /// `/use_sim_time` every node reads the simulator's `/clock`, so a machine's own clock
+    /// shows only where a driver stamps with it: here.
+    pub camera_stamp_offset_s: f64,
     /// Image out.
     pub image_topic: String,
     /// CameraInfo out.
@@ -448,7 +454,8 @@ impl SimCamera {
         })
     }
 
-    /// Capture a frame of `world` now (skipped while the last one renders).
+    /// Capture a frame of `world` now (skipped while the last one renders), stamped `stamp`
+    /// (the camera's clock).
     fn capture(&mut self, world: &SimWorld, stamp: rosrust::Time) {
         // The camera rides on the link side: where the (elastic) arm really is.
         let Ok(base_t_flange) = self.flange_kin.fk(&world.joint_positions_link()) else {
@@ -467,6 +474,15 @@ impl SimCamera {
             seq: self.seq,
         });
     }
+}
+
+/// A frame captured at `stamp` (the simulator's clock) as a camera whose clock is
+/// `offset_s` ahead stamps it.
+fn camera_stamp(stamp: rosrust::Time, offset_s: f64) -> rosrust::Time {
+    if offset_s == 0.0 {
+        return stamp;
+    }
+    convert::ros_time(convert::seconds(stamp) + offset_s)
 }
 
 /// Nice the calling thread by 10 (the simulated camera's renderer: below the physics).
@@ -728,6 +744,13 @@ pub fn run() -> Result<(), NodeError> {
     if !(p.real_time_factor > 0.0 && p.real_time_factor.is_finite()) {
         return Err(NodeError::Invalid(format!("real_time_factor = {}", p.real_time_factor)));
     }
+    crate::validate::in_range("camera_stamp_offset_s", p.camera_stamp_offset_s, -60.0, 60.0)?;
+    if p.camera_stamp_offset_s != 0.0 {
+        rosrust::ros_warn!(
+            "lbr_med_sim: the camera's stamps are {:+.0} ms off the simulator's clock (camera_stamp_offset_s, a test's camera clock offset)",
+            p.camera_stamp_offset_s * 1e3
+        );
+    }
     let kin = LbrKinematics::from_model(p.model, &ToolParams::default())?;
     let shared_kin: Arc<dyn Kinematics> = Arc::new(kin.clone());
     let world_cfg = world_config(&p)?;
@@ -791,7 +814,7 @@ pub fn run() -> Result<(), NodeError> {
         );
         if let (true, Some(cam)) = (live, camera.as_mut()) {
             if frames.due(t) {
-                cam.capture(&world, stamp);
+                cam.capture(&world, camera_stamp(stamp, p.camera_stamp_offset_s));
             }
         }
         if live {
@@ -1047,6 +1070,16 @@ mod tests {
         assert!(e.what == "/lbr_med_sim/world" && e.message.contains("simm"), "{e}");
         let p = SimNodeParams::from_tree("/lbr_med_sim", serde_json::json!({"seed": 2})).unwrap();
         assert_eq!((p.seed, &p.world), (2, &SimConfig::default()));
+    }
+
+    #[test]
+    fn the_camera_stamps_its_frames_with_its_own_clock_offset() {
+        let t = convert::ros_time(1_800_000_000.25);
+        assert_eq!(camera_stamp(t, 0.0), t);
+        let behind = convert::seconds(camera_stamp(t, -0.2)) - convert::seconds(t);
+        let ahead = convert::seconds(camera_stamp(t, 0.02)) - convert::seconds(t);
+        assert!((behind + 0.2).abs() < 1e-6 && (ahead - 0.02).abs() < 1e-6, "{behind} {ahead}");
+        assert_eq!(shipped().camera_stamp_offset_s, 0.0);
     }
 
     #[test]
