@@ -151,10 +151,7 @@ mod tests {
             ..t
         };
         assert_eq!(tight.max_offset_s(0.1, 0.2), 0.0);
-        let loose = CameraClockTolerance {
-            pairing_s: 0.2,
-            ..t
-        };
+        let loose = CameraClockTolerance { pairing_s: 0.2, ..t };
         assert_eq!(loose.max_offset_s(0.1, 0.1), 0.2);
         assert!((loose.max_offset_s(0.3, 0.1) - 0.1).abs() < 1e-12);
     }

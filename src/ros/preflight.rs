@@ -315,11 +315,7 @@ fn camera_clock(
         controller_host: rosrust::hostname(),
         tolerance: preflight::CameraClockTolerance {
             pairing_s: est.max_joint_extrapolation_s,
-            pose_timeout_s: node
-                .controller
-                .guard
-                .trocar_timeout_s
-                .min(est.estimator.stale_after_s),
+            pose_timeout_s: node.controller.guard.trocar_timeout_s.min(est.estimator.stale_after_s),
         },
     })
 }

@@ -1078,7 +1078,10 @@ mod tests {
         assert_eq!(camera_stamp(t, 0.0), t);
         let behind = convert::seconds(camera_stamp(t, -0.2)) - convert::seconds(t);
         let ahead = convert::seconds(camera_stamp(t, 0.02)) - convert::seconds(t);
-        assert!((behind + 0.2).abs() < 1e-6 && (ahead - 0.02).abs() < 1e-6, "{behind} {ahead}");
+        assert!(
+            (behind + 0.2).abs() < 1e-6 && (ahead - 0.02).abs() < 1e-6,
+            "{behind} {ahead}"
+        );
         assert_eq!(shipped().camera_stamp_offset_s, 0.0);
     }
 
