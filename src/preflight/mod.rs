@@ -127,9 +127,10 @@ pub struct Limits {
     /// guard's margin, `guard.position_margin_rad` of config/controller.yaml).
     pub reach_margin_deg: f64,
     /// The longest a camera takes from capture to the controller's machine, s: a frame's
-    /// exposure and readout, the driver's rectification, the network (the simulated camera
-    /// renders 35-55 ms a frame). Images older than this on arrival put the camera's clock
-    /// behind ([`camera_clock`]).
+    /// exposure (up to a frame period, 67 ms at 15 Hz) and readout, the driver's
+    /// rectification, the network (the simulated camera renders 35-55 ms a frame, more on a
+    /// loaded host). Images older than this on arrival put the camera's clock behind
+    /// ([`camera_clock`]).
     pub camera_latency_max_s: f64,
 }
 
