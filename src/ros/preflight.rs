@@ -287,13 +287,17 @@ fn node_host(node: &str) -> Option<String> {
 }
 
 /// The images against this node's clock, with the nodes publishing them and their machines,
-/// and the tolerances of the estimator's pairing and the staleness checks.
+/// and the tolerances of the estimator's pairing and the staleness checks (None: no camera).
 fn camera_clock(
+    camera: bool,
     ages: &[f64],
     image_topic: &str,
     est: Option<&EstimatorNodeParams>,
     node: &ControllerNodeParams,
-) -> Result<preflight::CameraClock, NodeError> {
+) -> Result<Option<preflight::CameraClock>, NodeError> {
+    if !camera {
+        return Ok(None);
+    }
     let state = rosrust::state().map_err(ros_err)?;
     let publishers: Vec<String> = nodes_on(&state, image_topic, true)
         .into_iter()
@@ -309,7 +313,7 @@ fn camera_clock(
     };
     let default = EstimatorNodeParams::default();
     let est = est.unwrap_or(&default);
-    Ok(preflight::CameraClock {
+    Ok(Some(preflight::CameraClock {
         ages_s: ages.to_vec(),
         camera,
         controller_host: rosrust::hostname(),
@@ -317,7 +321,7 @@ fn camera_clock(
             pairing_s: est.max_joint_extrapolation_s,
             pose_timeout_s: node.controller.guard.trocar_timeout_s.min(est.estimator.stale_after_s),
         },
-    })
+    }))
 }
 
 /// Who runs: the simulator (with its camera or not) and the estimator.
@@ -410,11 +414,7 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         hand_eye: hand_eye(p, estimator, camera),
         command_subscribers,
         command_topic: node.command_topic.clone(),
-        camera_clock: if camera {
-            Some(camera_clock(&s.image_ages, &topics.image, est_params.as_ref(), node)?)
-        } else {
-            None
-        },
+        camera_clock: camera_clock(camera, &s.image_ages, &topics.image, est_params.as_ref(), node)?,
     };
     Ok(preflight::evaluate(&obs, &p.limits, &node.controller.tare, kin))
 }

@@ -738,9 +738,8 @@ impl ArmCommand {
     }
 }
 
-/// Run the node until shutdown. Call after `rosrust::init`.
-pub fn run() -> Result<(), NodeError> {
-    let p = SimNodeParams::from_tree(&rosrust::name(), params::load_private()?)?;
+/// Check the simulated clock's pace and the camera's clock offset (said in the log when set).
+fn check_clocks(p: &SimNodeParams) -> Result<(), NodeError> {
     if !(p.real_time_factor > 0.0 && p.real_time_factor.is_finite()) {
         return Err(NodeError::Invalid(format!("real_time_factor = {}", p.real_time_factor)));
     }
@@ -751,6 +750,13 @@ pub fn run() -> Result<(), NodeError> {
             p.camera_stamp_offset_s * 1e3
         );
     }
+    Ok(())
+}
+
+/// Run the node until shutdown. Call after `rosrust::init`.
+pub fn run() -> Result<(), NodeError> {
+    let p = SimNodeParams::from_tree(&rosrust::name(), params::load_private()?)?;
+    check_clocks(&p)?;
     let kin = LbrKinematics::from_model(p.model, &ToolParams::default())?;
     let shared_kin: Arc<dyn Kinematics> = Arc::new(kin.clone());
     let world_cfg = world_config(&p)?;
