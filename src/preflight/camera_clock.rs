@@ -13,7 +13,10 @@
 //! bounds the offset: below 0 the camera's clock is ahead by at least as much (no frame
 //! arrives before it is taken); above `limits.camera_latency_max_s` (the latency a camera
 //! may have, which the estimator tolerates: it pairs by the stamp, not by the arrival) it is
-//! behind by at least the excess. Within that band the offset is taken as none.
+//! behind by at least the excess. Within that band the offset is taken as none. Under
+//! `/use_sim_time` the controller's clock is the last `/clock` it took in: on a starved host
+//! it lags the simulator's by a few ms, and an image may arrive that much "before" its stamp
+//! (-6 ms measured at load average 30).
 //!
 //! **The bound**, from the parameters the offset defeats: the estimator answers a stamp up to
 //! `max_joint_extrapolation_s` past the newest joint state with that state (the arm taken as
@@ -144,7 +147,7 @@ mod tests {
     #[test]
     fn the_bound_is_the_pairings_unless_the_staleness_leaves_less() {
         let t = clock(0.0, &LATENCY).tolerance;
-        assert_eq!(t.max_offset_s(0.15, 1.0 / 15.0), 0.02);
+        assert_eq!(t.max_offset_s(0.12, 1.0 / 15.0), 0.02);
         // A 0.15 s pose timeout at 5 Hz leaves 0.15 - 0.1 - 0.2 < 0: no offset at all.
         let tight = CameraClockTolerance {
             pose_timeout_s: 0.15,
@@ -159,13 +162,13 @@ mod tests {
     #[test]
     fn an_offset_within_a_cameras_latency_passes_and_beyond_the_pairing_fails_naming_it() {
         let lim = Limits::default();
-        assert_eq!(lim.camera_latency_max_s, 0.15);
+        assert_eq!(lim.camera_latency_max_s, 0.12);
         let period = 1.0 / 15.0;
         for (offset, pass, says) in [
             (0.0, true, "no offset"),
             (-0.02, true, "no offset"),
             (0.02, true, "no offset"),
-            (-0.2, false, "at least 86 ms BEHIND"),
+            (-0.2, false, "at least 116 ms BEHIND"),
             (0.2, false, "at least 164 ms AHEAD"),
             (0.06, false, "at least 24 ms AHEAD"),
         ] {
