@@ -8,7 +8,8 @@
 //! URDF, the external torques at rest (the tare's limits, [`crate::control::TareParams`]), the
 //! camera's calibration and image rate, the trocar pose (the marker seen) and the marker's
 //! size, the hand-eye file (age, residuals), the trocar within reach (the scenario's
-//! inverse kinematics, [`Scenario::reachable`], from the current joints), the clock, and a
+//! inverse kinematics, [`Scenario::reachable`], from the current joints), the clock, the
+//! camera's clock against the controller's ([`camera_clock`]: two machines), and a
 //! subscriber on the command topic. The FRI session state and control mode are reported as
 //! not checked: the driver's LBRState carries neither.
 
@@ -17,6 +18,9 @@ use nalgebra::Isometry3;
 use crate::control::force::tare::TareParams;
 use crate::kinematics::{Kinematics, N_JOINTS};
 use crate::sim::scenario::Scenario;
+
+pub mod camera_clock;
+pub use camera_clock::{CameraClock, CameraClockTolerance};
 
 /// The outcome of one check.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -122,6 +126,12 @@ pub struct Limits {
     /// The trocar must be reachable with every joint this far inside its limits, deg (the
     /// guard's margin, `guard.position_margin_rad` of config/controller.yaml).
     pub reach_margin_deg: f64,
+    /// The longest a camera takes from capture to the controller's machine, s: a frame's
+    /// exposure (up to a frame period, 67 ms at 15 Hz) and readout, the driver's
+    /// rectification, the network (the simulated camera renders 35-55 ms a frame, more on a
+    /// loaded host). Images older than this on arrival put the camera's clock behind
+    /// ([`camera_clock`]).
+    pub camera_latency_max_s: f64,
 }
 
 crate::shipped_defaults!(
@@ -143,6 +153,7 @@ impl Limits {
         positive("limits.hand_eye_max_residual_m", self.hand_eye_max_residual_m)?;
         positive("limits.hand_eye_max_residual_rad", self.hand_eye_max_residual_rad)?;
         positive_at_most("limits.reach_margin_deg", self.reach_margin_deg, 30.0)?;
+        positive_at_most("limits.camera_latency_max_s", self.camera_latency_max_s, 1.0)?;
         Ok(())
     }
 }
@@ -304,6 +315,8 @@ pub struct Observations {
     pub command_subscribers: Vec<String>,
     /// The command topic.
     pub command_topic: String,
+    /// The images' stamps against the controller's clock (None: no camera).
+    pub camera_clock: Option<CameraClock>,
 }
 
 fn check(code: &'static str, ok: bool, detail: String, fix: &'static str) -> Check {
@@ -332,6 +345,8 @@ pub fn evaluate(obs: &Observations, lim: &Limits, tare: &TareParams, kin: &dyn K
     checks.push(joint_names(obs, kin));
     checks.push(torques_at_rest(obs, tare));
     checks.extend(camera(obs, lim));
+    let frame_period = obs.camera.as_ref().map_or(f64::NAN, |c| cadence_s(&c.image_stamps));
+    checks.push(camera_clock::camera_clock(obs.camera_clock.as_ref(), lim, frame_period));
     checks.push(stereo(obs, lim));
     checks.push(marker(obs, lim));
     checks.push(hand_eye(obs, lim));

@@ -71,7 +71,31 @@ fn good(kin: &dyn Kinematics) -> Observations {
         })),
         command_subscribers: vec!["/lbr_med_sim".into()],
         command_topic: "/cmd".into(),
+        camera_clock: Some(CameraClock {
+            ages_s: vec![0.041, 0.038, 0.052],
+            camera: "/lbr_med_sim on 127.0.0.1".into(),
+            controller_host: "127.0.0.1".into(),
+            tolerance: CameraClockTolerance {
+                pairing_s: 0.02,
+                pose_timeout_s: 0.5,
+            },
+        }),
     }
+}
+
+#[test]
+fn a_camera_clock_off_fails_its_own_check_only() {
+    let k = kin();
+    let mut o = good(&k);
+    for a in &mut o.camera_clock.as_mut().unwrap().ages_s {
+        *a += 0.2;
+    }
+    assert_eq!(failed(&o), vec!["CAMERA_CLOCK"]);
+    o.camera_clock = None;
+    o.camera = None;
+    let r = evaluate(&o, &Limits::default(), &TareParams::default(), &k);
+    let c = r.checks.iter().find(|c| c.code == "CAMERA_CLOCK").unwrap();
+    assert_eq!(c.verdict, Verdict::NotChecked);
 }
 
 fn failed(obs: &Observations) -> Vec<&'static str> {

@@ -17,7 +17,11 @@
 //! from the camera frame. A frame that cannot be used (no camera_info yet, a wrong size or
 //! encoding, no joint state at its stamp, no marker, a markerless estimate of low
 //! confidence, an outlier) publishes nothing and says why on `~status` and in the log
-//! (throttled); the controller then sees its trocar pose age and holds.
+//! (throttled); the controller then sees its trocar pose age and holds. Each `~status` line
+//! ends with the clocks the image shows (`ClockSeen`): its stamp against the newest joint
+//! state's (the camera's clock against the robot's, latency included) and that joint state's
+//! age on arrival (this machine's clock against the robot's): on two machines, an offset
+//! there is the cause of dropped or misplaced frames (docs/lab.md "Two machines").
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -481,6 +485,8 @@ struct Shared {
     right_camera: Arc<Mutex<Option<CameraModel>>>,
     right_image: Arc<Mutex<Option<sensor_msgs::Image>>>,
     pipeline: Arc<Mutex<Pipeline>>,
+    /// The newest joint state's stamp and its arrival on this node's clock.
+    joint_clock: Arc<Mutex<Option<JointArrival>>>,
 }
 
 impl Shared {
@@ -512,6 +518,7 @@ impl Shared {
             right_camera: Arc::new(Mutex::new(None)),
             right_image: Arc::new(Mutex::new(None)),
             pipeline: Arc::new(Mutex::new(pipeline)),
+            joint_clock: Arc::new(Mutex::new(None)),
         })
     }
 }
@@ -578,6 +585,47 @@ impl Publishers {
     }
 }
 
+/// The newest joint state: its stamp (the robot's clock) and its arrival (this node's).
+#[derive(Debug, Clone, Copy)]
+struct JointArrival {
+    stamp: f64,
+    arrival: f64,
+}
+
+/// The clocks as one image shows them to the estimator, s: how much older its stamp is than
+/// the newest joint state's (the camera's latency minus the camera clock's offset from the
+/// robot's: what the joint-history pairing meets), and how old that joint state was on its
+/// arrival by this node's clock (the network's delay plus this machine's clock's offset from
+/// the robot's, where the estimator runs on the camera's machine).
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct ClockSeen {
+    image_behind_joints_s: f64,
+    joint_age_s: f64,
+}
+
+impl ClockSeen {
+    /// An image stamped `stamp` against the newest joint state, if any.
+    fn of(stamp: f64, joints: Option<JointArrival>) -> Option<Self> {
+        joints.map(|j| Self {
+            image_behind_joints_s: j.stamp - stamp,
+            joint_age_s: j.arrival - j.stamp,
+        })
+    }
+}
+
+impl std::fmt::Display for ClockSeen {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "clock: image stamped {:.0} ms before the newest joint state (the camera's latency minus its clock's \
+             offset from the robot's), joint state {:.0} ms old on arrival (the network plus this machine's clock's \
+             offset)",
+            self.image_behind_joints_s * 1e3,
+            self.joint_age_s * 1e3
+        )
+    }
+}
+
 /// Joint states into the history (each image is paired with the arm's pose at its stamp).
 fn subscribe_joint_states(p: &EstimatorNodeParams, shared: &Shared) -> Result<rosrust::Subscriber, NodeError> {
     let (history, topic, names) = (
@@ -585,12 +633,20 @@ fn subscribe_joint_states(p: &EstimatorNodeParams, shared: &Shared) -> Result<ro
         p.joint_states_topic.clone(),
         p.joint_names.clone(),
     );
+    let joint_clock = shared.joint_clock.clone();
     let warn = Throttle::new(Duration::from_secs(2));
     rosrust::subscribe(
         &p.joint_states_topic,
         50,
         move |m: sensor_msgs::JointState| match convert::joint_positions(&topic, &m, &names) {
-            Ok(q) => lock(&history).push(convert::seconds(m.header.stamp), q),
+            Ok(q) => {
+                let stamp = convert::seconds(m.header.stamp);
+                *lock(&joint_clock) = Some(JointArrival {
+                    stamp,
+                    arrival: convert::seconds(rosrust::now()),
+                });
+                lock(&history).push(stamp, q);
+            }
             Err(e) => {
                 if warn.ready() {
                     rosrust::ros_warn!("joint state rejected: {e}");
@@ -671,22 +727,25 @@ fn raise_priority(priority: i32) {
 fn on_image(img: &sensor_msgs::Image, shared: &Shared, publishers: &Publishers, base_frame: &str) {
     let t0 = Instant::now();
     let age_ms = (convert::seconds(rosrust::now()) - convert::seconds(img.header.stamp)) * 1e3;
+    let clock = ClockSeen::of(convert::seconds(img.header.stamp), *lock(&shared.joint_clock))
+        .map_or_else(|| "clock: no joint state yet".to_string(), |c| c.to_string());
     let cam = lock(&shared.camera).clone();
     let right = stereo_right(shared, img.header.stamp);
     let mut pl = lock(&shared.pipeline);
     let want_debug = publishers.debug.subscriber_count() > 0;
     match pl.frame(img, cam.as_ref(), right.as_ref(), &shared.history, want_debug) {
-        Ok(out) => {
+        Ok(mut out) => {
             if out.measured.trocar.is_none() && pl.warn.ready() {
-                rosrust::ros_warn!("frame dropped: {}", out.measured.status);
+                rosrust::ros_warn!("frame dropped: {}; {clock}", out.measured.status);
             }
+            out.measured.status = format!("{}; {clock}", out.measured.status);
             publishers.frame(img, base_frame, out);
         }
         Err(e) => {
             if pl.warn.ready() {
-                rosrust::ros_warn!("frame dropped: {e}");
+                rosrust::ros_warn!("frame dropped: {e}; {clock}");
             }
-            publishers.status(format!("{}: dropped: {e}", pl.p.method));
+            publishers.status(format!("{}: dropped: {e}; {clock}", pl.p.method));
         }
     }
     pl.processing.latency(t0.elapsed().as_secs_f64() * 1e3);
@@ -933,6 +992,23 @@ mod tests {
             .to_string();
         assert!(e.contains("trocar_model_file"), "{e}");
         with("method: marker\ntrocar_model_file: /nonexistent/trocar.yaml").unwrap();
+    }
+
+    #[test]
+    fn the_status_says_how_the_images_stamps_stand_to_the_joint_states() {
+        // A camera 40 ms slow and 200 ms behind the robot's clock; joint states 1 ms on the wire.
+        let joints = JointArrival {
+            stamp: 1000.0,
+            arrival: 1000.001,
+        };
+        let c = ClockSeen::of(1000.0 - 0.24, Some(joints)).unwrap();
+        assert!((c.image_behind_joints_s - 0.24).abs() < 1e-9 && (c.joint_age_s - 0.001).abs() < 1e-9);
+        let line = c.to_string();
+        assert!(
+            line.contains("image stamped 240 ms before the newest joint state") && line.contains("1 ms old"),
+            "{line}"
+        );
+        assert_eq!(ClockSeen::of(1000.0, None), None);
     }
 
     #[test]

@@ -60,6 +60,8 @@ struct Seen {
     tau_ext: Vec<Vec<f64>>,
     images: Stamps,
     image_stamps: Vec<f64>,
+    /// Each image's age on arrival: this node's clock minus its stamp, s.
+    image_ages: Vec<f64>,
     image_size: Option<(u32, u32)>,
     right_stamps: Vec<f64>,
     right_baseline: Option<Result<f64, String>>,
@@ -189,6 +191,7 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
         )?,
         watch(&t.image, 2, seen, |s, m: sensor_msgs::Image| {
             let t = convert::seconds(m.header.stamp);
+            s.image_ages.push(convert::seconds(rosrust::now()) - t);
             s.images.add(t);
             s.image_stamps.push(t);
             s.image_size = Some((m.width, m.height));
@@ -273,6 +276,52 @@ fn hand_eye(p: &PreflightParams, estimator: bool, camera: bool) -> Option<Result
         preflight::hand_eye_file(&path, &text, modified, since(std::time::SystemTime::now()))
     };
     Some(read())
+}
+
+/// The host of a node's URI (`http://HOST:PORT/`), asked of the master.
+fn node_host(node: &str) -> Option<String> {
+    let master = rosrust::api::Master::new(&rosrust::api::resolve::master(), &rosrust::name(), &rosrust::uri()).ok()?;
+    let uri = master.lookup_node(node).ok()?;
+    let host = uri.split("://").nth(1)?.split(['/', ':']).next()?;
+    Some(host.to_string())
+}
+
+/// The images against this node's clock, with the nodes publishing them and their machines,
+/// and the tolerances of the estimator's pairing and the staleness checks (None: no camera).
+fn camera_clock(
+    camera: bool,
+    ages: &[f64],
+    image_topic: &str,
+    est: Option<&EstimatorNodeParams>,
+    node: &ControllerNodeParams,
+) -> Result<Option<preflight::CameraClock>, NodeError> {
+    if !camera {
+        return Ok(None);
+    }
+    let state = rosrust::state().map_err(ros_err)?;
+    let publishers: Vec<String> = nodes_on(&state, image_topic, true)
+        .into_iter()
+        .map(|n| {
+            let host = node_host(&n).unwrap_or_else(|| "an unknown machine".into());
+            format!("{n} on {host}")
+        })
+        .collect();
+    let camera = if publishers.is_empty() {
+        format!("nothing publishing {image_topic}:")
+    } else {
+        format!("{} ({image_topic}):", publishers.join(", "))
+    };
+    let default = EstimatorNodeParams::default();
+    let est = est.unwrap_or(&default);
+    Ok(Some(preflight::CameraClock {
+        ages_s: ages.to_vec(),
+        camera,
+        controller_host: rosrust::hostname(),
+        tolerance: preflight::CameraClockTolerance {
+            pairing_s: est.max_joint_extrapolation_s,
+            pose_timeout_s: node.controller.guard.trocar_timeout_s.min(est.estimator.stale_after_s),
+        },
+    }))
 }
 
 /// Who runs: the simulator (with its camera or not) and the estimator.
@@ -365,6 +414,7 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         hand_eye: hand_eye(p, estimator, camera),
         command_subscribers,
         command_topic: node.command_topic.clone(),
+        camera_clock: camera_clock(camera, &s.image_ages, &topics.image, est_params.as_ref(), node)?,
     };
     Ok(preflight::evaluate(&obs, &p.limits, &node.controller.tare, kin))
 }

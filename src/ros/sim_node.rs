@@ -66,6 +66,12 @@ pub struct SimNodeParams {
     /// Tests only: wall-clock seconds each rendered frame takes on top of its render, to
     /// stand for a slow or loaded host (0 = none).
     pub camera_render_delay_s: f64,
+    /// The simulated camera's clock offset from the simulator's, s (tests only; 0 as shipped):
+    /// added to every image's and camera_info's stamp, as a camera driver on a second machine
+    /// whose clock is this far ahead (negative: behind) stamps its frames. Under
+    /// `/use_sim_time` every node reads the simulator's `/clock`, so a machine's own clock
+    /// shows only where a driver stamps with it: here.
+    pub camera_stamp_offset_s: f64,
     /// Image out.
     pub image_topic: String,
     /// CameraInfo out.
@@ -466,9 +472,9 @@ impl SimCamera {
         })
     }
 
-    /// Capture a frame of `world` now: in lockstep it waits for the renderer to finish the
-    /// last frame, else the frame is skipped while the last one renders. Returns the wall
-    /// time waited.
+    /// Capture a frame of `world` now, stamped `stamp` (the camera's clock): in lockstep it
+    /// waits for the renderer to finish the last frame, else the frame is skipped while the
+    /// last one renders. Returns the wall time waited.
     fn capture(&mut self, world: &SimWorld, stamp: rosrust::Time) -> Duration {
         // The camera rides on the link side: where the (elastic) arm really is.
         let Ok(base_t_flange) = self.flange_kin.fk(&world.joint_positions_link()) else {
@@ -495,6 +501,15 @@ impl SimCamera {
         let _ = self.jobs.send(job);
         t0.elapsed()
     }
+}
+
+/// A frame captured at `stamp` (the simulator's clock) as a camera whose clock is
+/// `offset_s` ahead stamps it.
+fn camera_stamp(stamp: rosrust::Time, offset_s: f64) -> rosrust::Time {
+    if offset_s == 0.0 {
+        return stamp;
+    }
+    convert::ros_time(convert::seconds(stamp) + offset_s)
 }
 
 /// Nice the calling thread by 10 (the simulated camera's renderer: below the physics).
@@ -750,12 +765,25 @@ impl ArmCommand {
     }
 }
 
-/// Run the node until shutdown. Call after `rosrust::init`.
-pub fn run() -> Result<(), NodeError> {
-    let p = SimNodeParams::from_tree(&rosrust::name(), params::load_private()?)?;
+/// Check the simulated clock's pace and the camera's clock offset (said in the log when set).
+fn check_clocks(p: &SimNodeParams) -> Result<(), NodeError> {
     if !(p.real_time_factor > 0.0 && p.real_time_factor.is_finite()) {
         return Err(NodeError::Invalid(format!("real_time_factor = {}", p.real_time_factor)));
     }
+    crate::validate::in_range("camera_stamp_offset_s", p.camera_stamp_offset_s, -60.0, 60.0)?;
+    if p.camera_stamp_offset_s != 0.0 {
+        rosrust::ros_warn!(
+            "lbr_med_sim: the camera's stamps are {:+.0} ms off the simulator's clock (camera_stamp_offset_s, a test's camera clock offset)",
+            p.camera_stamp_offset_s * 1e3
+        );
+    }
+    Ok(())
+}
+
+/// Run the node until shutdown. Call after `rosrust::init`.
+pub fn run() -> Result<(), NodeError> {
+    let p = SimNodeParams::from_tree(&rosrust::name(), params::load_private()?)?;
+    check_clocks(&p)?;
     let kin = LbrKinematics::from_model(p.model, &ToolParams::default())?;
     let shared_kin: Arc<dyn Kinematics> = Arc::new(kin.clone());
     let world_cfg = world_config(&p)?;
@@ -822,7 +850,7 @@ pub fn run() -> Result<(), NodeError> {
         );
         if let (true, Some(cam)) = (live, camera.as_mut()) {
             if frames.due(t) {
-                wall0 += cam.capture(&world, stamp);
+                wall0 += cam.capture(&world, camera_stamp(stamp, p.camera_stamp_offset_s));
             }
         }
         if live {
@@ -1078,6 +1106,19 @@ mod tests {
         assert!(e.what == "/lbr_med_sim/world" && e.message.contains("simm"), "{e}");
         let p = SimNodeParams::from_tree("/lbr_med_sim", serde_json::json!({"seed": 2})).unwrap();
         assert_eq!((p.seed, &p.world), (2, &SimConfig::default()));
+    }
+
+    #[test]
+    fn the_camera_stamps_its_frames_with_its_own_clock_offset() {
+        let t = convert::ros_time(1_800_000_000.25);
+        assert_eq!(camera_stamp(t, 0.0), t);
+        let behind = convert::seconds(camera_stamp(t, -0.2)) - convert::seconds(t);
+        let ahead = convert::seconds(camera_stamp(t, 0.02)) - convert::seconds(t);
+        assert!(
+            (behind + 0.2).abs() < 1e-6 && (ahead - 0.02).abs() < 1e-6,
+            "{behind} {ahead}"
+        );
+        assert_eq!(shipped().camera_stamp_offset_s, 0.0);
     }
 
     #[test]
