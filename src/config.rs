@@ -451,11 +451,11 @@ where
         let mut at: Vec<String> = path.iter().map(|k| k.to_string()).collect();
         if let Some(unknown) = unknown_key(&given, shipped, file, &mut at, &e) {
             D::Error::custom(unknown)
-        } else if e.starts_with('`') {
+        } else if let Some(named) = e.strip_prefix('`') {
             // An inner section has named itself already (from the top of its own file, when
             // it is this type's one field that the file does not ship: name that field too).
             match unshipped_fields(&given, shipped).as_slice() {
-                [field] if path.is_empty() => D::Error::custom(format_args!("`{field}.{}", &e[1..])),
+                [field] if path.is_empty() => D::Error::custom(format_args!("`{field}.{named}")),
                 _ => D::Error::custom(e),
             }
         } else if path.is_empty() {
