@@ -51,7 +51,7 @@ pub fn camera_tf(p: &CheckParams) -> Result<String, String> {
             .map(|(parent, _, pose)| (parent.clone(), *pose))
     };
     let (parent, pose) =
-        wait_for(p.startup_timeout, parent_of_frame).ok_or(format!("no tf to the images' frame `{frame}`"))?;
+        wait_for(p.startup_timeout, parent_of_frame).ok_or_else(|| format!("no tf to the images' frame `{frame}`"))?;
     // Two more seconds of /tf (robot_state_publisher) to see any other parent.
     std::thread::sleep(std::time::Duration::from_secs(2));
     let parents: BTreeSet<String> = seen
