@@ -120,9 +120,18 @@ pub const CONTROLLER_YAML: &str = include_str!("../config/controller.yaml");
 /// comment and source).
 pub static CONTROLLER: Shipped = Shipped::with_renamed("config/controller.yaml", CONTROLLER_YAML, CONTROLLER_RENAMED);
 
+/// Why `rate_hz` is gone, on the controller node and in the controller's own file.
+const RATE_IS_DT: &str = "the control rate is the controller's period, `dt_s` = 1 / rate in config/controller.yaml \
+                          (~controller/dt_s; the launch files' rate:=HZ sets it)";
+
 /// The renamed keys of `config/controller.yaml` (each now named with its unit): an old key is
 /// refused naming the new one.
 pub(crate) const CONTROLLER_RENAMED: &[Renamed] = &[
+    Renamed {
+        old: "rate_hz",
+        new: "",
+        note: RATE_IS_DT,
+    },
     Renamed::key("dt", "dt_s"),
     Renamed::key("insertion_depth", "insertion_depth_m"),
     Renamed::key("standoff", "standoff_m"),
@@ -206,13 +215,15 @@ pub static DOCKING_CONTROLLER_NODE: Shipped = Shipped::with_renamed(
     DOCKING_CONTROLLER_NODE_RENAMED,
 );
 
+/// Why the drawn trocar's sizes are gone from `markers`.
+const TROCAR_DRAWN_FROM_MODEL: &str = "the trocar is drawn as its head and cannula from config/trocar_model.yaml";
+
 /// The renamed and removed keys of `config/docking_controller.yaml`.
 const DOCKING_CONTROLLER_NODE_RENAMED: &[Renamed] = &[
     Renamed {
         old: "rate_hz",
         new: "",
-        note: "the control rate is the controller's period, `dt_s` in config/controller.yaml (~controller/dt_s; \
-               the launch files' rate:=HZ sets it)",
+        note: RATE_IS_DT,
     },
     Renamed::key("preflight.limits.min_joint_states_hz", "preflight.limits.min_driver_hz"),
     Renamed::key("markers.axis_length", "markers.axis_length_m"),
@@ -220,8 +231,26 @@ const DOCKING_CONTROLLER_NODE_RENAMED: &[Renamed] = &[
     Renamed::key("markers.force_scale", "markers.force_scale_m_per_n"),
     Renamed::key("markers.force_max_length", "markers.force_max_length_m"),
     Renamed::key("markers.sphere", "markers.sphere_diameter_m"),
-    Renamed::key("markers.trocar_diameter", "markers.trocar_diameter_m"),
-    Renamed::key("markers.trocar_length", "markers.trocar_length_m"),
+    Renamed {
+        old: "markers.trocar_diameter",
+        new: "",
+        note: TROCAR_DRAWN_FROM_MODEL,
+    },
+    Renamed {
+        old: "markers.trocar_length",
+        new: "",
+        note: TROCAR_DRAWN_FROM_MODEL,
+    },
+    Renamed {
+        old: "markers.trocar_diameter_m",
+        new: "",
+        note: TROCAR_DRAWN_FROM_MODEL,
+    },
+    Renamed {
+        old: "markers.trocar_length_m",
+        new: "",
+        note: TROCAR_DRAWN_FROM_MODEL,
+    },
     Renamed::key("markers.cone_length", "markers.cone_length_m"),
 ];
 
@@ -419,13 +448,16 @@ where
     }
     derived(tree).map_err(|e| {
         let e = e.to_string();
-        // An inner section has named itself already.
-        if e.starts_with('`') {
-            return D::Error::custom(e);
-        }
         let mut at: Vec<String> = path.iter().map(|k| k.to_string()).collect();
-        if let Some(unknown) = unknown_key(&given, shipped, file, &mut at) {
+        if let Some(unknown) = unknown_key(&given, shipped, file, &mut at, &e) {
             D::Error::custom(unknown)
+        } else if let Some(named) = e.strip_prefix('`') {
+            // An inner section has named itself already (from the top of its own file, when
+            // it is this type's one field that the file does not ship: name that field too).
+            match unshipped_fields(&given, shipped).as_slice() {
+                [field] if path.is_empty() => D::Error::custom(format_args!("`{field}.{named}")),
+                _ => D::Error::custom(e),
+            }
         } else if path.is_empty() {
             D::Error::custom(e)
         } else {
@@ -434,10 +466,29 @@ where
     })
 }
 
+/// The keys of `given` that `shipped` lacks (at the top).
+fn unshipped_fields<'a>(given: &'a Value, shipped: &Value) -> Vec<&'a str> {
+    let (Value::Mapping(g), Value::Mapping(s)) = (given, shipped) else {
+        return Vec::new();
+    };
+    g.keys()
+        .filter(|k| s.get(*k).is_none())
+        .filter_map(Value::as_str)
+        .collect()
+}
+
 /// The first key of `given` that `shipped` lacks, as an error naming its dotted path (under
 /// `path`) and either its replacement (a key the file lists as renamed or removed) or the
-/// keys that exist there.
-fn unknown_key(given: &Value, shipped: &Value, file: &Shipped, path: &mut Vec<String>) -> Option<String> {
+/// keys that exist there. A key the file lacks but the type has (`derived`, the type's own
+/// error, does not call it unknown: a section read from its own file, as the controller
+/// node's `controller`) is no unknown key.
+fn unknown_key(
+    given: &Value,
+    shipped: &Value,
+    file: &Shipped,
+    path: &mut Vec<String>,
+    derived: &str,
+) -> Option<String> {
     let (Value::Mapping(g), Value::Mapping(s)) = (given, shipped) else {
         return None;
     };
@@ -450,6 +501,10 @@ fn unknown_key(given: &Value, shipped: &Value, file: &Shipped, path: &mut Vec<St
                 if let Some(r) = file.renamed(&path.join(".")) {
                     return Some(r.message());
                 }
+                if !derived.contains(&format!("unknown field `{}`", path[path.len() - 1])) {
+                    path.pop();
+                    continue;
+                }
                 return Some(format!(
                     "`{}`: unknown key (expected one of: {})",
                     path.join("."),
@@ -458,7 +513,7 @@ fn unknown_key(given: &Value, shipped: &Value, file: &Shipped, path: &mut Vec<St
             }
             Some(sv) => {
                 path.push(name);
-                if let Some(e) = unknown_key(v, sv, file, path) {
+                if let Some(e) = unknown_key(v, sv, file, path, derived) {
                     return Some(e);
                 }
                 path.pop();
@@ -616,6 +671,44 @@ mod tests {
         assert!(
             e.message
                 .contains("`sped`: unknown key (expected one of: speed_m_per_s, inner)"),
+            "{e}"
+        );
+    }
+
+    /// A node's file that does not ship the section `own`, read from its own file (as the
+    /// controller node's `controller` is config/controller.yaml).
+    static NODE_FILE: Shipped = Shipped::new("node.yaml", "rate_s: 1.0\n");
+
+    #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+    #[serde(remote = "Self", deny_unknown_fields)]
+    struct Node {
+        rate_s: f64,
+        #[serde(default)]
+        own: Outer,
+    }
+    crate::shipped_defaults!(Node, NODE_FILE, []);
+
+    #[test]
+    fn a_key_under_a_section_with_its_own_file_is_named_under_that_section() {
+        let n: Node = from_yaml_str("node", "own: {inner: {gain: 4}}\n").unwrap();
+        assert_eq!((n.rate_s, n.own.inner.gain, n.own.speed_m_per_s), (1.0, 4.0, 0.5));
+        let e = from_yaml_str::<Node>("node", "own: {inner: {rate_hz: 100}}\n").unwrap_err();
+        assert!(
+            e.message
+                .contains("`own.inner.rate_hz`: the key is gone (the rate is the controller's dt)"),
+            "{e}"
+        );
+        let e = from_yaml_str::<Node>("node", "own: {speed: 1}\n").unwrap_err();
+        assert!(e.message.contains("`own.speed`: the key is now `speed_m_per_s`"), "{e}");
+        // A bad value there is no unknown key `own`.
+        let e = from_yaml_str::<Node>("node", "own: {speed_m_per_s: fast}\n").unwrap_err();
+        assert!(
+            !e.message.contains("unknown key") && e.message.contains("invalid type"),
+            "{e}"
+        );
+        let e = from_yaml_str::<Node>("node", "rate: 2\n").unwrap_err();
+        assert!(
+            e.message.contains("`rate`: unknown key (expected one of: rate_s)"),
             "{e}"
         );
     }

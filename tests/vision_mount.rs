@@ -1,7 +1,7 @@
 //! The camera mount keeps the trocar's marker in full view over the whole docking.
 //!
 //! The ZED sits 70 mm beside the endoscope's shaft (config/hand_eye.yaml, the URDF's
-//! `camera_optical_frame`). Looking straight along the shaft, the marker on the trocar's face
+//! `camera_nominal`). Looking straight along the shaft, the marker on the trocar's face
 //! drifts to the image's top edge as the tip goes in, and leaves it at full depth: the
 //! estimator then loses the trocar (or, worse, finds a marker cut by the border). The shipped
 //! mount is pitched 15 deg towards the shaft. This test walks the tip along the insertion axis
@@ -112,8 +112,17 @@ fn the_urdf_camera_frame_is_the_hand_eye_mount() {
     let urdf = std::fs::read_to_string(root().join("urdf/lbr_med7_r800_endoscope.urdf")).unwrap();
     let line = urdf
         .lines()
-        .find(|l| l.contains("<child link=\"camera_optical_frame\"/>"))
+        .find(|l| l.contains("<child link=\"camera_nominal\"/>"))
         .expect("camera joint");
+    // The images' own frame (the simulator's, config/lbr_med_sim.yaml `camera.frame`) is no
+    // link of the URDF: its one parent is the flange, through the estimator's static tf.
+    let sim = std::fs::read_to_string(root().join("config/lbr_med_sim.yaml")).unwrap();
+    let frame = sim
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("frame:"))
+        .map(|f| f.split('#').next().unwrap().trim())
+        .expect("camera.frame");
+    assert!(!urdf.contains(&format!("\"{frame}\"")), "the URDF has a link `{frame}`");
     let attr = |name: &str| -> Vec<f64> {
         let start = line.find(&format!("{name}=\"")).unwrap() + name.len() + 2;
         let end = start + line[start..].find('"').unwrap();

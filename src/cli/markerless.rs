@@ -137,17 +137,22 @@ pub fn parse_pose(v: &[f64], what: &str) -> Result<Isometry3<f64>, String> {
 }
 
 /// The camera mount of a parameter file: `camera.flange_t_camera` (a lbr_med_sim parameter
-/// file) or `flange_t_camera` (a hand-eye result).
+/// file) or a hand-eye file in either format (the project's `flange_t_camera`, or
+/// easy_handeye's, its effector frame carried to the flange through the built-in arm's URDF).
 pub fn read_mount(path: &Path) -> Result<Isometry3<f64>, String> {
     let v: crate::config::Value = crate::config::from_yaml_file(path).map_err(|e| e.to_string())?;
-    let m = v
-        .get("camera")
-        .and_then(|c| c.get("flange_t_camera"))
-        .or_else(|| v.get("flange_t_camera"))
-        .ok_or_else(|| format!("{}: no camera.flange_t_camera or flange_t_camera", path.display()))?;
-    let p: PoseYaml =
-        crate::config::from_yaml_value(&path.display().to_string(), m.clone()).map_err(|e| e.to_string())?;
-    p.to_isometry().map_err(|e| format!("{}: {e}", path.display()))
+    if let Some(m) = v.get("camera").and_then(|c| c.get("flange_t_camera")) {
+        let p: PoseYaml =
+            crate::config::from_yaml_value(&path.display().to_string(), m.clone()).map_err(|e| e.to_string())?;
+        return p.to_isometry().map_err(|e| format!("{}: {e}", path.display()));
+    }
+    let resolve = |frame: &str| {
+        let xml = crate::kinematics::lbr::urdf(LbrModel::Med7, &ToolParams::default()).map_err(|e| e.to_string())?;
+        crate::kinematics::fixed_transform(&xml, crate::kinematics::FLANGE_LINK, frame).map_err(|e| e.to_string())
+    };
+    crate::vision::hand_eye::load_mount(path, &resolve)
+        .map(|m| m.flange_t_camera)
+        .map_err(|e| e.to_string())
 }
 
 /// The built-in arm's endoscope seen from the camera at `mount` (its tip `start`).

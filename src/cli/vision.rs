@@ -1,10 +1,12 @@
 //! `trocar_docking detect`, `render` and `hand-eye`: marker detection on an image file, the
-//! synthetic camera, and hand-eye calibration from a file of pose pairs.
+//! synthetic camera, and hand-eye calibration from a file of pose pairs (or an easy_handeye
+//! calibration converted to the project's file).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use nalgebra::Isometry3;
 
+use crate::kinematics::{fixed_transform, FLANGE_LINK};
 use crate::vision::estimator::PoseYaml;
 use crate::vision::{
     facing_pose, hand_eye, render_marker_image, CameraModel, GreyImage, MarkerDetection, MarkerDetector, MarkerFamily,
@@ -104,8 +106,20 @@ pub struct RenderArgs {
 #[derive(Debug, clap::Args)]
 pub struct HandEyeArgs {
     /// YAML/JSON file: `samples: [{base_t_flange: {translation, quaternion_xyzw}, camera_t_marker: {...}}, ...]`.
+    #[arg(
+        long,
+        required_unless_present = "from_easy_handeye",
+        conflicts_with = "from_easy_handeye"
+    )]
+    pub input: Option<PathBuf>,
+    /// Instead of calibrating: convert an easy_handeye calibration (eye on hand;
+    /// `~/.ros/easy_handeye/NAME.yaml`), its robot_effector_frame carried to the flange
+    /// lbr_link_ee through the fixed joints of --urdf.
+    #[arg(long, requires = "urdf")]
+    pub from_easy_handeye: Option<PathBuf>,
+    /// The robot's URDF (robot_description), for --from-easy-handeye.
     #[arg(long)]
-    pub input: PathBuf,
+    pub urdf: Option<PathBuf>,
     /// Write the result (flange_t_camera and residuals) as YAML here.
     #[arg(long)]
     pub out: Option<PathBuf>,
@@ -206,15 +220,50 @@ pub fn run_render(a: &RenderArgs) -> super::CliResult {
     Ok(())
 }
 
+/// Seconds since the Unix epoch of `t`.
+fn unix_s(t: std::time::SystemTime) -> f64 {
+    t.duration_since(std::time::UNIX_EPOCH).map_or(0.0, |d| d.as_secs_f64())
+}
+
+/// `hand-eye --from-easy-handeye`: the mount in the flange, written as the project's file
+/// dated by the easy_handeye file's modification time (it carries no date of its own).
+fn convert_easy_handeye(file: &Path, urdf: &Path, out: Option<&Path>, json: bool) -> super::CliResult {
+    let xml = std::fs::read_to_string(urdf).map_err(|e| format!("{}: cannot read: {e}", urdf.display()))?;
+    let resolve = |frame: &str| fixed_transform(&xml, FLANGE_LINK, frame).map_err(|e| e.to_string());
+    let mount = hand_eye::load_mount(file, &resolve)?;
+    let source = format!("easy_handeye's {} through {}", file.display(), urdf.display());
+    if let Some(out) = out {
+        let modified = std::fs::metadata(file)?.modified()?;
+        std::fs::write(
+            out,
+            mount.file_text(&source, &crate::preflight::date_of(unix_s(modified)))?,
+        )?;
+    }
+    let pose = pose_json(&mount.flange_t_camera);
+    if json {
+        let v = serde_json::json!({ "flange_t_camera": pose, "camera_frame": mount.camera_frame });
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        let y = PoseYaml::from_isometry(&mount.flange_t_camera);
+        let frame = mount.camera_frame.as_deref().unwrap_or("camera");
+        println!(
+            "flange_t_camera ({FLANGE_LINK} -> {frame}): t [m] {:+.5?}  q [x y z w] {:+.5?}",
+            y.translation, y.quaternion_xyzw
+        );
+    }
+    Ok(())
+}
+
 /// Run `hand-eye`.
 pub fn run_hand_eye(a: &HandEyeArgs) -> super::CliResult {
-    let input = hand_eye::HandEyeInput::from_file(&a.input)?;
+    if let (Some(file), Some(urdf)) = (&a.from_easy_handeye, &a.urdf) {
+        return convert_easy_handeye(file, urdf, a.out.as_deref(), a.json);
+    }
+    let input = a.input.as_ref().ok_or("--input or --from-easy-handeye is needed")?;
+    let input = hand_eye::HandEyeInput::from_file(input)?;
     let r = hand_eye::calibrate_input(&input)?;
     if let Some(out) = &a.out {
-        let now = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0.0, |d| d.as_secs_f64());
-        let date = crate::preflight::date_of(now);
+        let date = crate::preflight::date_of(unix_s(std::time::SystemTime::now()));
         std::fs::write(
             out,
             hand_eye::file_text("`trocar_docking hand-eye`", &date, &r, None, &[])?,

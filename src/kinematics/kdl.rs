@@ -138,6 +138,32 @@ impl KdlChain {
     }
 }
 
+/// The pose of link `frame` in link `of` of the URDF in `urdf_xml`, where the two are joined
+/// by fixed joints only (a tool frame and the flange, `lbr_link_7` and `lbr_link_ee`): both
+/// chains from `lbr_link_0` (KDL, through kdl_parser's tree) must share their moving joints,
+/// so the pose is the same at every joint position. Refused, naming the link: a link the URDF
+/// lacks, one a moving joint separates from `of`.
+pub fn fixed_transform(urdf_xml: &str, of: &str, frame: &str) -> Result<Isometry3<f64>, KinematicsError> {
+    let chain = |link: &str| {
+        KdlChain::from_urdf_str(urdf_xml, BASE_LINK, link).map_err(|e| match e {
+            KinematicsError::Urdf(m) if m.contains("unknown tip link") => {
+                KinematicsError::Urdf(format!("the URDF has no link `{link}`"))
+            }
+            e => e,
+        })
+    };
+    let (a, b) = (chain(of)?, chain(frame)?);
+    if a.joint_names() != b.joint_names() {
+        return Err(KinematicsError::Urdf(format!(
+            "`{frame}` is not joined to `{of}` by fixed joints (moving joints to `{frame}`: [{}], to `{of}`: [{}])",
+            b.joint_names().join(", "),
+            a.joint_names().join(", ")
+        )));
+    }
+    let q = vec![0.0; a.n_joints()];
+    Ok(a.fk_slice(&q)?.inverse() * b.fk_slice(&q)?)
+}
+
 /// The 7-joint LBR Med chain from `lbr_link_0` to a tool frame, on KDL.
 #[derive(Debug, Clone)]
 pub struct LbrKinematics {

@@ -263,17 +263,18 @@ fn write_endoscope(w: &mut String, tool: &ToolParams) {
     let _ = writeln!(w, "  </joint>");
 }
 
-/// The nominal camera (ZED mini left optical frame) beside the scope; the calibrated
-/// hand-eye transform in config/ overrides it for vision. Closes the robot element.
+/// The camera housing (ZED mini) drawn at its nominal mount beside the scope: the link
+/// `camera_nominal`, never the images' own frame, whose parent is the flange through the
+/// calibrated hand-eye (the trocar estimator's static tf). Closes the robot element.
 fn write_camera(w: &mut String) {
-    let _ = writeln!(w, "  <link name=\"camera_optical_frame\">");
+    let _ = writeln!(w, "  <link name=\"camera_nominal\">");
     let _ = writeln!(
         w,
         "    <visual><origin xyz=\"0 0 -0.015\"/><geometry><box size=\"0.124 0.03 0.03\"/></geometry><material name=\"dark\"/></visual>"
     );
     let _ = writeln!(w, "  </link>");
     let _ = writeln!(w, "  <joint name=\"camera_joint\" type=\"fixed\">");
-    let _ = writeln!(w, "    <parent link=\"lbr_link_ee\"/><child link=\"camera_optical_frame\"/><origin xyz=\"0 0.07 0.04\" rpy=\"0.2617993877991494 0 0\"/>");
+    let _ = writeln!(w, "    <parent link=\"lbr_link_ee\"/><child link=\"camera_nominal\"/><origin xyz=\"0 0.07 0.04\" rpy=\"0.2617993877991494 0 0\"/>");
     let _ = writeln!(w, "  </joint>");
     let _ = writeln!(w, "</robot>");
 }

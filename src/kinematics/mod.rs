@@ -12,7 +12,7 @@ use nalgebra::{Isometry3, SMatrix, SVector};
 mod kdl;
 pub mod lbr;
 
-pub use kdl::{KdlChain, LbrKinematics};
+pub use kdl::{fixed_transform, KdlChain, LbrKinematics};
 use lbr::LbrModel;
 
 /// Number of joints of an LBR Med arm.

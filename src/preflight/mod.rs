@@ -759,13 +759,16 @@ fn parse_date(s: &str) -> Option<f64> {
 
 /// Read a hand-eye file's text (`trocar_docking hand-eye --out`: `flange_t_camera`, and the
 /// residuals `residual_translation_max_m`, `residual_rotation_max_rad` when it carries them;
-/// an optional `calibrated: YYYY-MM-DD`). Its age is from `calibrated` if present (a copied
-/// file's modification time says nothing), else from `modified_unix_s`.
+/// an optional `calibrated: YYYY-MM-DD`; or easy_handeye's, with `transformation` and no
+/// date). Its age is from `calibrated` if present (a copied file's modification time says
+/// nothing), else from `modified_unix_s`.
 pub fn hand_eye_file(path: &str, text: &str, modified_unix_s: f64, now_unix_s: f64) -> Result<HandEye, String> {
     let v: serde_json::Value =
         crate::config::from_yaml_str(path, text).map_err(|e| format!("{path}: not YAML: {}", e.message))?;
-    if v.get("flange_t_camera").is_none() {
-        return Err(format!("{path}: no flange_t_camera"));
+    if v.get("flange_t_camera").is_none() && v.get("transformation").is_none() {
+        return Err(format!(
+            "{path}: no flange_t_camera (trocar_docking hand-eye) or transformation (easy_handeye)"
+        ));
     }
     let num = |k: &str| v.get(k).and_then(serde_json::Value::as_f64);
     let (t, source) = match v.get("calibrated") {

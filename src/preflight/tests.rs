@@ -244,6 +244,11 @@ fn hand_eye_files_age_by_their_date_else_their_modification_time() {
     assert!(hand_eye_file("f", "a: 1\n", now, now)
         .unwrap_err()
         .contains("flange_t_camera"));
+    // easy_handeye's file carries no date: its age is its modification time's.
+    let easy = "parameters: {eye_on_hand: true, robot_effector_frame: lbr_link_7}\n\
+                transformation: {x: 0, y: 0.07, z: 0.075, qx: 0, qy: 0, qz: 0, qw: 1}\n";
+    let h = hand_eye_file("f", easy, now - 3.0 * 86_400.0, now).unwrap();
+    assert!((h.age_days - 3.0).abs() < 1e-9 && h.age_source == "modification time");
     assert!(hand_eye_file("f", &format!("{pose}calibrated: March\n"), now, now).is_err());
     assert!(hand_eye_file("f", &format!("{pose}residual_rotation_max_rad: .nan\n"), now, now).is_err());
     for day in [0, 59, 11_016, 19_782, 20_513] {

@@ -22,6 +22,10 @@
 //! state's (the camera's clock against the robot's, latency included) and that joint state's
 //! age on arrival (this machine's clock against the robot's): on two machines, an offset
 //! there is the cause of dropped or misplaced frames (docs/lab.md "Two machines").
+//!
+//! The hand-eye file (`hand_eye_file`: the project's or easy_handeye's) is also published as
+//! a static tf from the flange `lbr_link_ee` to the images' own frame ([`CameraTf`]), so the
+//! camera hangs in the arm's tf tree.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -30,7 +34,7 @@ use nalgebra::Isometry3;
 
 use super::convert;
 use super::convert::image as image_msgs;
-use super::msgs::{geometry_msgs, sensor_msgs, std_msgs};
+use super::msgs::{geometry_msgs, sensor_msgs, std_msgs, tf2_msgs};
 use super::node::{lock, ros_err, NodeError, Throttle};
 use super::params;
 use super::stats::LoopStats;
@@ -38,6 +42,7 @@ use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::validate;
 use crate::vision::estimator::PoseYaml;
+use crate::vision::hand_eye::Mount;
 use crate::vision::joint_history::JointHistory;
 use crate::vision::markerless::measurement::{self, EstimatorMethod, MarkerlessParams};
 use crate::vision::markerless::{MarkerlessEstimator, TrocarModel};
@@ -89,8 +94,10 @@ pub struct EstimatorNodeParams {
     pub trocar_model_file: String,
     /// The markerless measurement: the confidence gate and the covariance's scale.
     pub markerless: MarkerlessParams,
-    /// Hand-eye result YAML (`trocar_docking hand-eye --out`); its `flange_t_camera`
-    /// replaces `estimator.flange_t_camera`. '' = use the value in `estimator`.
+    /// Hand-eye file: the project's (`trocar_docking hand-eye --out`) or easy_handeye's (its
+    /// effector frame carried to the flange through the URDF); its mount replaces
+    /// `estimator.flange_t_camera` and goes out as a static tf from the flange to the
+    /// images' frame. '' = use the value in `estimator`.
     pub hand_eye_file: String,
     /// The marker on the trocar.
     pub marker: MarkerSpec,
@@ -123,19 +130,21 @@ crate::shipped_defaults!(
     deserialize_only
 );
 
-/// The hand-eye result file: only `flange_t_camera` is read.
-#[derive(Debug, serde::Deserialize)]
-struct HandEyeFile {
-    flange_t_camera: PoseYaml,
-}
-
 impl EstimatorNodeParams {
-    /// The estimator parameters with the hand-eye file applied, validated.
-    pub fn estimator_params(&self) -> Result<EstimatorParams, NodeError> {
+    /// The hand-eye file's mount (`None` without one), in either format
+    /// ([`params::hand_eye_mount`]).
+    pub fn hand_eye(&self) -> Result<Option<Mount>, NodeError> {
+        if self.hand_eye_file.is_empty() {
+            return Ok(None);
+        }
+        params::hand_eye_mount(&self.hand_eye_file, self.model, &self.urdf_file).map(Some)
+    }
+
+    /// The estimator parameters with the hand-eye `mount` applied, validated.
+    pub fn estimator_params(&self, mount: Option<&Mount>) -> Result<EstimatorParams, NodeError> {
         let mut e = self.estimator.clone();
-        if !self.hand_eye_file.is_empty() {
-            let f: HandEyeFile = params::from_yaml_file(std::path::Path::new(&self.hand_eye_file))?;
-            e.flange_t_camera = f.flange_t_camera;
+        if let Some(m) = mount {
+            e.flange_t_camera = PoseYaml::from_isometry(&m.flange_t_camera);
         }
         e.validate()
             .map_err(|err| NodeError::Invalid(format!("estimator: {err}")))?;
@@ -490,9 +499,9 @@ struct Shared {
 }
 
 impl Shared {
-    fn new(p: &EstimatorNodeParams) -> Result<Self, NodeError> {
-        let estimator =
-            TrocarEstimator::new(p.estimator_params()?).map_err(|e| NodeError::Invalid(format!("estimator: {e}")))?;
+    fn new(p: &EstimatorNodeParams, mount: Option<&Mount>) -> Result<Self, NodeError> {
+        let estimator = TrocarEstimator::new(p.estimator_params(mount)?)
+            .map_err(|e| NodeError::Invalid(format!("estimator: {e}")))?;
         let flange = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, FLANGE_LINK)?;
         let endoscope_length_m = LbrKinematics::flange_to_tip_m(p.model, &p.urdf_file)?;
         let capacity = (p.joint_history_s * 1000.0).ceil() as usize;
@@ -523,8 +532,54 @@ impl Shared {
     }
 }
 
+/// The camera tied into the arm's tf tree: the hand-eye transform from the flange to the
+/// images' own frame (their header's `frame_id`, e.g. the ZED's
+/// `zedm_left_camera_optical_frame`), latched on `/tf_static` once the first image names its
+/// frame, again should the frame change. So RViz shows the images, the marker pose and the
+/// trocar estimate on the arm.
+struct CameraTf {
+    publisher: rosrust::Publisher<tf2_msgs::TFMessage>,
+    flange_t_camera: Isometry3<f64>,
+    /// The frame the hand-eye file was calibrated in, if it says (easy_handeye's
+    /// `tracking_base_frame`).
+    calibrated_frame: Option<String>,
+    /// The frame last published for.
+    sent: Mutex<Option<String>>,
+}
+
+impl CameraTf {
+    fn new(flange_t_camera: Isometry3<f64>, mount: Option<&Mount>) -> Result<Self, NodeError> {
+        let mut publisher = rosrust::publish("/tf_static", 1).map_err(ros_err)?;
+        publisher.set_latching(true);
+        Ok(Self {
+            publisher,
+            flange_t_camera,
+            calibrated_frame: mount.and_then(|m| m.camera_frame.clone()),
+            sent: Mutex::new(None),
+        })
+    }
+
+    /// Publish the transform for an image in `frame`, unless done for that frame already.
+    fn ensure(&self, frame: &str) {
+        let mut sent = lock(&self.sent);
+        if frame.is_empty() || sent.as_deref() == Some(frame) {
+            return;
+        }
+        if let Some(c) = self.calibrated_frame.as_deref().filter(|c| *c != frame) {
+            rosrust::ros_warn!(
+                "the hand-eye file was calibrated in the camera frame `{c}`, the images are in `{frame}`:                  the mount is applied to `{frame}`"
+            );
+        }
+        let t = convert::transform_stamped(rosrust::now(), FLANGE_LINK, frame, &self.flange_t_camera);
+        let _ = self.publisher.send(tf2_msgs::TFMessage { transforms: vec![t] });
+        rosrust::ros_info!("static tf {FLANGE_LINK} -> {frame} (the hand-eye) on /tf_static");
+        *sent = Some(frame.to_string());
+    }
+}
+
 /// The node's publishers.
 struct Publishers {
+    camera_tf: CameraTf,
     pose: rosrust::Publisher<geometry_msgs::PoseStamped>,
     marker: rosrust::Publisher<geometry_msgs::PoseStamped>,
     debug: rosrust::Publisher<sensor_msgs::Image>,
@@ -533,8 +588,9 @@ struct Publishers {
 }
 
 impl Publishers {
-    fn new(p: &EstimatorNodeParams) -> Result<Self, NodeError> {
+    fn new(p: &EstimatorNodeParams, camera_tf: CameraTf) -> Result<Self, NodeError> {
         Ok(Self {
+            camera_tf,
             pose: rosrust::publish(&p.trocar_pose_topic, 10).map_err(ros_err)?,
             marker: rosrust::publish(&p.marker_pose_topic, 10).map_err(ros_err)?,
             debug: rosrust::publish(&p.debug_image_topic, 1).map_err(ros_err)?,
@@ -726,6 +782,7 @@ fn raise_priority(priority: i32) {
 /// One image: process it, publish what it gave, count its processing time and age.
 fn on_image(img: &sensor_msgs::Image, shared: &Shared, publishers: &Publishers, base_frame: &str) {
     let t0 = Instant::now();
+    publishers.camera_tf.ensure(&img.header.frame_id);
     let age_ms = (convert::seconds(rosrust::now()) - convert::seconds(img.header.stamp)) * 1e3;
     let clock = ClockSeen::of(convert::seconds(img.header.stamp), *lock(&shared.joint_clock))
         .map_or_else(|| "clock: no joint state yet".to_string(), |c| c.to_string());
@@ -810,8 +867,10 @@ pub fn run() -> Result<(), NodeError> {
     let p: EstimatorNodeParams = params::load_private()?;
     p.validate()?;
     let report_period = p.report_period()?;
-    let shared = Shared::new(&p)?;
-    let publishers = Publishers::new(&p)?;
+    let mount = p.hand_eye()?;
+    let shared = Shared::new(&p, mount.as_ref())?;
+    let flange_t_camera = lock(&shared.pipeline).estimator.flange_t_camera();
+    let publishers = Publishers::new(&p, CameraTf::new(flange_t_camera, mount.as_ref())?)?;
     let mut _subs = vec![
         subscribe_joint_states(&p, &shared)?,
         subscribe_camera_info(&p.camera_info_topic, &shared.camera)?,
@@ -936,7 +995,7 @@ mod tests {
 
     #[test]
     fn a_left_image_takes_the_right_image_of_its_stamp_or_goes_mono() {
-        let shared = Shared::new(&EstimatorNodeParams::default()).unwrap();
+        let shared = Shared::new(&EstimatorNodeParams::default(), None).unwrap();
         let stamp = rosrust::Time { sec: 100, nsec: 0 };
         // No right camera known yet, or one without a baseline: mono.
         assert!(stereo_right(&shared, stamp).is_none());

@@ -19,7 +19,6 @@ use super::params;
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::validate;
-use crate::vision::estimator::PoseYaml;
 use crate::vision::hand_eye::poses::{border_distance_px, plan, projected_corners, PlanParams};
 use crate::vision::hand_eye::quality::camera_info_warning;
 use crate::vision::hand_eye::{
@@ -50,7 +49,8 @@ pub struct HandEyeNodeParams {
     pub command_topic: String,
     /// `trajectory` (one-point JointTrajectory) or `float64_multi_array`.
     pub command_type: CommandType,
-    /// The current hand-eye guess (`~auto` plans through it), a `hand_eye_file`.
+    /// The current hand-eye guess (`~auto` plans through it), a hand-eye file (the
+    /// project's or easy_handeye's).
     pub hand_eye_file: String,
     /// Where `~save` writes ('' = the package's `config/hand_eye.yaml`).
     pub output_file: String,
@@ -126,12 +126,6 @@ impl HandEyeNodeParams {
             self.output_file.clone()
         }
     }
-}
-
-/// The hand-eye file's `flange_t_camera`.
-#[derive(serde::Deserialize)]
-struct HandEyeFile {
-    flange_t_camera: PoseYaml,
 }
 
 /// What the callbacks and services share.
@@ -573,12 +567,13 @@ pub fn run() -> Result<(), NodeError> {
     p.validate()?;
     let kin = LbrKinematics::from_model_or_file(p.model, &p.urdf_file, FLANGE_LINK)?;
     let guess = if p.hand_eye_file.is_empty() {
-        crate::vision::EstimatorParams::default().flange_t_camera
+        crate::vision::EstimatorParams::default()
+            .flange_t_camera
+            .to_isometry()
+            .map_err(|e| NodeError::Invalid(format!("estimator.flange_t_camera: {e}")))?
     } else {
-        params::from_yaml_file::<HandEyeFile>(std::path::Path::new(&p.hand_eye_file))?.flange_t_camera
-    }
-    .to_isometry()
-    .map_err(|e| NodeError::Invalid(format!("`hand_eye_file`: {e}")))?;
+        params::hand_eye_mount(&p.hand_eye_file, p.model, &p.urdf_file)?.flange_t_camera
+    };
     let (trajectory, multiarray) = match p.command_type {
         CommandType::Trajectory => (Some(rosrust::publish(&p.command_topic, 10).map_err(ros_err)?), None),
         CommandType::Float64MultiArray => (None, Some(rosrust::publish(&p.command_topic, 10).map_err(ros_err)?)),

@@ -9,6 +9,7 @@ use nalgebra::{Isometry3, Point3, Vector3};
 use super::convert::{header, point_msg, pose_msg};
 use super::msgs::{std_msgs, visualization_msgs};
 use crate::control::PivotReport;
+use crate::vision::markerless::TrocarModel;
 
 /// What to draw, all in the base frame.
 #[derive(Debug, Clone)]
@@ -41,10 +42,9 @@ pub struct MarkerStyle {
     pub force_max_length_m: f64,
     /// Diameter of the spheres, m.
     pub sphere_diameter_m: f64,
-    /// Drawn trocar cannula: outer diameter and length below the port, m.
-    pub trocar_diameter_m: f64,
-    /// Length of the drawn cannula, m.
-    pub trocar_length_m: f64,
+    /// The trocar drawn (head and cannula): the shipped `config/trocar_model.yaml`.
+    #[serde(skip, default = "TrocarModel::shipped")]
+    pub trocar: TrocarModel,
     /// Length of each nappe of the drawn cone of the shaft, from the fulcrum, m.
     pub cone_length_m: f64,
 }
@@ -71,6 +71,7 @@ enum Id {
     Fulcrum = 9,
     Cone = 10,
     TipPath = 11,
+    TrocarHead = 12,
 }
 
 /// Points on each rim of the drawn cone; every `CONE_RIM / CONE_GENERATORS`-th one is
@@ -152,11 +153,11 @@ pub fn docking_markers(
     scene: &Scene,
     style: &MarkerStyle,
 ) -> visualization_msgs::MarkerArray {
-    let mut markers = Vec::with_capacity(11);
+    let mut markers = Vec::with_capacity(12);
     match &scene.trocar {
         Some(t) => trocar_markers(&mut markers, stamp, frame, t, style),
         None => {
-            for id in [Id::Axis, Id::Port, Id::TrocarBody] {
+            for id in [Id::Axis, Id::Port, Id::TrocarBody, Id::TrocarHead] {
                 markers.push(delete(stamp, frame, id));
             }
         }
@@ -272,25 +273,110 @@ fn trocar_markers(
         style.sphere_diameter_m * 1.5,
         color(1.0, 0.6, 0.0),
     ));
-    // The cannula: a translucent cylinder from the port into the body along z.
-    let mut body = base(
+    let [head, cannula] = trocar_solids(stamp, frame, t, &style.trocar, ESTIMATE_COLOR);
+    markers.push(with_id(head, NS, Id::TrocarHead as i32));
+    markers.push(with_id(cannula, NS, Id::TrocarBody as i32));
+}
+
+/// The estimate's trocar: translucent blue-grey.
+const ESTIMATE_COLOR: std_msgs::ColorRGBA = std_msgs::ColorRGBA {
+    r: 0.5,
+    g: 0.55,
+    b: 1.0,
+    a: 0.6,
+};
+
+/// The true trocar (simulation): translucent green.
+const TRUTH_COLOR: std_msgs::ColorRGBA = std_msgs::ColorRGBA {
+    r: 0.2,
+    g: 0.9,
+    b: 0.3,
+    a: 0.45,
+};
+
+/// The abdominal wall (simulation): translucent skin.
+const WALL_COLOR: std_msgs::ColorRGBA = std_msgs::ColorRGBA {
+    r: 0.95,
+    g: 0.7,
+    b: 0.6,
+    a: 0.35,
+};
+
+/// The drawn wall: a disc this wide and this thick about the fulcrum, m.
+const WALL_DIAMETER_M: f64 = 0.14;
+const WALL_THICKNESS_M: f64 = 0.004;
+
+/// The namespace of the simulator's truth.
+const TRUTH_NS: &str = "truth";
+
+fn with_id(mut m: visualization_msgs::Marker, ns: &str, id: i32) -> visualization_msgs::Marker {
+    m.ns = ns.into();
+    m.id = id;
+    m
+}
+
+/// A cylinder of `radius` along the z axis of `t` from `z0` to `z1` (frame of `t`).
+fn cylinder(
+    stamp: rosrust::Time,
+    frame: &str,
+    t: &Isometry3<f64>,
+    radius: f64,
+    (z0, z1): (f64, f64),
+    c: std_msgs::ColorRGBA,
+) -> visualization_msgs::Marker {
+    let mut m = base(
         stamp,
         frame,
         Id::TrocarBody,
         visualization_msgs::Marker::CYLINDER as i32,
     );
-    let centre = t * Point3::new(0.0, 0.0, style.trocar_length_m / 2.0);
-    body.pose = pose_msg(&Isometry3::from_parts(centre.coords.into(), t.rotation));
-    body.scale.x = style.trocar_diameter_m;
-    body.scale.y = style.trocar_diameter_m;
-    body.scale.z = style.trocar_length_m;
-    body.color = std_msgs::ColorRGBA {
-        r: 0.6,
-        g: 0.6,
-        b: 0.9,
-        a: 0.6,
-    };
-    markers.push(body);
+    let centre = t * Point3::new(0.0, 0.0, 0.5 * (z0 + z1));
+    m.pose = pose_msg(&Isometry3::from_parts(centre.coords.into(), t.rotation));
+    m.scale.x = 2.0 * radius;
+    m.scale.y = 2.0 * radius;
+    m.scale.z = z1 - z0;
+    m.color = c;
+    m
+}
+
+/// The trocar `model` at port pose `t` (origin at the opening on the head's top face, z into
+/// the body): its head from the face down, and its cannula below the head.
+fn trocar_solids(
+    stamp: rosrust::Time,
+    frame: &str,
+    t: &Isometry3<f64>,
+    model: &TrocarModel,
+    c: std_msgs::ColorRGBA,
+) -> [visualization_msgs::Marker; 2] {
+    let h = model.head.height;
+    [
+        cylinder(stamp, frame, t, model.head.radius, (0.0, h), c.clone()),
+        cylinder(stamp, frame, t, model.cannula.radius, (h, h + model.cannula.length), c),
+    ]
+}
+
+/// The simulator's truth in `frame` (namespace `truth`): the true trocar (`trocar`, the
+/// `model`'s head and cannula) and the abdominal wall holding it, a disc through `fulcrum`
+/// (where the wall holds the trocar) across the true axis; beside the estimate's trocar, it
+/// shows the error a calibration leaves.
+pub fn truth_markers(
+    stamp: rosrust::Time,
+    frame: &str,
+    trocar: &Isometry3<f64>,
+    fulcrum: &Point3<f64>,
+    model: &TrocarModel,
+) -> visualization_msgs::MarkerArray {
+    let [head, cannula] = trocar_solids(stamp, frame, trocar, model, TRUTH_COLOR);
+    let across = Isometry3::from_parts(fulcrum.coords.into(), trocar.rotation);
+    let half = 0.5 * WALL_THICKNESS_M;
+    let wall = cylinder(stamp, frame, &across, 0.5 * WALL_DIAMETER_M, (-half, half), WALL_COLOR);
+    visualization_msgs::MarkerArray {
+        markers: vec![
+            with_id(head, TRUTH_NS, 0),
+            with_id(cannula, TRUTH_NS, 1),
+            with_id(wall, TRUTH_NS, 2),
+        ],
+    }
 }
 
 /// The dry run's tip path: a line through `points` (base frame), in its own namespace
@@ -381,7 +467,7 @@ mod tests {
         };
         let style = MarkerStyle::default();
         let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &style);
-        assert_eq!(a.markers.len(), 11);
+        assert_eq!(a.markers.len(), 12);
         let del = visualization_msgs::Marker::DELETE as i32;
         assert!(a
             .markers
@@ -408,6 +494,65 @@ mod tests {
         assert!((force.points[1].z - (0.2 - style.force_max_length_m)).abs() < 1e-12);
         let axis = a.markers.iter().find(|m| m.id == Id::Axis as i32).unwrap();
         assert!((axis.points[1].z - (0.3 + style.axis_length_m)).abs() < 1e-12);
+    }
+
+    /// The cylinder's two end points along its own z, base frame.
+    fn ends(m: &visualization_msgs::Marker) -> (Point3<f64>, Point3<f64>) {
+        let p = &m.pose;
+        let q = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            p.orientation.w,
+            p.orientation.x,
+            p.orientation.y,
+            p.orientation.z,
+        ));
+        let c = Point3::new(p.position.x, p.position.y, p.position.z);
+        let half = q * Vector3::z() * (0.5 * m.scale.z);
+        (c - half, c + half)
+    }
+
+    #[test]
+    fn the_trocar_is_drawn_as_its_model_where_the_estimate_and_the_truth_put_it() {
+        let model = TrocarModel::shipped();
+        let axis = Vector3::new(0.0, 0.6, -0.8);
+        let rotation = nalgebra::UnitQuaternion::rotation_between(&Vector3::z(), &axis).unwrap();
+        let at = Isometry3::from_parts(Vector3::new(0.5, -0.1, 0.3).into(), rotation);
+        let scene = Scene {
+            trocar: Some(at),
+            ..unknown()
+        };
+        let a = docking_markers(rosrust::Time::new(), "lbr_link_0", &scene, &MarkerStyle::default());
+        let find = |id: Id| a.markers.iter().find(|m| m.id == id as i32).unwrap();
+        let (head, cannula) = (find(Id::TrocarHead), find(Id::TrocarBody));
+        let port = Point3::from(at.translation.vector);
+        let h = model.head.height;
+        // The head from the port's face into the body, the cannula from there on.
+        let (top, bottom) = ends(head);
+        assert!((top - port).norm() < 1e-12 && (bottom - (port + axis * h)).norm() < 1e-12);
+        assert_eq!((head.scale.x, head.scale.z), (2.0 * model.head.radius, h));
+        let (top, bottom) = ends(cannula);
+        assert!((top - (port + axis * h)).norm() < 1e-12);
+        assert!((bottom - (port + axis * (h + model.cannula.length))).norm() < 1e-12);
+        assert_eq!(cannula.scale.y, 2.0 * model.cannula.radius);
+        // The truth: the same solids where the simulator's trocar is, and the wall across its
+        // axis through the fulcrum.
+        let truth = Isometry3::from_parts(Vector3::new(0.502, -0.1, 0.3).into(), rotation);
+        let fulcrum = Point3::from(truth.translation.vector) + axis * 0.04;
+        let t = truth_markers(rosrust::Time::new(), "lbr_link_0", &truth, &fulcrum, &model);
+        assert_eq!(t.markers.len(), 3);
+        assert!(t
+            .markers
+            .iter()
+            .all(|m| m.ns == "truth" && m.header.frame_id == "lbr_link_0"));
+        let (top, _) = ends(&t.markers[0]);
+        assert!((top - Point3::from(truth.translation.vector)).norm() < 1e-12);
+        assert!(
+            (top - port).norm() > 1e-3,
+            "the truth is drawn where it is, not at the estimate"
+        );
+        let (a_side, b_side) = ends(&t.markers[2]);
+        assert!((nalgebra::center(&a_side, &b_side) - fulcrum).norm() < 1e-12);
+        assert!(((b_side - a_side).normalize() - axis).norm() < 1e-12);
+        assert_eq!(t.markers[2].scale.x, WALL_DIAMETER_M);
     }
 
     /// A scene that knows nothing.
@@ -452,7 +597,7 @@ mod tests {
     fn unknown_geometry_is_deleted() {
         let a = docking_markers(rosrust::Time::new(), "b", &unknown(), &MarkerStyle::default());
         let del = visualization_msgs::Marker::DELETE as i32;
-        assert_eq!(a.markers.len(), 11);
+        assert_eq!(a.markers.len(), 12);
         assert!(a.markers.iter().all(|m| m.action == del));
     }
 

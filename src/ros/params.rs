@@ -6,6 +6,11 @@
 
 use serde::de::DeserializeOwned;
 
+use super::node::NodeError;
+use crate::kinematics::lbr::{self, LbrModel, ToolParams};
+use crate::kinematics::{fixed_transform, FLANGE_LINK};
+use crate::vision::hand_eye::{load_mount, Mount};
+
 pub use crate::config::{from_yaml_file, from_yaml_str, ParamError};
 
 /// Build the settings `T` from a parameter tree as the parameter server hands it over
@@ -27,6 +32,30 @@ pub fn load_private<T: DeserializeOwned>() -> Result<T, ParamError> {
     }
     let value: serde_json::Value = param.get().map_err(|e| server(&e))?;
     from_value(&ns, value)
+}
+
+/// The robot's URDF text: `urdf_file`, else the parameter `/robot_description` (what
+/// robot_state_publisher draws), else the built-in `model` with its endoscope.
+fn robot_urdf(model: LbrModel, urdf_file: &str) -> Result<String, String> {
+    if !urdf_file.is_empty() {
+        return std::fs::read_to_string(urdf_file).map_err(|e| format!("{urdf_file}: cannot read: {e}"));
+    }
+    if let Some(xml) = rosrust::param("/robot_description").and_then(|p| p.get::<String>().ok()) {
+        return Ok(xml);
+    }
+    lbr::urdf(model, &ToolParams::default()).map_err(|e| e.to_string())
+}
+
+/// The hand-eye file at `path` in either format (the project's `flange_t_camera`, or an
+/// easy_handeye calibration: [`crate::vision::hand_eye::easy_handeye`]), as every node reads
+/// it: an easy_handeye effector frame is carried to the flange through the fixed joints of
+/// the robot's URDF (`urdf_file`, else `/robot_description`, else the built-in `model`).
+pub fn hand_eye_mount(path: &str, model: LbrModel, urdf_file: &str) -> Result<Mount, NodeError> {
+    let resolve = |frame: &str| {
+        let xml = robot_urdf(model, urdf_file)?;
+        fixed_transform(&xml, FLANGE_LINK, frame).map_err(|e| e.to_string())
+    };
+    load_mount(std::path::Path::new(path), &resolve).map_err(|e| NodeError::Invalid(format!("`hand_eye_file`: {e}")))
 }
 
 #[cfg(test)]

@@ -13,7 +13,8 @@ use nalgebra::Isometry3;
 
 use super::convert;
 use super::convert::image as image_msgs;
-use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs};
+use super::markers;
+use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs};
 use super::params;
 use super::topics;
 use super::trajectory::TrajectoryFollower;
@@ -22,6 +23,7 @@ use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::sim::SimWorld;
 use crate::trials::config::SimConfig;
 use crate::vision::estimator::marker_in_camera;
+use crate::vision::markerless::TrocarModel;
 use crate::vision::render::add_gaussian_noise;
 use crate::vision::sim_camera::{blank_frame, right_noise_seed, TrocarCamera};
 use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions, VisionError};
@@ -91,6 +93,9 @@ pub struct SimNodeParams {
     /// Ground-truth fulcrum out: where the wall holds the trocar at rest, breathing (the
     /// true port the scope should pivot about; for tests and RViz), '' = off.
     pub trocar_fulcrum_true_topic: String,
+    /// The truth drawn for RViz out (`visualization_msgs/MarkerArray`: the true trocar and
+    /// the abdominal wall at the fulcrum, [`markers::truth_markers`]), '' = off.
+    pub trocar_true_markers_topic: String,
     /// Base frame.
     pub base_frame: String,
     /// Stop camera and direct pose after this many simulated seconds (negative: never),
@@ -655,6 +660,8 @@ struct Outputs {
     pose: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
     truth: Option<rosrust::Publisher<geometry_msgs::PoseStamped>>,
     fulcrum_truth: Option<rosrust::Publisher<geometry_msgs::PointStamped>>,
+    /// The truth drawn, with the trocar it draws.
+    truth_markers: Option<(rosrust::Publisher<visualization_msgs::MarkerArray>, TrocarModel)>,
 }
 
 impl Outputs {
@@ -666,6 +673,13 @@ impl Outputs {
             pose: optional(p.direct_pose_enabled, &p.trocar_pose_topic, 10)?,
             truth: optional(!p.trocar_true_topic.is_empty(), &p.trocar_true_topic, 2)?,
             fulcrum_truth: optional(!p.trocar_fulcrum_true_topic.is_empty(), &p.trocar_fulcrum_true_topic, 2)?,
+            truth_markers: match optional(!p.trocar_true_markers_topic.is_empty(), &p.trocar_true_markers_topic, 2)? {
+                Some(publ) => Some((
+                    publ,
+                    p.camera.trocar_model().map_err(|e| NodeError::Invalid(e.to_string()))?,
+                )),
+                None => None,
+            },
         })
     }
 
@@ -689,6 +703,10 @@ impl Outputs {
         }
         if let Some(publ) = &self.fulcrum_truth {
             let _ = publ.send(convert::point_stamped(stamp, &p.base_frame, &world.trocar().anchor()));
+        }
+        if let Some((publ, model)) = &self.truth_markers {
+            let (trocar, fulcrum) = (world.trocar_pose_true(), world.trocar().anchor());
+            let _ = publ.send(markers::truth_markers(stamp, &p.base_frame, &trocar, &fulcrum, model));
         }
     }
 

@@ -68,6 +68,18 @@ pub struct SimCameraParams {
 }
 
 impl SimCameraParams {
+    /// The trocar the camera sees: `trocar_model_file`, or the shipped
+    /// `config/trocar_model.yaml` when it is ''.
+    pub fn trocar_model(&self) -> Result<TrocarModel, CameraSetupError> {
+        if self.trocar_model_file.is_empty() {
+            return Ok(TrocarModel::shipped());
+        }
+        TrocarModel::from_yaml_file(std::path::Path::new(&self.trocar_model_file)).map_err(|error| CameraSetupError {
+            key: "trocar_model_file",
+            error,
+        })
+    }
+
     /// The right camera of `right_calibration_file` (`None`: '', a mono camera). It must be
     /// the right camera of a rectified pair: a baseline of 1 mm to 1 m.
     pub fn right_camera(&self) -> Result<Option<CameraModel>, CameraSetupError> {
@@ -176,16 +188,7 @@ impl TrocarCamera {
         model: &CameraModel,
         right: Option<&CameraModel>,
     ) -> Result<Self, CameraSetupError> {
-        let trocar = if c.trocar_model_file.is_empty() {
-            TrocarModel::shipped()
-        } else {
-            TrocarModel::from_yaml_file(std::path::Path::new(&c.trocar_model_file)).map_err(|error| {
-                CameraSetupError {
-                    key: "trocar_model_file",
-                    error,
-                }
-            })?
-        };
+        let trocar = c.trocar_model()?;
         let mut scene = Scene::random(seed, 0.0);
         scene.blur_sigma = c.blur_sigma_px;
         if c.show_endoscope {

@@ -20,6 +20,7 @@ mod reconfigure_checks;
 mod replay_checks;
 mod replay_faults;
 mod scope_checks;
+mod tf_checks;
 
 use ::trocar_docking::ros::params;
 use common::CheckParams;
@@ -66,6 +67,7 @@ fn run(name: &str, out: Option<&std::path::Path>) -> bool {
             "dry_run" => dry_run_checks::dry_run(&p),
             "reconfigure" => reconfigure_checks::reconfigure(&p),
             "hand_eye" => hand_eye_checks::hand_eye(&p),
+            "camera_tf" => tf_checks::camera_tf(&p),
             "hand_eye_dock" => hand_eye_checks::hand_eye(&p)
                 .and_then(|c| docking_checks::docking(&p).map(|d| format!("{c}; then docking: {d}"))),
             other => Err(format!("unknown check {other}")),

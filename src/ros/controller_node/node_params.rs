@@ -222,7 +222,14 @@ mod tests {
             ),
             (
                 serde_json::json!({"controller": {"guard": {"force_stop": 15}}}),
-                "`guard.force_stop`: the key is now `guard.force_stop_n`",
+                "`controller.guard.force_stop`: the key is now `guard.force_stop_n`",
+            ),
+            // Left over under the controller's own parameters (~controller/rate_hz): named as
+            // itself with its replacement, not as an unknown `controller`.
+            (
+                serde_json::json!({"controller": {"rate_hz": 1000}}),
+                "`controller.rate_hz`: the key is gone (the control rate is the controller's period, `dt_s` = 1 / rate \
+                 in config/controller.yaml (~controller/dt_s; the launch files' rate:=HZ sets it))",
             ),
         ] {
             let e = crate::ros::params::from_value::<ControllerNodeParams>("/docking_controller", tree)
