@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <initializer_list>
 #include <random>
 #include <stdexcept>
@@ -94,7 +95,10 @@ OfficialTag official_tag(const AprilTagFamily &f, int id) {
   image_u8_t *im = apriltag_to_image(fam, id);
   t.image = cv::Mat(im->height, im->width, CV_8UC1);
   for (int r = 0; r < im->height; ++r) std::copy_n(im->buf + r * im->stride, im->width, t.image.ptr<uint8_t>(r));
-  image_u8_destroy(im);
+  // image_u8_destroy() (common/image_u8.c: free the pixels, then the struct) is not among
+  // the symbols Debian's libapriltag exports: the same two frees.
+  free(im->buf);
+  free(im);
   f.destroy(fam);
   return t;
 }
