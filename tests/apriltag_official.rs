@@ -222,11 +222,25 @@ print(json.dumps([{"id": int(d["id"]), "corners": np.asarray(d["lb-rb-rt-lt"]).t
 }
 
 /// Our detections of a scene, through `trocar_docking detect --json` (the CLI a lab runs).
-fn cli_detections(family: &str, size: f64, image: &Path, cam: &Cam, dir: &Path) -> Vec<(u32, Isometry3<f64>, [[f64; 2]; 4])> {
+fn cli_detections(
+    family: &str,
+    size: f64,
+    image: &Path,
+    cam: &Cam,
+    dir: &Path,
+) -> Vec<(u32, Isometry3<f64>, [[f64; 2]; 4])> {
     let yaml = dir.join("camera.yaml");
     std::fs::write(&yaml, cam.yaml()).unwrap();
     let out = Command::new(env!("CARGO_BIN_EXE_trocar_docking"))
-        .args(["detect", "--json", "--family", family, "--size", &size.to_string(), "--image"])
+        .args([
+            "detect",
+            "--json",
+            "--family",
+            family,
+            "--size",
+            &size.to_string(),
+            "--image",
+        ])
         .arg(image)
         .arg("--camera")
         .arg(&yaml)
@@ -254,7 +268,9 @@ fn cli_detections(family: &str, size: f64, image: &Path, cam: &Cam, dir: &Path) 
 }
 
 fn scratch(name: &str) -> PathBuf {
-    let d = Path::new(env!("CARGO_TARGET_TMPDIR")).join("apriltag_official").join(name);
+    let d = Path::new(env!("CARGO_TARGET_TMPDIR"))
+        .join("apriltag_official")
+        .join(name);
     std::fs::create_dir_all(&d).unwrap();
     d
 }
@@ -277,10 +293,13 @@ fn check_scene(family: &str, cam: &Cam, tags: &[Placed], rot_deg: f64, pos_frac:
     for p in tags {
         let off = official.iter().find(|d| d.id == p.id);
         let off = off.unwrap_or_else(|| panic!("{family} id {}: the official detector did not find it", p.id));
-        let (_, pose, corners) = ours
-            .iter()
-            .find(|d| d.0 == p.id)
-            .unwrap_or_else(|| panic!("{family} id {}: not found by ours ({:?})", p.id, ours.iter().map(|d| d.0).collect::<Vec<_>>()));
+        let (_, pose, corners) = ours.iter().find(|d| d.0 == p.id).unwrap_or_else(|| {
+            panic!(
+                "{family} id {}: not found by ours ({:?})",
+                p.id,
+                ours.iter().map(|d| d.0).collect::<Vec<_>>()
+            )
+        });
         for i in 0..4 {
             // The official corner i is where the official object point i projects: the
             // scene's frame is the official one.
@@ -301,7 +320,12 @@ fn check_scene(family: &str, cam: &Cam, tags: &[Placed], rot_deg: f64, pos_frac:
             pos * 100.0
         );
         assert!(rot <= rot_deg, "{family} id {}: rotation error {rot} deg", p.id);
-        assert!(pos <= pos_frac, "{family} id {}: position error {} % of range", p.id, pos * 100.0);
+        assert!(
+            pos <= pos_frac,
+            "{family} id {}: position error {} % of range",
+            p.id,
+            pos * 100.0
+        );
         (worst_rot, worst_pos) = (worst_rot.max(rot), worst_pos.max(pos));
     }
     eprintln!(
@@ -311,8 +335,14 @@ fn check_scene(family: &str, cam: &Cam, tags: &[Placed], rot_deg: f64, pos_frac:
         worst_pos * 100.0
     );
     assert_eq!(ours.len(), tags.len(), "{family}: ours found other tags");
-    assert!(worst_truth <= 1.0, "the scene is not in the official frame: {worst_truth} px");
-    assert!(worst_ours <= 1.0, "our corner order or place differs from the official: {worst_ours} px");
+    assert!(
+        worst_truth <= 1.0,
+        "the scene is not in the official frame: {worst_truth} px"
+    );
+    assert!(
+        worst_ours <= 1.0,
+        "our corner order or place differs from the official: {worst_ours} px"
+    );
 }
 
 /// Tags facing the camera at 0.3-0.6 m, tilted up to 40°, turned every way.
@@ -328,18 +358,42 @@ fn tags_of(family: &str, ids: [u32; 4], size: f64) -> Vec<Placed> {
 
 #[test]
 fn tag36h11_matches_the_official_detector_at_720p_with_distortion() {
-    check_scene("tag36h11", &ZEDM_720P, &tags_of("tag36h11", [0, 7, 42, 586], 0.05), 0.5, 0.01);
+    check_scene(
+        "tag36h11",
+        &ZEDM_720P,
+        &tags_of("tag36h11", [0, 7, 42, 586], 0.05),
+        0.5,
+        0.01,
+    );
 }
 
 #[test]
 fn tag36h11_matches_the_official_detector_at_1080p() {
-    check_scene("tag36h11", &PINHOLE_1080P, &tags_of("tag36h11", [1, 99, 300, 511], 0.05), 0.3, 0.005);
+    check_scene(
+        "tag36h11",
+        &PINHOLE_1080P,
+        &tags_of("tag36h11", [1, 99, 300, 511], 0.05),
+        0.3,
+        0.005,
+    );
 }
 
 #[test]
 fn tag25h9_and_tag16h5_match_the_official_detector() {
-    check_scene("tag25h9", &ZEDM_720P, &tags_of("tag25h9", [0, 5, 17, 34], 0.05), 0.5, 0.01);
-    check_scene("tag16h5", &ZEDM_720P, &tags_of("tag16h5", [0, 3, 11, 29], 0.05), 0.5, 0.01);
+    check_scene(
+        "tag25h9",
+        &ZEDM_720P,
+        &tags_of("tag25h9", [0, 5, 17, 34], 0.05),
+        0.5,
+        0.01,
+    );
+    check_scene(
+        "tag16h5",
+        &ZEDM_720P,
+        &tags_of("tag16h5", [0, 3, 11, 29], 0.05),
+        0.5,
+        0.01,
+    );
 }
 
 #[test]
@@ -363,7 +417,15 @@ fn opencv_apriltag_names_are_the_official_families() {
     let found = det.detect(&view).unwrap();
     assert_eq!(found.len(), 1);
     for i in 0..4 {
-        assert!(dist(found[0].corners[i], p.corner_px(&ZEDM_720P, i)) < 1.0, "corner {i}");
+        assert!(
+            dist(found[0].corners[i], p.corner_px(&ZEDM_720P, i)) < 1.0,
+            "corner {i}"
+        );
     }
-    assert!((found[0].pose_camera_marker.rotation.inverse() * p.camera_t_tag.rotation).angle().to_degrees() < 0.5);
+    assert!(
+        (found[0].pose_camera_marker.rotation.inverse() * p.camera_t_tag.rotation)
+            .angle()
+            .to_degrees()
+            < 0.5
+    );
 }

@@ -7,8 +7,8 @@ use rand::{RngExt, SeedableRng};
 use super::{time_each, LatencyStats, SuiteReport};
 use crate::stats::quantile_sorted;
 use crate::vision::{
-    facing_pose, facing_pose_in, pose_distance, render_marker_image, CameraModel, GreyImage, MarkerDetector, MarkerFamily, MarkerSpec,
-    RenderOptions, VisionError,
+    facing_pose, facing_pose_in, pose_distance, render_marker_image, CameraModel, GreyImage, MarkerDetector,
+    MarkerFamily, MarkerSpec, RenderOptions, VisionError,
 };
 use nalgebra::Isometry3;
 

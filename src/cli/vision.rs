@@ -7,8 +7,8 @@ use nalgebra::Isometry3;
 
 use crate::vision::estimator::PoseYaml;
 use crate::vision::{
-    facing_pose_in, hand_eye, render_marker_image, CameraModel, GreyImage, MarkerDetection, MarkerDetector, MarkerFamily,
-    MarkerSpec, RenderOptions,
+    facing_pose_in, hand_eye, render_marker_image, CameraModel, GreyImage, MarkerDetection, MarkerDetector,
+    MarkerFamily, MarkerSpec, RenderOptions,
 };
 
 /// The marker options shared by `detect` and `render`. Family and size default to the

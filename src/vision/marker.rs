@@ -77,7 +77,8 @@ impl MarkerFrame {
 
 /// The official AprilTag families accepted, with their number of ids (libapriltag's
 /// `ncodes`). OpenCV's `DICT_APRILTAG_16h5`, `_25h9`, `_36h10`, `_36h11` name the same codes.
-pub const APRILTAG_FAMILIES: &[(&str, u32)] = &[("tag16h5", 30), ("tag25h9", 35), ("tag36h10", 2320), ("tag36h11", 587)];
+pub const APRILTAG_FAMILIES: &[(&str, u32)] =
+    &[("tag16h5", 30), ("tag25h9", 35), ("tag36h10", 2320), ("tag36h11", 587)];
 
 /// The OpenCV dictionary names accepted, with their number of ids.
 pub const ARUCO_DICTIONARIES: &[(&str, u32)] = &[
@@ -419,13 +420,25 @@ mod tests {
         );
         assert_eq!("4x4_50".parse::<MarkerFamily>().unwrap().name(), "DICT_4X4_50");
         let tag36h11 = MarkerFamily::AprilTag("tag36h11".into());
-        for name in ["tag36h11", "36h11", "Tag36H11", "DICT_APRILTAG_36h11", "dict_apriltag_36H11"] {
+        for name in [
+            "tag36h11",
+            "36h11",
+            "Tag36H11",
+            "DICT_APRILTAG_36h11",
+            "dict_apriltag_36H11",
+        ] {
             assert_eq!(name.parse::<MarkerFamily>().unwrap(), tag36h11, "{name}");
         }
         assert_eq!("DICT_APRILTAG_16h5".parse::<MarkerFamily>().unwrap().name(), "tag16h5");
-        assert_eq!("tag25h9".parse::<MarkerFamily>().unwrap().frame(), MarkerFrame::AprilTag);
+        assert_eq!(
+            "tag25h9".parse::<MarkerFamily>().unwrap().frame(),
+            MarkerFrame::AprilTag
+        );
         assert_eq!(tag36h11.id_count(), 587);
-        assert_eq!("DICT_4X4_50".parse::<MarkerFamily>().unwrap().frame(), MarkerFrame::OpenCv);
+        assert_eq!(
+            "DICT_4X4_50".parse::<MarkerFamily>().unwrap().frame(),
+            MarkerFrame::OpenCv
+        );
         assert!("tag36h12".parse::<MarkerFamily>().is_err());
         assert!("DICT_APRILTAG_41h12".parse::<MarkerFamily>().is_err());
         assert!("DICT_9X9_50".parse::<MarkerFamily>().is_err());

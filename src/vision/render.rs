@@ -196,7 +196,11 @@ mod tests {
             let family: MarkerFamily = name.parse().unwrap();
             let last = official_tag_image(&family, ids - 1).unwrap();
             assert_eq!(last.id_count, *ids, "{name}");
-            assert_eq!(last.image.width, last.width_at_border + 2, "{name}: one white cell around");
+            assert_eq!(
+                last.image.width,
+                last.width_at_border + 2,
+                "{name}: one white cell around"
+            );
             assert!(official_tag_image(&family, *ids).is_err(), "{name}: id past the family");
         }
         // A white ring, a black ring, the data inside (whether it decodes to its id is for the
