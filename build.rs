@@ -138,4 +138,9 @@ fn main() {
         println!("cargo:rustc-link-lib={l}");
     }
     println!("cargo:rustc-link-lib=opencv_aruco");
+    // The official AprilTag library (libapriltag-dev): the tags the renderer draws.
+    if !std::path::Path::new("/usr/include/apriltag/apriltag.h").exists() {
+        panic!("/usr/include/apriltag/apriltag.h is missing: run scripts/install-deps (libapriltag-dev)");
+    }
+    println!("cargo:rustc-link-lib=apriltag");
 }

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <initializer_list>
 #include <random>
 #include <stdexcept>
@@ -20,6 +21,14 @@
 #include <visp3/core/vpImage.h>
 #include <visp3/core/vpPoint.h>
 #include <visp3/detection/vpDetectorAprilTag.h>
+
+extern "C" {
+#include <apriltag/apriltag.h>
+#include <apriltag/tag16h5.h>
+#include <apriltag/tag25h9.h>
+#include <apriltag/tag36h10.h>
+#include <apriltag/tag36h11.h>
+}
 
 #include <omp.h>
 #include <visp3/vision/vpHandEyeCalibration.h>
@@ -44,7 +53,55 @@ const bool opencv_on_the_calling_thread = [] {
   return true;
 }();
 
-const std::string kAprilTag = "tag36h11";
+// The AprilTag families: detected by ViSP's vpDetectorAprilTag, drawn from the official
+// library's codes (libapriltag's family objects), both in the official frame (marker.rs).
+struct AprilTagFamily {
+  const char *name;
+  vpDetectorAprilTag::vpAprilTagFamily visp;
+  apriltag_family_t *(*create)();
+  void (*destroy)(apriltag_family_t *);
+};
+const AprilTagFamily kAprilTagFamilies[] = {
+    {"tag16h5", vpDetectorAprilTag::TAG_16h5, tag16h5_create, tag16h5_destroy},
+    {"tag25h9", vpDetectorAprilTag::TAG_25h9, tag25h9_create, tag25h9_destroy},
+    {"tag36h10", vpDetectorAprilTag::TAG_36h10, tag36h10_create, tag36h10_destroy},
+    {"tag36h11", vpDetectorAprilTag::TAG_36h11, tag36h11_create, tag36h11_destroy},
+};
+
+// The AprilTag family of that official name, or null.
+const AprilTagFamily *apriltag_family(const std::string &name) {
+  for (const auto &f : kAprilTagFamilies)
+    if (name == f.name) return &f;
+  return nullptr;
+}
+
+// An official tag as libapriltag's apriltag_to_image() draws it: total_width^2 pixels, one a
+// cell, row 0 the top of the upright tag, white border included.
+struct OfficialTag {
+  cv::Mat image;
+  int width_at_border = 0;  // the black square's side, cells
+  int codes = 0;            // ids in the family
+};
+OfficialTag official_tag(const AprilTagFamily &f, int id) {
+  apriltag_family_t *fam = f.create();
+  OfficialTag t;
+  t.width_at_border = fam->width_at_border;
+  t.codes = static_cast<int>(fam->ncodes);
+  if (id < 0 || id >= t.codes) {
+    f.destroy(fam);
+    throw std::invalid_argument("marker id " + std::to_string(id) + " is not in family " + f.name + " (" +
+                                std::to_string(t.codes) + " ids)");
+  }
+  image_u8_t *im = apriltag_to_image(fam, id);
+  t.image = cv::Mat(im->height, im->width, CV_8UC1);
+  for (int r = 0; r < im->height; ++r) std::copy_n(im->buf + r * im->stride, im->width, t.image.ptr<uint8_t>(r));
+  // image_u8_destroy() (common/image_u8.c: free the pixels, then the struct) is not among
+  // the symbols Debian's libapriltag exports: the same two frees.
+  free(im->buf);
+  free(im);
+  f.destroy(fam);
+  return t;
+}
 
 // OpenCV dictionary by its enum name; throws on an unknown name.
 cv::aruco::PREDEFINED_DICTIONARY_NAME dictionary_by_name(const std::string &name) {
@@ -56,9 +113,12 @@ cv::aruco::PREDEFINED_DICTIONARY_NAME dictionary_by_name(const std::string &name
       {"DICT_6X6_100", DICT_6X6_100},     {"DICT_6X6_250", DICT_6X6_250},   {"DICT_6X6_1000", DICT_6X6_1000},
       {"DICT_7X7_50", DICT_7X7_50},       {"DICT_7X7_100", DICT_7X7_100},   {"DICT_7X7_250", DICT_7X7_250},
       {"DICT_7X7_1000", DICT_7X7_1000},   {"DICT_ARUCO_ORIGINAL", DICT_ARUCO_ORIGINAL},
-      {"DICT_APRILTAG_16h5", DICT_APRILTAG_16h5}, {"DICT_APRILTAG_25h9", DICT_APRILTAG_25h9},
-      {"DICT_APRILTAG_36h10", DICT_APRILTAG_36h10}, {"DICT_APRILTAG_36h11", DICT_APRILTAG_36h11},
   };
+  // OpenCV 4.6 draws its DICT_APRILTAG_* dictionaries turned 180 degrees against the
+  // official tags: AprilTags go through the official families only.
+  if (name.rfind("DICT_APRILTAG_", 0) == 0)
+    throw std::invalid_argument("marker family `" + name + "`: AprilTags are named by their official family (tag" +
+                                name.substr(14) + ")");
   for (const auto &e : table) {
     if (name == e.first) return e.second;
   }
@@ -122,7 +182,11 @@ cv::Mat grey_view(rust::Slice<const uint8_t> pixels, int width, int height, int 
   return g;
 }
 
-// Marker-frame corners: x right, y up, z out of the marker; TL, TR, BR, BL as seen.
+// Marker-frame corners, in the order the detectors report them: OpenCV's ArUco corners TL,
+// TR, BR, BL with x right, y up, z out of the marker; libapriltag's det->p[0..3] (left-
+// bottom, right-bottom, right-top, left-top) with x right, y down, z into the tag, the
+// object points of apriltag_pose.c's estimate_tag_pose_orthogonal_iteration. The same
+// coordinates in both.
 std::vector<cv::Point3d> object_corners(double s) {
   const double h = 0.5 * s;
   return {{-h, h, 0}, {h, h, 0}, {h, -h, 0}, {-h, -h, 0}};
@@ -248,9 +312,9 @@ std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::S
   impl->dist = dist_mat(dist);
   impl->width = width;
   impl->height = height;
-  if (fam == kAprilTag) {
+  if (const AprilTagFamily *tag = apriltag_family(fam)) {
     impl->apriltag = true;
-    impl->april = std::make_unique<vpDetectorAprilTag>(vpDetectorAprilTag::TAG_36h11);
+    impl->april = std::make_unique<vpDetectorAprilTag>(tag->visp);
     // Wide frames are shrunk 2x (area average, halves pixel noise) and quads found at a
     // further 2x decimation: noisy frames stay fast. Corners are refined on the full image.
     impl->april->setAprilTagQuadDecimate(2.0f);
@@ -258,7 +322,7 @@ std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::S
     impl->april->setAprilTagRefineEdges(true);
     impl->decimate = width >= 960 ? 2 : 1;
     impl->april->setAprilTagNbThreads(1);
-    impl->cells = 8;
+    impl->cells = official_tag(*tag, 0).width_at_border;
   } else {
     impl->dict = cv::aruco::getPredefinedDictionary(dictionary_by_name(fam));
     impl->params = cv::aruco::DetectorParameters::create();
@@ -363,10 +427,10 @@ rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8
       if (id >= 0 && tag_ids[i] != id) continue;
       const auto poly = d.april->getPolygon(i);
       if (poly.size() != 4) continue;
-      // ViSP's polygon runs TR, TL, BL, BR of the tag as OpenCV draws it upright (checked
-      // on rendered tags); ours is TL, TR, BR, BL.
+      // ViSP's polygon is libapriltag's det->p[0..3] in order (vpDetectorAprilTag.cpp,
+      // Impl::detect): the official corners, kept in their order.
       std::vector<cv::Point2d> px;
-      for (int k : {1, 0, 3, 2}) px.emplace_back(f * (poly[k].get_u() + 0.5) - 0.5, f * (poly[k].get_v() + 0.5) - 0.5);
+      for (const auto &c : poly) px.emplace_back(f * (c.get_u() + 0.5) - 0.5, f * (c.get_v() + 0.5) - 0.5);
       pose_from_corners(d, grey, tag_ids[i], size, px, out);
     }
   } else {
@@ -404,17 +468,34 @@ rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8
 
 namespace {
 
-// Texture of the plane: the marker with a white quiet zone, on a random grey pattern.
-cv::Mat make_texture(const std::string &family, int id, double size, double plane_size, uint32_t seed, int &marker_px) {
-  const std::string dict_name = family == kAprilTag ? std::string("DICT_APRILTAG_36h11") : family;
-  auto dict = cv::aruco::getPredefinedDictionary(dictionary_by_name(dict_name));
+// The upright marker's black square, 480 / cells px a cell (at least 4): an AprilTag from the official family's codes (apriltag_to_image), an ArUco
+// marker as OpenCV draws it. Sets `cells`.
+cv::Mat draw_marker(const std::string &family, int id, int &cells) {
+  cv::Mat marker;
+  if (const AprilTagFamily *tag = apriltag_family(family)) {
+    const OfficialTag t = official_tag(*tag, id);
+    cells = t.width_at_border;
+    const int b = (t.image.cols - cells) / 2;
+    const int per_cell = std::max(4, 480 / cells);
+    cv::resize(t.image(cv::Rect(b, b, cells, cells)), marker, cv::Size(per_cell * cells, per_cell * cells), 0, 0,
+               cv::INTER_NEAREST);
+    return marker;
+  }
+  auto dict = cv::aruco::getPredefinedDictionary(dictionary_by_name(family));
   if (id < 0 || id >= dict->bytesList.rows)
     throw std::invalid_argument("marker id " + std::to_string(id) + " is not in family " + family);
-  const int cells = dict->markerSize + 2;
+  cells = dict->markerSize + 2;
   const int per_cell = std::max(4, 480 / cells);
-  marker_px = per_cell * cells;
-  cv::Mat marker;
-  dict->drawMarker(id, marker_px, marker, 1);
+  dict->drawMarker(id, per_cell * cells, marker, 1);
+  return marker;
+}
+
+// Texture of the plane: the marker with a white quiet zone, on a random grey pattern.
+cv::Mat make_texture(const std::string &family, int id, double size, double plane_size, uint32_t seed, int &marker_px) {
+  int cells = 0;
+  const cv::Mat marker = draw_marker(family, id, cells);
+  marker_px = marker.cols;
+  const int per_cell = marker_px / cells;
   const double scale = marker_px / size;  // texture px per metre
   const int plane_px = static_cast<int>(std::lround(plane_size * scale));
   // Smooth random clutter (no marker-like squares): random levels on a coarse grid,
@@ -487,8 +568,10 @@ PixelBox render_region(const cv::Matx33d &H, double h, rust::Slice<const double>
 
 // Grey level of pixel (xn, yn) (undistorted normalised coordinates of its centre): 3 x 3
 // supersampling (box filter) of the texture, bilinear at texel centres, `bg` off the plane.
+// The texture's rows run along -y of the marker frame (`y_down` false: OpenCV's ArUco
+// frame, y up) or along +y (`y_down`: the official AprilTag frame, y down).
 double shade_pixel(const cv::Mat &tex, const cv::Matx33d &Hi, double h, double xn, double yn, double fx, double fy,
-                   double bg) {
+                   double bg, bool y_down) {
   const int ss = 3;
   double acc = 0;
   for (int i = 0; i < ss; ++i)
@@ -500,7 +583,8 @@ double shade_pixel(const cv::Mat &tex, const cv::Matx33d &Hi, double h, double x
         continue;
       }
       const double X = P[0] / P[2], Y = P[1] / P[2];
-      const double tu = (X / (2 * h) + 0.5) * tex.cols - 0.5, tv = (0.5 - Y / (2 * h)) * tex.rows - 0.5;
+      const double tu = (X / (2 * h) + 0.5) * tex.cols - 0.5;
+      const double tv = (0.5 + (y_down ? Y : -Y) / (2 * h)) * tex.rows - 0.5;
       if (tu < -0.5 || tv < -0.5 || tu > tex.cols - 0.5 || tv > tex.rows - 0.5) {
         acc += bg;
       } else {
@@ -532,7 +616,9 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
                                  uint32_t texture_seed) {
   check_render_inputs(cmo, intrinsics, dist, width, height, size, plane_size, blur_sigma);
   int marker_px = 0;
-  cv::Mat tex = make_texture(std::string(family), id, size, plane_size, texture_seed, marker_px);
+  const std::string fam(family);
+  cv::Mat tex = make_texture(fam, id, size, plane_size, texture_seed, marker_px);
+  const bool y_down = apriltag_family(fam) != nullptr;
   const double h = 0.5 * tex.cols * size / marker_px;  // plane half side, m
   // Plane (X, Y, 1) -> normalised image point: H = [r1 r2 t]; we need its inverse.
   const cv::Matx33d H(cmo[0], cmo[1], cmo[9], cmo[3], cmo[4], cmo[10], cmo[6], cmo[7], cmo[11]);
@@ -563,7 +649,7 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
         xn = p.x;
         yn = p.y;
       }
-      row[u] = cv::saturate_cast<uint8_t>(shade_pixel(tex, Hi, h, xn, yn, fx, fy, bg));
+      row[u] = cv::saturate_cast<uint8_t>(shade_pixel(tex, Hi, h, xn, yn, fx, fy, bg, y_down));
     }
   }
   if (blur_sigma > 0.0) cv::GaussianBlur(img, img, cv::Size(0, 0), blur_sigma);
@@ -571,6 +657,21 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
   out.reserve(static_cast<size_t>(width) * height);
   for (int v = 0; v < height; ++v)
     for (int u = 0; u < width; ++u) out.push_back(img.at<uint8_t>(v, u));
+  return out;
+}
+
+rust::Vec<uint8_t> official_apriltag(rust::Str family, int id, rust::Slice<int32_t> dims) {
+  if (dims.size() != 3) throw std::invalid_argument("dims must have 3 slots");
+  const AprilTagFamily *tag = apriltag_family(std::string(family));
+  if (!tag) throw std::invalid_argument("unknown AprilTag family `" + std::string(family) + "`");
+  const OfficialTag t = official_tag(*tag, id);
+  dims[0] = t.image.cols;
+  dims[1] = t.width_at_border;
+  dims[2] = t.codes;
+  rust::Vec<uint8_t> out;
+  out.reserve(t.image.total());
+  for (int r = 0; r < t.image.rows; ++r)
+    for (int c = 0; c < t.image.cols; ++c) out.push_back(t.image.at<uint8_t>(r, c));
   return out;
 }
 

@@ -99,7 +99,7 @@ fn id_filter_rgb_input_and_convention() {
     // z out of the marker: the marker normal points back at the camera.
     let z = m.pose_camera_marker.rotation * nalgebra::Vector3::z();
     assert!(z.z < -0.5);
-    // Corners TL, TR, BR, BL: TL is left of TR in a marker that is barely turned.
+    // ArUco corners TL, TR, BR, BL: TL is left of TR in a marker that is barely turned.
     assert!(m.corners[0][0] < m.corners[1][0] && m.corners[1][1] < m.corners[2][1]);
     assert!(m.reprojection_error_px < 0.5);
     let bgra: Vec<u8> = img.data.iter().flat_map(|&g| [g, g, g, 255]).collect();

@@ -7,8 +7,8 @@ use rand::{RngExt, SeedableRng};
 use super::{time_each, LatencyStats, SuiteReport};
 use crate::stats::quantile_sorted;
 use crate::vision::{
-    facing_pose, pose_distance, render_marker_image, CameraModel, GreyImage, MarkerDetector, MarkerFamily, MarkerSpec,
-    RenderOptions, VisionError,
+    facing_pose, facing_pose_in, pose_distance, render_marker_image, CameraModel, GreyImage, MarkerDetector,
+    MarkerFamily, MarkerSpec, RenderOptions, VisionError,
 };
 use nalgebra::Isometry3;
 
@@ -88,7 +88,7 @@ pub fn synthetic_frames(cfg: &SweepConfig) -> Result<Vec<SyntheticFrame>, Vision
         let tilt = rng.random_range(0.0..45f64.to_radians());
         let dir = rng.random_range(0.0..std::f64::consts::TAU);
         let yaw = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
-        let truth = facing_pose(d, x, y, tilt * dir.cos(), tilt * dir.sin(), yaw);
+        let truth = facing_pose_in(cfg.family.frame(), d, x, y, tilt * dir.cos(), tilt * dir.sin(), yaw);
         let id = rng.random_range(0..cfg.family.id_count().clamp(1, 50));
         let spec = MarkerSpec {
             family: cfg.family.clone(),

@@ -9,8 +9,8 @@ use nalgebra::Isometry3;
 use crate::kinematics::{fixed_transform, FLANGE_LINK};
 use crate::vision::estimator::PoseYaml;
 use crate::vision::{
-    facing_pose, hand_eye, render_marker_image, CameraModel, GreyImage, MarkerDetection, MarkerDetector, MarkerFamily,
-    MarkerSpec, RenderOptions,
+    facing_pose_in, hand_eye, render_marker_image, CameraModel, GreyImage, MarkerDetection, MarkerDetector,
+    MarkerFamily, MarkerSpec, RenderOptions,
 };
 
 /// The marker options shared by `detect` and `render`. Family and size default to the
@@ -18,8 +18,12 @@ use crate::vision::{
 /// config/trocar_estimator.yaml: DICT_4X4_50, 40 mm).
 #[derive(Debug, clap::Args)]
 pub struct MarkerArgs {
-    /// Family: an OpenCV dictionary name (DICT_4X4_50, DICT_ARUCO_ORIGINAL, ...) or tag36h11
-    /// [default: the estimator's, DICT_4X4_50].
+    /// Family: an OpenCV ArUco dictionary name (DICT_4X4_50, DICT_ARUCO_ORIGINAL, ...) or an
+    /// official AprilTag family (tag16h5, tag25h9, tag36h10, tag36h11; DICT_APRILTAG_* names
+    /// read as these) [default: the estimator's, DICT_4X4_50]. Each in its library's frame
+    /// (docs/vision.md): ArUco corners TL TR BR BL, x right, y up, z out of the marker;
+    /// AprilTag corners left-bottom, right-bottom, right-top, left-top, x right, y down, z
+    /// into the tag.
     #[arg(long)]
     pub family: Option<String>,
     /// Marker id (detect: keep only this id, default all; render: default the estimator's, 7).
@@ -146,7 +150,7 @@ fn detection_json(d: &MarkerDetection) -> serde_json::Value {
 pub fn run_detect(a: &DetectArgs) -> super::CliResult {
     let camera = CameraModel::from_yaml_file(&a.camera)?;
     let spec = a.marker.spec()?;
-    let (family, size_m) = (spec.family.name().to_string(), spec.size_m);
+    let (family, size_m, frame) = (spec.family.name().to_string(), spec.size_m, spec.family.frame());
     let image = GreyImage::read(&a.image)?;
     let mut det = MarkerDetector::new(spec, &camera)?;
     let t0 = std::time::Instant::now();
@@ -155,6 +159,7 @@ pub fn run_detect(a: &DetectArgs) -> super::CliResult {
     if a.json {
         let v = serde_json::json!({
             "image": a.image, "family": family, "size_m": size_m, "time_ms": ms,
+            "corner_order": frame.corner_names(), "axes": frame.axes(),
             "markers": found.iter().map(detection_json).collect::<Vec<_>>(),
         });
         println!("{}", serde_json::to_string_pretty(&v)?);
@@ -172,7 +177,7 @@ pub fn run_detect(a: &DetectArgs) -> super::CliResult {
                 .iter()
                 .map(|c| format!("({:.2}, {:.2})", c[0], c[1]))
                 .collect();
-            println!("   corners TL TR BR BL: {}", c.join(" "));
+            println!("   corners {}: {}", frame.corner_names(), c.join(" "));
         }
     }
     Ok(())
@@ -186,7 +191,8 @@ pub fn run_render(a: &RenderArgs) -> super::CliResult {
     if a.offset.len() != 2 || a.tilt_deg.len() != 2 {
         return Err("--offset and --tilt-deg take two comma-separated numbers".into());
     }
-    let truth = facing_pose(
+    let truth = facing_pose_in(
+        spec.family.frame(),
         a.distance,
         a.offset[0],
         a.offset[1],

@@ -51,6 +51,10 @@ pub mod ffi {
             texture_seed: u32,
         ) -> Result<Vec<u8>>;
 
+        /// The official tag `id` of an AprilTag family (libapriltag's `apriltag_to_image`),
+        /// one byte a cell; `dims` gets total_width, width_at_border, the id count.
+        fn official_apriltag(family: &str, id: i32, dims: &mut [i32]) -> Result<Vec<u8>>;
+
         /// Read an image file (1 = grey, 3 = RGB); writes width, height to `dims`.
         fn read_image(path: &str, channels: i32, dims: &mut [i32]) -> Result<Vec<u8>>;
 

@@ -240,9 +240,9 @@ impl SimScene {
     /// A port pose in the camera that must render: the marker or the trocar 0.3 m ahead.
     fn check_pose(&self) -> Isometry3<f64> {
         match self {
-            Self::Marker { marker_t_trocar, .. } => {
-                crate::vision::facing_pose(0.3, 0.0, 0.0, 0.0, 0.0, 0.0) * marker_t_trocar
-            }
+            Self::Marker {
+                marker_t_trocar, spec, ..
+            } => crate::vision::facing_pose_in(spec.family.frame(), 0.3, 0.0, 0.0, 0.0, 0.0, 0.0) * marker_t_trocar,
             Self::Trocar(_) => Isometry3::translation(0.0, 0.0, 0.3),
             Self::MarkerUntil { marker, .. } => marker.check_pose(),
         }

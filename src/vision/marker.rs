@@ -1,11 +1,32 @@
-//! Marker detection and pose: ArUco corners from OpenCV aruco (sub-pixel refined),
-//! AprilTag 36h11 corners from ViSP; pose from IPPE-square initialisation refined by ViSP's
-//! virtual visual servoing (vpPose), distortion included.
+//! Marker detection and pose: ArUco corners from OpenCV aruco (sub-pixel refined), AprilTag
+//! corners from ViSP's `vpDetectorAprilTag`; pose from IPPE-square initialisation refined
+//! by ViSP's virtual visual servoing (vpPose), distortion included.
 //!
-//! Pose convention: `pose_camera_marker` maps marker coordinates to camera (optical frame)
-//! coordinates; the marker frame is centred, x right and y up on the printed marker, z out
-//! of the marker. Corners are top-left, top-right, bottom-right, bottom-left of the upright
-//! marker, in pixels (distorted image, pixel centres at integers).
+//! `pose_camera_marker` maps marker coordinates to camera (optical frame) coordinates. Each
+//! family keeps the frame of the library that defines it, [`MarkerFamily::frame`]; corners
+//! are in pixels (distorted image, pixel centres at integers), in the frame's order:
+//!
+//! - ArUco (`DICT_4X4_50`, ...; OpenCV is their authority), [`MarkerFrame::OpenCv`]:
+//!   corners top-left, top-right, bottom-right, bottom-left of the upright marker as
+//!   `cv::aruco::drawMarker` draws it; x right, y up, z out of the marker.
+//! - AprilTag (`tag16h5`, `tag25h9`, `tag36h10`, `tag36h11`; OpenCV's `DICT_APRILTAG_*`
+//!   names are read as these), [`MarkerFrame::AprilTag`], the official AprilRobotics
+//!   library's frame: corners in the order of `apriltag_detection_t::p` (apriltag.h:
+//!   "wrap counter-clock wise around the tag"), left-bottom, right-bottom, right-top,
+//!   left-top of the upright tag as `apriltag_to_image()` (apriltag.c) draws it from the
+//!   family's codes (tag36h11.c), the order the Python binding documents as `lb-rb-rt-lt`
+//!   (python3-apriltag); corner i at (-s, s), (s, s), (s, -s), (-s, -s) for half side s, the
+//!   object points of `estimate_tag_pose_orthogonal_iteration` (apriltag_pose.c): x right,
+//!   y down, z into the tag (away from a camera that sees it).
+//!
+//! ViSP 3.5 keeps libapriltag's corners: `vpDetectorAprilTag::getPolygon` is `det->p[0..3]`
+//! in order (vpDetectorAprilTag.cpp, `Impl::detect`), and so are ours. Its own pose
+//! (`Impl::getPose`) is the official one turned 180° about x (x right, y up, z out of the
+//! tag) unless `setZAlignedWithCameraAxis(true)`: the bridge does not use it, it solves the
+//! pose from the corners above. OpenCV 4.6 draws its `DICT_APRILTAG_*` dictionaries turned
+//! 180° against the official tags, so no AprilTag goes through OpenCV: the renderer draws
+//! them from libapriltag's codes, the detector is ViSP's. `tests/apriltag_official.rs` holds
+//! both to the official detector (python3-apriltag) on official tag pixels.
 
 use std::fmt;
 use std::str::FromStr;
@@ -15,15 +36,49 @@ use nalgebra::Isometry3;
 use super::{isometry_from_rt, CameraModel, ImageView, VisionError};
 use crate::ffi::vision::{ffi, DETECTION_RECORD_LEN};
 
-/// A marker family: an OpenCV aruco dictionary or AprilTag 36h11.
+/// A marker family: an OpenCV aruco dictionary or an official AprilTag family.
 #[derive(Debug, Clone, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
 #[serde(try_from = "String", into = "String")]
 pub enum MarkerFamily {
     /// An OpenCV predefined dictionary, by its name (e.g. `DICT_4X4_50`, `DICT_ARUCO_ORIGINAL`).
     Aruco(String),
-    /// AprilTag 36h11 (ViSP's detector).
-    Tag36h11,
+    /// An official AprilTag family, by its official name ([`APRILTAG_FAMILIES`]; ViSP's
+    /// detector, libapriltag's codes).
+    AprilTag(String),
 }
+
+/// A marker frame: corner order and axes (the module doc).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MarkerFrame {
+    /// OpenCV's ArUco frame: corners TL, TR, BR, BL; x right, y up, z out of the marker.
+    OpenCv,
+    /// The official AprilTag frame: corners left-bottom, right-bottom, right-top, left-top;
+    /// x right, y down, z into the tag.
+    AprilTag,
+}
+
+impl MarkerFrame {
+    /// The corners' order, short: `TL TR BR BL` or `LB RB RT LT` (left-bottom first).
+    pub fn corner_names(self) -> &'static str {
+        match self {
+            MarkerFrame::OpenCv => "TL TR BR BL",
+            MarkerFrame::AprilTag => "LB RB RT LT",
+        }
+    }
+
+    /// The axes on the upright marker, short.
+    pub fn axes(self) -> &'static str {
+        match self {
+            MarkerFrame::OpenCv => "x right, y up, z out of the marker",
+            MarkerFrame::AprilTag => "x right, y down, z into the tag",
+        }
+    }
+}
+
+/// The official AprilTag families accepted, with their number of ids (libapriltag's
+/// `ncodes`). OpenCV's `DICT_APRILTAG_16h5`, `_25h9`, `_36h10`, `_36h11` name the same codes.
+pub const APRILTAG_FAMILIES: &[(&str, u32)] =
+    &[("tag16h5", 30), ("tag25h9", 35), ("tag36h10", 2320), ("tag36h11", 587)];
 
 /// The OpenCV dictionary names accepted, with their number of ids.
 pub const ARUCO_DICTIONARIES: &[(&str, u32)] = &[
@@ -47,19 +102,27 @@ pub const ARUCO_DICTIONARIES: &[(&str, u32)] = &[
 ];
 
 impl MarkerFamily {
-    /// The name (OpenCV dictionary name, or `tag36h11`).
+    /// The name (OpenCV dictionary name, or the official AprilTag family name).
     pub fn name(&self) -> &str {
         match self {
-            MarkerFamily::Aruco(n) => n,
-            MarkerFamily::Tag36h11 => "tag36h11",
+            MarkerFamily::Aruco(n) | MarkerFamily::AprilTag(n) => n,
         }
     }
 
     /// Number of distinct ids in the family.
     pub fn id_count(&self) -> u32 {
+        let table = match self {
+            MarkerFamily::Aruco(_) => ARUCO_DICTIONARIES,
+            MarkerFamily::AprilTag(_) => APRILTAG_FAMILIES,
+        };
+        table.iter().find(|(d, _)| *d == self.name()).map_or(0, |(_, c)| *c)
+    }
+
+    /// The family's frame: corner order and axes.
+    pub fn frame(&self) -> MarkerFrame {
         match self {
-            MarkerFamily::Aruco(n) => ARUCO_DICTIONARIES.iter().find(|(d, _)| d == n).map_or(0, |(_, c)| *c),
-            MarkerFamily::Tag36h11 => 587,
+            MarkerFamily::Aruco(_) => MarkerFrame::OpenCv,
+            MarkerFamily::AprilTag(_) => MarkerFrame::AprilTag,
         }
     }
 }
@@ -68,8 +131,11 @@ impl FromStr for MarkerFamily {
     type Err = VisionError;
     fn from_str(s: &str) -> Result<Self, VisionError> {
         let t = s.trim();
-        if t.eq_ignore_ascii_case("tag36h11") || t.eq_ignore_ascii_case("36h11") {
-            return Ok(MarkerFamily::Tag36h11);
+        // `tag36h11`, `36h11` and OpenCV's `DICT_APRILTAG_36h11` are one official family.
+        let l = t.to_ascii_lowercase();
+        let bare = l.strip_prefix("dict_apriltag_").or(l.strip_prefix("tag")).unwrap_or(&l);
+        if let Some((name, _)) = APRILTAG_FAMILIES.iter().find(|(n, _)| n[3..] == *bare) {
+            return Ok(MarkerFamily::AprilTag((*name).to_string()));
         }
         let u = t.to_ascii_uppercase();
         let u = if u.starts_with("DICT_") { u } else { format!("DICT_{u}") };
@@ -77,7 +143,7 @@ impl FromStr for MarkerFamily {
             Ok(MarkerFamily::Aruco(u))
         } else {
             Err(VisionError::InvalidInput(format!(
-                "unknown marker family `{s}` (OpenCV names such as DICT_4X4_50, DICT_ARUCO_ORIGINAL, or tag36h11)"
+                "unknown marker family `{s}` (OpenCV names such as DICT_4X4_50, DICT_ARUCO_ORIGINAL, or tag16h5, tag25h9, tag36h10, tag36h11)"
             )))
         }
     }
@@ -143,7 +209,8 @@ pub struct MarkerDetection {
     pub id: u32,
     /// Marker pose in the camera optical frame.
     pub pose_camera_marker: Isometry3<f64>,
-    /// Corner pixels: TL, TR, BR, BL of the upright marker.
+    /// Corner pixels, in the order of the family's [`MarkerFrame`] (ArUco TL, TR, BR, BL;
+    /// AprilTag left-bottom, right-bottom, right-top, left-top).
     pub corners: [[f64; 2]; 4],
     /// RMS reprojection error of the corners, px.
     pub reprojection_error_px: f64,
@@ -352,7 +419,28 @@ mod tests {
             MarkerFamily::Aruco("DICT_4X4_50".into())
         );
         assert_eq!("4x4_50".parse::<MarkerFamily>().unwrap().name(), "DICT_4X4_50");
-        assert_eq!("tag36h11".parse::<MarkerFamily>().unwrap(), MarkerFamily::Tag36h11);
+        let tag36h11 = MarkerFamily::AprilTag("tag36h11".into());
+        for name in [
+            "tag36h11",
+            "36h11",
+            "Tag36H11",
+            "DICT_APRILTAG_36h11",
+            "dict_apriltag_36H11",
+        ] {
+            assert_eq!(name.parse::<MarkerFamily>().unwrap(), tag36h11, "{name}");
+        }
+        assert_eq!("DICT_APRILTAG_16h5".parse::<MarkerFamily>().unwrap().name(), "tag16h5");
+        assert_eq!(
+            "tag25h9".parse::<MarkerFamily>().unwrap().frame(),
+            MarkerFrame::AprilTag
+        );
+        assert_eq!(tag36h11.id_count(), 587);
+        assert_eq!(
+            "DICT_4X4_50".parse::<MarkerFamily>().unwrap().frame(),
+            MarkerFrame::OpenCv
+        );
+        assert!("tag36h12".parse::<MarkerFamily>().is_err());
+        assert!("DICT_APRILTAG_41h12".parse::<MarkerFamily>().is_err());
         assert!("DICT_9X9_50".parse::<MarkerFamily>().is_err());
         assert_eq!(MarkerFamily::Aruco("DICT_ARUCO_ORIGINAL".into()).id_count(), 1024);
     }

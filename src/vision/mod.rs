@@ -2,8 +2,9 @@
 //! the synthetic camera, hand-eye calibration, and the pure-Rust trocar estimator.
 //!
 //! Frame conventions: the camera frame is the optical frame (x right, y down, z forward);
-//! the marker frame has its origin at the marker centre, x to the right and y up on the
-//! printed marker, and z out of the marker (towards a camera that sees it).
+//! the marker frame has its origin at the marker centre and is the frame of the library
+//! that defines the family ([`MarkerFrame`]): ArUco x right, y up on the printed marker, z
+//! out of it; AprilTag (the official frame) x right, y down, z into the tag.
 
 pub mod camera;
 pub mod estimator;
@@ -19,9 +20,12 @@ pub mod sim_camera;
 pub use camera::{CameraModel, STEREO_MAX_SKEW_S};
 pub use estimator::{EstimateStatus, EstimatorParams, TrocarEstimate, TrocarEstimator};
 pub use image::{GreyImage, ImageView};
-pub use marker::{search_window, MarkerDetection, MarkerDetector, MarkerFamily, MarkerSpec, TrackingDetector};
+pub use marker::{
+    search_window, MarkerDetection, MarkerDetector, MarkerFamily, MarkerFrame, MarkerSpec, TrackingDetector,
+    APRILTAG_FAMILIES,
+};
 pub use overlay::{ChannelOrder, RgbImage};
-pub use render::{facing_pose, render_marker_image, RenderOptions};
+pub use render::{facing_pose, facing_pose_in, official_tag_image, render_marker_image, OfficialTag, RenderOptions};
 
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion};
 

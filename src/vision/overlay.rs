@@ -1,5 +1,5 @@
 //! The estimator's debug image: the camera frame as RGB8 with the detected marker drawn on
-//! it (its outline in green, the top-left corner in red, the centre as a cross), so that a
+//! it (its outline in green, its corner 0 in red, the centre as a cross), so that a
 //! surgeon-engineer sees in RViz what the estimator saw.
 
 use super::{ImageView, MarkerDetection, VisionError};
@@ -77,7 +77,7 @@ impl RgbImage {
         }
     }
 
-    /// Draw a detection: outline, top-left corner, centre cross.
+    /// Draw a detection: outline, corner 0 (ArUco top-left, AprilTag left-bottom), centre cross.
     pub fn draw_detection(&mut self, det: &MarkerDetection) {
         let c = det.corners;
         for k in 0..4 {

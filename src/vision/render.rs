@@ -1,12 +1,15 @@
 //! The synthetic camera: a marker on a textured plane (inverse-homography sampler with 3x3
 //! supersampling, in the C++ bridge; vpImageSimulator shifted edges by ~0.17 px), seen from a
 //! given pose through given intrinsics and distortion, with optional blur and Gaussian noise.
+//! ArUco markers are drawn by OpenCV (`cv::aruco::drawMarker`), AprilTags from the official
+//! library's codes (libapriltag's `apriltag_to_image`, [`official_tag_image`]), each in its
+//! family's frame ([`super::MarkerFrame`]), the frame the detector reports.
 
 use nalgebra::Isometry3;
 use rand::SeedableRng;
 use rand_distr::{Distribution, Normal};
 
-use super::{rt_from_isometry, CameraModel, GreyImage, MarkerSpec, VisionError};
+use super::{rt_from_isometry, CameraModel, GreyImage, MarkerFamily, MarkerFrame, MarkerSpec, VisionError};
 use crate::ffi::vision::ffi;
 use crate::validate;
 
@@ -79,6 +82,39 @@ pub fn render_marker_image(
     })
 }
 
+/// An official AprilTag as the official library draws it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OfficialTag {
+    /// One pixel a cell, row 0 the top of the upright tag, the white border included.
+    pub image: GreyImage,
+    /// The black square's side, cells (the marker size of a [`MarkerSpec`]).
+    pub width_at_border: u32,
+    /// The family's number of ids.
+    pub id_count: u32,
+}
+
+/// The official tag `id` of an AprilTag family: libapriltag's `apriltag_to_image()` on the
+/// official family object (`tag36h11_create()`, ...). An ArUco family or an id out of the
+/// family -> an error.
+pub fn official_tag_image(family: &MarkerFamily, id: u32) -> Result<OfficialTag, VisionError> {
+    if family.frame() != MarkerFrame::AprilTag {
+        return Err(VisionError::InvalidInput(format!("{family} is not an AprilTag family")));
+    }
+    let id = i32::try_from(id).map_err(|_| VisionError::InvalidInput(format!("id {id} out of range")))?;
+    let mut dims = [0i32; 3];
+    let data = ffi::official_apriltag(family.name(), id, &mut dims)?;
+    let side = u32::try_from(dims[0]).map_err(|_| VisionError::Backend("negative tag width".into()))?;
+    Ok(OfficialTag {
+        image: GreyImage {
+            data,
+            width: side,
+            height: side,
+        },
+        width_at_border: dims[1].max(0) as u32,
+        id_count: dims[2].max(0) as u32,
+    })
+}
+
 /// Add zero-mean Gaussian noise of `sigma` grey levels, clamped to 0..=255.
 pub fn add_gaussian_noise(data: &mut [u8], sigma: f64, seed: u64) {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ 0x9e37_79b9_7f4a_7c15);
@@ -118,11 +154,31 @@ pub fn add_fast_gaussian_noise(data: &mut [u8], sigma: f64, seed: u64) {
     }
 }
 
-/// A marker pose in the camera frame facing the camera: centre at (`x`, `y`, `distance`) m,
-/// then tilted about the marker's x and y axes and turned about its z axis (rad).
+/// The pose of a marker in OpenCV's frame ([`MarkerFrame::OpenCv`], z out of the marker)
+/// facing the camera: [`facing_pose_in`] for ArUco markers.
 pub fn facing_pose(distance: f64, x: f64, y: f64, tilt_x: f64, tilt_y: f64, yaw: f64) -> Isometry3<f64> {
+    facing_pose_in(MarkerFrame::OpenCv, distance, x, y, tilt_x, tilt_y, yaw)
+}
+
+/// A marker pose in the camera frame facing the camera, for a marker of `frame`: centre at
+/// (`x`, `y`, `distance`) m, the marker upright in the image (OpenCV's frame turned 180°
+/// about x, its z out of the marker towards the camera; the official AprilTag frame as the
+/// camera's, its z into the tag), then tilted about the marker's x and y axes and turned
+/// about its z axis (rad).
+pub fn facing_pose_in(
+    frame: MarkerFrame,
+    distance: f64,
+    x: f64,
+    y: f64,
+    tilt_x: f64,
+    tilt_y: f64,
+    yaw: f64,
+) -> Isometry3<f64> {
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
-    let facing = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    let facing = match frame {
+        MarkerFrame::OpenCv => UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI),
+        MarkerFrame::AprilTag => UnitQuaternion::identity(),
+    };
     let r = facing
         * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), tilt_x)
         * UnitQuaternion::from_axis_angle(&Vector3::y_axis(), tilt_y)
@@ -133,6 +189,35 @@ pub fn facing_pose(distance: f64, x: f64, y: f64, tilt_x: f64, tilt_y: f64, yaw:
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn official_tags_come_from_the_official_library() {
+        for (name, ids) in super::super::marker::APRILTAG_FAMILIES {
+            let family: MarkerFamily = name.parse().unwrap();
+            let last = official_tag_image(&family, ids - 1).unwrap();
+            assert_eq!(last.id_count, *ids, "{name}");
+            assert_eq!(
+                last.image.width,
+                last.width_at_border + 2,
+                "{name}: one white cell around"
+            );
+            assert!(official_tag_image(&family, *ids).is_err(), "{name}: id past the family");
+        }
+        // A white ring, a black ring, the data inside (whether it decodes to its id is for the
+        // official detector to say: tests/apriltag_official.rs).
+        let tag = official_tag_image(&"tag36h11".parse().unwrap(), 0).unwrap();
+        let px = |r: u32, c: u32| tag.image.data[(r * tag.image.width + c) as usize];
+        assert_eq!((tag.image.width, tag.width_at_border), (10, 8));
+        for k in 0..10 {
+            assert_eq!((px(0, k), px(k, 0), px(9, k), px(k, 9)), (255, 255, 255, 255));
+        }
+        for k in 1..9 {
+            assert_eq!((px(1, k), px(k, 1), px(8, k), px(k, 8)), (0, 0, 0, 0));
+        }
+        let other = official_tag_image(&"tag36h11".parse().unwrap(), 1).unwrap();
+        assert_ne!(tag.image.data, other.image.data);
+        assert!(official_tag_image(&"DICT_4X4_50".parse().unwrap(), 0).is_err());
+    }
 
     /// The noise added to a flat grey image, in grey levels.
     struct NoiseStats {

@@ -93,7 +93,7 @@ fn solve_ik(kin: &dyn Kinematics, q0: &JointVector, goal: &Isometry3<f64>, margi
     None
 }
 
-/// The marker's corners (TL, TR, BR, BL) projected into the image from `camera_t_marker`;
+/// The marker's corners ([`marker_corners`]' order) projected into the image from `camera_t_marker`;
 /// `None` when one is behind the camera.
 pub fn projected_corners(camera: &CameraModel, camera_t_marker: &Isometry3<f64>, size: f64) -> Option<[[f64; 2]; 4]> {
     let c = marker_corners(size);

@@ -15,7 +15,7 @@ pub struct Sample {
     pub base_t_flange: Isometry3<f64>,
     /// Marker pose in the camera optical frame (detection).
     pub camera_t_marker: Isometry3<f64>,
-    /// Detected corners (TL, TR, BR, BL of the upright marker), px, when known.
+    /// Detected corners (in the family's order, [`crate::vision::MarkerFrame`]), px, when known.
     pub corners: Option<[[f64; 2]; 4]>,
 }
 
@@ -70,7 +70,9 @@ pub struct Refined {
     pub reprojection_rms_px: Option<f64>,
 }
 
-/// The marker's corners in its frame (x right, y up): TL, TR, BR, BL.
+/// The marker's corners in its frame, in the order a detection reports them: (-s, s), (s, s),
+/// (s, -s), (-s, -s) for half side s (ArUco TL, TR, BR, BL with y up; AprilTag left-bottom,
+/// right-bottom, right-top, left-top with y down: [`crate::vision::MarkerFrame`]).
 pub fn marker_corners(size: f64) -> [Point3<f64>; 4] {
     let h = size / 2.0;
     [
