@@ -362,7 +362,10 @@ fn force_over_threshold_latches_a_hold() {
         cmds.push(q);
     }
     let still = cmds.windows(2).position(|w| w[0] == w[1]).expect("never at rest");
-    assert!(still <= brake_steps, "at rest after {still} steps, {brake_steps} expected");
+    assert!(
+        still <= brake_steps,
+        "at rest after {still} steps, {brake_steps} expected"
+    );
     let at_hold = cmds[still];
     assert!(cmds[still..].iter().all(|c| *c == at_hold));
     assert!((at_hold - held).amax() < 0.1);

@@ -614,7 +614,14 @@ mod tests {
         let a = args();
         let mut s = Setup::new(&a).unwrap();
         s.trial.abort_force_n = 0.5;
-        let c = run_cycle(&mut s.world(1).unwrap(), &mut s.controller().unwrap(), &s, &a, &mut |_, _| {}).unwrap();
+        let c = run_cycle(
+            &mut s.world(1).unwrap(),
+            &mut s.controller().unwrap(),
+            &s,
+            &a,
+            &mut |_, _| {},
+        )
+        .unwrap();
         assert_eq!(c.outcome(), "force_abort");
         assert!(c.force_abort.is_some_and(|f| f > 0.5), "{:?}", c.force_abort);
         assert!(!c.docked);

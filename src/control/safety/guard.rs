@@ -234,7 +234,9 @@ impl CommandGuard {
         JointVector::from_fn(|i, _| {
             let d = to[i] - prev[i];
             // Within one step of acceleration of rest, a joint may land on the target.
-            let speed = self.vmax[i].min(d.abs() / dt).min(braking_speed(d.abs(), a, dt).max(a * dt));
+            let speed = self.vmax[i]
+                .min(d.abs() / dt)
+                .min(braking_speed(d.abs(), a, dt).max(a * dt));
             (prev[i] + d.signum() * speed * dt).clamp(lo[i], hi[i])
         })
     }
@@ -503,7 +505,12 @@ mod tests {
 
     #[test]
     fn braking_speed_stops_within_its_distance() {
-        for (d, a, dt) in [(0.1, 5.0, 0.01), (0.0003, 5.0, 0.01), (1.0, 5.0, 0.001), (0.0, 5.0, 0.01)] {
+        for (d, a, dt) in [
+            (0.1, 5.0, 0.01),
+            (0.0003, 5.0, 0.01),
+            (1.0, 5.0, 0.001),
+            (0.0, 5.0, 0.01),
+        ] {
             let mut v = braking_speed(d, a, dt);
             let mut gone = 0.0;
             while v > 0.0 {
@@ -564,7 +571,11 @@ mod tests {
         // Walking at the far target beyond the limit: it stops at the limit, at rest.
         let last = qs[qs.len() - 1];
         assert!(last[0] <= g.upper()[0] + 1e-12, "{} past {}", last[0], g.upper()[0]);
-        assert!(g.upper()[0] - last[0] < 1e-3, "stopped {} short", g.upper()[0] - last[0]);
+        assert!(
+            g.upper()[0] - last[0] < 1e-3,
+            "stopped {} short",
+            g.upper()[0] - last[0]
+        );
         let (speed, accel) = worst_shares(&g, &qs, dt);
         assert!(speed <= 1.0 + 1e-9 && accel <= 1.0 + 1e-6, "{speed} {accel}");
     }

@@ -412,9 +412,17 @@ impl<S: CommandSource> Guarded<S> {
             out.hold = Some(l.reason.clone());
             out.solve = None;
         }
+        self.publish(&mut out, stand, prev, dt);
+        self.last_reason.clone_from(&out.hold);
+        self.sent = out.command;
+        out
+    }
+
+    /// The command that leaves: a hold's (`stand`: braked or walked there from `prev`
+    /// within the limits, the source told where it is; on a step whose clock did not
+    /// advance, at the loop's own pace) or the checked one; the velocity follows it.
+    fn publish(&mut self, out: &mut ControlOutput, stand: Option<JointVector>, prev: Option<JointVector>, dt: f64) {
         if let (Some(to), Some(from)) = (stand, prev) {
-            // A hold: braked or walked within the limits; on a step whose clock did not
-            // advance, at the loop's own pace.
             let pace = if dt > 0.0 { dt } else { self.source.period() };
             let q = self.guard.walk(&from, &to, pace);
             self.source.settle(q);
@@ -427,9 +435,6 @@ impl<S: CommandSource> Guarded<S> {
                 _ => JointVector::zeros(),
             };
         }
-        self.last_reason.clone_from(&out.hold);
-        self.sent = out.command;
-        out
     }
 }
 
@@ -689,7 +694,8 @@ mod walk_tests {
         let mut g = Guarded::wrap(source, guard);
         let mut now = 10.0;
         let mut last_now: Option<f64> = None;
-        let mut sent = Vec::new();
+        // The arm at rest at q begins the stream (the first command is one step from it).
+        let mut sent = vec![(q, PERIOD)];
         let (mut code, mut before) = (String::new(), q);
         let mut struck = None;
         for k in 0..200 {
@@ -711,17 +717,18 @@ mod walk_tests {
                 }
             });
             last_now = Some(now);
-            if let Some(c) = out.command {
-                sent.push((c, dt));
-            }
             if out.phase == Phase::Hold && code.is_empty() {
                 code = out.reason_code().to_string();
+                // The last command before the hold.
+                before = sent[sent.len() - 1].0;
+            }
+            if let Some(c) = out.command {
+                sent.push((c, dt));
             }
             let reached = (g.source().goal - out.command.unwrap_or(q)).amax() < 1e-12;
             now += PERIOD;
             if struck.is_none() && (reached || k == 60) {
                 struck = Some(k);
-                before = out.command.unwrap_or(q);
                 match fault {
                     Fault::Blocked => {} // the watch sees the still arm
                     Fault::ClockBack => now -= 5.0,

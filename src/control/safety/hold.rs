@@ -276,6 +276,7 @@ mod tests {
             HoldReason::NonFiniteCommand,
             HoldReason::PositionLimit { joint: 0 },
             HoldReason::VelocityLimit { joint: 0 },
+            HoldReason::AccelerationLimit { joint: 0 },
             HoldReason::Kinematics("x".into()),
             HoldReason::TrackingError { joint: 0, error: 0.2 },
             HoldReason::AlignmentStall {
