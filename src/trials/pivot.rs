@@ -402,6 +402,7 @@ impl PivotSession {
                 each(w);
                 std::ops::ControlFlow::<()>::Continue(())
             })
+            .map(|_| ())
             .map_err(PlantError::into_sim)?;
         Ok(out)
     }

@@ -114,6 +114,7 @@ mod tests {
         // A ramp at the acceleration limit up to the speed limit, then cruising.
         let mut q = JointVector::zeros();
         let mut v = 0.0f64;
+        audit.add(-0.01, &q);
         for k in 0..100 {
             v = (v + a * 0.01).min(vmax);
             q[1] += v * 0.01;

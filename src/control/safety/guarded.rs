@@ -727,7 +727,14 @@ mod walk_tests {
             }
             let reached = (g.source().goal - out.command.unwrap_or(q)).amax() < 1e-12;
             now += PERIOD;
-            if struck.is_none() && (reached || k == 60) {
+            // A clock fault or a restart strikes while the command moves (before the
+            // not-following watch could judge the lead); the blocked arm once the command
+            // has reached its lead.
+            let strike = match fault {
+                Fault::Blocked => reached || k == 60,
+                _ => k == 8,
+            };
+            if struck.is_none() && strike {
                 struck = Some(k);
                 match fault {
                     Fault::Blocked => {} // the watch sees the still arm
@@ -838,12 +845,8 @@ mod walk_tests {
         // From the command's lead back to the arm within the time of a ramp up and down at
         // the acceleration limit, plus braking from the speed the command had: no jump, no
         // dawdling.
-        let reached = sent.iter().position(|(c, _)| (c - q).amax() < 1e-12).unwrap();
-        let at = sent[..reached]
-            .iter()
-            .rposition(|(c, _)| (c - before).amax() < 1e-12)
-            .unwrap();
-        let reached = reached - at;
+        let at = sent.iter().position(|(c, _)| (c - before).amax() < 1e-12).unwrap();
+        let reached = sent[at..].iter().position(|(c, _)| (c - q).amax() < 1e-12).unwrap();
         let a = GuardParams::default().max_acceleration_rad_s2;
         let steps = ((2.0 * (2.0 * bound / a).sqrt() + vmax[1] / a) / PERIOD).ceil() as usize + 2;
         assert!(reached <= steps, "{reached} steps to the arm, at most {steps} expected");
