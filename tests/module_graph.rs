@@ -936,8 +936,8 @@ fn a_name_reexported_by_a_file_that_imports_the_namer_is_a_cycle() {
             "`crate::control::params::SHIPPED`",
         ),
         (
-            "use crate::control::params; pub struct TareParams; fn f() -> u8 { params::SHIPPED }",
-            "`params::SHIPPED`",
+            "use crate::control::params::SHIPPED as S; pub struct TareParams; fn f() -> u8 { S }",
+            "`crate::control::params::SHIPPED`",
         ),
         (
             "use super::super::params::SHIPPED; pub struct TareParams;",
