@@ -43,7 +43,7 @@ screenshot: build
 	@$(ENV) scripts/screenshot
 
 bench: deps
-	@$(ENV) cargo bench
+	@$(ENV) cargo build $(CARGO_FLAGS) --bin trocar_docking && target/release/trocar_docking bench --suite all
 
 clean:
 	cargo clean
