@@ -13,7 +13,7 @@ use trocar_docking::vision::hand_eye::poses::{plan, PlanParams};
 use trocar_docking::vision::hand_eye::quality::{conditioning, conditioning_warnings, rotation_angle_mismatch};
 use trocar_docking::vision::hand_eye::{calibrate_samples, ObservationModel, Refusal, Sample, SampleSet, Stillness};
 use trocar_docking::vision::{
-    facing_pose, render_marker_image, CameraModel, MarkerDetector, MarkerFamily, MarkerSpec, RenderOptions,
+    facing_pose, render_marker_image, MarkerDetector, MarkerFamily, MarkerSpec, RenderOptions,
 };
 
 mod common;
