@@ -49,7 +49,7 @@ screenshot: build
 	@$(ENV) scripts/screenshot
 
 bench: deps
-	@$(ENV) cargo bench
+	@$(ENV) cargo build $(CARGO_FLAGS) --bin trocar_docking && target/release/trocar_docking bench --suite all
 
 clean:
 	cargo clean

@@ -76,17 +76,11 @@ fn ros_message_path() {
 
 fn main() {
     ros_message_path();
-    let bridges = [
-        "src/ffi/kdl.rs",
-        "src/ffi/vision.rs",
-        "src/ffi/markerless.rs",
-        "src/ffi/model_tracker.rs",
-    ];
+    let bridges = ["src/ffi/kdl.rs", "src/ffi/vision.rs", "src/ffi/markerless.rs"];
     let sources = [
         "cpp/kdl_bridge.cpp",
         "cpp/vision_bridge.cpp",
         "cpp/markerless_bridge.cpp",
-        "cpp/model_tracker_bridge.cpp",
     ];
     for f in bridges.iter().chain(sources.iter()) {
         println!("cargo:rerun-if-changed={f}");

@@ -1,4 +1,4 @@
-// Input checks the OpenCV/ViSP bridges share: the camera model and an image of its size.
+// Input checks of the C++ bridges (the markerless one): the camera model and an image of its size.
 #pragma once
 #include <algorithm>
 #include <cmath>

@@ -388,16 +388,4 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
   return out;
 }
 
-rust::Vec<uint8_t> markerless_occluder_mask(const MarkerlessDetectorCpp &det) {
-  const auto &d = *det.impl;
-  rust::Vec<uint8_t> out;
-  if (d.occluded.empty()) return out;
-  out.reserve(static_cast<size_t>(d.occluded.rows) * d.occluded.cols);
-  for (int r = 0; r < d.occluded.rows; ++r) {
-    const uint8_t *row = d.occluded.ptr<uint8_t>(r);
-    for (int c = 0; c < d.occluded.cols; ++c) out.push_back(row[c]);
-  }
-  return out;
-}
-
 }  // namespace trocar_docking

@@ -57,8 +57,4 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
                                           double range_px, int polarity, double min_strength,
                                           bool through_occluder);
 
-// The occluder's mask as the last image was searched with it: width x height bytes, row by
-// row, non-zero where the occluder hides the scene; empty without an occluder.
-rust::Vec<uint8_t> markerless_occluder_mask(const MarkerlessDetectorCpp &det);
-
 }  // namespace trocar_docking

@@ -300,11 +300,19 @@ pub static LBR_MED_SIM: Shipped = Shipped::with_renamed(
 pub static TROCAR_ESTIMATOR: Shipped = Shipped::with_renamed(
     "config/trocar_estimator.yaml",
     include_str!("../config/trocar_estimator.yaml"),
-    &[Renamed {
-        old: "marker.size",
-        new: "marker.size_m",
-        note: "",
-    }],
+    &[
+        Renamed {
+            old: "marker.size",
+            new: "marker.size_m",
+            note: "",
+        },
+        Renamed {
+            old: "markerless.tracker_frames",
+            new: "",
+            note: "ViSP's model-based tracker is removed: no pose it carried ever passed the confidence gate, \
+                   so it changed no trial's outcome; each image's own estimate is the measurement",
+        },
+    ],
 );
 
 /// `config/hand_eye_calibration.yaml` (the `hand_eye_calibration` node's private parameters)

@@ -446,8 +446,10 @@ impl Tree {
         Some(out)
     }
 
-    /// The file that defines what the absolute `path` names, if it is found.
-    fn find(&self, path: &[String], depth: usize) -> Option<String> {
+    /// The file that defines what the absolute `path` names, if it is found; every file
+    /// whose `use` (named or glob) the name was re-exported through on the way is pushed to
+    /// `via`, since a reader of the path as written sees that file named.
+    fn find(&self, path: &[String], depth: usize, via: &mut Vec<String>) -> Option<String> {
         let mut key: Key = (path.first()?.clone(), Vec::new());
         let mut rest = &path[1..];
         loop {
@@ -466,15 +468,18 @@ impl Tree {
             if depth > 8 {
                 return None;
             }
-            let follow = |written: &Vec<String>, rest: &[String]| {
+            let follow = |written: &Vec<String>, rest: &[String], via: &mut Vec<String>| {
                 let mut next = self.absolute(&key, written, module)?;
                 next.extend(rest.iter().cloned());
-                self.find(&next, depth + 1)
+                let mut through = vec![module.file.clone()];
+                let found = self.find(&next, depth + 1, &mut through)?;
+                via.extend(through);
+                Some(found)
             };
             if let Some(written) = module.imports.get(name) {
-                return follow(written, &rest[1..]);
+                return follow(written, &rest[1..], via);
             }
-            return module.globs.iter().find_map(|glob| follow(glob, rest));
+            return module.globs.iter().find_map(|glob| follow(glob, rest, via));
         }
     }
 
@@ -500,6 +505,13 @@ impl Tree {
             .unwrap_or_else(|| at.clone())
     }
 
+    /// Whether `file` is the file of a strict ancestor of module `at` (its folder's face).
+    fn is_ancestor_file(&self, at: &Key, file: &str) -> bool {
+        self.modules
+            .iter()
+            .any(|(k, m)| k.0 == at.0 && k.1.len() < at.1.len() && at.1.starts_with(&k.1) && m.file == file)
+    }
+
     /// Whether `file` belongs to a strict descendant of module `at`.
     fn is_descendant_file(&self, at: &Key, file: &str) -> bool {
         self.modules
@@ -521,18 +533,28 @@ impl Tree {
             let Some(path) = self.absolute(&r.at, &r.segments, module) else {
                 continue;
             };
-            let Some(target) = self.find(&path, 0).or_else(|| self.deepest_module(&path)) else {
+            let mut via = Vec::new();
+            let Some(target) = self.find(&path, 0, &mut via).or_else(|| self.deepest_module(&path)) else {
                 continue;
             };
-            if r.test || target == r.file || self.is_descendant_file(&self.file_module(&r.at, &r.file), &target) {
+            if r.test {
                 continue;
             }
+            let at = self.file_module(&r.at, &r.file);
             let written = r.segments.join("::");
-            graph
-                .entry(r.file.clone())
-                .or_default()
-                .entry(target)
-                .or_insert(written);
+            // The file that defines the item, and every file that re-exports it on the way
+            // but the referrer's own ancestors (a folder's face, open to its children).
+            let through = via.into_iter().filter(|v| !self.is_ancestor_file(&at, v));
+            for to in std::iter::once(target).chain(through) {
+                if to == r.file || self.is_descendant_file(&at, &to) {
+                    continue;
+                }
+                graph
+                    .entry(r.file.clone())
+                    .or_default()
+                    .entry(to)
+                    .or_insert_with(|| written.clone());
+            }
         }
         graph
     }
@@ -886,4 +908,54 @@ fn paths_in_macros_and_exported_macros_resolve_to_their_files() {
         ),
     ]);
     assert_eq!(edges(&graph), vec!["src/ros/mod.rs -> src/config.rs"]);
+}
+
+#[test]
+fn a_name_reexported_by_a_file_that_imports_the_namer_is_a_cycle() {
+    // As a reader of the text sees it: `params::SHIPPED` names params.rs, even where
+    // params.rs only re-exports it from config.rs.
+    let tree = |tare: &str| {
+        small_tree(&[
+            ("src/lib.rs", "pub mod config; pub mod control;"),
+            (
+                "src/config.rs",
+                "#[macro_export] macro_rules! shipped_defaults { ($($t:tt)*) => {} } pub const CONTROLLER: u8 = 0;",
+            ),
+            ("src/control/mod.rs", "pub mod force; pub mod params;"),
+            (
+                "src/control/params.rs",
+                "pub use crate::config::CONTROLLER as SHIPPED; use super::force::tare::TareParams; pub struct P(TareParams);",
+            ),
+            ("src/control/force/mod.rs", "pub mod tare;"),
+            ("src/control/force/tare.rs", tare),
+        ])
+    };
+    for (tare, edge) in [
+        (
+            "pub struct TareParams; crate::shipped_defaults!(TareParams, crate::control::params::SHIPPED, [\"tare\"]);",
+            "`crate::control::params::SHIPPED`",
+        ),
+        (
+            "use crate::control::params::SHIPPED as S; pub struct TareParams; fn f() -> u8 { S }",
+            "`crate::control::params::SHIPPED`",
+        ),
+        (
+            "use super::super::params::SHIPPED; pub struct TareParams;",
+            "`super::super::params::SHIPPED`",
+        ),
+    ] {
+        let graph = tree(tare);
+        let found = cycles(&graph);
+        assert_eq!(
+            chains(&graph),
+            vec!["src/control/force/tare.rs -> src/control/params.rs -> src/control/force/tare.rs"],
+            "{tare}: {graph:?}"
+        );
+        assert!(found[0].contains(edge), "{}", found[0]);
+        assert!(edges(&graph).contains(&"src/control/force/tare.rs -> src/config.rs".to_string()));
+    }
+    // Named at its source, the same value is no cycle.
+    let graph =
+        tree("pub struct TareParams; crate::shipped_defaults!(TareParams, crate::config::CONTROLLER, [\"tare\"]);");
+    assert!(chains(&graph).is_empty(), "{graph:?}");
 }

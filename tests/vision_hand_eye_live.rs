@@ -6,17 +6,17 @@
 
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 use rand::{RngExt, SeedableRng};
-use std::path::Path;
 use trocar_docking::kinematics::lbr::LbrModel;
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use trocar_docking::ros::hand_eye_node::HandEyeNodeParams;
-use trocar_docking::vision::estimator::PoseYaml;
 use trocar_docking::vision::hand_eye::poses::{plan, PlanParams};
 use trocar_docking::vision::hand_eye::quality::{conditioning, conditioning_warnings, rotation_angle_mismatch};
 use trocar_docking::vision::hand_eye::{calibrate_samples, ObservationModel, Refusal, Sample, SampleSet, Stillness};
 use trocar_docking::vision::{
-    facing_pose, render_marker_image, CameraModel, MarkerDetector, MarkerFamily, MarkerSpec, RenderOptions,
+    facing_pose, render_marker_image, MarkerDetector, MarkerFamily, MarkerSpec, RenderOptions,
 };
+
+mod common;
 
 /// The marker's side (config/lbr_med_sim.yaml `camera.marker.size_m`).
 const MARKER_SIZE_M: f64 = 0.04;
@@ -24,31 +24,10 @@ const MARKER_SIZE_M: f64 = 0.04;
 const GOAL_MM: f64 = 0.5;
 const GOAL_DEG: f64 = 0.2;
 
-fn root() -> &'static Path {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-}
-
 /// The calibration node's shipped parameters (config/hand_eye_calibration.yaml): its sample
 /// rules and its automatic mode's plan.
 fn node() -> HandEyeNodeParams {
     HandEyeNodeParams::default()
-}
-
-fn camera() -> CameraModel {
-    CameraModel::from_yaml_file(&root().join("config/camera_zedm.yaml")).unwrap()
-}
-
-fn shipped_mount() -> Isometry3<f64> {
-    #[derive(serde::Deserialize)]
-    struct HandEye {
-        flange_t_camera: PoseYaml,
-    }
-    let s = std::fs::read_to_string(root().join("config/hand_eye.yaml")).unwrap();
-    trocar_docking::config::from_yaml_str::<HandEye>("hand-eye file", &s)
-        .unwrap()
-        .flange_t_camera
-        .to_isometry()
-        .unwrap()
 }
 
 /// The flange chain of the Med 7 (`lbr_link_0` -> `lbr_link_ee`).
@@ -67,7 +46,7 @@ fn true_mount(seed: u64, mm: f64, deg: f64) -> Isometry3<f64> {
         ))
     };
     let (t, a) = (unit(), unit());
-    shipped_mount()
+    common::shipped_mount()
         * Isometry3::from_parts(
             Translation3::from(t.into_inner() * mm * 1e-3),
             UnitQuaternion::from_axis_angle(&a, deg.to_radians()),
@@ -96,7 +75,7 @@ struct Run {
 /// marker is `MARKER_SIZE_M`, the detector and the calibration told it is `configured`.
 fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
     let kin = flange_kinematics();
-    let cam = camera();
+    let cam = common::zedm_camera();
     let truth = true_mount(seed, mm, deg);
     let (q0, base_t_marker) = start(&truth, &kin);
     let spec = MarkerSpec {
@@ -122,7 +101,7 @@ fn automatic(seed: u64, mm: f64, deg: f64, configured: f64) -> Run {
     let poses = plan(
         &kin,
         &q0,
-        &shipped_mount(),
+        &common::shipped_mount(),
         &first.pose_camera_marker,
         &cam,
         &PlanParams {
@@ -247,7 +226,7 @@ fn a_wrong_marker_size_is_detected_on_the_rendered_camera() {
 /// exactly (pose only), from a known mount.
 fn synthetic(n: usize, deg: f64, axes: &[Vector3<f64>], seed: u64) -> (Vec<Sample>, Isometry3<f64>) {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-    let mount = shipped_mount();
+    let mount = common::shipped_mount();
     let base_t_marker = Isometry3::from_parts(Translation3::new(0.6, 0.0, 0.05), UnitQuaternion::identity());
     let down = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
     let samples = (0..n)
@@ -397,7 +376,7 @@ fn samples_are_taken_only_when_still_in_view_and_adding_rotation() {
 
 #[test]
 fn detected_corners_follow_the_projection_the_refinement_uses() {
-    let cam = camera();
+    let cam = common::zedm_camera();
     let spec = MarkerSpec {
         family: MarkerFamily::Aruco("DICT_4X4_50".into()),
         id: Some(7),

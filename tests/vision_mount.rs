@@ -11,8 +11,9 @@
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use std::path::Path;
-use trocar_docking::vision::estimator::PoseYaml;
 use trocar_docking::vision::CameraModel;
+
+mod common;
 
 /// The tip frame in the flange frame: the endoscope is 0.25 m long along the flange's z
 /// (urdf/lbr_med7_r800_endoscope.urdf, `endoscope_tip_joint`).
@@ -23,23 +24,8 @@ const MARKER_SIZE_M: f64 = 0.04;
 /// `border_margin_px` is 4; this keeps room for breathing and a lateral offset).
 const MARGIN_PX: f64 = 20.0;
 
-#[derive(serde::Deserialize)]
-struct HandEye {
-    flange_t_camera: PoseYaml,
-}
-
 fn root() -> &'static Path {
     Path::new(env!("CARGO_MANIFEST_DIR"))
-}
-
-fn shipped_mount() -> Isometry3<f64> {
-    let s = std::fs::read_to_string(root().join("config/hand_eye.yaml")).unwrap();
-    let h: HandEye = trocar_docking::config::from_yaml_str("hand-eye file", &s).unwrap();
-    h.flange_t_camera.to_isometry().unwrap()
-}
-
-fn camera() -> CameraModel {
-    CameraModel::from_yaml_file(&root().join("config/camera_zedm.yaml")).unwrap()
 }
 
 /// The smallest distance of a marker corner from the image border, px, with the tip `depth`
@@ -72,7 +58,7 @@ fn border_distance(mount: &Isometry3<f64>, cam: &CameraModel, depth: f64, latera
 /// The worst border distance over the docking path: stand-off at 0.2 m down to 5 mm past
 /// the 30 mm goal, the shaft up to 3 mm off the axis, at any roll.
 fn worst_over_docking(mount: &Isometry3<f64>) -> f64 {
-    let cam = camera();
+    let cam = common::zedm_camera();
     let mut worst = f64::INFINITY;
     for i in 0..=47 {
         let depth = -0.2 + 0.005 * f64::from(i);
@@ -89,7 +75,7 @@ fn worst_over_docking(mount: &Isometry3<f64>) -> f64 {
 
 #[test]
 fn the_shipped_mount_keeps_the_marker_in_view_to_full_depth() {
-    let worst = worst_over_docking(&shipped_mount());
+    let worst = worst_over_docking(&common::shipped_mount());
     assert!(
         worst > MARGIN_PX,
         "a marker corner comes within {worst:.1} px of the border"
@@ -98,11 +84,11 @@ fn the_shipped_mount_keeps_the_marker_in_view_to_full_depth() {
 
 #[test]
 fn a_mount_looking_along_the_shaft_loses_the_marker_at_full_depth() {
-    let straight = Isometry3::from_parts(shipped_mount().translation, UnitQuaternion::identity());
+    let straight = Isometry3::from_parts(common::shipped_mount().translation, UnitQuaternion::identity());
     let worst = worst_over_docking(&straight);
     assert!(worst < MARGIN_PX, "the unpitched mount kept {worst:.1} px");
     // ... at the goal itself, not just at the extremes of the path.
-    let at_goal = border_distance(&straight, &camera(), 0.03, 0.0, 0.0).unwrap();
+    let at_goal = border_distance(&straight, &common::zedm_camera(), 0.03, 0.0, 0.0).unwrap();
     assert!(at_goal < MARGIN_PX, "{at_goal:.1} px at the goal");
 }
 
@@ -136,7 +122,7 @@ fn the_urdf_camera_frame_is_the_hand_eye_mount() {
         Translation3::new(xyz[0], xyz[1], xyz[2]),
         UnitQuaternion::from_euler_angles(rpy[0], rpy[1], rpy[2]),
     );
-    let m = shipped_mount();
+    let m = common::shipped_mount();
     assert!((urdf_mount.translation.vector - m.translation.vector).norm() < 1e-6);
     assert!(urdf_mount.rotation.angle_to(&m.rotation) < 1e-5);
 }

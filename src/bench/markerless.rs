@@ -8,8 +8,7 @@ use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
 use super::{time_each, LatencyStats, SuiteReport};
 use crate::vision::markerless::approach::docking_approach;
-use crate::vision::markerless::tracker::{ModelTracker, TrackStep, TrackerParams};
-use crate::vision::markerless::{Axis, MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer};
+use crate::vision::markerless::{MarkerlessEstimator, Scene, TrocarModel, TrocarRenderer};
 use crate::vision::{CameraModel, GreyImage, VisionError};
 
 /// The estimates' accuracy for the report: frames, found, and the port's and the axis's
@@ -76,41 +75,6 @@ fn axis_case(
     }))
 }
 
-/// The model-based tracker's two steps on the same frames, one core: a start from the
-/// frame's true axis (what every confident estimate costs the estimator with a tracker), and
-/// a start then one tracking step (what a carried image costs, the start aside).
-fn tracker_cases(
-    camera: &CameraModel,
-    model: &TrocarModel,
-    frames: &[GreyImage],
-    poses: &[Isometry3<f64>],
-    n: usize,
-) -> Result<Vec<SuiteReport>, VisionError> {
-    let mut t = ModelTracker::new(camera, model, TrackerParams::default())?;
-    let idx: Vec<usize> = (0..n.clamp(1, 300)).map(|i| i % frames.len()).collect();
-    let start = time_each(&idx, 3, |&i| {
-        t.start(&frames[i].view(), &Axis::of_pose(&poses[i])).map(|()| true)
-    });
-    let step = time_each(&idx, 3, |&i| {
-        t.start(&frames[i].view(), &Axis::of_pose(&poses[i]))?;
-        t.track(&frames[i].view()).map(|s| matches!(s, TrackStep::Tracked(_)))
-    });
-    let mut out = vec![];
-    for (name, samples) in [
-        ("markerless_tracker_start_zedm_1280x720", start),
-        ("markerless_tracker_start_and_step_zedm_1280x720", step),
-    ] {
-        if let Some(latency) = LatencyStats::from_samples(&samples) {
-            out.push(SuiteReport {
-                name: name.into(),
-                latency,
-                extra: serde_json::Map::new(),
-            });
-        }
-    }
-    Ok(out)
-}
-
 /// Run the cases: 12 frames from 0.4 to 0.1 m, `n` timed estimates (frames cycle), mono and
 /// with the stereo pair's right image; the renders.
 pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
@@ -167,7 +131,6 @@ pub fn run(n: usize) -> Result<Vec<SuiteReport>, VisionError> {
     ] {
         out.extend(axis_case(name, est, &frames, right, &poses, n)?);
     }
-    out.extend(tracker_cases(&camera, &model, &frames, &poses, n)?);
     for (t, (name, threads)) in render_t.iter().zip([
         ("markerless_render_zedm_1280x720", rayon::current_num_threads()),
         ("markerless_render_wall4_zedm_1280x720", rayon::current_num_threads()),

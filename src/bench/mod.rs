@@ -1,6 +1,6 @@
 //! Timing harness behind `trocar_docking bench`: one suite per file, each returning
 //! [`SuiteReport`]s of latency statistics. Benchmarks, not tests, check the performance
-//! targets (criterion benches in `benches/` measure the same code paths).
+//! targets (`make bench` runs every suite).
 
 pub use crate::realtime::{scheduler_name, set_realtime_priority, thread_cpu_time};
 use std::time::Instant;

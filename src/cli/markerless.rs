@@ -9,9 +9,8 @@ use nalgebra::{Isometry3, Unit, Vector3};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::LbrKinematics;
 use crate::vision::estimator::PoseYaml;
-use crate::vision::markerless::approach::{continuous_approach, docking_approach};
+use crate::vision::markerless::approach::docking_approach;
 use crate::vision::markerless::render::ToolCylinder;
-use crate::vision::markerless::tracker::{ModelTracker, TrackerParams};
 use crate::vision::markerless::{
     MarkerlessEstimate, MarkerlessEstimator, MarkerlessParams, Scene, TrocarModel, TrocarRenderer,
 };
@@ -53,11 +52,6 @@ pub struct RenderTrocarArgs {
     /// The camera mount (a lbr_med_sim parameter file: camera.flange_t_camera), for --sequence.
     #[arg(long, default_value = "config/lbr_med_sim.yaml")]
     pub mount: PathBuf,
-    /// With --sequence: one continuous approach (the misalignment drawn once, shrinking with
-    /// the distance) in one scene (lighting, wall and noise of --seed), as a video would
-    /// show it; else every frame its own view and scene.
-    #[arg(long, requires = "sequence")]
-    pub continuous: bool,
     /// Camera-to-port distances of the sequence, far,near (m).
     #[arg(long, value_delimiter = ',', default_value = "0.4,0.1")]
     pub range: Vec<f64>,
@@ -104,12 +98,6 @@ pub struct TrocarPoseArgs {
     /// `markerless.endoscope_radius_m` of config/trocar_estimator.yaml.
     #[arg(long)]
     pub endoscope_mount: Option<PathBuf>,
-    /// Images of one video in name order: where the per-frame estimate is not confident,
-    /// ViSP's model-based tracker (`vpMbGenericTracker`, moving edges, on the left image)
-    /// carries the track on from the last confident one (at most 15 images in a row); each
-    /// line says its `source` (`detector` or `tracker`).
-    #[arg(long)]
-    pub tracker: bool,
 }
 
 /// The right camera of a stereo pair from its calibration YAML (a baseline of 1 mm to 1 m).
@@ -208,11 +196,7 @@ pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
             return Err("--range takes far,near".into());
         }
         let mount = read_mount(&a.mount)?;
-        let poses = if a.continuous {
-            continuous_approach(&mount, a.range[0], a.range[1], n, a.seed)?
-        } else {
-            docking_approach(&mount, a.range[0], a.range[1], n, a.seed)?
-        };
+        let poses = docking_approach(&mount, a.range[0], a.range[1], n, a.seed)?;
         std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: {e}", a.out.display()))?;
         let right = match &a.right_camera {
             Some(path) => {
@@ -225,11 +209,7 @@ pub fn run_render(a: &RenderTrocarArgs) -> super::CliResult {
         };
         let mut frames = vec![];
         for (k, p) in poses.iter().enumerate() {
-            let seed = if a.continuous {
-                a.seed
-            } else {
-                a.seed.wrapping_mul(1_000_003).wrapping_add(k as u64)
-            };
+            let seed = a.seed.wrapping_mul(1_000_003).wrapping_add(k as u64);
             let scene = scene_of(a, seed)?;
             let img = renderer.render(&model, p, &scene)?;
             let name = format!("frame_{k:04}.png");
@@ -310,30 +290,16 @@ fn stereo_pair(a: &TrocarPoseArgs, n: usize) -> Result<Option<(CameraModel, Vec<
     Ok(Some((m, r)))
 }
 
-/// Images in a row the tracker of `trocar-pose --tracker` carries without a confident
-/// per-frame estimate (half a second at 30 Hz).
-const TRACKED_FRAMES: usize = 15;
-
-/// The JSON object of one image's estimate (with `tracker`: its `source` and the tracker's
-/// fit where it carried the image).
-fn pose_json(name: &str, ms: f64, e: &MarkerlessEstimate, tracker: bool) -> serde_json::Value {
-    let mut v = serde_json::json!({
+/// The JSON object of one image's estimate.
+fn pose_json(name: &str, ms: f64, e: &MarkerlessEstimate) -> serde_json::Value {
+    serde_json::json!({
         "image": name, "found": true,
         "axis_point": [e.axis.point.x, e.axis.point.y, e.axis.point.z],
         "axis_direction": [e.axis.direction.x, e.axis.direction.y, e.axis.direction.z],
         "confidence": e.confidence, "ms": ms,
         "fit_rms_px": e.fit_rms_px, "edge_support": e.edge_support,
         "opening_support": e.opening_support, "ambiguity_margin": e.ambiguity_margin,
-    });
-    if tracker {
-        v["source"] = if e.tracked.is_some() { "tracker" } else { "detector" }.into();
-    }
-    if let Some(t) = &e.tracked {
-        v["projection_error_deg"] = t.projection_error_deg.into();
-        v["sites"] = t.sites.into();
-        v["kept_fraction"] = t.kept_fraction.into();
-    }
-    v
+    })
 }
 
 /// One image's line of `trocar-pose`: the JSON object, or text.
@@ -382,12 +348,6 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
     };
     let mut est =
         MarkerlessEstimator::for_cameras(&camera, pair.as_ref().map(|p| &p.0), &model)?.with_occluder(occluder)?;
-    if a.tracker {
-        est = est.with_tracker(Some((
-            ModelTracker::new(&camera, &model, TrackerParams::default())?,
-            TRACKED_FRAMES,
-        )));
-    }
     let right_files = pair.map(|p| p.1);
     let mut failures = 0usize;
     for (k, f) in files.iter().enumerate() {
@@ -407,7 +367,7 @@ pub fn run_pose(a: &TrocarPoseArgs) -> super::CliResult {
         });
         let ms = t0.elapsed().as_secs_f64() * 1e3;
         let v = match result {
-            Ok(Some(e)) => pose_json(&name, ms, &e, a.tracker),
+            Ok(Some(e)) => pose_json(&name, ms, &e),
             Ok(None) => serde_json::json!({"image": name, "found": false, "confidence": 0.0, "ms": ms}),
             Err(err) => {
                 failures += 1;

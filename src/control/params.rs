@@ -12,17 +12,14 @@ use super::scope::command::ScopeParams;
 use super::sqp::{CostWeights, SqpSettings};
 use crate::validate;
 
-// The shipped file is built in with the other shipped files in `config.rs`, below the
-// sections that take their defaults from it: they name it here, and resolve to `config.rs`.
-pub use crate::config::{CONTROLLER as SHIPPED, CONTROLLER_YAML as SHIPPED_YAML};
-
 pub use crate::config::ParamError;
 
 /// What the controller's parameters are called in errors that have no file.
 pub const WHAT: &str = "controller parameter";
 
 /// Every parameter of the controller (`config/controller.yaml`); the defaults are that file
-/// as built into the binary ([`SHIPPED`]), and a partial file takes the rest from it.
+/// as built into the binary ([`crate::config::CONTROLLER`], in `config.rs` with the other
+/// shipped files, where each section names it too), and a partial file takes the rest from it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(remote = "Self", deny_unknown_fields)]
 pub struct ControllerParams {
@@ -92,7 +89,7 @@ pub struct ControllerParams {
     pub scope: ScopeParams,
 }
 
-crate::shipped_defaults!(ControllerParams, crate::control::params::SHIPPED, []);
+crate::shipped_defaults!(ControllerParams, crate::config::CONTROLLER, []);
 
 impl ControllerParams {
     /// Parse YAML (missing fields take their defaults) and validate.
@@ -153,7 +150,7 @@ mod tests {
 
     #[test]
     fn the_built_in_file_parses_validates_and_is_every_default() {
-        let p = ControllerParams::from_yaml_str(SHIPPED_YAML).unwrap();
+        let p = ControllerParams::from_yaml_str(crate::config::CONTROLLER_YAML).unwrap();
         p.validate().unwrap();
         assert_eq!(p, ControllerParams::default());
         assert_eq!(p.seated, SeatedParams::default());
@@ -250,7 +247,7 @@ mod tests {
             "{e}"
         );
         // Every old key is gone from the file, every new one is in it.
-        let shipped = SHIPPED.section(&[]);
+        let shipped = crate::config::CONTROLLER.section(&[]);
         for r in crate::config::CONTROLLER_RENAMED {
             let at = |path: &str| path.split('.').try_fold(shipped, |node, key| node.get(key)).is_some();
             assert!(!at(r.old) && at(r.new), "{} -> {}", r.old, r.new);

@@ -58,9 +58,6 @@ pub mod ffi {
             min_strength: f64,
             through_occluder: bool,
         ) -> Result<Vec<f64>>;
-
-        /// The occluder's mask (width x height bytes, non-zero where hidden); empty without one.
-        fn markerless_occluder_mask(det: &MarkerlessDetectorCpp) -> Vec<u8>;
     }
 }
 

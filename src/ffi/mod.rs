@@ -3,5 +3,4 @@
 
 pub mod kdl;
 pub mod markerless;
-pub mod model_tracker;
 pub mod vision;

@@ -407,8 +407,7 @@ impl Pipeline {
                 .markerless
                 .endoscope(&self.estimator.flange_t_camera(), self.endoscope_length_m);
             let e = MarkerlessEstimator::for_cameras(camera, right_camera, &self.model)
-                .and_then(|e| e.with_occluder(occluder))
-                .and_then(|e| Ok(e.with_tracker(self.p.markerless.tracker(camera, &self.model)?)));
+                .and_then(|e| e.with_occluder(occluder));
             self.markerless = Some(e.map_err(|e| e.to_string())?);
         }
         let right_pixels = match right.and_then(|r| r.image.as_ref()) {

@@ -50,7 +50,6 @@ use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::Thread;
 use std::time::{Duration, Instant};
 
-use arrayvec::ArrayString;
 use crossbeam_queue::ArrayQueue;
 
 // ---------------------------------------------------------------------------------------
@@ -111,11 +110,12 @@ impl<T: Send> fmt::Debug for SlotReader<T> {
     }
 }
 
-/// Text of at most `N` bytes, stored inline (an `arrayvec::ArrayString`), so that it is
-/// `Copy` and can travel through a [`latest`] slot or an [`outputs`] queue without
-/// allocating. Longer text is cut at a character boundary, with `…` at the end.
+/// Text of at most `N` bytes, stored inline (the UTF-8 bytes in a `tinyvec::ArrayVec`,
+/// only ever whole characters), so that it is `Copy` and can travel through a [`latest`]
+/// slot or an [`outputs`] queue without allocating. Longer text is cut at a character
+/// boundary, with `…` at the end.
 #[derive(Clone, Copy, PartialEq, Eq, Default)]
-pub struct FixedText<const N: usize>(ArrayString<N>);
+pub struct FixedText<const N: usize>(tinyvec::ArrayVec<[u8; N]>);
 
 /// An input fault (why an input was rejected) as the loop receives it.
 pub type FaultText = FixedText<240>;
@@ -123,7 +123,7 @@ pub type FaultText = FixedText<240>;
 impl<const N: usize> FixedText<N> {
     /// Empty text.
     pub const fn empty() -> Self {
-        Self(ArrayString::new_const())
+        Self(tinyvec::ArrayVec::from_array_empty([0; N]))
     }
 
     /// `text`, cut to at most `N` bytes.
@@ -142,7 +142,8 @@ impl<const N: usize> FixedText<N> {
 
     /// The text.
     pub fn as_str(&self) -> &str {
-        self.0.as_str()
+        // Only whole `&str`s cut at character boundaries are pushed: always UTF-8.
+        std::str::from_utf8(&self.0).unwrap_or_default()
     }
 
     /// Whether the text is empty.
@@ -154,14 +155,18 @@ impl<const N: usize> FixedText<N> {
 impl<const N: usize> fmt::Write for FixedText<N> {
     fn write_str(&mut self, s: &str) -> fmt::Result {
         const ELLIPSIS: &str = "…";
-        if self.0.try_push_str(s).is_ok() {
+        let room = N - self.0.len();
+        if s.len() <= room {
+            self.0.extend_from_slice(s.as_bytes());
             return Ok(());
         }
         // Cut at a character boundary, leaving room for the ellipsis when there is any.
-        let keep = self.0.remaining_capacity().saturating_sub(ELLIPSIS.len());
+        let keep = room.saturating_sub(ELLIPSIS.len());
         let cut = (0..=keep).rev().find(|&i| s.is_char_boundary(i)).unwrap_or(0);
-        let _ = self.0.try_push_str(&s[..cut]);
-        let _ = self.0.try_push_str(ELLIPSIS);
+        self.0.extend_from_slice(&s.as_bytes()[..cut]);
+        if room - cut >= ELLIPSIS.len() {
+            self.0.extend_from_slice(ELLIPSIS.as_bytes());
+        }
         Err(fmt::Error)
     }
 }

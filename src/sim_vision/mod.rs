@@ -142,7 +142,6 @@ impl CameraPoseSource {
                 .map_err(|e| e.to_string())?,
             estimator: MarkerlessEstimator::for_cameras(&setup.calibration, setup.right.as_ref(), &setup.trocar)
                 .and_then(|e| e.with_occluder(occluder))
-                .and_then(|e| Ok(e.with_tracker(setup.markerless.tracker(&setup.calibration, &setup.trocar)?)))
                 .map_err(|e| e.to_string())?,
             right_every: setup.camera.right_every,
             filter,

@@ -25,7 +25,7 @@ pub const DEFAULT_PATH: &str = "config/sim.yaml";
 pub const DEFAULT_CONTROLLER_PATH: &str = "config/controller.yaml";
 
 /// `config/controller.yaml` as built into the binary, for runs outside the package root.
-pub const EMBEDDED_CONTROLLER_YAML: &str = crate::control::params::SHIPPED_YAML;
+pub const EMBEDDED_CONTROLLER_YAML: &str = crate::config::CONTROLLER_YAML;
 
 /// Everything `config/sim.yaml` holds. A section the file leaves out is the shipped one
 /// ([`crate::sim::SHIPPED`]); a section it gives is laid over the shipped one key by key,

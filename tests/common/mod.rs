@@ -1,5 +1,5 @@
 //! Fixtures the tests share: the arm, its start pose, a trocar below it, and an input
-//! without contact; the simulated camera and its mount.
+//! without contact; the simulated camera, its mount, and the shipped hand-eye.
 
 // Each test file uses some of them.
 #![allow(dead_code)]
@@ -61,4 +61,13 @@ pub fn camera_mount() -> Isometry3<f64> {
         Translation3::new(0.001, 0.0695, 0.0405),
         UnitQuaternion::from_axis_angle(&Vector3::x_axis(), 15.2f64.to_radians()),
     )
+}
+
+/// The shipped hand-eye (config/hand_eye.yaml `flange_t_camera`), read as `render-trocar
+/// --mount` and `trocar-pose --endoscope-mount` read it.
+pub fn shipped_mount() -> Isometry3<f64> {
+    trocar_docking::cli::markerless::read_mount(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/hand_eye.yaml"),
+    )
+    .unwrap()
 }

@@ -54,7 +54,7 @@ pub struct SeatedParams {
     pub settle_time_s: f64,
 }
 
-crate::shipped_defaults!(SeatedParams, crate::control::params::SHIPPED, ["seated"]);
+crate::shipped_defaults!(SeatedParams, crate::config::CONTROLLER, ["seated"]);
 
 impl SeatedParams {
     /// Check ranges; the error names the field.

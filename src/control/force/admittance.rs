@@ -47,7 +47,7 @@ pub struct AdmittanceParams {
     pub min_insert_speed_ratio: f64,
 }
 
-crate::shipped_defaults!(AdmittanceParams, crate::control::params::SHIPPED, ["admittance"]);
+crate::shipped_defaults!(AdmittanceParams, crate::config::CONTROLLER, ["admittance"]);
 
 impl AdmittanceParams {
     /// Check ranges; the error names the field.

@@ -58,7 +58,7 @@ pub struct TareParams {
     pub payload_prior_kg: f64,
 }
 
-crate::shipped_defaults!(TareParams, crate::control::params::SHIPPED, ["tare"]);
+crate::shipped_defaults!(TareParams, crate::config::CONTROLLER, ["tare"]);
 
 impl TareParams {
     /// Check ranges; the error names the field.

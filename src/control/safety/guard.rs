@@ -67,7 +67,7 @@ pub struct GuardParams {
     pub max_clock_jump_s: f64,
 }
 
-crate::shipped_defaults!(GuardParams, crate::control::params::SHIPPED, ["guard"]);
+crate::shipped_defaults!(GuardParams, crate::config::CONTROLLER, ["guard"]);
 
 impl GuardParams {
     /// Check ranges; the error names the field.

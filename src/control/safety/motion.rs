@@ -49,7 +49,7 @@ pub struct MotionLimits {
     pub max_angular_jerk_rad_s3: f64,
 }
 
-crate::shipped_defaults!(MotionLimits, crate::control::params::SHIPPED, ["motion"]);
+crate::shipped_defaults!(MotionLimits, crate::config::CONTROLLER, ["motion"]);
 
 impl MotionLimits {
     /// Check every range; the error names the field.

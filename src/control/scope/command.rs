@@ -116,7 +116,7 @@ pub struct ScopeParams {
     pub breathing: PortFollowParams,
 }
 
-crate::shipped_defaults!(ScopeParams, crate::control::params::SHIPPED, ["scope"]);
+crate::shipped_defaults!(ScopeParams, crate::config::CONTROLLER, ["scope"]);
 
 impl ScopeParams {
     /// Check every range; the error names the field.

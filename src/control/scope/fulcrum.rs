@@ -101,7 +101,7 @@ pub struct FulcrumParams {
     pub axial_max_speed_m_s: f64,
 }
 
-crate::shipped_defaults!(FulcrumParams, crate::control::params::SHIPPED, ["scope", "fulcrum"]);
+crate::shipped_defaults!(FulcrumParams, crate::config::CONTROLLER, ["scope", "fulcrum"]);
 
 impl FulcrumParams {
     /// Check every range; the error names the field.

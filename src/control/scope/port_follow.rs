@@ -61,11 +61,7 @@ pub struct PortFollowParams {
     pub max_jump_m: f64,
 }
 
-crate::shipped_defaults!(
-    PortFollowParams,
-    crate::control::params::SHIPPED,
-    ["scope", "breathing"]
-);
+crate::shipped_defaults!(PortFollowParams, crate::config::CONTROLLER, ["scope", "breathing"]);
 
 impl PortFollowParams {
     /// Check every range; the error names the field.

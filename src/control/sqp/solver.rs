@@ -76,7 +76,7 @@ pub struct SqpSettings {
     pub active_set_warm_start: bool,
 }
 
-crate::shipped_defaults!(SqpSettings, crate::control::params::SHIPPED, ["sqp"]);
+crate::shipped_defaults!(SqpSettings, crate::config::CONTROLLER, ["sqp"]);
 
 impl SqpSettings {
     /// Real-time-iteration settings: one QP per step.

@@ -23,31 +23,6 @@ pub fn docking_approach(
     n: usize,
     seed: u64,
 ) -> Result<Vec<Isometry3<f64>>, VisionError> {
-    approach(flange_t_camera, far, near, n, seed, false)
-}
-
-/// As [`docking_approach`], but one continuous approach: the misalignment (tilt, offset and
-/// their directions, the roll) drawn once from `seed` and shrinking with the distance, so
-/// that consecutive views are as near as the distances' step makes them (a video of the
-/// approach, for tracking).
-pub fn continuous_approach(
-    flange_t_camera: &Isometry3<f64>,
-    far: f64,
-    near: f64,
-    n: usize,
-    seed: u64,
-) -> Result<Vec<Isometry3<f64>>, VisionError> {
-    approach(flange_t_camera, far, near, n, seed, true)
-}
-
-fn approach(
-    flange_t_camera: &Isometry3<f64>,
-    far: f64,
-    near: f64,
-    n: usize,
-    seed: u64,
-    continuous: bool,
-) -> Result<Vec<Isometry3<f64>>, VisionError> {
     let m = flange_t_camera.translation.vector;
     let lateral = (m.x * m.x + m.y * m.y).sqrt();
     crate::validate::in_range("near", near, lateral + 0.03, 2.0)?;
@@ -63,9 +38,6 @@ fn approach(
             rng.random_range(-std::f64::consts::PI..std::f64::consts::PI),
         ]
     };
-    // Drawn before the views only for a continuous approach: the views of
-    // `docking_approach` stay those of its seed.
-    let once = continuous.then(|| draw(&mut rng));
     let mut out = Vec::with_capacity(n);
     for k in 0..n {
         let d = if n == 1 {
@@ -74,7 +46,7 @@ fn approach(
             far + (near - far) * k as f64 / (n - 1) as f64
         };
         let scale = d / 0.4;
-        let [tilt, dir, off, odir, roll] = once.unwrap_or_else(|| draw(&mut rng));
+        let [tilt, dir, off, odir, roll] = draw(&mut rng);
         let (tilt, off) = (tilt * scale, off * scale);
         let (ox, oy) = (off * odir.cos(), off * odir.sin());
         let (dx, dy) = (ox - m.x, oy - m.y);

@@ -12,7 +12,6 @@ use super::geometry::{
 use super::model::TrocarModel;
 use super::render::ToolCylinder;
 use super::scope_in_view::{stereo_axis, ScopeInView, SCOPE_MAX_OFFSET_M};
-use super::tracker::{ModelTracker, TrackStep, TrackedPose};
 use crate::ffi::markerless::{ffi, EDGE_RECORD_LEN, ELLIPSE_RECORD_LEN};
 use crate::vision::{CameraModel, ImageView, VisionError};
 
@@ -83,11 +82,6 @@ pub struct MarkerlessEstimate {
     /// How much better the chosen circle pose explains the image than the other (score
     /// difference / 0.25, clamped to 0-1), or 1 when the two were within 3 deg of each other.
     pub ambiguity_margin: f64,
-    /// Where the model-based tracker carried this image ([`MarkerlessEstimator::with_tracker`]):
-    /// its pose and fit (the axis and confidence above are its own; the fields above it
-    /// those of the image's own estimate, if any, else 0).
-    #[serde(skip)]
-    pub tracked: Option<TrackedPose>,
 }
 
 /// A known cylinder in view that hides the scene behind it: the endoscope's own shaft, rigid
@@ -394,20 +388,6 @@ pub struct MarkerlessEstimator {
     occluder: Option<Occluder>,
     /// The hand-eye's error as the endoscope in view tells it (stereo only).
     scope: Option<ScopeInView>,
-    /// The model-based tracker that carries the images without a confident estimate.
-    carry: Option<Carry>,
-}
-
-/// The model-based tracker of [`MarkerlessEstimator::with_tracker`] and how many images in
-/// a row it has carried.
-struct Carry {
-    tracker: ModelTracker,
-    max_frames: usize,
-    carried: usize,
-    /// The last confident image (its pixels, width, height, channels) and estimate: the
-    /// tracker starts there when an image gives no confident estimate (a start costs 3 ms;
-    /// a copy, none per confident image after the first).
-    last: Option<(Vec<u8>, [u32; 3], Axis)>,
 }
 
 /// One camera's detector (it holds the camera's last image) and model.
@@ -730,7 +710,6 @@ impl MarkerlessEstimator {
             model: *model,
             occluder: None,
             scope: None,
-            carry: None,
         })
     }
 
@@ -775,25 +754,6 @@ impl MarkerlessEstimator {
         self.scope = occluder.as_ref().and_then(|o| ScopeInView::new(&o.shaft));
         self.occluder = occluder;
         Ok(self)
-    }
-
-    /// The same estimator with ViSP's model-based tracker on the left image
-    /// ([`ModelTracker`]) and `max_frames`: started from every confident estimate (at least
-    /// [`HIGH_CONFIDENCE`]), it carries the track on through the images that give none, for
-    /// at most `max_frames` in a row, with the occluder's mask; where its confidence is the
-    /// higher, its pose is the image's estimate ([`MarkerlessEstimate::tracked`]). ViSP's
-    /// moving edges are pixel-level, so its confidence counts the depth's precision in
-    /// ([`super::tracker::DEPTH_ERROR_SCALE_M`]): far from the port it carries the track at
-    /// a low confidence.
-    /// `None`: none (the estimator as it was).
-    pub fn with_tracker(mut self, tracker: Option<(ModelTracker, usize)>) -> Self {
-        self.carry = tracker.map(|(tracker, max_frames)| Carry {
-            tracker,
-            max_frames,
-            carried: 0,
-            last: None,
-        });
-        self
     }
 
     /// Where the track puts the port (its axis in the left camera's frame; `None`: nowhere
@@ -893,71 +853,6 @@ impl MarkerlessEstimator {
     /// confident estimate, the right image's own confident one of an opening the left image
     /// found too stands (carried into the left frame).
     pub fn estimate_stereo(
-        &mut self,
-        image: &ImageView,
-        right: Option<&ImageView>,
-        prior: Option<&Unit<Vector3<f64>>>,
-    ) -> Result<Option<MarkerlessEstimate>, VisionError> {
-        let own = self.estimate_frame(image, right, prior)?;
-        let Some(c) = self.carry.as_mut() else {
-            return Ok(own);
-        };
-        if let Some(e) = own.as_ref().filter(|e| e.confidence >= HIGH_CONFIDENCE) {
-            let mut data = c.last.take().map(|l| l.0).unwrap_or_default();
-            data.clear();
-            data.extend_from_slice(image.data);
-            c.last = Some((data, [image.width, image.height, image.channels], e.axis));
-            c.tracker.stop();
-            c.carried = 0;
-            return Ok(own);
-        }
-        if c.carried >= c.max_frames || (c.carried > 0 && !c.tracker.is_tracking()) {
-            c.tracker.stop();
-            return Ok(own);
-        }
-        // The first image without a confident estimate starts the tracker on the last one
-        // that had it. A tracker that fails on an image stops; the image's own estimate
-        // stands.
-        let step = match &c.last {
-            None => return Ok(own),
-            Some((data, [w, h, ch], axis)) => {
-                let mask = ffi::markerless_occluder_mask(&self.left.det);
-                let first = c.carried == 0;
-                c.carried += 1;
-                c.tracker.set_mask(&mask).and_then(|()| {
-                    if first {
-                        c.tracker.start(&ImageView::new(data, *w, *h, *ch)?, axis)?;
-                    }
-                    c.tracker.track(image)
-                })
-            }
-        };
-        let Ok(TrackStep::Tracked(t)) = step else {
-            c.tracker.stop();
-            return Ok(own);
-        };
-        if t.confidence <= 0.0 || own.as_ref().is_some_and(|e| e.confidence >= t.confidence) {
-            return Ok(own);
-        }
-        let e = own.unwrap_or(MarkerlessEstimate {
-            axis: t.axis,
-            confidence: 0.0,
-            fit_rms_px: 0.0,
-            edge_support: 0.0,
-            opening_support: 0.0,
-            ambiguity_margin: 0.0,
-            tracked: None,
-        });
-        Ok(Some(MarkerlessEstimate {
-            axis: t.axis,
-            confidence: t.confidence,
-            tracked: Some(t),
-            ..e
-        }))
-    }
-
-    /// [`MarkerlessEstimator::estimate_stereo`] of this image alone.
-    fn estimate_frame(
         &mut self,
         image: &ImageView,
         right: Option<&ImageView>,
@@ -1560,7 +1455,6 @@ fn graded(h: &Hypothesis, margin: f64) -> MarkerlessEstimate {
         edge_support: h.support,
         opening_support: h.opening_support,
         ambiguity_margin: margin,
-        tracked: None,
     }
 }
 

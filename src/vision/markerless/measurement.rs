@@ -19,11 +19,10 @@ use serde::{Deserialize, Serialize};
 use super::estimator::{MarkerlessEstimate, MarkerlessEstimator, Occluder};
 use super::geometry::rotation_of_axis;
 pub use super::geometry::with_roll_convention;
-use super::tracker::{ModelTracker, TrackerParams};
-use super::{Axis, TrocarModel};
+use super::Axis;
 use crate::validate;
 use crate::vision::estimator::{EstimateStatus, TrocarEstimator};
-use crate::vision::{CameraModel, ImageView, VisionError};
+use crate::vision::{ImageView, VisionError};
 
 /// How the trocar estimator measures the trocar.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -77,10 +76,6 @@ pub struct MarkerlessParams {
     /// Correct the hand-eye by the endoscope's axis as both eyes of a stereo pair see it
     /// ([`MarkerlessEstimator::camera_t_believed`]): off, the hand-eye is used as it is.
     pub endoscope_corrects_hand_eye: bool,
-    /// Images in a row ViSP's model-based tracker may carry the track through where the
-    /// image gives no confident estimate ([`MarkerlessEstimator::with_tracker`]); 0: no
-    /// tracker.
-    pub tracker_frames: usize,
 }
 
 crate::shipped_defaults!(MarkerlessParams, crate::config::TROCAR_ESTIMATOR, ["markerless"]);
@@ -91,7 +86,6 @@ impl MarkerlessParams {
         validate::positive_at_most("markerless.min_confidence", self.min_confidence, 1.0)?;
         validate::positive_at_most("markerless.sigma_position_m", self.sigma_position_m, 0.1)?;
         validate::positive_at_most("markerless.sigma_direction_rad", self.sigma_direction_rad, 0.5)?;
-        validate::integer_in_range("markerless.tracker_frames", self.tracker_frames as i64, 0, 300)?;
         let r = self.endoscope_radius_m;
         if !(r.is_finite() && (0.0..=0.05).contains(&r)) {
             return Err(VisionError::InvalidInput(format!(
@@ -99,22 +93,6 @@ impl MarkerlessParams {
             )));
         }
         Ok(())
-    }
-
-    /// The model-based tracker for `camera` and `model` and the images it may carry
-    /// ([`MarkerlessEstimator::with_tracker`]); `None` with `tracker_frames` 0.
-    pub fn tracker(
-        &self,
-        camera: &CameraModel,
-        model: &TrocarModel,
-    ) -> Result<Option<(ModelTracker, usize)>, VisionError> {
-        if self.tracker_frames == 0 {
-            return Ok(None);
-        }
-        Ok(Some((
-            ModelTracker::new(camera, model, TrackerParams::default())?,
-            self.tracker_frames,
-        )))
     }
 
     /// The endoscope in view as the estimator masks it: a straight shaft of
@@ -189,21 +167,10 @@ pub fn accept(
         return Err("markerless estimate not finite".into());
     }
     if e.confidence < p.min_confidence {
-        return Err(match &e.tracked {
-            Some(t) => format!(
-                "markerless confidence {:.2} below {:.2} (carried by the tracker: projection error {:.1} deg, \
-                 {} sites, {:.0} % kept)",
-                e.confidence,
-                p.min_confidence,
-                t.projection_error_deg,
-                t.sites,
-                100.0 * t.kept_fraction
-            ),
-            None => format!(
-                "markerless confidence {:.2} below {:.2} (edge support {:.2}, fit {:.2} px, ambiguity margin {:.2})",
-                e.confidence, p.min_confidence, e.edge_support, e.fit_rms_px, e.ambiguity_margin
-            ),
-        });
+        return Err(format!(
+            "markerless confidence {:.2} below {:.2} (edge support {:.2}, fit {:.2} px, ambiguity margin {:.2})",
+            e.confidence, p.min_confidence, e.edge_support, e.fit_rms_px, e.ambiguity_margin
+        ));
     }
     let pose = port_pose(base_t_camera, &e.axis);
     Ok(MarkerlessMeasurement {
@@ -294,7 +261,6 @@ mod tests {
             edge_support: 0.9,
             opening_support: 0.95,
             ambiguity_margin: 1.0,
-            tracked: None,
         }
     }
 
@@ -408,22 +374,6 @@ mod tests {
         assert!(e.contains("no trocar opening"), "{e}");
         let e = accept(Some(&estimate(axis, 0.3)), &camera(), &p).unwrap_err();
         assert!(e.contains("confidence 0.30 below 0.50"), "{e}");
-        // A pose the model-based tracker carried says so, with its fit.
-        let carried = MarkerlessEstimate {
-            tracked: Some(super::super::tracker::TrackedPose {
-                axis,
-                projection_error_deg: 10.5,
-                sites: 320,
-                kept_fraction: 0.95,
-                confidence: 0.31,
-            }),
-            ..estimate(axis, 0.31)
-        };
-        let e = accept(Some(&carried), &camera(), &p).unwrap_err();
-        assert!(
-            e.contains("0.31 below 0.50 (carried by the tracker: projection error 10.5 deg, 320 sites, 95 % kept)"),
-            "{e}"
-        );
         let mut bad = estimate(axis, 0.9);
         bad.axis.point.x = f64::NAN;
         assert!(accept(Some(&bad), &camera(), &p).unwrap_err().contains("not finite"));
@@ -478,13 +428,6 @@ mod tests {
                 },
                 "endoscope_radius_m",
             ),
-            (
-                MarkerlessParams {
-                    tracker_frames: 301,
-                    ..Default::default()
-                },
-                "tracker_frames",
-            ),
         ] {
             let e = p.validate().unwrap_err().to_string();
             assert!(e.contains(key), "{e}");
@@ -493,14 +436,14 @@ mod tests {
     }
 
     #[test]
-    fn the_shipped_estimator_has_a_tracker_and_0_frames_has_none() {
-        let camera = CameraModel::pinhole(640, 480, 500.0, 500.0, 320.0, 240.0).unwrap();
-        let model = TrocarModel::shipped();
-        let p = MarkerlessParams::default();
-        let (_, n) = p.tracker(&camera, &model).unwrap().expect("shipped with a tracker");
-        assert_eq!(n, 15);
-        let off = MarkerlessParams { tracker_frames: 0, ..p };
-        assert!(off.tracker(&camera, &model).unwrap().is_none());
+    fn the_removed_tracker_key_is_refused_with_the_reason() {
+        let e = crate::config::from_yaml_str::<MarkerlessParams>("trocar_estimator.yaml", "tracker_frames: 15\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("`markerless.tracker_frames`: the key is gone (ViSP's model-based tracker is removed"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -9,7 +9,6 @@ pub mod measurement;
 pub mod model;
 pub mod render;
 pub mod scope_in_view;
-pub mod tracker;
 
 pub use estimator::{MarkerlessEstimate, MarkerlessEstimator, Occluder, HIGH_CONFIDENCE};
 pub use geometry::Axis;
