@@ -133,12 +133,10 @@ void load_model(vpMbGenericTracker &tracker, rust::Str cao) {
 }  // namespace
 
 std::unique_ptr<ModelTrackerCpp> new_model_tracker(rust::Slice<const double> intrinsics,
-                                                   rust::Slice<const double> dist, int width, int height,
-                                                   rust::Str cao, rust::Slice<const double> moving_edges) {
+                                                   rust::Slice<const double> dist, bool fisheye, int width,
+                                                   int height, rust::Str cao, rust::Slice<const double> moving_edges) {
   auto impl = std::make_unique<ModelTrackerCpp::Impl>();
-  cv::Matx33d K;
-  cv::Mat coefficients;
-  bridge::camera_model(intrinsics, dist, width, height, K, coefficients);
+  const bridge::Lens lens = bridge::camera_model(intrinsics, dist, fisheye, width, height);
   require(moving_edges.size() == 4, "moving edges: range, sample step, threshold, contrast tolerance");
   const double range_px = moving_edges[0], sample_step_px = moving_edges[1];
   const double edge_threshold = moving_edges[2], contrast_tolerance = moving_edges[3];
@@ -150,10 +148,8 @@ std::unique_ptr<ModelTrackerCpp> new_model_tracker(rust::Slice<const double> int
           "the contrast tolerance must be in (0, 10]");
   impl->width = width;
   impl->height = height;
-  impl->undistort = cv::countNonZero(coefficients) > 0;
-  if (impl->undistort)
-    cv::initUndistortRectifyMap(K, coefficients, cv::Mat(), K, cv::Size(width, height), CV_16SC2, impl->map1,
-                                impl->map2);
+  impl->undistort = lens.distorted();
+  if (impl->undistort) lens.undistort_maps(cv::Size(width, height), impl->map1, impl->map2);
   impl->cam.initPersProjWithoutDistortion(intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]);
 
   auto &t = impl->tracker;

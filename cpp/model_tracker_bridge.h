@@ -19,14 +19,15 @@ class ModelTrackerCpp {
   std::unique_ptr<Impl> impl;
 };
 
-// intrinsics: fx, fy, cx, cy; dist: OpenCV order, 0, 4, 5, 8, 12 or 14 coefficients.
+// intrinsics: fx, fy, cx, cy; dist: OpenCV order, 0, 4, 5, 8, 12 or 14 coefficients, or with
+// `fisheye` (ROS equidistant) k1 k2 k3 k4.
 // cao: the model (ViSP .cao, version 1, metres). moving_edges, 4 numbers: the search range
 // along the normal (px); the spacing of the sites along the model's edges (px); ViSP's
 // likelihood threshold of an edge (vpMe::setThreshold); how much a site's contrast may
 // change from one image to the next (relative: vpMe's mu1 (at most 0.95) and mu2).
 std::unique_ptr<ModelTrackerCpp> new_model_tracker(rust::Slice<const double> intrinsics,
-                                                   rust::Slice<const double> dist, int width, int height,
-                                                   rust::Str cao, rust::Slice<const double> moving_edges);
+                                                   rust::Slice<const double> dist, bool fisheye, int width,
+                                                   int height, rust::Str cao, rust::Slice<const double> moving_edges);
 
 // Start tracking on this image (1, 3 or 4 channels, the camera's size) from the pose
 // `c_t_o` (12 numbers, as above).

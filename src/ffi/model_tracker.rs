@@ -11,12 +11,14 @@ pub mod ffi {
         /// The tracker, its camera and model.
         type ModelTrackerCpp;
 
-        /// A tracker for a camera (`intrinsics` fx, fy, cx, cy; `dist` OpenCV order) and a
+        /// A tracker for a camera (`intrinsics` fx, fy, cx, cy; `dist` OpenCV order, `fisheye`: ROS
+        /// `equidistant`, k1 k2 k3 k4) and a
         /// model (ViSP .cao text, m); `moving_edges`: the search range and site spacing
         /// (px), the edge threshold (ViSP's likelihood) and the contrast tolerance (relative).
         fn new_model_tracker(
             intrinsics: &[f64],
             dist: &[f64],
+            fisheye: bool,
             width: i32,
             height: i32,
             cao: &str,

@@ -180,6 +180,7 @@ impl ModelTracker {
         let t = ffi::new_model_tracker(
             &[camera.fx, camera.fy, camera.cx, camera.cy],
             &camera.distortion,
+            camera.is_equidistant(),
             camera.width as i32,
             camera.height as i32,
             &cao(model, params.polygon_sides),
