@@ -15,8 +15,7 @@
 namespace trocar_docking {
 
 struct MarkerlessDetectorCpp::Impl {
-  cv::Matx33d K;
-  cv::Mat dist;
+  bridge::Lens lens;
   int width = 0, height = 0;
   cv::Mat grey8;   // the loaded image, grey
   cv::Mat smooth;  // smoothed, CV_32F
@@ -123,10 +122,10 @@ double mean_on_ellipse(const MarkerlessDetectorCpp::Impl &d, const cv::RotatedRe
 }  // namespace
 
 std::unique_ptr<MarkerlessDetectorCpp> new_markerless_detector(rust::Slice<const double> intrinsics,
-                                                               rust::Slice<const double> dist, int width,
-                                                               int height) {
+                                                               rust::Slice<const double> dist, bool fisheye,
+                                                               int width, int height) {
   auto impl = std::make_unique<MarkerlessDetectorCpp::Impl>();
-  bridge::camera_model(intrinsics, dist, width, height, impl->K, impl->dist);
+  impl->lens = bridge::camera_model(intrinsics, dist, fisheye, width, height);
   impl->width = width;
   impl->height = height;
   return std::make_unique<MarkerlessDetectorCpp>(std::move(impl));
@@ -234,8 +233,7 @@ rust::Vec<double> markerless_ellipses(MarkerlessDetectorCpp &det, double min_axi
     kept.push_back(c.r);
     // The same fit in undistorted pixels.
     pts.assign(contours[c.contour].begin(), contours[c.contour].end());
-    cv::undistortPoints(pts, und, d.K, d.dist, cv::noArray(), d.K,
-                        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-10));
+    d.lens.undistort(pts, und, d.lens.K, cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-10));
     const cv::RotatedRect u = cv::fitEllipseAMS(und);
     double rms = 0;
     int sectors = 0;
@@ -272,7 +270,7 @@ void markerless_set_occluder(MarkerlessDetectorCpp &det, rust::Slice<const doubl
     require(p3[i].z > 1e-3, "occluder points must lie in front of the camera (z > 1 mm)");
   }
   std::vector<cv::Point2d> px;
-  cv::projectPoints(p3, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), d.K, d.dist, px);
+  d.lens.project(p3, px);
   cv::Mat mask = cv::Mat::zeros(d.height, d.width, CV_8U);
   const size_t m = static_cast<size_t>(section_len);
   std::vector<cv::Point> two, hull;
@@ -310,7 +308,7 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
   rust::Vec<double> out;
   if (n == 0) return out;
   // Each point and a step of about one pixel along its normal, through the distortion.
-  const double eps = 1.0 / d.K(0, 0);
+  const double eps = 1.0 / d.lens.K(0, 0);
   std::vector<cv::Point3d> rays(2 * n);
   for (size_t i = 0; i < n; ++i) {
     const double x = points[4 * i], y = points[4 * i + 1], nx = points[4 * i + 2], ny = points[4 * i + 3];
@@ -319,7 +317,7 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
     rays[2 * i + 1] = {x + eps * nx / nn, y + eps * ny / nn, 1.0};
   }
   std::vector<cv::Point2d> px;
-  cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), d.K, d.dist, px);
+  d.lens.project(rays, px);
   const double step = 0.5;
   const int half = static_cast<int>(std::ceil(range_px / step)) + 1;
   std::vector<double> g(2 * half + 1);
@@ -373,8 +371,8 @@ rust::Vec<double> markerless_search_edges(const MarkerlessDetectorCpp &det, rust
   }
   std::vector<cv::Point2d> norm;
   if (!found_px.empty())
-    cv::undistortPoints(found_px, norm, d.K, d.dist, cv::noArray(), cv::noArray(),
-                        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-12));
+    d.lens.undistort(found_px, norm, cv::noArray(),
+                     cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 20, 1e-12));
   out.reserve(4 * n);
   for (size_t i = 0; i < 4 * n; ++i) out.push_back(0.0);
   for (size_t i : masked_idx) out[4 * i] = 2.0;

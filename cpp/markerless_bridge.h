@@ -18,10 +18,11 @@ class MarkerlessDetectorCpp {
   std::unique_ptr<Impl> impl;
 };
 
-// intrinsics: fx, fy, cx, cy; dist: OpenCV order, 0, 4, 5, 8, 12 or 14 coefficients.
+// intrinsics: fx, fy, cx, cy; dist: OpenCV order, 0, 4, 5, 8, 12 or 14 coefficients, or with
+// `fisheye` (ROS equidistant) k1 k2 k3 k4.
 std::unique_ptr<MarkerlessDetectorCpp> new_markerless_detector(rust::Slice<const double> intrinsics,
-                                                               rust::Slice<const double> dist, int width,
-                                                               int height);
+                                                               rust::Slice<const double> dist, bool fisheye,
+                                                               int width, int height);
 
 // Load an image (1, 3 or 4 channels, the camera's size): grey, Gaussian-smoothed by
 // `smooth_sigma` px (0 = none), kept for the calls below.

@@ -1,4 +1,5 @@
 #include "trocar_docking/cpp/vision_bridge.h"
+#include "trocar_docking/cpp/bridge_common.h"
 
 #include <algorithm>
 #include <cmath>
@@ -147,29 +148,6 @@ void check_pixels(rust::Slice<const uint8_t> pixels, int width, int height, int 
                                 std::to_string(channels) + " needs " + std::to_string(want));
 }
 
-void check_intrinsics(rust::Slice<const double> k, rust::Slice<const double> dist, int width, int height) {
-  if (k.size() != 4) throw std::invalid_argument("intrinsics must be fx, fy, cx, cy");
-  for (double v : k)
-    if (!std::isfinite(v)) throw std::invalid_argument("intrinsics must be finite");
-  if (!(k[0] > 1.0 && k[1] > 1.0)) throw std::invalid_argument("focal lengths must be > 1 px");
-  const size_t n = dist.size();
-  if (!(n == 0 || n == 4 || n == 5 || n == 8 || n == 12 || n == 14))
-    throw std::invalid_argument("distortion must have 0, 4, 5, 8, 12 or 14 coefficients");
-  for (double v : dist)
-    if (!std::isfinite(v)) throw std::invalid_argument("distortion must be finite");
-  check_size(width, height);
-}
-
-cv::Matx33d camera_matrix(rust::Slice<const double> k) {
-  return cv::Matx33d(k[0], 0, k[2], 0, k[1], k[3], 0, 0, 1);
-}
-
-cv::Mat dist_mat(rust::Slice<const double> d) {
-  cv::Mat m(1, static_cast<int>(d.size()), CV_64F);
-  for (size_t i = 0; i < d.size(); ++i) m.at<double>(0, static_cast<int>(i)) = d[i];
-  return m;
-}
-
 // A grey cv::Mat view (or conversion) of the caller's pixels.
 cv::Mat grey_view(rust::Slice<const uint8_t> pixels, int width, int height, int channels) {
   if (channels != 1 && channels != 3 && channels != 4)
@@ -192,7 +170,6 @@ std::vector<cv::Point3d> object_corners(double s) {
   return {{-h, h, 0}, {h, h, 0}, {h, -h, 0}, {-h, -h, 0}};
 }
 
-
 // Bilinear sample of a grey image at (x, y) (pixel centres at integers), clamped inside.
 inline double sample(const cv::Mat &g, double x, double y) {
   x = std::min(std::max(x, 0.0), g.cols - 1.001);
@@ -208,8 +185,9 @@ inline double sample(const cv::Mat &g, double x, double y) {
 // noise), points undistorted, a total-least-squares line per edge, corners at the line
 // intersections. `px` (distorted pixels, TL TR BR BL) is refined in place; returns the
 // corners in undistorted normalised coordinates, or false when an edge has too few points.
-bool refine_corners(const cv::Mat &g, const cv::Matx33d &K, const cv::Mat &dist, int cells,
-                    std::vector<cv::Point2d> &px, std::vector<cv::Point2d> &norm) {
+bool refine_corners(const cv::Mat &g, const bridge::Lens &lens, int cells, std::vector<cv::Point2d> &px,
+                    std::vector<cv::Point2d> &norm) {
+  const cv::Matx33d &K = lens.K;
   for (int pass = 0; pass < 2; ++pass) {
     double perim = 0;
     for (int k = 0; k < 4; ++k) perim += cv::norm(px[(k + 1) % 4] - px[k]);
@@ -258,7 +236,7 @@ bool refine_corners(const cv::Mat &g, const cv::Matx33d &K, const cv::Mat &dist,
       }
       if (pts.size() < 4) return false;
       std::vector<cv::Point2d> und;
-      cv::undistortPoints(pts, und, K, dist, cv::noArray(), K);
+      lens.undistort(pts, und, K);
       cv::Vec4d line;
       cv::fitLine(und, line, cv::DIST_L2, 0, 1e-6, 1e-6);
       // Line as (nx, ny, c) with nx*x + ny*y + c = 0.
@@ -277,7 +255,7 @@ bool refine_corners(const cv::Mat &g, const cv::Matx33d &K, const cv::Mat &dist,
       norm[k] = cv::Point2d((und_c[k].x - K(0, 2)) / K(0, 0), (und_c[k].y - K(1, 2)) / K(1, 1));
       rays[k] = cv::Point3d(norm[k].x, norm[k].y, 1.0);
     }
-    cv::projectPoints(rays, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), K, dist, px);
+    lens.project(rays, px);
   }
   return true;
 }
@@ -289,8 +267,7 @@ struct MarkerDetectorCpp::Impl {
   cv::Ptr<cv::aruco::Dictionary> dict;
   cv::Ptr<cv::aruco::DetectorParameters> params;
   std::unique_ptr<vpDetectorAprilTag> april;
-  cv::Matx33d K;
-  cv::Mat dist;
+  bridge::Lens lens;
   int width = 0, height = 0;
   std::vector<std::vector<cv::Point2f>> corners, rejected;
   std::vector<int> ids;
@@ -304,12 +281,11 @@ MarkerDetectorCpp::MarkerDetectorCpp(std::unique_ptr<Impl> i) : impl(std::move(i
 MarkerDetectorCpp::~MarkerDetectorCpp() = default;
 
 std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::Slice<const double> intrinsics,
-                                                       rust::Slice<const double> dist, int width, int height) {
-  check_intrinsics(intrinsics, dist, width, height);
+                                                       rust::Slice<const double> dist, bool fisheye, int width,
+                                                       int height) {
   auto impl = std::make_unique<MarkerDetectorCpp::Impl>();
+  impl->lens = bridge::camera_model(intrinsics, dist, fisheye, width, height);
   const std::string fam(family);
-  impl->K = camera_matrix(intrinsics);
-  impl->dist = dist_mat(dist);
   impl->width = width;
   impl->height = height;
   if (const AprilTagFamily *tag = apriltag_family(fam)) {
@@ -346,7 +322,7 @@ namespace {
 void pose_from_corners(const MarkerDetectorCpp::Impl &d, const cv::Mat &grey, int id, double size,
                        std::vector<cv::Point2d> px, rust::Vec<double> &out) {
   std::vector<cv::Point2d> norm;
-  if (!refine_corners(grey, d.K, d.dist, d.cells, px, norm)) cv::undistortPoints(px, norm, d.K, d.dist);
+  if (!refine_corners(grey, d.lens, d.cells, px, norm)) d.lens.undistort(px, norm);
   const auto obj = object_corners(size);
   cv::Mat rvec, tvec;
   if (!cv::solvePnP(obj, norm, cv::Matx33d::eye(), cv::noArray(), rvec, tvec, false, cv::SOLVEPNP_IPPE_SQUARE))
@@ -378,7 +354,7 @@ void pose_from_corners(const MarkerDetectorCpp::Impl &d, const cv::Mat &grey, in
   cv::Vec3d rv;
   cv::Rodrigues(Rf, rv);
   std::vector<cv::Point2d> proj;
-  cv::projectPoints(obj, rv, tf, d.K, d.dist, proj);
+  d.lens.project(obj, proj, rv, tf);
   double sq = 0;
   for (size_t i = 0; i < 4; ++i) {
     const double du = proj[i].x - px[i].x, dv = proj[i].y - px[i].y;
@@ -531,8 +507,7 @@ struct PixelBox {
 // The region to render: the bounding box of the plane's border (half side h, plane to
 // camera H = [r1 r2 t]) projected with distortion, 3 px wider; the whole image when part
 // of the plane is behind the camera.
-PixelBox render_region(const cv::Matx33d &H, double h, rust::Slice<const double> intrinsics,
-                       rust::Slice<const double> dist, int width, int height) {
+PixelBox render_region(const cv::Matx33d &H, double h, const bridge::Lens &lens, int width, int height) {
   PixelBox box{0, 0, width - 1, height - 1};
   std::vector<cv::Point3d> border;
   const int per_side = 32;
@@ -548,8 +523,7 @@ PixelBox render_region(const cv::Matx33d &H, double h, rust::Slice<const double>
     cam_pts.emplace_back(c[0], c[1], c[2]);
   }
   std::vector<cv::Point2d> img_pts;
-  cv::projectPoints(cam_pts, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), camera_matrix(intrinsics), dist_mat(dist),
-                    img_pts);
+  lens.project(cam_pts, img_pts);
   double umin = 1e18, umax = -1e18, vmin = 1e18, vmax = -1e18;
   for (const auto &p : img_pts) {
     umin = std::min(umin, p.x);
@@ -594,10 +568,7 @@ double shade_pixel(const cv::Mat &tex, const cv::Matx33d &Hi, double h, double x
   return acc / (ss * ss);
 }
 
-void check_render_inputs(rust::Slice<const double> cmo, rust::Slice<const double> intrinsics,
-                         rust::Slice<const double> dist, int width, int height, double size, double plane_size,
-                         double blur_sigma) {
-  check_intrinsics(intrinsics, dist, width, height);
+void check_render_inputs(rust::Slice<const double> cmo, double size, double plane_size, double blur_sigma) {
   if (cmo.size() != 12) throw std::invalid_argument("camera pose must have 12 numbers");
   for (double v : cmo)
     if (!std::isfinite(v)) throw std::invalid_argument("camera pose must be finite");
@@ -612,9 +583,10 @@ void check_render_inputs(rust::Slice<const double> cmo, rust::Slice<const double
 
 rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double plane_size,
                                  rust::Slice<const double> cmo, rust::Slice<const double> intrinsics,
-                                 rust::Slice<const double> dist, int width, int height, double blur_sigma,
-                                 uint32_t texture_seed) {
-  check_render_inputs(cmo, intrinsics, dist, width, height, size, plane_size, blur_sigma);
+                                 rust::Slice<const double> dist, bool fisheye, int width, int height,
+                                 double blur_sigma, uint32_t texture_seed) {
+  const bridge::Lens lens = bridge::camera_model(intrinsics, dist, fisheye, width, height);
+  check_render_inputs(cmo, size, plane_size, blur_sigma);
   int marker_px = 0;
   const std::string fam(family);
   cv::Mat tex = make_texture(fam, id, size, plane_size, texture_seed, marker_px);
@@ -626,9 +598,8 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
   if (std::abs(cv::determinant(H)) < 1e-12) throw std::invalid_argument("the plane is seen edge-on");
   const cv::Matx33d Hi = H.inv();
   const double fx = intrinsics[0], fy = intrinsics[1], cx = intrinsics[2], cy = intrinsics[3];
-  bool distorted = false;
-  for (double v : dist) distorted = distorted || v != 0.0;
-  const PixelBox r = render_region(H, h, intrinsics, dist, width, height);
+  const bool distorted = lens.distorted();
+  const PixelBox r = render_region(H, h, lens, width, height);
   // Undistorted normalised coordinates of the pixel centres in the region.
   std::vector<cv::Point2d> normc;
   if (distorted && r.u1 >= r.u0 && r.v1 >= r.v0) {
@@ -636,7 +607,7 @@ rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double p
     grid.reserve(static_cast<size_t>(r.u1 - r.u0 + 1) * (r.v1 - r.v0 + 1));
     for (int v = r.v0; v <= r.v1; ++v)
       for (int u = r.u0; u <= r.u1; ++u) grid.emplace_back(u, v);
-    cv::undistortPoints(grid, normc, camera_matrix(intrinsics), dist_mat(dist));
+    lens.undistort(grid, normc);
   }
   const double bg = 96.0;
   cv::Mat img(height, width, CV_8UC1, cv::Scalar(bg));

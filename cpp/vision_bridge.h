@@ -21,9 +21,11 @@ class MarkerDetectorCpp {
 
 // family: OpenCV ArUco dictionary name (DICT_4X4_50, ...) or official AprilTag family
 // (tag16h5, tag25h9, tag36h10, tag36h11); OpenCV's DICT_APRILTAG_* names are refused.
-// intrinsics: fx, fy, cx, cy; dist: OpenCV order (k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]), 0,4,5,8,12 or 14.
+// intrinsics: fx, fy, cx, cy; dist: OpenCV order (k1 k2 p1 p2 [k3 [k4 k5 k6 ...]]), 0,4,5,8,12 or 14,
+// or with `fisheye` (ROS equidistant) k1 k2 k3 k4.
 std::unique_ptr<MarkerDetectorCpp> new_marker_detector(rust::Str family, rust::Slice<const double> intrinsics,
-                                                       rust::Slice<const double> dist, int width, int height);
+                                                       rust::Slice<const double> dist, bool fisheye, int width,
+                                                       int height);
 
 // Detect markers of `id` (-1: any) of side `size` metres. Output, 22 numbers per marker:
 // id, R row-major (9), t (3), corners (8: u0 v0 u1 v1 ...), RMS reprojection error px.
@@ -37,8 +39,8 @@ rust::Vec<double> detect_markers(MarkerDetectorCpp &det, rust::Slice<const uint8
 // `plane_size` m, seen from camera pose cMo (R row-major 9 + t 3), into a grey image.
 rust::Vec<uint8_t> render_marker(rust::Str family, int id, double size, double plane_size,
                                  rust::Slice<const double> cmo, rust::Slice<const double> intrinsics,
-                                 rust::Slice<const double> dist, int width, int height, double blur_sigma,
-                                 uint32_t texture_seed);
+                                 rust::Slice<const double> dist, bool fisheye, int width, int height,
+                                 double blur_sigma, uint32_t texture_seed);
 
 // The official tag `id` of an AprilTag family as libapriltag's apriltag_to_image() draws it
 // (one byte a cell, row 0 at the top of the upright tag, white border included); `dims`

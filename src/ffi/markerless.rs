@@ -10,10 +10,12 @@ pub mod ffi {
         /// The camera model and the last loaded image.
         type MarkerlessDetectorCpp;
 
-        /// A detector for a camera: `intrinsics` = fx, fy, cx, cy; `dist` in OpenCV order.
+        /// A detector for a camera: `intrinsics` = fx, fy, cx, cy; `dist` in OpenCV order, or
+        /// with `fisheye` (ROS `equidistant`) k1 k2 k3 k4.
         fn new_markerless_detector(
             intrinsics: &[f64],
             dist: &[f64],
+            fisheye: bool,
             width: i32,
             height: i32,
         ) -> Result<UniquePtr<MarkerlessDetectorCpp>>;
@@ -86,10 +88,17 @@ mod tests {
     // Called past the safe wrappers' own checks: the C++ side must refuse on its own.
     #[test]
     fn the_cpp_side_checks_every_length_and_value() {
-        refused(ffi::new_markerless_detector(&K[..3], &[], 64, 48), "fx, fy, cx, cy");
-        refused(ffi::new_markerless_detector(&K, &[0.0; 3], 64, 48), "distortion");
-        refused(ffi::new_markerless_detector(&K, &[], 4, 48), "image size");
-        let mut d = ffi::new_markerless_detector(&K, &[], 64, 48).unwrap();
+        refused(
+            ffi::new_markerless_detector(&K[..3], &[], false, 64, 48),
+            "fx, fy, cx, cy",
+        );
+        refused(ffi::new_markerless_detector(&K, &[0.0; 3], false, 64, 48), "distortion");
+        refused(ffi::new_markerless_detector(&K, &[], false, 4, 48), "image size");
+        refused(
+            ffi::new_markerless_detector(&K, &[], true, 64, 48),
+            "4 coefficients (k1 k2 k3 k4), got 0",
+        );
+        let mut d = ffi::new_markerless_detector(&K, &[], false, 64, 48).unwrap();
         refused(ffi::markerless_ellipses(d.pin_mut(), 3.0, 10.0, 4), "no image loaded");
         refused(
             ffi::markerless_search_edges(&d, &[0.0; 4], 2.0, 0, 1.0, false),

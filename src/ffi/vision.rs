@@ -12,11 +12,13 @@ pub mod ffi {
         /// A configured detector (family + camera model).
         type MarkerDetectorCpp;
 
-        /// Build a detector; `intrinsics` = fx, fy, cx, cy; `dist` in OpenCV order.
+        /// Build a detector; `intrinsics` = fx, fy, cx, cy; `dist` in OpenCV order, or with
+        /// `fisheye` (ROS `equidistant`) k1 k2 k3 k4.
         fn new_marker_detector(
             family: &str,
             intrinsics: &[f64],
             dist: &[f64],
+            fisheye: bool,
             width: i32,
             height: i32,
         ) -> Result<UniquePtr<MarkerDetectorCpp>>;
@@ -45,6 +47,7 @@ pub mod ffi {
             cmo: &[f64],
             intrinsics: &[f64],
             dist: &[f64],
+            fisheye: bool,
             width: i32,
             height: i32,
             blur_sigma: f64,
@@ -80,7 +83,7 @@ mod tests {
     const K: [f64; 4] = [500.0, 500.0, 32.0, 24.0];
 
     fn detector() -> cxx::UniquePtr<ffi::MarkerDetectorCpp> {
-        ffi::new_marker_detector("DICT_4X4_50", &K, &[], 64, 48).unwrap()
+        ffi::new_marker_detector("DICT_4X4_50", &K, &[], false, 64, 48).unwrap()
     }
 
     fn refused<T>(r: Result<T, cxx::Exception>, what: &str) {
@@ -94,20 +97,29 @@ mod tests {
     #[test]
     fn detector_construction_checks_every_length_and_dimension() {
         refused(
-            ffi::new_marker_detector("DICT_4X4_50", &K[..3], &[], 64, 48),
+            ffi::new_marker_detector("DICT_4X4_50", &K[..3], &[], false, 64, 48),
             "fx, fy, cx, cy",
         );
         refused(
-            ffi::new_marker_detector("DICT_4X4_50", &K, &[0.0; 3], 64, 48),
+            ffi::new_marker_detector("DICT_4X4_50", &K, &[0.0; 3], false, 64, 48),
             "distortion",
         );
-        refused(ffi::new_marker_detector("DICT_4X4_50", &K, &[], 0, 48), "image size");
+        // The equidistant (fisheye) model has exactly k1 k2 k3 k4.
         refused(
-            ffi::new_marker_detector("DICT_4X4_50", &K, &[], 64, 20001),
+            ffi::new_marker_detector("DICT_4X4_50", &K, &[0.0; 5], true, 64, 48),
+            "equidistant (fisheye) model has 4 coefficients",
+        );
+        assert!(ffi::new_marker_detector("DICT_4X4_50", &K, &[0.0; 4], true, 64, 48).is_ok());
+        refused(
+            ffi::new_marker_detector("DICT_4X4_50", &K, &[], false, 0, 48),
             "image size",
         );
         refused(
-            ffi::new_marker_detector("DICT_9X9", &K, &[], 64, 48),
+            ffi::new_marker_detector("DICT_4X4_50", &K, &[], false, 64, 20001),
+            "image size",
+        );
+        refused(
+            ffi::new_marker_detector("DICT_9X9", &K, &[], false, 64, 48),
             "unknown marker family",
         );
     }
@@ -158,8 +170,9 @@ mod tests {
     #[test]
     fn rendering_images_and_hand_eye_check_their_inputs() {
         let mut cmo = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.5].to_vec();
-        let render =
-            |cmo: &[f64], plane: f64| ffi::render_marker("DICT_4X4_50", 7, 0.05, plane, cmo, &K, &[], 64, 48, 0.0, 1);
+        let render = |cmo: &[f64], plane: f64| {
+            ffi::render_marker("DICT_4X4_50", 7, 0.05, plane, cmo, &K, &[], false, 64, 48, 0.0, 1)
+        };
         assert_eq!(render(&cmo, 0.15).unwrap().len(), 64 * 48);
         refused(render(&cmo[..11], 0.15), "12 numbers");
         refused(render(&cmo, 0.065), "quiet zone");

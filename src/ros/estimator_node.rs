@@ -47,8 +47,8 @@ use crate::vision::joint_history::JointHistory;
 use crate::vision::markerless::measurement::{self, EstimatorMethod, MarkerlessParams};
 use crate::vision::markerless::{MarkerlessEstimator, TrocarModel};
 use crate::vision::{
-    CameraModel, EstimateStatus, EstimatorParams, ImageView, MarkerDetection, MarkerDetector, MarkerSpec, RgbImage,
-    TrackingDetector, TrocarEstimator, STEREO_MAX_SKEW_S,
+    CameraModel, EstimateStatus, EstimatorParams, ImageKind, ImageKindSetting, ImageView, MarkerDetection,
+    MarkerDetector, MarkerSpec, RgbImage, TrackingDetector, TrocarEstimator, STEREO_MAX_SKEW_S,
 };
 
 /// Parameters of the node (its private namespace; `config/trocar_estimator.yaml`, whose
@@ -74,6 +74,10 @@ pub struct EstimatorNodeParams {
     pub right_image_topic: String,
     /// The right camera's CameraInfo in (its projection's Tx gives the baseline).
     pub right_camera_info_topic: String,
+    /// How the CameraInfo of each image is read: `by_topic_name` (an image topic whose last
+    /// name starts with `image_rect` is rectified: projected with P, no distortion; any other
+    /// is raw: K and D in its distortion model), `raw` or `rectified`.
+    pub image_kind: ImageKindSetting,
     /// Joint states in (the flange pose at each image's stamp).
     pub joint_states_topic: String,
     /// Trocar pose out.
@@ -712,10 +716,12 @@ fn subscribe_joint_states(p: &EstimatorNodeParams, shared: &Shared) -> Result<ro
     .map_err(ros_err)
 }
 
-/// The camera model from the CameraInfo of `topic` into `camera`; a bad one clears it (the
-/// left camera's: frames are dropped; the right camera's: frames go mono).
+/// The camera model from the CameraInfo of `topic`, read for an image of `kind`, into
+/// `camera`; a bad one clears it (the left camera's: frames are dropped; the right camera's:
+/// frames go mono).
 fn subscribe_camera_info(
     topic: &str,
+    kind: ImageKind,
     camera: &Arc<Mutex<Option<CameraModel>>>,
 ) -> Result<rosrust::Subscriber, NodeError> {
     let (camera, name) = (camera.clone(), topic.to_string());
@@ -723,7 +729,7 @@ fn subscribe_camera_info(
     rosrust::subscribe(
         topic,
         2,
-        move |m: sensor_msgs::CameraInfo| match image_msgs::camera_model(&m) {
+        move |m: sensor_msgs::CameraInfo| match image_msgs::camera_model(&m, kind) {
             Ok(c) => *lock(&camera) = Some(c),
             Err(e) => {
                 *lock(&camera) = None;
@@ -872,17 +878,26 @@ pub fn run() -> Result<(), NodeError> {
     let publishers = Publishers::new(&p, CameraTf::new(flange_t_camera, mount.as_ref())?)?;
     let mut _subs = vec![
         subscribe_joint_states(&p, &shared)?,
-        subscribe_camera_info(&p.camera_info_topic, &shared.camera)?,
+        subscribe_camera_info(
+            &p.camera_info_topic,
+            p.image_kind.resolve(&p.image_topic),
+            &shared.camera,
+        )?,
     ];
     if p.stereo() {
-        _subs.push(subscribe_camera_info(&p.right_camera_info_topic, &shared.right_camera)?);
+        _subs.push(subscribe_camera_info(
+            &p.right_camera_info_topic,
+            p.image_kind.resolve(&p.right_image_topic),
+            &shared.right_camera,
+        )?);
         _subs.push(subscribe_right_images(&p, &shared)?);
     }
     _subs.push(subscribe_images(&p, &shared, publishers)?);
     rosrust::ros_info!(
-        "trocar_estimator: method {}, {} on {}, marker {} id {:?} {} m, pose on {}",
+        "trocar_estimator: method {}, {} ({:?}) on {}, marker {} id {:?} {} m, pose on {}",
         p.method,
         p.image_topic,
+        p.image_kind.resolve(&p.image_topic),
         p.camera_info_topic,
         p.marker.family,
         p.marker.id,
@@ -938,6 +953,10 @@ mod tests {
         ] {
             assert_eq!(a, b);
         }
+        // The ZED's rectified images, read with P and no distortion (by their names).
+        assert_eq!(d.image_kind, ImageKindSetting::ByTopicName);
+        assert_eq!(d.image_kind.resolve(&d.image_topic), ImageKind::Rectified);
+        assert_eq!(d.image_kind.resolve(&d.right_image_topic), ImageKind::Rectified);
         // As the parameter server hands it over: partial; the rest is the file's.
         let p: EstimatorNodeParams = params::from_value(
             "/trocar_estimator",

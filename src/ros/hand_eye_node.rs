@@ -28,7 +28,7 @@ use crate::vision::hand_eye::quality::camera_info_warning;
 use crate::vision::hand_eye::{
     calibrate_samples, file_text, AcceptanceRules, Calibration, ObservationModel, Sample, SampleSet, Stillness,
 };
-use crate::vision::CameraModel;
+use crate::vision::{CameraModel, ImageKindSetting};
 
 /// Parameters of the node (its private namespace; `config/hand_eye_calibration.yaml`, whose
 /// values, built in, are the defaults: [`crate::config::HAND_EYE_CALIBRATION`]).
@@ -49,6 +49,12 @@ pub struct HandEyeNodeParams {
     pub marker_pose_topic: String,
     /// CameraInfo in (the camera model of the detections).
     pub camera_info_topic: String,
+    /// The estimator's image, whose CameraInfo `camera_info_topic` is: it is read as the
+    /// estimator reads it (`image_kind`).
+    pub image_topic: String,
+    /// How the CameraInfo is read: `by_topic_name` (`image_topic`'s last name `image_rect*`:
+    /// rectified, P and no distortion; any other: raw, K and D), `raw` or `rectified`.
+    pub image_kind: ImageKindSetting,
     /// The driver's joint position command (for `~auto`).
     pub command_topic: String,
     /// `trajectory` (one-point JointTrajectory) or `float64_multi_array`.
@@ -555,8 +561,9 @@ fn subscribe(node: &Arc<Node>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
     })
     .map_err(ros_err)?;
     let n = node.clone();
+    let kind = p.image_kind.resolve(&p.image_topic);
     let info = rosrust::subscribe(&p.camera_info_topic, 2, move |m: sensor_msgs::CameraInfo| {
-        lock(&n.state).camera = super::convert::image::camera_model(&m).ok();
+        lock(&n.state).camera = super::convert::image::camera_model(&m, kind).ok();
     })
     .map_err(ros_err)?;
     Ok(vec![joints, marker, info])

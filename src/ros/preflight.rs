@@ -19,6 +19,7 @@ use crate::ros::estimator_node::EstimatorNodeParams;
 use crate::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs};
 use crate::ros::node::{lock, ros_err, NodeError};
 use crate::ros::{convert, params, topics};
+use crate::vision::ImageKind;
 
 /// The span of the stamps seen.
 #[derive(Debug, Clone, Copy, Default)]
@@ -134,8 +135,9 @@ struct Topics {
     base_frame: String,
     image: String,
     camera_info: String,
-    /// The stereo pair's right image and CameraInfo, where the estimator reads them.
-    right: Option<(String, String)>,
+    /// The stereo pair's right image and CameraInfo, where the estimator reads them, and how
+    /// it reads the CameraInfo.
+    right: Option<(String, String, ImageKind)>,
 }
 
 /// Subscribe `topic`, handing each message to `f` with the collection.
@@ -153,14 +155,17 @@ fn watch<T: rosrust::Message>(
 fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
     let (topic, frame) = (t.trocar_pose.clone(), t.base_frame.clone());
     let mut subs = match &t.right {
-        Some((image, info)) => vec![
-            watch(image, 2, seen, |s, m: sensor_msgs::Image| {
-                s.right_stamps.push(convert::seconds(m.header.stamp));
-            })?,
-            watch(info, 2, seen, |s, m: sensor_msgs::CameraInfo| {
-                s.right_baseline = Some(right_baseline(&m));
-            })?,
-        ],
+        Some((image, info, kind)) => {
+            let kind = *kind;
+            vec![
+                watch(image, 2, seen, |s, m: sensor_msgs::Image| {
+                    s.right_stamps.push(convert::seconds(m.header.stamp));
+                })?,
+                watch(info, 2, seen, move |s, m: sensor_msgs::CameraInfo| {
+                    s.right_baseline = Some(right_baseline(&m, kind));
+                })?,
+            ]
+        }
         None => vec![],
     };
     subs.extend([
@@ -210,8 +215,8 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
 
 /// The stereo baseline a right camera's CameraInfo gives (its projection's `Tx`), m, checked
 /// as the estimator checks it; or why it gives none.
-fn right_baseline(m: &sensor_msgs::CameraInfo) -> Result<f64, String> {
-    let c = convert::image::camera_model(m).map_err(|e| e.to_string())?;
+fn right_baseline(m: &sensor_msgs::CameraInfo, kind: ImageKind) -> Result<f64, String> {
+    let c = convert::image::camera_model(m, kind).map_err(|e| e.to_string())?;
     c.check_stereo_right().map_err(|e| e.to_string())?;
     Ok(c.baseline_m)
 }
@@ -223,10 +228,15 @@ fn estimator_params(estimator_node: &str) -> Option<EstimatorNodeParams> {
 }
 
 /// The estimator's right image and CameraInfo topics, where it reads a stereo pair's right
-/// image (method markerless or fused, both topics set).
-fn stereo_topics(p: Option<&EstimatorNodeParams>) -> Option<(String, String)> {
-    p.filter(|p| p.stereo())
-        .map(|p| (p.right_image_topic.clone(), p.right_camera_info_topic.clone()))
+/// image (method markerless or fused, both topics set), and how it reads the CameraInfo.
+fn stereo_topics(p: Option<&EstimatorNodeParams>) -> Option<(String, String, ImageKind)> {
+    p.filter(|p| p.stereo()).map(|p| {
+        (
+            p.right_image_topic.clone(),
+            p.right_camera_info_topic.clone(),
+            p.image_kind.resolve(&p.right_image_topic),
+        )
+    })
 }
 
 /// A parameter's value, if it is set.
@@ -490,10 +500,15 @@ mod tests {
         let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
         let right = crate::vision::CameraModel::from_yaml_file(&dir.join("camera_zedm_right.yaml")).unwrap();
         let info = convert::image::camera_info(convert::ros_time(5.0), "zedm_right", &right);
-        assert!((right_baseline(&info).unwrap() - 0.063).abs() < 1e-9);
+        assert!((right_baseline(&info, ImageKind::Rectified).unwrap() - 0.063).abs() < 1e-9);
+        assert!((right_baseline(&info, ImageKind::Raw).unwrap() - 0.063).abs() < 1e-9);
         // The left camera's CameraInfo has no baseline: refused as the estimator refuses it.
         let left = crate::vision::CameraModel::from_yaml_file(&dir.join("camera_zedm.yaml")).unwrap();
-        let e = right_baseline(&convert::image::camera_info(convert::ros_time(5.0), "zedm", &left)).unwrap_err();
+        let e = right_baseline(
+            &convert::image::camera_info(convert::ros_time(5.0), "zedm", &left),
+            ImageKind::Rectified,
+        )
+        .unwrap_err();
         assert!(e.contains("baseline 0.0 mm"), "{e}");
         let mut s = Seen::default();
         for t in [5.0, 5.0667] {

@@ -950,9 +950,20 @@ mod tests {
         )
         .unwrap();
         assert!((trocar.right_camera().unwrap().baseline_m - 0.063).abs() < 1e-9);
+        // A camera driver's raw topics (image_pipeline's names), not the ZED's rectified ones.
         assert_eq!(
-            (p.right_image_topic.as_str(), p.right_camera_info_topic.as_str()),
-            (topics::CAMERA_RIGHT_IMAGE, topics::CAMERA_RIGHT_INFO)
+            [
+                p.image_topic.as_str(),
+                p.camera_info_topic.as_str(),
+                p.right_image_topic.as_str(),
+                p.right_camera_info_topic.as_str()
+            ],
+            [
+                topics::SIM_CAMERA_IMAGE,
+                topics::SIM_CAMERA_INFO,
+                topics::SIM_CAMERA_RIGHT_IMAGE,
+                topics::SIM_CAMERA_RIGHT_INFO
+            ]
         );
         let bad = SimCameraParams {
             show_marker: false,

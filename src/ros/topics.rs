@@ -22,6 +22,15 @@ pub const CAMERA_INFO: &str = "/zedm/zed_node/left/camera_info";
 pub const CAMERA_RIGHT_IMAGE: &str = "/zedm/zed_node/right/image_rect_color";
 /// The right camera's CameraInfo (its projection's Tx gives the baseline).
 pub const CAMERA_RIGHT_INFO: &str = "/zedm/zed_node/right/camera_info";
+/// The simulated camera's image: what a camera driver publishes, the raw (distorted) image
+/// in image_pipeline's names (`image_raw` beside its `camera_info`).
+pub const SIM_CAMERA_IMAGE: &str = "/sim_camera/left/image_raw";
+/// The simulated camera's CameraInfo (K, D, R = identity, P = [K | 0]).
+pub const SIM_CAMERA_INFO: &str = "/sim_camera/left/camera_info";
+/// The simulated stereo pair's right raw image.
+pub const SIM_CAMERA_RIGHT_IMAGE: &str = "/sim_camera/right/image_raw";
+/// The simulated right camera's CameraInfo (P's Tx = -fx * baseline).
+pub const SIM_CAMERA_RIGHT_INFO: &str = "/sim_camera/right/camera_info";
 /// The trocar pose in the base frame (geometry_msgs/PoseStamped).
 pub const TROCAR_POSE: &str = "/trocar/pose";
 /// The simulator's true trocar pose.

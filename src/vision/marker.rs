@@ -256,6 +256,7 @@ impl MarkerDetector {
             spec.family.name(),
             &camera.intrinsics(),
             &camera.distortion,
+            camera.is_equidistant(),
             camera.width as i32,
             camera.height as i32,
         )?;

@@ -17,7 +17,7 @@ pub mod overlay;
 pub mod render;
 pub mod sim_camera;
 
-pub use camera::{CameraModel, STEREO_MAX_SKEW_S};
+pub use camera::{CameraInfoFields, CameraModel, DistortionModel, ImageKind, ImageKindSetting, STEREO_MAX_SKEW_S};
 pub use estimator::{EstimateStatus, EstimatorParams, TrocarEstimate, TrocarEstimator};
 pub use image::{GreyImage, ImageView};
 pub use marker::{

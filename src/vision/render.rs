@@ -67,6 +67,7 @@ pub fn render_marker_image(
         &rt,
         &camera.intrinsics(),
         &camera.distortion,
+        camera.is_equidistant(),
         camera.width as i32,
         camera.height as i32,
         opts.blur_sigma,

@@ -140,8 +140,11 @@ struct Player {
 
 impl Player {
     fn start(p: &CheckParams) -> Result<Self, String> {
+        // The frames go out on the rectified topic (topics::CAMERA_IMAGE): rendered through
+        // the calibration's rectified camera (P, no distortion), as a ZED publishes them.
         let camera = CameraModel::from_yaml_file(std::path::Path::new(&p.camera_calibration))
-            .map_err(|e| format!("camera_calibration: {e}"))?;
+            .map_err(|e| format!("camera_calibration: {e}"))?
+            .rectified();
         let q0 = JointVector::from_column_slice(&[0.0, 0.6, 0.0, -1.2, 0.0, 0.9, 0.0]);
         let frame = camera_frame(&camera, &q0)?;
         let fault = Arc::new(Mutex::new(CameraFault::None));

@@ -221,8 +221,11 @@ impl Plant {
         let q0 = q_start();
         let trocar = trocar_ahead(&q0)?;
         let camera = if camera {
+            // Sent on the rectified topic (topics::CAMERA_IMAGE): the calibration's rectified
+            // camera (P, no distortion), as a ZED publishes it.
             let model = CameraModel::from_yaml_file(std::path::Path::new(&p.camera_calibration))
-                .map_err(|e| format!("camera_calibration: {e}"))?;
+                .map_err(|e| format!("camera_calibration: {e}"))?
+                .rectified();
             let frame = camera_frame(&model, &q0)?;
             Some(Camera {
                 img: rosrust::publish(topics::CAMERA_IMAGE, 1).map_err(e)?,

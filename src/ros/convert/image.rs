@@ -1,12 +1,19 @@
 //! sensor_msgs/Image and CameraInfo to and from the vision types, with the checks a camera
 //! message from the wire needs: a supported 8-bit encoding, a row step that fits, a buffer
 //! as long as the header says, intrinsics that make sense.
+//!
+//! A CameraInfo is read as ROS's image_pipeline reads it (`sensor_msgs/CameraInfo.msg`,
+//! image_geometry's `PinholeCameraModel`; [`crate::vision::camera`]): the camera of a
+//! rectified image (`image_rect`, `image_rect_color`) is P without distortion, that of a raw
+//! image (`image_raw`) K and D in the named distortion model. What the simulated camera
+//! publishes is what a camera driver with `camera_info_manager` publishes for its raw image:
+//! the calibration's K, D, R = identity and P = [K | Tx] (Tx = -fx * baseline).
 
 use std::borrow::Cow;
 
 use super::header;
 use crate::ros::msgs::sensor_msgs;
-use crate::vision::{CameraModel, ChannelOrder, ImageView, VisionError};
+use crate::vision::{CameraInfoFields, CameraModel, ChannelOrder, ImageKind, ImageView, VisionError};
 
 /// The 8-bit encodings the estimator reads: channels and colour order.
 pub fn encoding_layout(encoding: &str) -> Result<(u32, ChannelOrder), String> {
@@ -68,14 +75,22 @@ pub fn view<'a>(msg: &sensor_msgs::Image, pixels: &'a [u8], channels: u32) -> Re
     ImageView::new(pixels, msg.width, msg.height, channels)
 }
 
-/// The camera model of a CameraInfo (K, D, distortion model, size).
-pub fn camera_model(msg: &sensor_msgs::CameraInfo) -> Result<CameraModel, VisionError> {
-    let mut m = CameraModel::from_camera_info(msg.width, msg.height, &msg.K, &msg.D, &msg.distortion_model)?;
+/// The camera model of the image `kind` a CameraInfo describes: P for a rectified image, K
+/// and D for a raw one ([`CameraModel::from_camera_info`]).
+pub fn camera_model(msg: &sensor_msgs::CameraInfo, kind: ImageKind) -> Result<CameraModel, VisionError> {
+    let mut m = CameraModel::from_camera_info(
+        &CameraInfoFields {
+            width: msg.width,
+            height: msg.height,
+            distortion_model: &msg.distortion_model,
+            d: &msg.D,
+            k: &msg.K,
+            r: &msg.R,
+            p: &msg.P,
+        },
+        kind,
+    )?;
     m.name = msg.header.frame_id.clone();
-    // A zero P (a CameraInfo without a projection) leaves the baseline at 0.
-    if msg.P[0] > 0.0 {
-        m.set_baseline_from_projection(&msg.P)?;
-    }
     Ok(m)
 }
 
@@ -132,6 +147,7 @@ pub fn grey_as(encoding: &str, grey: Vec<u8>) -> Result<(Vec<u8>, u32), String> 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::vision::{DistortionModel, ImageKindSetting};
 
     fn msg(encoding: &str, w: u32, h: u32, step: u32, len: usize) -> sensor_msgs::Image {
         sensor_msgs::Image {
@@ -169,31 +185,192 @@ mod tests {
         assert!(image_pixels(&msg("mono8", 0, 2, 0, 0)).is_err());
     }
 
-    #[test]
-    fn camera_info_round_trip_and_bad_intrinsics() {
-        let mut c = CameraModel::pinhole(640, 360, 350.0, 351.0, 320.5, 180.2).unwrap();
-        c.distortion = vec![-0.17, 0.02, 0.0005, -0.0003, 0.0];
-        let info = camera_info(rosrust::Time::new(), "cam", &c);
-        let mut back = camera_model(&info).unwrap();
-        back.name.clear();
-        assert_eq!(back, c);
-        // The right camera of a stereo pair carries its baseline in P's Tx.
-        let right = CameraModel {
-            baseline_m: 0.063,
-            ..c.clone()
+    /// A calibrated camera's CameraInfo whose P differs from K (as camera_calibration's
+    /// P does): fx' 650 and cx' 600 against K's 700 and 640.
+    fn info(model: &str, d: &[f64]) -> sensor_msgs::CameraInfo {
+        let mut m = sensor_msgs::CameraInfo {
+            width: 1280,
+            height: 720,
+            distortion_model: model.into(),
+            D: d.to_vec(),
+            ..Default::default()
         };
-        let info_r = camera_info(rosrust::Time::new(), "cam", &right);
-        assert!((info_r.P[3] + 350.0 * 0.063).abs() < 1e-12);
-        assert!((camera_model(&info_r).unwrap().baseline_m - 0.063).abs() < 1e-12);
-        let mut bad = info_r.clone();
-        bad.P[3] = 350.0 * 5.0;
-        assert!(camera_model(&bad).is_err(), "a 5 m baseline");
-        let mut bad = info.clone();
-        bad.K[0] = f64::NAN;
-        assert!(camera_model(&bad).is_err());
-        bad = info;
-        bad.distortion_model = "equidistant".into();
-        assert!(camera_model(&bad).is_err());
+        m.K.copy_from_slice(&[700.0, 0.0, 640.0, 0.0, 701.0, 360.0, 0.0, 0.0, 1.0]);
+        m.R.copy_from_slice(&[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        m.P.copy_from_slice(&[650.0, 0.0, 600.0, 0.0, 0.0, 651.0, 350.0, 0.0, 0.0, 0.0, 1.0, 0.0]);
+        m
+    }
+
+    const PLUMB_BOB: [f64; 5] = [-0.17, 0.02, 0.0005, -0.0003, 0.001];
+
+    #[test]
+    fn a_rectified_image_is_read_with_p_and_no_distortion_a_raw_one_with_k_and_d() {
+        let m = info("plumb_bob", &PLUMB_BOB);
+        let rect = camera_model(&m, ImageKind::Rectified).unwrap();
+        assert_eq!(rect.intrinsics(), [650.0, 651.0, 600.0, 350.0]);
+        assert!(rect.distortion.is_empty() && !rect.is_distorted());
+        let raw = camera_model(&m, ImageKind::Raw).unwrap();
+        assert_eq!(raw.intrinsics(), [700.0, 701.0, 640.0, 360.0]);
+        assert_eq!(
+            (raw.distortion.as_slice(), raw.distortion_model),
+            (&PLUMB_BOB[..], DistortionModel::Rational)
+        );
+        // A point off the axis lands where each model says: the rectified one through P alone.
+        let p = nalgebra::Vector3::new(0.1, -0.05, 0.4);
+        let [u, v] = rect.project(&p).unwrap();
+        assert!((u - (650.0 * 0.25 + 600.0)).abs() < 1e-9 && (v - (651.0 * -0.125 + 350.0)).abs() < 1e-9);
+        let [u, _] = raw.project(&p).unwrap();
+        let r2: f64 = 0.25 * 0.25 + 0.125 * 0.125;
+        let radial = 1.0 - 0.17 * r2 + 0.02 * r2 * r2 + 0.001 * r2 * r2 * r2;
+        let xd = 0.25 * radial + 2.0 * 0.0005 * 0.25 * -0.125 - 0.0003 * (r2 + 2.0 * 0.25 * 0.25);
+        assert!((u - (700.0 * xd + 640.0)).abs() < 1e-9, "{u}");
+        // The rectified image of a ZED (zero D, P = K) and a driver's D = [] are no distortion.
+        let zed = info("plumb_bob", &[0.0; 5]);
+        assert!(!camera_model(&zed, ImageKind::Raw).unwrap().is_distorted());
+        assert!(!camera_model(&info("plumb_bob", &[]), ImageKind::Raw)
+            .unwrap()
+            .is_distorted());
+        // The right camera of a stereo pair: its baseline from P's Tx, read either way.
+        let mut right = info("plumb_bob", &PLUMB_BOB);
+        right.P[3] = -650.0 * 0.063;
+        for kind in [ImageKind::Rectified, ImageKind::Raw] {
+            assert!((camera_model(&right, kind).unwrap().baseline_m - 0.063).abs() < 1e-12);
+        }
+        // Which kind an image topic is, by its last name, unless the parameter says.
+        for (topic, kind) in [
+            ("/zedm/zed_node/left/image_rect_color", ImageKind::Rectified),
+            ("/camera/image_rect", ImageKind::Rectified),
+            ("/sim_camera/left/image_raw", ImageKind::Raw),
+            ("/camera/image_color", ImageKind::Raw),
+            ("/camera/image_rect_color/compressed_not", ImageKind::Raw),
+            ("image_rect", ImageKind::Rectified),
+        ] {
+            assert_eq!(ImageKind::of_topic(topic), kind, "{topic}");
+            assert_eq!(ImageKindSetting::ByTopicName.resolve(topic), kind);
+        }
+        assert_eq!(ImageKindSetting::Raw.resolve("/a/image_rect"), ImageKind::Raw);
+        assert_eq!(
+            ImageKindSetting::Rectified.resolve("/a/image_raw"),
+            ImageKind::Rectified
+        );
+    }
+
+    #[test]
+    fn each_distortion_model_of_a_raw_image_and_its_round_trip() {
+        let rational = [-0.2, 0.05, 0.0004, -0.0002, 0.001, 0.01, 0.002, 0.0005];
+        let fisheye = [0.05, -0.01, 0.002, -0.0005];
+        for (name, d, model) in [
+            ("plumb_bob", &PLUMB_BOB[..], DistortionModel::Rational),
+            ("rational_polynomial", &rational[..], DistortionModel::Rational),
+            ("equidistant", &fisheye[..], DistortionModel::Equidistant),
+        ] {
+            let c = camera_model(&info(name, d), ImageKind::Raw).unwrap();
+            assert_eq!((c.distortion.as_slice(), c.distortion_model), (d, model), "{name}");
+            assert!(c.is_distorted());
+            // What the simulated camera publishes of a model reads back as the same model.
+            let out = camera_info(rosrust::Time::new(), "cam", &c);
+            assert_eq!((out.distortion_model.as_str(), out.R), (name, info(name, d).R));
+            assert_eq!(&out.P[..4], &[700.0, 0.0, 640.0, 0.0], "P = [K | 0]");
+            let mut back = camera_model(&out, ImageKind::Raw).unwrap();
+            back.name.clear();
+            assert_eq!(back, c, "{name}");
+        }
+        // The equidistant model bends a ray at angle θ to θ (1 + k1 θ² + k2 θ⁴ + k3 θ⁶ + k4 θ⁸)
+        // (cv::fisheye::projectPoints), not to tan θ.
+        let c = camera_model(&info("equidistant", &fisheye), ImageKind::Raw).unwrap();
+        let theta = (0.5f64).atan();
+        let t2 = theta * theta;
+        let theta_d = theta * (1.0 + 0.05 * t2 - 0.01 * t2 * t2 + 0.002 * t2.powi(3) - 0.0005 * t2.powi(4));
+        let [u, v] = c.project(&nalgebra::Vector3::new(0.3, 0.4, 1.0)).unwrap();
+        assert!((u - (700.0 * theta_d * 0.6 + 640.0)).abs() < 1e-9, "{u}");
+        assert!((v - (701.0 * theta_d * 0.8 + 360.0)).abs() < 1e-9, "{v}");
+        assert!(c.project(&nalgebra::Vector3::new(0.0, 0.0, 1.0)).unwrap() == [640.0, 360.0]);
+        // Its rectified camera (what image_proc's image_rect is, P = K) has none.
+        let r = c.rectified();
+        assert!(!r.is_distorted() && r.intrinsics() == c.intrinsics());
+    }
+
+    fn refused(m: &sensor_msgs::CameraInfo, kind: ImageKind, says: &str) {
+        let e = camera_model(m, kind).unwrap_err().to_string();
+        assert!(e.contains(says), "{kind:?}: '{e}' does not say '{says}'");
+    }
+
+    #[test]
+    fn bad_camera_info_is_refused_with_the_reason() {
+        // An unknown model, named (a raw image needs it; a rectified one has no distortion).
+        refused(
+            &info("kannala_brandt", &[0.0; 4]),
+            ImageKind::Raw,
+            "'kannala_brandt' not supported",
+        );
+        refused(&info("", &[]), ImageKind::Raw, "'' not supported");
+        assert!(camera_model(&info("kannala_brandt", &[0.0; 4]), ImageKind::Rectified).is_ok());
+        // Wrong lengths for each model.
+        refused(
+            &info("plumb_bob", &[0.1; 4]),
+            ImageKind::Raw,
+            "'plumb_bob' has 5 coefficients, D has 4",
+        );
+        refused(
+            &info("plumb_bob", &[0.1; 8]),
+            ImageKind::Raw,
+            "has 5 coefficients, D has 8",
+        );
+        refused(
+            &info("rational_polynomial", &PLUMB_BOB),
+            ImageKind::Raw,
+            "has 8 coefficients, D has 5",
+        );
+        refused(
+            &info("equidistant", &PLUMB_BOB),
+            ImageKind::Raw,
+            "has 4 coefficients, D has 5",
+        );
+        refused(&info("equidistant", &[]), ImageKind::Raw, "has 4 coefficients, D has 0");
+        // NaN anywhere, read either way.
+        for kind in [ImageKind::Raw, ImageKind::Rectified] {
+            let mut m = info("plumb_bob", &PLUMB_BOB);
+            m.K[4] = f64::NAN;
+            refused(&m, kind, "non-finite");
+            let mut m = info("plumb_bob", &PLUMB_BOB);
+            m.P[2] = f64::INFINITY;
+            refused(&m, kind, "non-finite");
+            let mut m = info("plumb_bob", &PLUMB_BOB);
+            m.D[1] = f64::NAN;
+            refused(&m, kind, "non-finite");
+        }
+        // Zero focal lengths: K's for a raw image, P's for a rectified one (an uncalibrated
+        // camera leaves both zero).
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.K[0] = 0.0;
+        refused(&m, ImageKind::Raw, "K[0] = 0");
+        assert!(camera_model(&m, ImageKind::Rectified).is_ok());
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.P = [0.0; 12];
+        refused(&m, ImageKind::Rectified, "P[0] = 0");
+        assert_eq!(camera_model(&m, ImageKind::Raw).unwrap().baseline_m, 0.0);
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.P[5] = 0.0;
+        refused(&m, ImageKind::Rectified, "P[5] = 0");
+        // A vertical pair, a 5 m baseline, a raw right image off the rectified frame.
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.P[7] = -30.0;
+        refused(&m, ImageKind::Rectified, "Ty");
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.P[3] = -650.0 * 5.0;
+        refused(&m, ImageKind::Rectified, "baseline");
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.P[3] = -650.0 * 0.063;
+        m.R.copy_from_slice(&[0.9998, -0.02, 0.0, 0.02, 0.9998, 0.0, 0.0, 0.0, 1.0]);
+        refused(&m, ImageKind::Raw, "read its image_rect");
+        assert!(camera_model(&m, ImageKind::Rectified).is_ok());
+        // Absurd sizes and principal points still go through the model's own checks.
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.width = 0;
+        refused(&m, ImageKind::Raw, "image size");
+        let mut m = info("plumb_bob", &PLUMB_BOB);
+        m.P[2] = 1e6;
+        refused(&m, ImageKind::Rectified, "principal point");
     }
 
     #[test]

@@ -197,23 +197,15 @@ pub fn frame_mismatch(samples: &[Sample]) -> Option<String> {
 }
 
 /// What is wrong with the camera_info of the detections, if anything: missing (no camera
-/// model: the corners cannot be modelled), or with distortion coefficients (a rectified
-/// image comes with none; with them, the image must be the raw one, or the detector
-/// undistorts a rectified image a second time).
+/// model: the corners cannot be modelled). Its distortion is no concern: the camera_info is
+/// read for the estimator's image as the estimator reads it (a rectified image with P and no
+/// distortion, a raw one with K and D: [`crate::vision::camera`]).
 pub fn camera_info_warning(camera: Option<&crate::vision::CameraModel>) -> Option<String> {
-    match camera {
-        None => Some(
-            "camera_info missing: no camera model for the detections (check the camera_info topic and the \
-             camera driver)"
-                .into(),
-        ),
-        Some(c) if c.is_distorted() => Some(
-            "camera_info has distortion coefficients: the detections are right only if the estimator's image is \
-             the unrectified one (a rectified image comes with zero distortion)"
-                .into(),
-        ),
-        Some(_) => None,
-    }
+    camera.is_none().then(|| {
+        "camera_info missing: no camera model for the detections (check the camera_info topic and the camera \
+         driver)"
+            .into()
+    })
 }
 
 /// Leave-one-out residuals: each sample against the calibration of the others (started from

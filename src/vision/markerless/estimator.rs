@@ -456,6 +456,7 @@ impl Eye {
         let det = ffi::new_markerless_detector(
             &camera.intrinsics(),
             &camera.distortion,
+            camera.is_equidistant(),
             camera.width as i32,
             camera.height as i32,
         )?;

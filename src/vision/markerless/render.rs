@@ -189,9 +189,17 @@ pub struct TrocarRenderer {
 }
 
 impl TrocarRenderer {
-    /// A renderer for `camera` (distortion: 0, 4, 5 or 8 coefficients).
+    /// A renderer for `camera` (OpenCV's rational model, 0, 4, 5 or 8 coefficients; not the
+    /// equidistant model).
     pub fn new(camera: &CameraModel) -> Result<Self, VisionError> {
         camera.validate()?;
+        if camera.is_equidistant() {
+            return Err(VisionError::InvalidInput(
+                "the markerless renderer draws through OpenCV's rational model (plumb_bob, rational_polynomial), not \
+                 the equidistant one"
+                    .into(),
+            ));
+        }
         if !matches!(camera.distortion.len(), 0 | 4 | 5 | 8) {
             return Err(VisionError::InvalidInput(
                 "the markerless renderer supports 0, 4, 5 or 8 distortion coefficients".into(),
