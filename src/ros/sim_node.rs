@@ -706,6 +706,9 @@ struct ArmCommand {
     jtc: TrajectoryController,
     /// The driver's clock minus the simulated ROS time, s.
     clock_ahead: f64,
+    /// The driver's updates (once per FRI cycle).
+    driver_update: Every,
+    diagnostics_out: rosrust::Publisher<diagnostic_msgs::DiagnosticArray>,
     log: Every,
     diagnostics: Every,
     /// The largest lead of a command over the measured joints, rad.
@@ -717,16 +720,28 @@ struct ArmCommand {
 }
 
 impl ArmCommand {
-    fn new(p: &SimNodeParams, world: &SimWorld, t0: f64) -> Self {
+    fn new(p: &SimNodeParams, world: &SimWorld, t0: f64) -> Result<Self, NodeError> {
+        p.validate_driver()?;
         let clock_ahead = p.driver_clock_ahead_ms * 1e-3;
-        Self {
+        Ok(Self {
             jtc: TrajectoryController::new(world.joint_positions(), t0 + clock_ahead, 1.0 / p.fri_rate_hz),
             clock_ahead,
+            driver_update: Every::new(p.fri_rate_hz, t0),
+            diagnostics_out: rosrust::publish(&p.diagnostics_topic, 10).map_err(ros_err)?,
             log: Every::new(0.1, t0 + 10.0),
             diagnostics: Every::new(1.0, t0 + 1.0),
             max_lead: 0.0,
             first_motion: None,
             taken: std::collections::VecDeque::with_capacity(COMMAND_QUEUE),
+        })
+    }
+
+    /// One physics step at simulated ROS time `now`: the commands arrived since the last
+    /// step judged, then the driver's update where one is due.
+    fn step(&mut self, queue: &CommandQueue, world: &mut SimWorld, now: f64) {
+        self.take(queue, world);
+        if self.driver_update.due(now) {
+            self.update(world, now);
         }
     }
 
@@ -766,12 +781,7 @@ impl ArmCommand {
     }
 
     /// The counts to the log (every 10 s) and the diagnostics (every second).
-    fn report(
-        &mut self,
-        diagnostics: &rosrust::Publisher<diagnostic_msgs::DiagnosticArray>,
-        now: f64,
-        stamp: rosrust::Time,
-    ) {
+    fn report(&mut self, now: f64, stamp: rosrust::Time) {
         let n = self.jtc.counts();
         if self.log.due(now) && n.moving > 0 {
             rosrust::ros_info!(
@@ -787,7 +797,7 @@ impl ArmCommand {
             );
         }
         if self.diagnostics.due(now) {
-            let _ = diagnostics.send(stream_diagnostics(stamp, &n));
+            let _ = self.diagnostics_out.send(stream_diagnostics(stamp, &n));
         }
     }
 }
@@ -840,7 +850,6 @@ pub fn run() -> Result<(), NodeError> {
     if !(p.real_time_factor > 0.0 && p.real_time_factor.is_finite()) {
         return Err(NodeError::Invalid(format!("real_time_factor = {}", p.real_time_factor)));
     }
-    p.validate_driver()?;
     let kin = LbrKinematics::from_model(p.model, &ToolParams::default())?;
     let shared_kin: Arc<dyn Kinematics> = Arc::new(kin.clone());
     let world_cfg = world_config(&p)?;
@@ -851,7 +860,6 @@ pub fn run() -> Result<(), NodeError> {
     let command: CommandQueue = Arc::new(Mutex::new(std::collections::VecDeque::with_capacity(COMMAND_QUEUE)));
     let _sub = subscribe_command(&p, &command)?;
     let out = Outputs::new(&p)?;
-    let diagnostics = rosrust::publish(&p.diagnostics_topic, 10).map_err(ros_err)?;
     let mut camera = if p.camera_enabled {
         Some(SimCamera::start(&p)?)
     } else {
@@ -864,7 +872,6 @@ pub fn run() -> Result<(), NodeError> {
     let (mut fri, mut truth) = (Every::new(p.fri_rate_hz, t0), Every::new(10.0, t0));
     let mut frames = Every::new(p.camera_rate_hz, t0);
     let mut last_measurement = f64::NEG_INFINITY;
-    let sample_time = 1.0 / p.fri_rate_hz;
     rosrust::ros_info!(
         "lbr_med_sim: {:?}, world protocol '{}', FRI {} Hz, physics {} s, x{} real time, clock {}",
         p.model,
@@ -874,18 +881,14 @@ pub fn run() -> Result<(), NodeError> {
         p.real_time_factor,
         p.publish_clock
     );
-    let mut arm = ArmCommand::new(&p, &world, t0);
-    let mut driver_update = Every::new(p.fri_rate_hz, t0);
+    let mut arm = ArmCommand::new(&p, &world, t0)?;
     while rosrust::is_ok() {
         let now = if p.publish_clock {
             t0 + world.time()
         } else {
             convert::seconds(rosrust::now())
         };
-        arm.take(&command, &world);
-        if driver_update.due(now) {
-            arm.update(&mut world, now);
-        }
+        arm.step(&command, &mut world, now);
         if let Err(e) = world.step(dt) {
             return Err(NodeError::Invalid(format!("simulation stopped: {e}")));
         }
@@ -899,9 +902,9 @@ pub fn run() -> Result<(), NodeError> {
             let _ = c.send(rosgraph_msgs::Clock { clock: stamp });
         }
         if fri.due(t) {
-            out.driver(&p, &world, driver_clock(stamp, arm.clock_ahead), sample_time);
+            out.driver(&p, &world, driver_clock(stamp, arm.clock_ahead), 1.0 / p.fri_rate_hz);
         }
-        arm.report(&diagnostics, t, stamp);
+        arm.report(t, stamp);
         let live = trocar_live(
             p.trocar_dropout_after_s,
             p.trocar_dropout_from,

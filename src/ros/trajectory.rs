@@ -166,7 +166,7 @@ impl TrajectoryController {
             self.counts.min_lead_s = self.counts.min_lead_s.min(lead);
         }
         // findPoint: kept only when `next < due`; a NaN time is never after `next`.
-        if !(lead > 0.0) {
+        if lead.is_nan() || lead <= 0.0 {
             self.counts.dropped += 1;
             self.counts.dropped_moving += u64::from(moving);
             return Outcome::Dropped { late_by_s: -lead };
