@@ -5,12 +5,14 @@
 //!
 //! For a live calibration: `samples` (the acceptance rules), `refine` (a non-linear
 //! refinement over all samples), `quality` (held-out residuals, conditioning, set-up faults),
-//! `poses` (the automatic mode's poses).
+//! `poses` (the automatic mode's poses), `target` (a sample's marker from a window of
+//! detections: a still target's mean, a moving one's same phase).
 
 pub mod poses;
 pub mod quality;
 pub mod refine;
 pub mod samples;
+pub mod target;
 
 pub use quality::{calibrate_samples, Calibration, HeldOut};
 pub use refine::{ObservationModel, Sample};
