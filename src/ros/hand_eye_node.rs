@@ -383,7 +383,9 @@ impl Node {
             std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
         }
         std::fs::write(&path, text).map_err(|e| format!("{shown}: {e}"))?;
-        let over = bounds.err().map_or(String::new(), |e| format!("; FORCED over the bounds: {e}"));
+        let over = bounds
+            .err()
+            .map_or(String::new(), |e| format!("; FORCED over the bounds: {e}"));
         Ok(format!(
             "saved to {shown} ({} samples, calibrated {date}); dock with robot.launch hand_eye:={shown}{over}",
             c.fit.samples
@@ -414,15 +416,25 @@ impl Node {
         let duration = (delta.amax() * PI / (2.0 * self.p.max_joint_speed_rad_s)).max(0.2);
         let dt = 1.0 / self.p.command_rate_hz;
         let steps = (duration / dt).ceil() as usize;
+        // The commands of the last `stale_after_s` (a joint state accepted as fresh may be
+        // that old: on a loaded host it arrives late), the lag measured from the nearest.
+        let mut recent: VecDeque<(f64, JointVector)> = VecDeque::from([(now(), start)]);
         for k in 1..=steps + (0.5 / dt) as usize {
             let s = (k.min(steps) as f64 / steps as f64 * PI).cos();
             let q_cmd = start + delta * ((1.0 - s) / 2.0);
-            let measured = self.fresh(lock(&self.state).q, now());
+            let t = now();
+            while recent.len() > 1 && recent.front().is_some_and(|(at, _)| t - at > self.p.stale_after_s) {
+                recent.pop_front();
+            }
+            let measured = self.fresh(lock(&self.state).q, t);
+            let lag = |q: &JointVector| recent.iter().map(|(_, c)| (q - c).amax()).fold(f64::INFINITY, f64::min);
             let fault = match measured {
                 None => Some("joint states stale".to_string()),
-                Some(q) if (q - q_cmd).amax() > self.p.max_tracking_error_rad + delta.amax() * dt * 2.0 => {
-                    Some(format!("the arm lags its command by {:.3} rad", (q - q_cmd).amax()))
-                }
+                Some(q) if lag(&q) > self.p.max_tracking_error_rad + delta.amax() * dt * 2.0 => Some(format!(
+                    "the arm lags its commands of the last {:.2} s by {:.3} rad",
+                    self.p.stale_after_s,
+                    lag(&q)
+                )),
                 _ => None,
             };
             if let Some(f) = fault {
@@ -435,6 +447,7 @@ impl Node {
                 return Err("shutting down".into());
             }
             self.command(&q_cmd, 2.0 * dt);
+            recent.push_back((t, q_cmd));
             std::thread::sleep(Duration::from_secs_f64(dt));
         }
         Ok(())
@@ -648,7 +661,10 @@ fn subscribe(node: &Arc<Node>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
             while st.detections.front().is_some_and(|d| d.t < t - keep) {
                 st.detections.pop_front();
             }
-            st.detections.push_back(Detection { t, camera_t_marker: pose });
+            st.detections.push_back(Detection {
+                t,
+                camera_t_marker: pose,
+            });
         }
     })
     .map_err(ros_err)?;
@@ -791,7 +807,10 @@ mod tests {
         assert_eq!(d, std::path::Path::new("/data/ros/trocar_docking/hand_eye.yaml"));
         let d = default_output_path(None, Some("/home/lab")).unwrap();
         assert_eq!(d, std::path::Path::new("/home/lab/.ros/trocar_docking/hand_eye.yaml"));
-        assert_eq!(default_output_path(Some(""), Some("/h")).unwrap(), std::path::Path::new("/h/.ros/trocar_docking/hand_eye.yaml"));
+        assert_eq!(
+            default_output_path(Some(""), Some("/h")).unwrap(),
+            std::path::Path::new("/h/.ros/trocar_docking/hand_eye.yaml")
+        );
         assert!(default_output_path(None, None).unwrap_err().contains("output_file"));
         // The shipped parameters take the default; an explicit file is honoured.
         let p = HandEyeNodeParams::default();

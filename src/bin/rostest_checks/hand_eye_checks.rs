@@ -72,7 +72,10 @@ pub fn hand_eye(p: &CheckParams) -> Result<String, String> {
         return Err(format!("the saved file is not dated today with its residuals: {h:?}"));
     }
     let lim = ::trocar_docking::preflight::Limits::default();
-    let (b_mm, b_deg) = (lim.hand_eye_max_residual_m * 1e3, lim.hand_eye_max_residual_rad.to_degrees());
+    let (b_mm, b_deg) = (
+        lim.hand_eye_max_residual_m * 1e3,
+        lim.hand_eye_max_residual_rad.to_degrees(),
+    );
     let summary = format!(
         "mount {:.3} mm, {:.3} deg from the truth; held-out {:.3} mm rms ({:.3} max), {:.3} deg rms ({:.3} max); \
          ~auto {secs:.0} s; {auto}; {saved}",
@@ -91,7 +94,9 @@ pub fn hand_eye(p: &CheckParams) -> Result<String, String> {
         ));
     }
     if !(s.held_out.position_max_mm <= b_mm && s.held_out.rotation_max_deg <= b_deg) {
-        return Err(format!("held-out residuals over the preflight's {b_mm} mm / {b_deg} deg: {summary}"));
+        return Err(format!(
+            "held-out residuals over the preflight's {b_mm} mm / {b_deg} deg: {summary}"
+        ));
     }
     // A result that cannot be judged is refused, and the file stays the good one.
     while !trigger(&format!("{node}/remove_sample"), p.startup_timeout)?.contains("; 3 samples,") {}

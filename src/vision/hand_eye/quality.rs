@@ -377,7 +377,11 @@ mod tests {
     }
 
     fn calibration(samples: usize, held_out_mm: f64, held_out_deg: f64) -> Calibration {
-        let fit = residuals(&Isometry3::identity(), &[Isometry3::identity(); 4], &[Isometry3::identity(); 4]);
+        let fit = residuals(
+            &Isometry3::identity(),
+            &[Isometry3::identity(); 4],
+            &[Isometry3::identity(); 4],
+        );
         Calibration {
             flange_t_camera: Isometry3::identity(),
             base_t_marker: Isometry3::identity(),
@@ -402,7 +406,10 @@ mod tests {
         assert_eq!(within_bounds(&calibration(8, 1.9, 0.45), m, rad), Ok(()));
         // The figures of a calibration on a breathing marker sampled at random phases.
         let e = within_bounds(&calibration(7, 9.1, 0.3), m, rad).unwrap_err();
-        assert!(e.contains("4.55 mm rms (9.10 max)") && e.contains("bounds 2.0 mm / 0.50 deg"), "{e}");
+        assert!(
+            e.contains("4.55 mm rms (9.10 max)") && e.contains("bounds 2.0 mm / 0.50 deg"),
+            "{e}"
+        );
         assert!(within_bounds(&calibration(8, 1.0, 0.6), m, rad).is_err());
         assert!(within_bounds(&calibration(8, f64::NAN, 0.1), m, rad).is_err());
         // The fit's largest residual is what the preflight reads from the file.

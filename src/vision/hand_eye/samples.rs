@@ -249,7 +249,9 @@ impl SampleSet {
     /// was done and the fix; `None` when it was still at every sample.
     pub fn target_note(&self) -> Option<String> {
         let moving: Vec<&Motion> = self.motions.iter().flatten().collect();
-        let largest = moving.iter().max_by(|a, b| a.peak_to_peak_m.total_cmp(&b.peak_to_peak_m))?;
+        let largest = moving
+            .iter()
+            .max_by(|a, b| a.peak_to_peak_m.total_cmp(&b.peak_to_peak_m))?;
         Some(format!(
             "target moving at {} of {} samples: {largest}; those samples were taken at the same phase (the marker's \
              lowest point, the end of expiration) so that the marker is the same pose at each; for a still target \

@@ -136,7 +136,10 @@ pub fn mean_pose(poses: &[Isometry3<f64>]) -> Option<(Isometry3<f64>, f64, f64)>
         .sum::<Vector3<f64>>()
         / n;
     let r = first.rotation * UnitQuaternion::from_scaled_axis(w);
-    let dt = poses.iter().map(|p| (p.translation.vector - t).norm()).fold(0.0, f64::max);
+    let dt = poses
+        .iter()
+        .map(|p| (p.translation.vector - t).norm())
+        .fold(0.0, f64::max);
     let dr = poses.iter().map(|p| p.rotation.angle_to(&r)).fold(0.0, f64::max);
     Some((Isometry3::from_parts(t.into(), r), dt, dr))
 }
@@ -145,7 +148,11 @@ pub fn mean_pose(poses: &[Isometry3<f64>]) -> Option<(Isometry3<f64>, f64, f64)>
 fn main_direction(x: &[Vector3<f64>]) -> Vector3<f64> {
     let n = x.len().max(1) as f64;
     let mean = x.iter().sum::<Vector3<f64>>() / n;
-    let cov: Matrix3<f64> = x.iter().map(|v| (v - mean) * (v - mean).transpose()).sum::<Matrix3<f64>>() / n;
+    let cov: Matrix3<f64> = x
+        .iter()
+        .map(|v| (v - mean) * (v - mean).transpose())
+        .sum::<Matrix3<f64>>()
+        / n;
     let e = cov.symmetric_eigen();
     let k = e.eigenvalues.imax();
     e.eigenvectors.column(k).into_owned()
@@ -154,7 +161,9 @@ fn main_direction(x: &[Vector3<f64>]) -> Vector3<f64> {
 /// The period of `s` over times `t` from its crossings of the mid-level (with hysteresis of
 /// a quarter of the extent): two crossings a period.
 fn period(t: &[f64], s: &[f64]) -> Option<f64> {
-    let (lo, hi) = s.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(*v), b.max(*v)));
+    let (lo, hi) = s
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(*v), b.max(*v)));
     let (mid, h) = ((lo + hi) / 2.0, (hi - lo) / 4.0);
     let mut state = None;
     let mut crossings = Vec::new();
@@ -174,6 +183,26 @@ fn period(t: &[f64], s: &[f64]) -> Option<f64> {
     (crossings.len() >= 3).then(|| 2.0 * (crossings[crossings.len() - 1] - crossings[0]) / (crossings.len() - 1) as f64)
 }
 
+/// The poses of the runs of detections whose phase `s` is at least `above` and that turn
+/// back within the window (neither the first nor the last detection in the run).
+fn same_phase(all: &[Isometry3<f64>], s: &[f64], above: f64) -> Vec<Isometry3<f64>> {
+    let near: Vec<bool> = s.iter().map(|v| *v >= above).collect();
+    let mut used = Vec::new();
+    let mut i = 0;
+    while i < near.len() {
+        if !near[i] {
+            i += 1;
+            continue;
+        }
+        let j = (i..near.len()).find(|&k| !near[k]).unwrap_or(near.len());
+        if i > 0 && j < near.len() {
+            used.extend_from_slice(&all[i..j]);
+        }
+        i = j;
+    }
+    used
+}
+
 /// Assess the detections `dets` (in time order) of a window that began at `start` (the arm
 /// still since), at time `now`; `base_r_camera` turns camera directions into the base
 /// (through the hand-eye guess), `reference` is the phase direction of the samples already
@@ -189,8 +218,11 @@ pub fn assess(
     let dets: Vec<&Detection> = dets.iter().filter(|d| d.t >= start && d.t <= now).collect();
     // Still: the last `still_s` within the tolerances.
     if now - start >= rules.still_s {
-        let tail: Vec<Isometry3<f64>> =
-            dets.iter().filter(|d| d.t >= now - rules.still_s).map(|d| d.camera_t_marker).collect();
+        let tail: Vec<Isometry3<f64>> = dets
+            .iter()
+            .filter(|d| d.t >= now - rules.still_s)
+            .map(|d| d.camera_t_marker)
+            .collect();
         if tail.len() >= rules.min_detections {
             if let Some((mean, dt, dr)) = mean_pose(&tail) {
                 if dt <= rules.tolerance_m && dr <= rules.tolerance_rad {
@@ -217,7 +249,9 @@ pub fn assess(
     dir_b *= sign;
     let s: Vec<f64> = x.iter().map(|v| sign * dir_c.dot(v)).collect();
     let t: Vec<f64> = dets.iter().map(|d| d.t).collect();
-    let (lo, hi) = s.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(*v), b.max(*v)));
+    let (lo, hi) = s
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), v| (a.min(*v), b.max(*v)));
     let all: Vec<Isometry3<f64>> = dets.iter().map(|d| d.camera_t_marker).collect();
     let rotation_rad = mean_pose(&all).map_or(0.0, |m| m.2);
     let motion = Motion {
@@ -227,24 +261,8 @@ pub fn assess(
         period_s: period(&t, &s),
         window_s: now - start,
     };
-    // The same phase: runs of detections near the extreme that turn back within the window
-    // (neither the first nor the last detection in the run).
     let band = rules.phase_band_m.max(0.05 * (hi - lo));
-    let near: Vec<bool> = s.iter().map(|v| *v >= hi - band).collect();
-    let mut used = Vec::new();
-    let mut i = 0;
-    while i < near.len() {
-        if !near[i] {
-            i += 1;
-            continue;
-        }
-        let j = (i..near.len()).find(|&k| !near[k]).unwrap_or(near.len());
-        if i > 0 && j < near.len() {
-            used.extend_from_slice(&all[i..j]);
-        }
-        i = j;
-    }
-    match mean_pose(&used) {
+    match mean_pose(&same_phase(&all, &s, hi - band)) {
         Some((mean, _, _)) => Assessment::Sample(TargetSample {
             camera_t_marker: mean,
             detections: used.len(),
@@ -265,11 +283,8 @@ mod tests {
                 let t = t0 + k as f64 / 15.0;
                 Detection {
                     t,
-                    camera_t_marker: Isometry3::translation(0.0, 0.0, 0.3) * Isometry3::translation(
-                        offset(t).x,
-                        offset(t).y,
-                        offset(t).z,
-                    ),
+                    camera_t_marker: Isometry3::translation(0.0, 0.0, 0.3)
+                        * Isometry3::translation(offset(t).x, offset(t).y, offset(t).z),
                 }
             })
             .collect()
@@ -304,7 +319,10 @@ mod tests {
         for phase in [0.0, 1.0, 2.0, 3.0, 4.0, 5.0] {
             let breath = move |t: f64| Vector3::new(0.0, 0.0, 0.004 * (std::f64::consts::TAU * 0.25 * t + phase).sin());
             let d = window(10.0, 6.2, breath);
-            assert_eq!(assess(&d, 10.0, 15.9, &rules(), &looking_down(), None), Assessment::Wait);
+            assert_eq!(
+                assess(&d, 10.0, 15.9, &rules(), &looking_down(), None),
+                Assessment::Wait
+            );
             let Assessment::Sample(s) = assess(&d, 10.0, 16.2, &rules(), &looking_down(), None) else {
                 panic!("phase {phase}: no sample");
             };
@@ -326,7 +344,9 @@ mod tests {
         assert!(periods >= 3, "the period found in {periods} of 6 windows");
         // With a reference pointing up, the other extreme.
         let up = Unit::new_normalize(Vector3::z());
-        let d = window(0.0, 6.2, |t| Vector3::new(0.0, 0.0, 0.004 * (std::f64::consts::TAU * 0.25 * t).sin()));
+        let d = window(0.0, 6.2, |t| {
+            Vector3::new(0.0, 0.0, 0.004 * (std::f64::consts::TAU * 0.25 * t).sin())
+        });
         let Assessment::Sample(s) = assess(&d, 0.0, 6.2, &rules(), &looking_down(), Some(&up)) else {
             panic!("no sample");
         };
