@@ -469,18 +469,26 @@ impl Node {
 
     fn auto_run(&self) -> Reply {
         let t0 = std::time::Instant::now();
-        let (q0, marker, camera) = {
+        // The start: a fresh joint state, detection and camera_info, waited for at most
+        // `settle_timeout_s` (on a loaded host a detection may come later than `stale_after_s`).
+        let start = || -> Result<_, String> {
             let st = lock(&self.state);
             let t = now();
-            (
+            Ok((
                 self.fresh(st.q, t).ok_or("no fresh joint state")?,
                 self.fresh(st.marker, t)
                     .ok_or("no marker detection: bring the marker into view")?,
                 st.camera
                     .clone()
                     .ok_or_else(|| camera_info_warning(None).unwrap_or_default())?,
-            )
+            ))
         };
+        let mut first = start();
+        while first.is_err() && t0.elapsed().as_secs_f64() < self.p.settle_timeout_s && rosrust::is_ok() {
+            std::thread::sleep(Duration::from_millis(50));
+            first = start();
+        }
+        let (q0, marker, camera) = first?;
         let plan_params = self.p.plan_params();
         let poses = plan(&self.kin, &q0, &self.guess, &marker, &camera, &plan_params).map_err(|e| e.to_string())?;
         let mut notes = Vec::new();
