@@ -6,7 +6,8 @@
 //! check reads (dated today, with its residuals). With `expect_target_moving` the world's
 //! breathing must be named in `~auto`'s reply. Then a result without held-out residuals (down
 //! to 3 samples) must be refused by `~save`, the saved file unchanged, and the package's
-//! shipped hand-eye file (the estimator's `hand_eye_file`) never written.
+//! shipped hand-eye file (the estimator's `hand_eye_file`) never written; the estimator on the
+//! saved file publishing before the check returns.
 
 use std::time::Instant;
 
@@ -112,5 +113,9 @@ pub fn hand_eye(p: &CheckParams) -> Result<String, String> {
     if read(&shipped)? != shipped_text {
         return Err(format!("the package's {shipped} was written"));
     }
+    // The docking's estimator starts once the file exists: its first pose before `~start`
+    // (on a busy host it takes seconds to come up).
+    let (pose, _pose_sub) = subscribe_latest::<geometry_msgs::PoseStamped>(::trocar_docking::ros::topics::TROCAR_POSE)?;
+    wait_for(p.startup_timeout, || pose.get()).ok_or("no trocar pose from the estimator on the saved file")?;
     Ok(format!("{summary}; then 3 samples ({three}): {refused}"))
 }

@@ -335,9 +335,13 @@ pub fn within_bounds(c: &Calibration, max_m: f64, max_rad: f64) -> Result<(), St
         c.fit.residual_translation_max_m * 1e3,
         c.fit.residual_rotation_max_rad.to_degrees(),
     );
-    let worst_mm = h.position_max_mm.max(fit_mm);
-    let worst_deg = h.rotation_max_deg.max(fit_deg);
-    if worst_mm.is_finite() && worst_deg.is_finite() && worst_mm <= b_mm && worst_deg <= b_deg {
+    // NaN fails every comparison: not within.
+    let within = |v: f64, b: f64| v <= b;
+    if within(h.position_max_mm, b_mm)
+        && within(fit_mm, b_mm)
+        && within(h.rotation_max_deg, b_deg)
+        && within(fit_deg, b_deg)
+    {
         return Ok(());
     }
     Err(format!(

@@ -338,9 +338,13 @@ mod tests {
             lowest.push(s.camera_t_marker.translation.z);
             assert!(s.detections >= 2, "{s:?}");
         }
-        for z in &lowest {
-            assert!((z - 0.304).abs() < 0.1e-3, "{lowest:?}");
-        }
+        // The same pose at every phase (the band's mean sits a third of the band, 0.13 mm,
+        // inside the extreme).
+        let (lo, hi) = lowest
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), z| (a.min(*z), b.max(*z)));
+        assert!(hi - lo < 0.05e-3, "{lowest:?}");
+        assert!((lo - 0.304).abs() < 0.2e-3, "{lowest:?}");
         assert!(periods >= 3, "the period found in {periods} of 6 windows");
         // With a reference pointing up, the other extreme.
         let up = Unit::new_normalize(Vector3::z());
@@ -350,7 +354,7 @@ mod tests {
         let Assessment::Sample(s) = assess(&d, 0.0, 6.2, &rules(), &looking_down(), Some(&up)) else {
             panic!("no sample");
         };
-        assert!((s.camera_t_marker.translation.z - 0.296).abs() < 0.1e-3, "{s:?}");
+        assert!((s.camera_t_marker.translation.z - 0.296).abs() < 0.2e-3, "{s:?}");
     }
 
     #[test]
