@@ -1,15 +1,21 @@
 //! The `hand_eye_calibration` node: eye-in-hand calibration from live topics. Joint states
 //! in (the flange pose through the KDL chain), the estimator's marker pose in the camera
 //! (`/trocar_estimator/marker_pose`) and camera_info in; services (std_srvs/Trigger)
-//! `~take_sample`, `~remove_sample`, `~compute`, `~auto`, `~save`; `~samples` (the count and
-//! the rotation spread) and `~markers` (the calibrated camera frame, each sample's marker) out.
-//! The maths is `vision::hand_eye`'s; `~auto` streams joint commands on the driver's command
-//! topic through the controller's command guard (the shipped `guard:` of
+//! `~take_sample`, `~remove_sample`, `~compute`, `~auto`, `~save`, `~save_force`; `~samples`
+//! (the count and the rotation spread) and `~markers` (the calibrated camera frame, each
+//! sample's marker) out. The maths is `vision::hand_eye`'s; `~auto` streams joint commands on
+//! the driver's command topic through the controller's command guard (the shipped `guard:` of
 //! `config/controller.yaml`: its speed, acceleration and position limits,
 //! [`crate::control::safety::guard::CommandGuard::follow`]) and, on stale joint states or an
-//! arm not following, brakes to a stop within the same limits and holds there.
+//! arm not following, brakes to a stop within the same limits and holds there. A sample waits
+//! for the arm to be still, then watches the marker for a window (`vision::hand_eye::target`:
+//! a still target's mean, a breathing one's same phase). `~save` writes only a calibration
+//! within the preflight's residual bounds (`~save_force`: whatever its residuals), by default
+//! under `$ROS_HOME` (never into the package).
 
+use std::collections::VecDeque;
 use std::f64::consts::PI;
+use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -24,7 +30,9 @@ use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::validate;
 use crate::vision::hand_eye::poses::{border_distance_px, plan, projected_corners, PlanParams};
-use crate::vision::hand_eye::quality::camera_info_warning;
+use crate::vision::hand_eye::quality::{camera_info_warning, within_bounds};
+use crate::vision::hand_eye::samples::Refusal;
+use crate::vision::hand_eye::target::{assess, Assessment, Detection, TargetRules};
 use crate::vision::hand_eye::{
     calibrate_samples, file_text, AcceptanceRules, Calibration, ObservationModel, Sample, SampleSet, Stillness,
 };
@@ -62,7 +70,8 @@ pub struct HandEyeNodeParams {
     /// The current hand-eye guess (`~auto` plans through it), a hand-eye file (the
     /// project's or easy_handeye's).
     pub hand_eye_file: String,
-    /// Where `~save` writes ('' = the package's `config/hand_eye.yaml`).
+    /// Where `~save` writes ('' = `$ROS_HOME/trocar_docking/hand_eye.yaml`, `$ROS_HOME`
+    /// by default `~/.ros`: never the package's shipped file).
     pub output_file: String,
     /// The marker's side, m.
     pub marker_size_m: f64,
@@ -76,8 +85,12 @@ pub struct HandEyeNodeParams {
     pub max_tracking_error_rad: f64,
     /// Joint states or detections older than this are stale, s.
     pub stale_after_s: f64,
-    /// The acceptance rules' still period, s.
+    /// The acceptance rules' still period of the arm, s.
     pub still_for_s: f64,
+    /// Watch the marker at most this long at a pose (longer than a breath), s.
+    pub target_window_s: f64,
+    /// The marker within 0.5 mm / 0.3 deg this long is still, s.
+    pub target_still_s: f64,
     /// The acceptance rules' border margin, px.
     pub border_margin_px: f64,
     /// The automatic mode's tilt about the image axes, deg.
@@ -103,6 +116,8 @@ impl HandEyeNodeParams {
         validate::in_range("max_tracking_error_rad", self.max_tracking_error_rad, 0.001, 0.5)?;
         validate::in_range("stale_after_s", self.stale_after_s, 0.01, 5.0)?;
         validate::in_range("still_for_s", self.still_for_s, 0.0, 10.0)?;
+        validate::in_range("target_window_s", self.target_window_s, 1.0, 30.0)?;
+        validate::in_range("target_still_s", self.target_still_s, 0.2, self.target_window_s)?;
         validate::in_range("border_margin_px", self.border_margin_px, 0.0, 200.0)?;
         validate::in_range("auto_tilt_deg", self.auto_tilt_deg, 5.0, 45.0)?;
         validate::in_range("auto_roll_deg", self.auto_roll_deg, 0.0, 90.0)?;
@@ -129,13 +144,34 @@ impl HandEyeNodeParams {
         )
     }
 
-    fn output_path(&self) -> String {
+    /// How a sample's target is watched.
+    pub fn target_rules(&self) -> TargetRules {
+        TargetRules::new(self.target_window_s, self.target_still_s)
+    }
+
+    /// Where `~save` writes: `output_file`, else [`default_output_path`] of the environment.
+    pub fn output_path(&self) -> Result<PathBuf, String> {
         if self.output_file.is_empty() {
-            concat!(env!("CARGO_MANIFEST_DIR"), "/config/hand_eye.yaml").into()
+            default_output_path(
+                std::env::var("ROS_HOME").ok().as_deref(),
+                std::env::var("HOME").ok().as_deref(),
+            )
         } else {
-            self.output_file.clone()
+            Ok(PathBuf::from(&self.output_file))
         }
     }
+}
+
+/// The default file of `~save`: `trocar_docking/hand_eye.yaml` under `ros_home`
+/// (`$ROS_HOME`), else under `home`/.ros (ROS's own default for `ROS_HOME`, as roslaunch's
+/// logs), never the package's shipped `config/hand_eye.yaml`.
+pub fn default_output_path(ros_home: Option<&str>, home: Option<&str>) -> Result<PathBuf, String> {
+    let base = match (ros_home.filter(|s| !s.is_empty()), home.filter(|s| !s.is_empty())) {
+        (Some(r), _) => PathBuf::from(r),
+        (None, Some(h)) => PathBuf::from(h).join(".ros"),
+        (None, None) => return Err("neither ROS_HOME nor HOME is set: set the parameter `output_file`".into()),
+    };
+    Ok(base.join("trocar_docking").join("hand_eye.yaml"))
 }
 
 /// What the callbacks and services share.
@@ -144,6 +180,8 @@ struct State {
     marker: Option<(f64, Isometry3<f64>)>,
     camera: Option<CameraModel>,
     stillness: Stillness,
+    /// The recent detections (the last `target_window_s` and more).
+    detections: VecDeque<Detection>,
     set: SampleSet,
     calibration: Option<Calibration>,
     auto_running: bool,
@@ -177,8 +215,23 @@ impl Node {
         }
     }
 
-    /// `~take_sample`.
+    /// `~take_sample`: wait (at most `settle_timeout_s`) for the arm to be still, then watch
+    /// the marker (at most `target_window_s`) and take the sample the window gives.
     fn take_sample(&self) -> Reply {
+        let t0 = now();
+        loop {
+            std::thread::sleep(Duration::from_millis(100));
+            if !rosrust::is_ok() {
+                return Err("shutting down".into());
+            }
+            if let Some(msg) = self.watch(t0)? {
+                return Ok(msg);
+            }
+        }
+    }
+
+    /// One look at the arm and the window since `t0`: `None` to keep waiting.
+    fn watch(&self, t0: f64) -> Result<Option<String>, String> {
         let t = now();
         let mut st = lock(&self.state);
         let q = self.fresh(st.q, t).ok_or("no fresh joint state")?;
@@ -186,21 +239,66 @@ impl Node {
             .camera
             .clone()
             .ok_or_else(|| camera_info_warning(None).unwrap_or_default())?;
-        let marker = self
-            .fresh(st.marker, t)
-            .ok_or("no marker detection (none fresh from the estimator)")?;
+        let arm = st.stillness.arm_still_for(t, self.p.stale_after_s);
+        let needed = self.p.still_for_s;
+        if arm < needed {
+            if t - t0 > self.p.settle_timeout_s {
+                let waited = t - t0;
+                let r = Refusal::NotStill {
+                    still_s: arm,
+                    needed_s: needed,
+                };
+                return Err(format!("{r} (waited {waited:.1} s)"));
+            }
+            return Ok(None);
+        }
+        let rules = self.p.target_rules();
+        if t - t0 > self.p.settle_timeout_s + rules.window_s + 1.0 {
+            return Err(format!(
+                "the arm did not stay still for a {:.1} s window within {:.1} s",
+                rules.window_s,
+                t - t0
+            ));
+        }
+        // The window begins once the arm has been still `still_for_s`.
+        let start = t - arm + needed;
         let base_t_flange = self.kin.fk(&q).map_err(|e| e.to_string())?;
+        let base_r_camera = (base_t_flange * self.guess).rotation;
+        let reference = st.set.phase_reference();
+        let window = st.detections.make_contiguous();
+        let watched = match assess(window, start, t, &rules, &base_r_camera, reference.as_ref()) {
+            Assessment::Wait => return Ok(None),
+            Assessment::TooFewDetections(n) => {
+                return Err(Refusal::FewDetections {
+                    detections: n,
+                    window_s: t - start,
+                }
+                .to_string())
+            }
+            Assessment::Drifting(m) => return Err(Refusal::TargetMoving(m).to_string()),
+            Assessment::Sample(w) => w,
+        };
+        let marker = watched.camera_t_marker;
         let border = border_distance_px(&camera, &marker, self.p.marker_size_m).unwrap_or(-1.0);
         let sample = Sample {
             base_t_flange,
             camera_t_marker: marker,
             corners: projected_corners(&camera, &marker, self.p.marker_size_m),
         };
-        let still = st.stillness.still_for(t, self.p.stale_after_s);
-        let i = st.set.try_add(sample, still, border).map_err(|e| e.to_string())?;
-        let msg = format!("sample {} taken; {}", i + 1, self.summary(&st));
+        let i = st
+            .set
+            .try_add_moving(sample, arm, border, watched.moving)
+            .map_err(|e| e.to_string())?;
+        let how = match &watched.moving {
+            None => format!("the marker still, {} detections averaged", watched.detections),
+            Some(m) => format!(
+                "target moving: {m}; sampled at its lowest point ({} detections averaged)",
+                watched.detections
+            ),
+        };
+        let msg = format!("sample {} taken ({how}); {}", i + 1, self.summary(&st));
         self.publish_samples(&st);
-        Ok(msg)
+        Ok(Some(msg))
     }
 
     fn summary(&self, st: &State) -> String {
@@ -227,7 +325,8 @@ impl Node {
     /// `~compute`: ViSP + refinement, held-out residuals, warnings and faults.
     fn compute(&self) -> Reply {
         let mut st = lock(&self.state);
-        let c = calibrate_samples(st.set.samples(), &self.model(&st)).map_err(|e| e.to_string())?;
+        let mut c = calibrate_samples(st.set.samples(), &self.model(&st)).map_err(|e| e.to_string())?;
+        c.warnings.extend(st.set.target_note());
         let msg = describe(&c, &self.guess, st.camera.as_ref());
         let faults = c.faults.clone();
         st.calibration = Some(c);
@@ -238,8 +337,17 @@ impl Node {
         }
     }
 
-    /// `~save`: the computed calibration to `output_file`.
+    /// `~save`: the computed calibration to `output_file`, if within the preflight's bounds.
     fn save(&self) -> Reply {
+        self.write(false)
+    }
+
+    /// `~save_force`: the same, whatever its residuals (never with faults).
+    fn save_force(&self) -> Reply {
+        self.write(true)
+    }
+
+    fn write(&self, force: bool) -> Reply {
         let st = lock(&self.state);
         let c = st
             .calibration
@@ -249,6 +357,14 @@ impl Node {
             return Err(format!(
                 "not saved, the calibration has faults: {}",
                 c.faults.join("; ")
+            ));
+        }
+        let lim = crate::preflight::Limits::default();
+        let bounds = within_bounds(c, lim.hand_eye_max_residual_m, lim.hand_eye_max_residual_rad);
+        if let (Err(e), false) = (&bounds, force) {
+            return Err(format!(
+                "not saved: {e}; take more samples over a wider spread, with the arm and the target still, or \
+                 ~save_force to write it anyway"
             ));
         }
         let date = crate::preflight::date_of(
@@ -264,10 +380,17 @@ impl Node {
             &c.warnings,
         )
         .map_err(|e| e.to_string())?;
-        let path = self.p.output_path();
-        std::fs::write(&path, text).map_err(|e| format!("{path}: {e}"))?;
+        let path = self.p.output_path()?;
+        let shown = path.display();
+        if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+            std::fs::create_dir_all(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+        }
+        std::fs::write(&path, text).map_err(|e| format!("{shown}: {e}"))?;
+        let over = bounds
+            .err()
+            .map_or(String::new(), |e| format!("; FORCED over the bounds: {e}"));
         Ok(format!(
-            "saved to {path} ({} samples, calibrated {date})",
+            "saved to {shown} ({} samples, calibrated {date}); dock with robot.launch hand_eye:={shown}{over}",
             c.fit.samples
         ))
     }
@@ -300,15 +423,25 @@ impl Node {
         // The arm is at rest at the start of each move (the last one ended standing).
         let mut guard = CommandGuard::new(GuardParams::default(), self.kin.limits());
         let mut sent = start;
+        // The commands of the last `stale_after_s` (a joint state accepted as fresh may be
+        // that old: on a loaded host it arrives late), the lag measured from the nearest.
+        let mut recent: VecDeque<(f64, JointVector)> = VecDeque::from([(now(), start)]);
         for k in 1..=steps + (0.5 / dt) as usize {
             let s = (k.min(steps) as f64 / steps as f64 * PI).cos();
             let q_cmd = start + delta * ((1.0 - s) / 2.0);
-            let measured = self.fresh(lock(&self.state).q, now());
+            let t = now();
+            while recent.len() > 1 && recent.front().is_some_and(|(at, _)| t - at > self.p.stale_after_s) {
+                recent.pop_front();
+            }
+            let measured = self.fresh(lock(&self.state).q, t);
+            let lag = |q: &JointVector| recent.iter().map(|(_, c)| (q - c).amax()).fold(f64::INFINITY, f64::min);
             let fault = match measured {
                 None => Some("joint states stale".to_string()),
-                Some(q) if (q - sent).amax() > self.p.max_tracking_error_rad + delta.amax() * dt * 2.0 => {
-                    Some(format!("the arm lags its command by {:.3} rad", (q - sent).amax()))
-                }
+                Some(q) if lag(&q) > self.p.max_tracking_error_rad + delta.amax() * dt * 2.0 => Some(format!(
+                    "the arm lags its commands of the last {:.2} s by {:.3} rad",
+                    self.p.stale_after_s,
+                    lag(&q)
+                )),
                 _ => None,
             };
             if let Some(f) = fault {
@@ -320,6 +453,7 @@ impl Node {
             }
             sent = guard.follow(&sent, &q_cmd, dt);
             self.command(&sent, 2.0 * dt);
+            recent.push_back((t, sent));
             std::thread::sleep(Duration::from_secs_f64(dt));
         }
         Ok(())
@@ -339,20 +473,6 @@ impl Node {
         self.command(&sent, 2.0 * dt);
     }
 
-    /// Wait until the arm and the detection are still, then take a sample.
-    fn settle_and_sample(&self) -> Reply {
-        let t0 = std::time::Instant::now();
-        let mut last = Err(String::from("not tried"));
-        while t0.elapsed().as_secs_f64() < self.p.settle_timeout_s && rosrust::is_ok() {
-            std::thread::sleep(Duration::from_millis(100));
-            last = self.take_sample();
-            if last.is_ok() {
-                break;
-            }
-        }
-        last
-    }
-
     /// `~auto`: 12 poses around the current one, a sample at each, back, compute.
     fn auto(&self) -> Reply {
         {
@@ -369,24 +489,32 @@ impl Node {
 
     fn auto_run(&self) -> Reply {
         let t0 = std::time::Instant::now();
-        let (q0, marker, camera) = {
+        // The start: a fresh joint state, detection and camera_info, waited for at most
+        // `settle_timeout_s` (on a loaded host a detection may come later than `stale_after_s`).
+        let start = || -> Result<_, String> {
             let st = lock(&self.state);
             let t = now();
-            (
+            Ok((
                 self.fresh(st.q, t).ok_or("no fresh joint state")?,
                 self.fresh(st.marker, t)
                     .ok_or("no marker detection: bring the marker into view")?,
                 st.camera
                     .clone()
                     .ok_or_else(|| camera_info_warning(None).unwrap_or_default())?,
-            )
+            ))
         };
+        let mut first = start();
+        while first.is_err() && t0.elapsed().as_secs_f64() < self.p.settle_timeout_s && rosrust::is_ok() {
+            std::thread::sleep(Duration::from_millis(50));
+            first = start();
+        }
+        let (q0, marker, camera) = first?;
         let plan_params = self.p.plan_params();
         let poses = plan(&self.kin, &q0, &self.guess, &marker, &camera, &plan_params).map_err(|e| e.to_string())?;
         let mut notes = Vec::new();
         for (i, q) in poses.iter().enumerate() {
             self.move_to(q)?;
-            if let Err(e) = self.settle_and_sample() {
+            if let Err(e) = self.take_sample() {
                 notes.push(format!("pose {}: {e}", i + 1));
             }
         }
@@ -557,6 +685,14 @@ fn subscribe(node: &Arc<Node>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
             let rules = st.set.rules;
             st.stillness.marker(t, Some(&pose), &rules);
             st.marker = Some((t, pose));
+            let keep = n.p.target_window_s + n.p.settle_timeout_s + 2.0;
+            while st.detections.front().is_some_and(|d| d.t < t - keep) {
+                st.detections.pop_front();
+            }
+            st.detections.push_back(Detection {
+                t,
+                camera_t_marker: pose,
+            });
         }
     })
     .map_err(ros_err)?;
@@ -573,11 +709,12 @@ fn subscribe(node: &Arc<Node>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
 type Handler = fn(&Node) -> Reply;
 
 fn services(node: &Arc<Node>) -> Result<Vec<rosrust::Service>, NodeError> {
-    let handlers: [(&str, Handler); 5] = [
+    let handlers: [(&str, Handler); 6] = [
         ("~take_sample", Node::take_sample),
         ("~remove_sample", Node::remove_sample),
         ("~compute", Node::compute),
         ("~save", Node::save),
+        ("~save_force", Node::save_force),
         ("~auto", Node::auto),
     ];
     handlers
@@ -612,6 +749,7 @@ pub fn run() -> Result<(), NodeError> {
             marker: None,
             camera: None,
             stillness: Stillness::default(),
+            detections: VecDeque::new(),
             set: SampleSet::new(p.rules()),
             calibration: None,
             auto_running: false,
@@ -626,12 +764,13 @@ pub fn run() -> Result<(), NodeError> {
     });
     let _subs = subscribe(&node)?;
     let _services = services(&node)?;
+    let out = node.p.output_path().map_err(NodeError::Invalid)?;
     rosrust::ros_info!(
         "hand_eye_calibration: marker pose on {}, joints on {}, commands on {}; saves to {}",
         node.p.marker_pose_topic,
         node.p.joint_states_topic,
         node.p.command_topic,
-        node.p.output_path()
+        out.display()
     );
     while rosrust::is_ok() {
         std::thread::sleep(Duration::from_millis(500));
@@ -656,6 +795,7 @@ mod tests {
             (d.marker_size_m, d.max_joint_speed_rad_s, d.max_tracking_error_rad),
             (0.04, 0.3, 0.05)
         );
+        assert_eq!((d.target_window_s, d.target_still_s), (6.5, 2.0));
         // The marker is the estimator's.
         assert_eq!(d.marker_size_m, crate::vision::MarkerSpec::default().size_m);
         // Partial: the rest is the file's.
@@ -669,6 +809,7 @@ mod tests {
             ("max_joint_speed_rad_s: 3", "max_joint_speed_rad_s"),
             ("marker_size_m: 0", "marker_size_m"),
             ("auto_tilt_deg: 60", "auto_tilt_deg"),
+            ("target_still_s: 7", "target_still_s"),
         ] {
             let e = params::from_yaml_str::<HandEyeNodeParams>("t", yaml)
                 .unwrap()
@@ -687,6 +828,29 @@ mod tests {
             let e = params::from_yaml_str::<HandEyeNodeParams>("t", &format!("{old}: 0.1\n")).unwrap_err();
             assert!(e.message.contains(&format!("`{old}`: the key is now `{new}`")), "{e}");
         }
+    }
+
+    #[test]
+    fn save_writes_under_ros_home_by_default_never_into_the_package() {
+        let shipped = std::path::Path::new(concat!(env!("CARGO_MANIFEST_DIR"), "/config/hand_eye.yaml"));
+        let d = default_output_path(Some("/data/ros"), Some("/home/lab")).unwrap();
+        assert_eq!(d, std::path::Path::new("/data/ros/trocar_docking/hand_eye.yaml"));
+        let d = default_output_path(None, Some("/home/lab")).unwrap();
+        assert_eq!(d, std::path::Path::new("/home/lab/.ros/trocar_docking/hand_eye.yaml"));
+        assert_eq!(
+            default_output_path(Some(""), Some("/h")).unwrap(),
+            std::path::Path::new("/h/.ros/trocar_docking/hand_eye.yaml")
+        );
+        assert!(default_output_path(None, None).unwrap_err().contains("output_file"));
+        // The shipped parameters take the default; an explicit file is honoured.
+        let p = HandEyeNodeParams::default();
+        assert!(p.output_file.is_empty());
+        assert_ne!(p.output_path().unwrap(), shipped);
+        let p = HandEyeNodeParams {
+            output_file: "/tmp/mine.yaml".into(),
+            ..p
+        };
+        assert_eq!(p.output_path().unwrap(), std::path::Path::new("/tmp/mine.yaml"));
     }
 
     #[test]

@@ -161,6 +161,8 @@ pub struct CheckParams {
     pub max_mount_error_m: f64,
     /// `hand_eye`: the largest accepted rotation of the computed mount from the true one, deg.
     pub max_mount_error_deg: f64,
+    /// `hand_eye`: the world's target moves (breathing): `~auto` must name it.
+    pub expect_target_moving: bool,
     /// `replay_fault`: where the bag's fault begins, s after the recorded APPROACH.
     pub fault_after_s: f64,
     /// `replay_controller`, `replay_fault`: the recorded docking the check plays itself
@@ -244,6 +246,7 @@ impl Default for CheckParams {
             hand_eye_output: String::new(),
             max_mount_error_m: 0.0005,
             max_mount_error_deg: 0.2,
+            expect_target_moving: false,
             fault_after_s: 0.5,
             bag: String::new(),
             bag_remaps: Vec::new(),

@@ -5,14 +5,17 @@
 //!
 //! For a live calibration: `samples` (the acceptance rules), `refine` (a non-linear
 //! refinement over all samples), `quality` (held-out residuals, conditioning, set-up faults),
-//! `poses` (the automatic mode's poses). `easy_handeye`: a calibration saved by easy_handeye,
-//! carried to the flange, and the one reader of a hand-eye file in either format.
+//! `poses` (the automatic mode's poses), `target` (a sample's marker from a window of
+//! detections: a still target's mean, a moving one's same phase). `easy_handeye`: a
+//! calibration saved by easy_handeye, carried to the flange, and the one reader of a hand-eye
+//! file in either format.
 
 pub mod easy_handeye;
 pub mod poses;
 pub mod quality;
 pub mod refine;
 pub mod samples;
+pub mod target;
 
 pub use easy_handeye::{load_mount, mount_of_text, EasyHandeye, Mount};
 pub use quality::{calibrate_samples, Calibration, HeldOut};

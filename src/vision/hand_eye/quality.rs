@@ -309,6 +309,41 @@ pub fn calibrate_samples(samples: &[Sample], model: &ObservationModel) -> Result
     })
 }
 
+/// Whether a calibration meets the residual bounds `max_m` (m) and `max_rad` (rad) of the
+/// preflight's `HAND_EYE` check (`limits.hand_eye_max_residual_m`, `_rad`): its held-out
+/// residuals (each sample against the others' fit, the largest) and the fit's largest (what
+/// the preflight reads from the file) within them; held-out residuals need at least 4
+/// samples. The error names the figures and the bounds.
+pub fn within_bounds(c: &Calibration, max_m: f64, max_rad: f64) -> Result<(), String> {
+    let (b_mm, b_deg) = (max_m * 1e3, max_rad.to_degrees());
+    if c.fit.samples <= 3 {
+        return Err(format!(
+            "{} samples: no held-out residuals to judge (at least 4 samples, 8 advised)",
+            c.fit.samples
+        ));
+    }
+    let h = &c.held_out;
+    let (fit_mm, fit_deg) = (
+        c.fit.residual_translation_max_m * 1e3,
+        c.fit.residual_rotation_max_rad.to_degrees(),
+    );
+    // NaN fails every comparison: not within.
+    let within = |v: f64, b: f64| v <= b;
+    if within(h.position_max_mm, b_mm)
+        && within(fit_mm, b_mm)
+        && within(h.rotation_max_deg, b_deg)
+        && within(fit_deg, b_deg)
+    {
+        return Ok(());
+    }
+    Err(format!(
+        "held-out residuals {:.2} mm rms ({:.2} max), {:.3} deg rms ({:.3} max), fit {fit_mm:.2} mm / {fit_deg:.3} deg \
+         max, over the preflight's bounds {b_mm:.1} mm / {b_deg:.2} deg (limits.hand_eye_max_residual_m, \
+         limits.hand_eye_max_residual_rad): the preflight would refuse ~start on this file",
+        h.position_rms_mm, h.position_max_mm, h.rotation_rms_deg, h.rotation_max_deg
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -335,5 +370,50 @@ mod tests {
         let even = rotation_angle_mismatch(&turning_flange(&[0.0, 0.1, 0.3, 0.7]));
         assert!((even - 0.35).abs() < 1e-12, "{even}");
         assert_eq!(rotation_angle_mismatch(&turning_flange(&[0.2])), 0.0, "no pair");
+    }
+
+    fn calibration(samples: usize, held_out_mm: f64, held_out_deg: f64) -> Calibration {
+        let fit = residuals(
+            &Isometry3::identity(),
+            &[Isometry3::identity(); 4],
+            &[Isometry3::identity(); 4],
+        );
+        Calibration {
+            flange_t_camera: Isometry3::identity(),
+            base_t_marker: Isometry3::identity(),
+            visp_flange_t_camera: Isometry3::identity(),
+            fit: crate::vision::hand_eye::HandEyeResult { samples, ..fit },
+            held_out: HeldOut {
+                position_rms_mm: held_out_mm / 2.0,
+                position_max_mm: held_out_mm,
+                rotation_rms_deg: held_out_deg / 2.0,
+                rotation_max_deg: held_out_deg,
+                reprojection_rms_px: None,
+            },
+            conditioning: conditioning(&[]),
+            warnings: Vec::new(),
+            faults: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn a_calibration_is_within_the_preflights_bounds_only_by_its_held_out_and_fit_residuals() {
+        let (m, rad) = (0.002, 0.5_f64.to_radians());
+        assert_eq!(within_bounds(&calibration(8, 1.9, 0.45), m, rad), Ok(()));
+        // The figures of a calibration on a breathing marker sampled at random phases.
+        let e = within_bounds(&calibration(7, 9.1, 0.3), m, rad).unwrap_err();
+        assert!(
+            e.contains("4.55 mm rms (9.10 max)") && e.contains("bounds 2.0 mm / 0.50 deg"),
+            "{e}"
+        );
+        assert!(within_bounds(&calibration(8, 1.0, 0.6), m, rad).is_err());
+        assert!(within_bounds(&calibration(8, f64::NAN, 0.1), m, rad).is_err());
+        // The fit's largest residual is what the preflight reads from the file.
+        let mut c = calibration(8, 1.0, 0.1);
+        c.fit.residual_translation_max_m = 0.0021;
+        assert!(within_bounds(&c, m, rad).unwrap_err().contains("fit 2.10 mm"));
+        // Three samples have no held-out residuals: nothing to judge.
+        let e = within_bounds(&calibration(3, 0.0, 0.0), m, rad).unwrap_err();
+        assert!(e.contains("no held-out residuals"), "{e}");
     }
 }

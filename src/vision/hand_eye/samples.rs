@@ -1,10 +1,12 @@
 //! The sample set of a live calibration and its acceptance rules: a sample is taken only when
-//! the arm and the detection have been still for a while, the marker is fully in view, and
-//! the flange has turned enough from every sample already taken.
+//! the arm has been still for a while, the marker is fully in view, and the flange has turned
+//! enough from every sample already taken; its marker pose is what a window of detections
+//! gives (`target`: the mean of a still target, a moving one at the same phase).
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Unit, Vector3};
 
 use super::refine::Sample;
+use super::target::Motion;
 
 /// When a sample is accepted.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -84,6 +86,15 @@ impl Stillness {
         }
     }
 
+    /// How long the arm has been still at time `now`, s (0 when its joint states are missing
+    /// or stale: none for `max_gap_s`). The target's own stillness is `target::assess`'s.
+    pub fn arm_still_for(&self, now: f64, max_gap_s: f64) -> f64 {
+        match &self.joints {
+            Some((tj, _)) if now - self.last_joint_t <= max_gap_s => (now - tj).max(0.0),
+            _ => 0.0,
+        }
+    }
+
     /// How long both have been still at time `now`, s (0 when either is missing or stale:
     /// no message for `max_gap_s`).
     pub fn still_for(&self, now: f64, max_gap_s: f64) -> f64 {
@@ -102,7 +113,7 @@ impl Stillness {
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum Refusal {
     /// Not still long enough.
-    #[error("the arm and the detection have been still for {still_s:.2} s, {needed_s:.2} s are needed")]
+    #[error("the arm has been still for {still_s:.2} s, {needed_s:.2} s are needed")]
     NotStill {
         /// Still for, s.
         still_s: f64,
@@ -135,6 +146,20 @@ pub enum Refusal {
     /// A non-finite pose.
     #[error("the flange or marker pose is not finite")]
     NotFinite,
+    /// The target moved by itself and did not turn back within the window.
+    #[error(
+        "target moving: {0}, and did not turn back (drifting, or knocked): hold the target still (clamp the marker \
+         to the table) and take the sample again"
+    )]
+    TargetMoving(Motion),
+    /// Too few detections in the window.
+    #[error("{detections} marker detections in {window_s:.1} s with the arm still: the marker is lost or the estimator too slow")]
+    FewDetections {
+        /// Detections.
+        detections: usize,
+        /// The window, s.
+        window_s: f64,
+    },
 }
 
 /// The samples taken so far.
@@ -143,6 +168,8 @@ pub struct SampleSet {
     /// The rules.
     pub rules: AcceptanceRules,
     samples: Vec<Sample>,
+    /// Each sample's target motion (`None`: the target was still).
+    motions: Vec<Option<Motion>>,
 }
 
 impl SampleSet {
@@ -151,6 +178,7 @@ impl SampleSet {
         Self {
             rules,
             samples: Vec::new(),
+            motions: Vec::new(),
         }
     }
 
@@ -190,7 +218,47 @@ impl SampleSet {
             }
         }
         self.samples.push(sample);
+        self.motions.push(None);
         Ok(self.samples.len() - 1)
+    }
+
+    /// `try_add` for a sample whose target moved by `motion` (taken at its phase).
+    pub fn try_add_moving(
+        &mut self,
+        sample: Sample,
+        still_s: f64,
+        border_px: f64,
+        motion: Option<Motion>,
+    ) -> Result<usize, Refusal> {
+        let i = self.try_add(sample, still_s, border_px)?;
+        self.motions[i] = motion;
+        Ok(i)
+    }
+
+    /// The phase direction of the samples taken at a moving target's extreme (the first
+    /// one's, in the base): the next ones take the same extreme.
+    pub fn phase_reference(&self) -> Option<Unit<Vector3<f64>>> {
+        self.motions
+            .iter()
+            .flatten()
+            .next()
+            .and_then(|m| Unit::try_new(m.direction_base, 1e-9))
+    }
+
+    /// The target's motion in words when it moved at some sample (the largest), with what
+    /// was done and the fix; `None` when it was still at every sample.
+    pub fn target_note(&self) -> Option<String> {
+        let moving: Vec<&Motion> = self.motions.iter().flatten().collect();
+        let largest = moving
+            .iter()
+            .max_by(|a, b| a.peak_to_peak_m.total_cmp(&b.peak_to_peak_m))?;
+        Some(format!(
+            "target moving at {} of {} samples: {largest}; those samples were taken at the same phase (the marker's \
+             lowest point, the end of expiration) so that the marker is the same pose at each; for a still target \
+             pause the ventilator (or hold the breath) or clamp the marker to the table",
+            moving.len(),
+            self.samples.len()
+        ))
     }
 
     /// The nearest sample in flange rotation and the angle to it, rad.
@@ -204,12 +272,14 @@ impl SampleSet {
 
     /// Remove the last sample; `None` when empty.
     pub fn remove_last(&mut self) -> Option<Sample> {
+        self.motions.pop();
         self.samples.pop()
     }
 
     /// Remove every sample.
     pub fn clear(&mut self) {
         self.samples.clear();
+        self.motions.clear();
     }
 
     /// The largest rotation between two samples' flanges, rad.
