@@ -40,12 +40,12 @@ pub fn finite_quantile(v: &[f64], p: f64) -> f64 {
 /// an even count, reordering `v` in place: no allocation (the per-frame windows of the
 /// markerless estimator). NaN when empty.
 pub fn median_in_place(v: &mut [f64]) -> f64 {
-    let n = v.len();
-    if n == 0 {
+    if v.is_empty() {
         return f64::NAN;
     }
-    let (below, &mut upper, _) = v.select_nth_unstable_by(n / 2, f64::total_cmp);
-    if n % 2 == 1 {
+    let mid = v.len() / 2;
+    let (below, &mut upper, _) = v.select_nth_unstable_by(mid, f64::total_cmp);
+    if v.len() % 2 == 1 {
         return upper;
     }
     let lower = below.iter().copied().max_by(f64::total_cmp).unwrap_or(upper);
