@@ -1,4 +1,4 @@
-//! Sample statistics of the offline figures: one quantile rule (and the median by it).
+//! Sample statistics of the offline figures: one quantile rule.
 //!
 //! The rule is linear interpolation between the closest ranks (Hyndman and Fan's
 //! definition 7, the default of R and NumPy): the `p`-quantile of `n` ascending samples
@@ -34,22 +34,6 @@ pub fn finite_quantile(v: &[f64], p: f64) -> f64 {
     } else {
         quantile_sorted(&v, p)
     }
-}
-
-/// The median of `v` (any order) by the rule of this module, the mean of the middle two of
-/// an even count, reordering `v` in place: no allocation (the per-frame windows of the
-/// markerless estimator). NaN when empty.
-pub fn median_in_place(v: &mut [f64]) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    let mid = v.len() / 2;
-    let (below, &mut upper, _) = v.select_nth_unstable_by(mid, f64::total_cmp);
-    if v.len() % 2 == 1 {
-        return upper;
-    }
-    let lower = below.iter().copied().max_by(f64::total_cmp).unwrap_or(upper);
-    quantile_sorted(&[lower, upper], 0.5)
 }
 
 /// Sub-buckets per power of two: 2^10, so a bucket is at most 1/512 of its value wide.
@@ -229,24 +213,6 @@ mod tests {
     /// Within the histogram's resolution (a bucket is at most 1/512 of its value wide).
     fn close(got: f64, want: f64) -> bool {
         (got - want).abs() <= want.abs() / 512.0 + 1e-9
-    }
-
-    #[test]
-    fn the_median_in_place_is_the_sorted_rule_for_odd_and_even_counts() {
-        assert!(median_in_place(&mut []).is_nan());
-        for v in [
-            vec![3.0],
-            vec![2.0, -1.0],
-            vec![5.0, 1.0, 4.0],
-            vec![0.4, -0.2, 0.9, 0.1],
-            vec![1.0, 1.0, 2.0, 7.0, -3.0, 0.5],
-        ] {
-            let mut sorted = v.clone();
-            sorted.sort_by(f64::total_cmp);
-            let mut w = v.clone();
-            assert_eq!(median_in_place(&mut w), quantile_sorted(&sorted, 0.5), "{v:?}");
-        }
-        assert_eq!(median_in_place(&mut [0.4, -0.2, 0.9, 0.1]), 0.25);
     }
 
     #[test]
