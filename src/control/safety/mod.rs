@@ -1,9 +1,7 @@
 //! Safety: the command guard ([`guard`]) and the guard as a decorator around any command
 //! source ([`guarded`]), the typed hold reasons ([`hold`]), and the tip's speed,
-//! acceleration and jerk bounded in every phase ([`motion`]), and the audit of a published
-//! command stream against the guard's limits ([`audit`]).
+//! acceleration and jerk bounded in every phase ([`motion`]).
 
-pub mod audit;
 pub mod guard;
 pub mod guarded;
 pub mod hold;
