@@ -453,8 +453,6 @@ impl Node {
         Ok(())
     }
 
-    }
-
     /// `~auto`: 12 poses around the current one, a sample at each, back, compute.
     fn auto(&self) -> Reply {
         {
