@@ -262,7 +262,8 @@ pub fn assess(
         window_s: now - start,
     };
     let band = rules.phase_band_m.max(0.05 * (hi - lo));
-    match mean_pose(&same_phase(&all, &s, hi - band)) {
+    let used = same_phase(&all, &s, hi - band);
+    match mean_pose(&used) {
         Some((mean, _, _)) => Assessment::Sample(TargetSample {
             camera_t_marker: mean,
             detections: used.len(),
