@@ -162,7 +162,7 @@ fn judge(truth: &Isometry3<f64>, c: trocar_docking::vision::hand_eye::Calibratio
 }
 
 impl Run {
-    /// The figures in one line (docs/lab.md's table).
+    /// The figures in one line (docs/calibration.md's table).
     fn line(&self) -> String {
         let c = &self.calibration;
         format!(

@@ -21,7 +21,7 @@
 //! ends with the clocks the image shows (`ClockSeen`): its stamp against the newest joint
 //! state's (the camera's clock against the robot's, latency included) and that joint state's
 //! age on arrival (this machine's clock against the robot's): on two machines, an offset
-//! there is the cause of dropped or misplaced frames (docs/lab.md "Two machines").
+//! there is the cause of dropped or misplaced frames (docs/two-machines.md).
 //!
 //! The hand-eye file (`hand_eye_file`: the project's or easy_handeye's) is also published as
 //! a static tf from the flange `lbr_link_ee` to the images' own frame ([`CameraTf`]), so the
