@@ -6,7 +6,6 @@
 
 rosrust::rosmsg_include!(
     trocar_docking / DockingStatus,
-    diagnostic_msgs / DiagnosticArray,
     lbr_msgs / LBRState,
     std_msgs / Float64MultiArray,
     std_msgs / Header,
