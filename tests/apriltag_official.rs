@@ -300,14 +300,14 @@ fn check_scene(family: &str, cam: &Cam, tags: &[Placed], rot_deg: f64, pos_frac:
                 ours.iter().map(|d| d.0).collect::<Vec<_>>()
             )
         });
-        for i in 0..4 {
+        for (i, (ours_i, official_i)) in corners.iter().zip(off.corners.iter()).enumerate().take(4) {
             // The official corner i is where the official object point i projects: the
             // scene's frame is the official one.
             let truth = p.corner_px(cam, i);
-            worst_truth = worst_truth.max(dist(off.corners[i], truth));
+            worst_truth = worst_truth.max(dist(*official_i, truth));
             // Our corner i is the official corner i (a turned or mirrored order would be a
             // tag side, tens of pixels, away).
-            worst_ours = worst_ours.max(dist(corners[i], off.corners[i]));
+            worst_ours = worst_ours.max(dist(*ours_i, *official_i));
         }
         let rot = (pose.rotation.inverse() * p.camera_t_tag.rotation).angle().to_degrees();
         let range = p.camera_t_tag.translation.vector.norm();

@@ -148,7 +148,7 @@ enum SimScene {
         spec: MarkerSpec,
         opts: RenderOptions,
         marker_t_trocar: Isometry3<f64>,
-        right: Option<CameraModel>,
+        right: Option<Box<CameraModel>>,
     },
     /// The trocar without a marker.
     Trocar(Box<TrocarCamera>),
@@ -191,7 +191,7 @@ impl SimScene {
                 ..RenderOptions::default()
             },
             marker_t_trocar,
-            right: c.right_camera().map_err(invalid)?,
+            right: c.right_camera().map_err(invalid)?.map(Box::new),
         };
         Ok(match hidden_within {
             None => marker,
@@ -273,7 +273,7 @@ impl SimScene {
     /// The right camera of the stereo pair, if the scene renders its image.
     fn right_camera(&self) -> Option<&CameraModel> {
         match self {
-            Self::Marker { right, .. } => right.as_ref(),
+            Self::Marker { right, .. } => right.as_deref(),
             Self::Trocar(camera) | Self::MarkerUntil { trocar: camera, .. } => camera.right_camera(),
         }
     }
@@ -284,7 +284,7 @@ impl SimScene {
     fn right_frame(&self, camera_t_trocar: &Isometry3<f64>, sigma: f64, noise_seed: u64) -> Option<Vec<u8>> {
         match self {
             Self::Marker { right, .. } => {
-                let r = right.as_ref()?;
+                let r = right.as_deref()?;
                 let mut grey = self
                     .render(r, &(r.stereo_right_t_left() * camera_t_trocar))
                     .unwrap_or_else(|_| blank_frame(r));

@@ -174,6 +174,9 @@ pub struct CameraModel {
     pub baseline_m: f64,
 }
 
+/// fx, fy, cx, cy, the distortion coefficients and their model.
+type Intrinsics = (f64, f64, f64, f64, Vec<f64>, DistortionModel);
+
 impl CameraModel {
     /// A distortion-free camera, validated.
     pub fn pinhole(width: u32, height: u32, fx: f64, fy: f64, cx: f64, cy: f64) -> Result<Self, VisionError> {
@@ -219,50 +222,8 @@ impl CameraModel {
         let p = info.p;
         let projection_set = p.iter().any(|v| *v != 0.0);
         let (fx, fy, cx, cy, distortion, distortion_model) = match kind {
-            ImageKind::Rectified => {
-                if p[0] <= 0.0 || p[5] <= 0.0 {
-                    return bad(format!(
-                        "a rectified image is projected with P, whose focal lengths P[0] = {}, P[5] = {} are not \
-                         positive (an uncalibrated camera, or a raw image: set image_kind: raw)",
-                        p[0], p[5]
-                    ));
-                }
-                if p[7] != 0.0 {
-                    return bad(format!("P's Ty = {} (a vertical stereo pair) is not supported", p[7]));
-                }
-                (p[0], p[5], p[2], p[6], vec![], DistortionModel::Rational)
-            }
-            ImageKind::Raw => {
-                let k = info.k;
-                if k[0] <= 0.0 || k[4] <= 0.0 {
-                    return bad(format!(
-                        "a raw image is projected with K, whose focal lengths K[0] = {}, K[4] = {} are not positive \
-                         (an uncalibrated camera)",
-                        k[0], k[4]
-                    ));
-                }
-                let (model, n) = match info.distortion_model {
-                    "plumb_bob" => (DistortionModel::Rational, 5),
-                    "rational_polynomial" => (DistortionModel::Rational, 8),
-                    "equidistant" => (DistortionModel::Equidistant, 4),
-                    m => {
-                        return bad(format!(
-                            "distortion model '{m}' not supported for a raw image (plumb_bob, rational_polynomial, \
-                             equidistant)"
-                        ))
-                    }
-                };
-                // image_geometry takes an empty D as no distortion; an equidistant lens always bends.
-                let empty_ok = model == DistortionModel::Rational && info.d.is_empty();
-                if info.d.len() != n && !empty_ok {
-                    return bad(format!(
-                        "distortion model '{}' has {n} coefficients, D has {}",
-                        info.distortion_model,
-                        info.d.len()
-                    ));
-                }
-                (k[0], k[4], k[2], k[5], info.d.to_vec(), model)
-            }
+            ImageKind::Rectified => Self::rectified_projection(p)?,
+            ImageKind::Raw => Self::raw_projection(info)?,
         };
         let mut c = Self {
             width: info.width,
@@ -291,6 +252,56 @@ impl CameraModel {
         }
         c.validate()?;
         Ok(c)
+    }
+
+    /// A rectified image's intrinsics: P's, with no distortion.
+    fn rectified_projection(p: &[f64]) -> Result<Intrinsics, VisionError> {
+        let bad = |m: String| Err(VisionError::InvalidInput(m));
+        if p[0] <= 0.0 || p[5] <= 0.0 {
+            return bad(format!(
+                "a rectified image is projected with P, whose focal lengths P[0] = {}, P[5] = {} are not \
+                 positive (an uncalibrated camera, or a raw image: set image_kind: raw)",
+                p[0], p[5]
+            ));
+        }
+        if p[7] != 0.0 {
+            return bad(format!("P's Ty = {} (a vertical stereo pair) is not supported", p[7]));
+        }
+        Ok((p[0], p[5], p[2], p[6], vec![], DistortionModel::Rational))
+    }
+
+    /// A raw image's intrinsics: K and D in the named distortion model.
+    fn raw_projection(info: &CameraInfoFields<'_>) -> Result<Intrinsics, VisionError> {
+        let bad = |m: String| Err(VisionError::InvalidInput(m));
+        let k = info.k;
+        if k[0] <= 0.0 || k[4] <= 0.0 {
+            return bad(format!(
+                "a raw image is projected with K, whose focal lengths K[0] = {}, K[4] = {} are not positive \
+                 (an uncalibrated camera)",
+                k[0], k[4]
+            ));
+        }
+        let (model, n) = match info.distortion_model {
+            "plumb_bob" => (DistortionModel::Rational, 5),
+            "rational_polynomial" => (DistortionModel::Rational, 8),
+            "equidistant" => (DistortionModel::Equidistant, 4),
+            m => {
+                return bad(format!(
+                    "distortion model '{m}' not supported for a raw image (plumb_bob, rational_polynomial, \
+                     equidistant)"
+                ))
+            }
+        };
+        // image_geometry takes an empty D as no distortion; an equidistant lens always bends.
+        let empty_ok = model == DistortionModel::Rational && info.d.is_empty();
+        if info.d.len() != n && !empty_ok {
+            return bad(format!(
+                "distortion model '{}' has {n} coefficients, D has {}",
+                info.distortion_model,
+                info.d.len()
+            ));
+        }
+        Ok((k[0], k[4], k[2], k[5], info.d.to_vec(), model))
     }
 
     /// From the parsed calibration YAML: the raw camera (K and D; the baseline from P's Tx).

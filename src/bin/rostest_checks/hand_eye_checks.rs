@@ -28,6 +28,32 @@ fn read(path: &str) -> Result<String, String> {
     std::fs::read_to_string(path).map_err(|e| format!("{path}: {e}"))
 }
 
+/// A result that cannot be judged (3 samples: no held-out residuals) is refused by `~save`,
+/// the saved file (`text`) stays the good one and the package's shipped file is not written.
+/// Returns `~compute`'s and `~save`'s replies.
+fn a_bad_result_is_refused(
+    p: &CheckParams,
+    text: &str,
+    shipped: &str,
+    shipped_text: &str,
+) -> Result<(String, String), String> {
+    let node = &p.hand_eye_node;
+    while !trigger(&format!("{node}/remove_sample"), p.startup_timeout)?.contains("; 3 samples,") {}
+    let three = trigger(&format!("{node}/compute"), p.startup_timeout).unwrap_or_else(|e| e);
+    let refused = match trigger(&format!("{node}/save"), p.startup_timeout) {
+        Ok(m) => return Err(format!("~save wrote a 3-sample result: {m}")),
+        Err(e) if e.contains("no held-out residuals") => e,
+        Err(e) => return Err(format!("~save refused for another reason: {e}")),
+    };
+    if read(&p.hand_eye_output)? != text {
+        return Err("the refused ~save changed the saved file".into());
+    }
+    if read(shipped)? != shipped_text {
+        return Err(format!("the package's {shipped} was written"));
+    }
+    Ok((three, refused))
+}
+
 /// See the module doc.
 pub fn hand_eye(p: &CheckParams) -> Result<String, String> {
     let truth: PoseYaml = rosrust::param("/lbr_med_sim/camera/flange_t_camera")
@@ -99,20 +125,7 @@ pub fn hand_eye(p: &CheckParams) -> Result<String, String> {
             "held-out residuals over the preflight's {b_mm} mm / {b_deg} deg: {summary}"
         ));
     }
-    // A result that cannot be judged is refused, and the file stays the good one.
-    while !trigger(&format!("{node}/remove_sample"), p.startup_timeout)?.contains("; 3 samples,") {}
-    let three = trigger(&format!("{node}/compute"), p.startup_timeout).unwrap_or_else(|e| e);
-    let refused = match trigger(&format!("{node}/save"), p.startup_timeout) {
-        Ok(m) => return Err(format!("~save wrote a 3-sample result: {m}")),
-        Err(e) if e.contains("no held-out residuals") => e,
-        Err(e) => return Err(format!("~save refused for another reason: {e}")),
-    };
-    if read(&p.hand_eye_output)? != text {
-        return Err("the refused ~save changed the saved file".into());
-    }
-    if read(&shipped)? != shipped_text {
-        return Err(format!("the package's {shipped} was written"));
-    }
+    let (three, refused) = a_bad_result_is_refused(p, &text, &shipped, &shipped_text)?;
     // The docking's estimator starts once the file exists: its first pose before `~start`
     // (on a busy host it takes seconds to come up).
     let (pose, _pose_sub) = subscribe_latest::<geometry_msgs::PoseStamped>(::trocar_docking::ros::topics::TROCAR_POSE)?;
