@@ -141,7 +141,9 @@ impl EstimatorNodeParams {
         if self.hand_eye_file.is_empty() {
             return Ok(None);
         }
-        params::hand_eye_mount(&self.hand_eye_file, self.model, &self.urdf_file).map(Some)
+        params::hand_eye_mount(&self.hand_eye_file, self.model, &self.urdf_file)
+            .map(Some)
+            .map_err(NodeError::Invalid)
     }
 
     /// The estimator parameters with the hand-eye `mount` applied, validated.

@@ -717,7 +717,9 @@ pub fn run() -> Result<(), NodeError> {
             .to_isometry()
             .map_err(|e| NodeError::Invalid(format!("estimator.flange_t_camera: {e}")))?
     } else {
-        params::hand_eye_mount(&p.hand_eye_file, p.model, &p.urdf_file)?.flange_t_camera
+        params::hand_eye_mount(&p.hand_eye_file, p.model, &p.urdf_file)
+            .map_err(NodeError::Invalid)?
+            .flange_t_camera
     };
     let (trajectory, multiarray) = match p.command_type {
         CommandType::Trajectory => (Some(rosrust::publish(&p.command_topic, 10).map_err(ros_err)?), None),

@@ -6,7 +6,6 @@
 
 use serde::de::DeserializeOwned;
 
-use super::node::NodeError;
 use crate::kinematics::lbr::{self, LbrModel, ToolParams};
 use crate::kinematics::{fixed_transform, FLANGE_LINK};
 use crate::vision::hand_eye::{load_mount, Mount};
@@ -50,12 +49,13 @@ fn robot_urdf(model: LbrModel, urdf_file: &str) -> Result<String, String> {
 /// easy_handeye calibration: [`crate::vision::hand_eye::easy_handeye`]), as every node reads
 /// it: an easy_handeye effector frame is carried to the flange through the fixed joints of
 /// the robot's URDF (`urdf_file`, else `/robot_description`, else the built-in `model`).
-pub fn hand_eye_mount(path: &str, model: LbrModel, urdf_file: &str) -> Result<Mount, NodeError> {
+/// The error names the parameter `hand_eye_file`.
+pub fn hand_eye_mount(path: &str, model: LbrModel, urdf_file: &str) -> Result<Mount, String> {
     let resolve = |frame: &str| {
         let xml = robot_urdf(model, urdf_file)?;
         fixed_transform(&xml, FLANGE_LINK, frame).map_err(|e| e.to_string())
     };
-    load_mount(std::path::Path::new(path), &resolve).map_err(|e| NodeError::Invalid(format!("`hand_eye_file`: {e}")))
+    load_mount(std::path::Path::new(path), &resolve).map_err(|e| format!("`hand_eye_file`: {e}"))
 }
 
 #[cfg(test)]

@@ -278,7 +278,7 @@ fn hand_eye(p: &PreflightParams, estimator: bool, camera: bool) -> Option<Result
         // The mount as the estimator reads it (either format, an easy_handeye frame through
         // the URDF): an unknown frame or an eye-on-base file fails here.
         let est = estimator_params(&p.estimator_node).unwrap_or_default();
-        params::hand_eye_mount(&path, est.model, &est.urdf_file).map_err(|e| e.to_string())?;
+        params::hand_eye_mount(&path, est.model, &est.urdf_file)?;
         let text = std::fs::read_to_string(&path).map_err(|e| format!("{path}: {e}"))?;
         let since = |t: std::time::SystemTime| {
             t.duration_since(std::time::UNIX_EPOCH)
