@@ -36,7 +36,7 @@ fn collect(topic: &str, seen: &Seen) -> Result<rosrust::Subscriber, String> {
 
 /// See the module doc.
 pub fn camera_tf(p: &CheckParams) -> Result<String, String> {
-    let (info, _info_sub) = crate::common::subscribe_latest::<sensor_msgs::CameraInfo>(topics::CAMERA_INFO)?;
+    let (info, _info_sub) = crate::common::subscribe_latest::<sensor_msgs::CameraInfo>(topics::SIM_CAMERA_INFO)?;
     let frame = wait_for(p.startup_timeout, || info.get())
         .ok_or("no camera_info")?
         .header
