@@ -85,7 +85,7 @@ impl CameraClock {
 pub fn camera_clock(clock: Option<&CameraClock>, lim: &Limits, frame_period_s: f64) -> Check {
     let fix = "synchronise the camera's machine (named above) with the robot's PC: chrony on both, the robot PC \
                its server (`chronyc tracking` on the camera's machine: offset well under 1 ms, `chronyc sources`: the \
-               robot PC selected '*'), then restart the camera driver; docs/lab.md \"Two machines\"";
+               robot PC selected '*'), then restart the camera driver; docs/two-machines.md";
     let Some(c) = clock else {
         return not_checked(
             "CAMERA_CLOCK",
