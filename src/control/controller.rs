@@ -914,4 +914,12 @@ impl CommandSource for OptimalController {
         self.run.goal_window.reset();
         self.run.last_command = Some(hold_at);
     }
+
+    fn settle(&mut self, at: JointVector) {
+        // A hold braked within the guard's acceleration limit: the law stands where it came
+        // to rest (its next hold command, or its next step box, begins there).
+        if self.run.supervisor.phase() != Phase::Idle {
+            self.run.last_command = Some(at);
+        }
+    }
 }

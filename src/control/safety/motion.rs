@@ -128,10 +128,16 @@ fn shape(d: Vector3<f64>, left: f64, v: Vector3<f64>, a: Vector3<f64>, b: Block,
     cap(v + a_new * dt, b.speed)
 }
 
-/// `prev + s (to - prev)` with the largest `s` in [0, 1] that keeps it in `[lo, hi]` (so
-/// that the limited twist keeps its direction and only slows), then clamped (where `prev`
-/// itself is outside the box, e.g. behind a lagging arm's lead bound).
+/// `from + s (to - from)` with the largest `s` in [0, 1] that keeps it in `[lo, hi]` (so
+/// that the limited twist keeps its direction and only slows), then clamped. `from` is
+/// `prev` where the box holds it; where it does not (the guard's acceleration limit keeps a
+/// moving joint off the spot it moves from, or `prev` is behind a lagging arm's lead
+/// bound), the box's centre (for a moving joint, its coasting point): scaling from a `prev`
+/// outside the box would give its braking edge at every step, and the arm would crawl.
 fn into_box(prev: &JointVector, to: &JointVector, lo: &JointVector, hi: &JointVector) -> JointVector {
+    let inside = (0..prev.len()).all(|i| prev[i] >= lo[i] && prev[i] <= hi[i]);
+    let prev = if inside { *prev } else { (lo + hi) * 0.5 };
+    let prev = &prev;
     let step = to - prev;
     let mut s = 1.0f64;
     for i in 0..step.len() {
