@@ -574,20 +574,34 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     assert_eq!(held, Some(frozen), "held where the arm is");
     c.start().unwrap();
     let mut q = frozen;
+    let mut before = q;
     let mut t = (k0 + 10) as f64 * 0.01;
     for _ in 0..10 {
         t += 0.01;
+        before = q;
         q = c.step(&kin, &input(t, q, JointVector::zeros(), troc)).command.unwrap();
     }
     // Pushed off its command by more than the tracking tolerance for one step: hold at the
-    // last command; back within the follow timeout: docking resumes by itself.
+    // last command, braking from its speed within the guard's acceleration limit (one step
+    // of that speed less one of the limit, no further); back within the follow timeout:
+    // docking resumes by itself.
     let mut pushed = q;
     pushed[3] += p.guard.max_tracking_error_rad * 1.2;
     t += 0.01;
     let out = c.step(&kin, &input(t, pushed, JointVector::zeros(), troc));
     assert_eq!(out.phase, Phase::Hold);
     assert_eq!(out.reason_code(), "TRACKING_ERROR", "{:?}", out.hold);
-    assert_eq!(out.command, Some(q), "holding at the last command");
+    let braked = out.command.unwrap() - q;
+    let step = q - before;
+    for i in 0..7 {
+        let most = step[i].abs() - (p.guard.max_acceleration_rad_s2 * 1e-4).min(step[i].abs());
+        assert!(
+            braked[i].abs() <= most + 1e-12,
+            "joint {i}: {} past the last command",
+            braked[i]
+        );
+        assert!(braked[i] * step[i] >= 0.0, "joint {i} went back");
+    }
     t += 0.01;
     let out = c.step(&kin, &input(t, q, JointVector::zeros(), troc));
     assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);
