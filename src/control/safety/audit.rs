@@ -7,6 +7,8 @@
 //! ([`crate::control::safety::guarded`]): the clock's advance, at most the nominal period;
 //! a clock that did not advance or jumped (back, or forward by more than
 //! `max_clock_jump_s`) counts the loop's own pace, the period. A stream starts at rest.
+//! Where the listener knows it missed commands (a ROS subscription's sequence numbers),
+//! [`CommandAudit::resync`] takes the next one without judging the pair it cannot see.
 
 use crate::control::safety::guard::GuardParams;
 use crate::kinematics::{JointLimits, JointVector};
@@ -15,14 +17,15 @@ use crate::kinematics::{JointLimits, JointVector};
 pub const AUDIT_TOLERANCE: f64 = 1e-6;
 
 /// The running audit of one command stream.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Copy)]
 pub struct CommandAudit {
     vmax: JointVector,
     amax: f64,
     period: f64,
     max_jump: f64,
     last: Option<(f64, JointVector)>,
-    velocity: JointVector,
+    /// The velocity of the last pair (`None`: unknown after a resync), rad/s.
+    velocity: Option<JointVector>,
     /// Commands seen.
     pub count: usize,
     /// The largest joint speed over the stream, as a share of that joint's limit.
@@ -42,7 +45,7 @@ impl CommandAudit {
             period,
             max_jump: g.max_clock_jump_s,
             last: None,
-            velocity: JointVector::zeros(),
+            velocity: Some(JointVector::zeros()),
             count: 0,
             worst_speed: 0.0,
             worst_accel: 0.0,
@@ -62,13 +65,13 @@ impl CommandAudit {
             };
             let v = (q - q0) / dt;
             let speed = (0..v.len()).map(|i| v[i].abs() / self.vmax[i]).fold(0.0, f64::max);
-            let accel = (v - self.velocity).amax() / (self.amax * dt);
+            let accel = self.velocity.map_or(0.0, |v0| (v - v0).amax() / (self.amax * dt));
             if speed.max(accel) > self.worst_speed.max(self.worst_accel) {
                 self.worst_at = t;
             }
             self.worst_speed = self.worst_speed.max(speed);
             self.worst_accel = self.worst_accel.max(accel);
-            self.velocity = v;
+            self.velocity = Some(v);
         }
         self.last = Some((t, *q));
     }
@@ -76,7 +79,16 @@ impl CommandAudit {
     /// No command this step (nothing published, IDLE): the next one starts from rest.
     pub fn gap(&mut self) {
         self.last = None;
-        self.velocity = JointVector::zeros();
+        self.velocity = Some(JointVector::zeros());
+    }
+
+    /// The command `q` at `t` after commands the listener missed: counted, the pair before
+    /// it not judged (its time and velocity are unknown), the acceleration judged again
+    /// from the pair after it.
+    pub fn resync(&mut self, t: f64, q: &JointVector) {
+        self.count += 1;
+        self.last = Some((t, *q));
+        self.velocity = None;
     }
 
     /// The verdict: a line with both shares, an error where one is over its limit.
@@ -128,5 +140,18 @@ mod tests {
         assert!(audit.worst_accel > 10.0, "{}", audit.worst_accel);
         let e = audit.verdict().unwrap_err();
         assert!(e.contains("over the limit at t = 1.000"), "{e}");
+        // After missed commands the pair across the gap is not judged, the next one is.
+        let mut audit = CommandAudit::new(&g, &limits, 0.01);
+        let mut q = JointVector::zeros();
+        audit.add(0.0, &q);
+        q[1] += 1.0;
+        audit.resync(0.05, &q);
+        assert_eq!((audit.count, audit.worst_speed, audit.worst_accel), (2, 0.0, 0.0));
+        q[1] += vmax * 0.01;
+        audit.add(0.06, &q);
+        assert!((audit.worst_speed - 1.0).abs() < 1e-9, "{}", audit.worst_speed);
+        assert_eq!(audit.worst_accel, 0.0);
+        audit.add(0.07, &q);
+        assert!(audit.worst_accel > 10.0, "{}", audit.worst_accel);
     }
 }
