@@ -24,6 +24,8 @@
 //!   controller and the estimator flat (`max_rss_growth_mb`), the estimator's poses fresh
 //!   (it drops frames rather than queueing them).
 //!
+//! "Nothing moves" is judged once the hold has braked to rest (its command unchanged for
+//! 50 ms): a hold brakes within the guard's acceleration limit, never at once from speed.
 //! `blocked_arm`, the clock jumps and `driver_restart` also audit every command of the run,
 //! holds and re-anchors included, against the guard's speed and acceleration limits
 //! ([`crate::command_audit`]).
@@ -394,6 +396,19 @@ fn no_motion_until_start(
     status: &Latest<trocar_docking::DockingStatus>,
     code: &str,
 ) -> Result<String, String> {
+    // A hold brakes to rest within the guard's acceleration limit, never an instant stop
+    // from speed (its commands are audited against the limits): stillness is judged from
+    // rest on, once the command has not changed for 50 ms (within 1 s).
+    let settle_by = Instant::now() + Duration::from_secs(1);
+    let mut last = plant.seen().last;
+    loop {
+        std::thread::sleep(Duration::from_millis(50));
+        let now = plant.seen().last;
+        if now == last || Instant::now() > settle_by {
+            break;
+        }
+        last = now;
+    }
     let before = (plant.seen().last, status.count());
     plant.clear();
     std::thread::sleep(Duration::from_secs_f64(p.hold_observe));
