@@ -154,6 +154,25 @@ fn start_while_caught(s: &mut PivotSession, limit: f64, seed: u64) {
     }
 }
 
+/// A 3 s jam of `stiffness` N/m while the scope moves as `motion`: the true force under the
+/// guard's stop + 20 %, and held with `FORCE_LIMIT` wherever the run held.
+fn under_the_stop(c: &ControllerParams, seed: u64, motion: Motion, stiffness: f64) -> Jammed {
+    let j = jam(c, seed, motion, stiffness, 3.0);
+    assert!(
+        j.peak_n < 1.2 * c.guard.force_stop_n,
+        "{motion:?} seed {seed}, {stiffness} N/m: true force {:.1} N",
+        j.peak_n
+    );
+    if j.held > 0 {
+        assert_eq!(
+            (j.phase, j.code),
+            (Phase::Hold, "FORCE_LIMIT"),
+            "{motion:?} seed {seed}, {stiffness} N/m"
+        );
+    }
+    j
+}
+
 /// The jams of the tests: from soft (5000 N/m: three times the abdominal wall's 1500 N/m,
 /// config/sim.yaml) to stiff (50 000 N/m, the order of the arm's own stiffness at the tip).
 const STIFFNESSES: [f64; 4] = [5000.0, 8000.0, 20_000.0, 50_000.0];
@@ -244,15 +263,7 @@ fn a_jammed_pan_stays_under_the_stop_and_holds_with_the_scope_where_it_stopped()
     let mut worst_without = 0.0f64;
     for seed in [1, 2, 3] {
         for k in STIFFNESSES {
-            let j = jam(&c, seed, Motion::Pan, k, 3.0);
-            assert!(
-                j.peak_n < 1.2 * c.guard.force_stop_n,
-                "seed {seed}, {k} N/m: true force {:.1} N",
-                j.peak_n
-            );
-            if j.held > 0 {
-                assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}, {k} N/m");
-            }
+            under_the_stop(&c, seed, Motion::Pan, k);
         }
         let mut j = jam(&c, seed, Motion::Pan, 50_000.0, 3.0);
         assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}");
@@ -297,14 +308,8 @@ fn a_jam_while_the_scope_is_held_still_and_follows_the_breathing_stays_under_the
     assert!(c.scope.breathing.follow, "the shipped law follows the breathing");
     for seed in [1, 2, 3] {
         for k in STIFFNESSES {
-            let j = jam(&c, seed, Motion::Still, k, 3.0);
-            assert!(
-                j.peak_n < 1.2 * c.guard.force_stop_n,
-                "seed {seed}, {k} N/m: true force {:.1} N",
-                j.peak_n
-            );
+            let j = under_the_stop(&c, seed, Motion::Still, k);
             if j.held > 0 {
-                assert_eq!((j.phase, j.code), (Phase::Hold, "FORCE_LIMIT"), "seed {seed}, {k} N/m");
                 assert!(
                     j.moved_while_held_m < 0.00025,
                     "seed {seed}, {k} N/m: moved {:.3} mm held",
