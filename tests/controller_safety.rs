@@ -391,6 +391,8 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
     }
     // The marker is lost: the trocar pose stops at t = 0.1 s.
     let mut last = q;
+    let mut before = q;
+    let mut held = Vec::new();
     for k in 11..=100 {
         let now = k as f64 * 0.01;
         let mut inp = input(now, q, JointVector::zeros(), troc);
@@ -403,10 +405,28 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
         if now > 0.1 + p.guard.trocar_timeout_s + 0.011 {
             assert_eq!(o.phase, Phase::Hold, "at {now}");
             assert_eq!(o.reason_code(), "STALE_TROCAR_POSE");
-            assert_eq!(q, last, "holding means not moving");
+            if held.is_empty() {
+                held.push(last);
+            }
+            held.push(q);
+        } else {
+            before = last;
         }
         last = q;
     }
+    // Holding: braked to rest within the acceleration limit (in the steps it needs from
+    // the command's speed at the hold, one more for rounding), then not moving.
+    let speed = (held[0] - before).amax() / 0.01;
+    let brake_steps = (speed / (p.guard.max_acceleration_rad_s2 * 0.01)).ceil() as usize + 1;
+    let still = held.windows(2).position(|w| w[0] == w[1]).expect("never at rest");
+    assert!(
+        still <= brake_steps,
+        "at rest after {still} steps, {brake_steps} expected"
+    );
+    assert!(
+        held[still..].iter().all(|c| *c == held[still]),
+        "holding means not moving"
+    );
     // Back: resumes by itself.
     let o = c.step(&kin, &input(1.01, q, JointVector::zeros(), troc));
     assert_eq!(o.phase, Phase::Approach);
@@ -550,9 +570,11 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     // where the arm is (tests/controller_failure_modes.rs has the timing).
     let frozen = q_start();
     let mut held_at = None;
+    let (mut last, mut before_hold) = (frozen, frozen);
     for k in 1..=200 {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
-        let last = out.command.unwrap();
+        before_hold = last;
+        last = out.command.unwrap();
         for i in 0..7 {
             assert!((last[i] - frozen[i]).abs() <= p.guard.max_command_lead_rad + 1e-9);
         }
@@ -564,14 +586,31 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     }
     let k0 = held_at.expect("no hold although the arm never moved");
     // Still frozen: the hold stays and walks the command to where the arm is (within the
-    // speed limits, src/control/safety/guarded.rs), then stays put; a start resumes.
+    // speed and acceleration limits, src/control/safety/guarded.rs), then stays put; a
+    // start resumes. The walk takes what the acceleration limit needs: braking from the
+    // command's speed (v / a), then ramping up and braking over what is left (the lead
+    // plus the braking distance, 2 sqrt(d / a)), and a step of rounding per phase.
+    let a = p.guard.max_acceleration_rad_s2;
+    let v = (last - before_hold).amax() / 0.01;
+    let d = (last - frozen).amax() + v * v / (2.0 * a);
+    let most = ((v / a + 2.0 * (d / a).sqrt()) / 0.01).ceil() as usize + 3;
     let mut held = None;
-    for k in k0 + 1..=k0 + 10 {
-        let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
+    let mut steps = 0;
+    while held != Some(frozen) {
+        let out = c.step(
+            &kin,
+            &input((k0 + steps + 1) as f64 * 0.01, frozen, JointVector::zeros(), troc),
+        );
         assert_eq!(out.phase, Phase::Hold);
         held = out.command;
+        steps += 1;
+        assert!(steps <= most, "not where the arm is after {steps} steps: {held:?}");
     }
-    assert_eq!(held, Some(frozen), "held where the arm is");
+    for k in k0 + steps + 1..=k0 + steps + 10 {
+        let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
+        assert_eq!(out.command, Some(frozen), "held where the arm is");
+    }
+    let k0 = k0 + steps;
     c.start().unwrap();
     let mut q = frozen;
     let mut before = q;

@@ -443,8 +443,8 @@ mod tests {
             }
             let speeds: Vec<JointVector> = qs.windows(2).map(|w| (w[1] - w[0]) / dt).collect();
             for w in speeds.windows(2) {
-                for i in 0..7 {
-                    prop_assert!((w[1][i] - w[0][i]).abs() <= a * dt + 1e-9, "joint {}: {} -> {}", i + 1, w[0][i], w[1][i]);
+                for (i, dv) in (w[1] - w[0]).iter().enumerate() {
+                    prop_assert!(dv.abs() <= a * dt + 1e-9, "joint {}: {} -> {}", i + 1, w[0][i], w[1][i]);
                 }
             }
             prop_assert!(speeds[need..].iter().all(|s| s.amax() < 1e-9), "not at rest after {} steps", need);
