@@ -355,6 +355,22 @@ pub fn subscribe_latest<T: rosrust::Message>(topic: &str) -> Result<(Latest<T>, 
     Ok((latest, sub))
 }
 
+/// Wait until `current` has not changed for 50 ms, at most `most` s: a hold brakes to rest
+/// within the guard's acceleration limit (never an instant stop from speed), and stillness
+/// is judged from rest on.
+pub fn wait_until_still<T: PartialEq>(most: f64, current: impl Fn() -> T) {
+    let until = Instant::now() + Duration::from_secs_f64(most);
+    let mut last = current();
+    loop {
+        std::thread::sleep(Duration::from_millis(50));
+        let now = current();
+        if now == last || Instant::now() > until {
+            break;
+        }
+        last = now;
+    }
+}
+
 /// Poll `f` every 10 ms until it gives `Some` or `timeout` passes (wall clock).
 pub fn wait_for<T, F: FnMut() -> Option<T>>(timeout: f64, mut f: F) -> Option<T> {
     let t0 = Instant::now();

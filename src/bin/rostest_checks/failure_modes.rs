@@ -38,7 +38,7 @@ use nalgebra::{Isometry3, Translation3, Vector3};
 
 use crate::camera_checks::camera_frame;
 use crate::command_audit::TopicAudit;
-use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
+use crate::common::{subscribe_latest, trigger, wait_for, wait_until_still, CheckParams, Latest};
 use ::trocar_docking::control::safety::guard::LEAD_WATCH_FRACTION;
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -396,19 +396,8 @@ fn no_motion_until_start(
     status: &Latest<trocar_docking::DockingStatus>,
     code: &str,
 ) -> Result<String, String> {
-    // A hold brakes to rest within the guard's acceleration limit, never an instant stop
-    // from speed (its commands are audited against the limits): stillness is judged from
-    // rest on, once the command has not changed for 50 ms (within 1 s).
-    let settle_by = Instant::now() + Duration::from_secs(1);
-    let mut last = plant.seen().last;
-    loop {
-        std::thread::sleep(Duration::from_millis(50));
-        let now = plant.seen().last;
-        if now == last || Instant::now() > settle_by {
-            break;
-        }
-        last = now;
-    }
+    // The hold's braking (its commands are audited against the guard's limits) first.
+    wait_until_still(1.0, || plant.seen().last);
     let before = (plant.seen().last, status.count());
     plant.clear();
     std::thread::sleep(Duration::from_secs_f64(p.hold_observe));
