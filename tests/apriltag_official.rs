@@ -455,8 +455,8 @@ fn opencv_apriltag_names_are_the_official_families() {
 //   with vpDetectorAprilTag::getTagsCorners() (libapriltag's `det->p`, the official order).
 // - benchmark/1920x1080/: the same families; perfApriltagDetection.cpp gives their camera,
 //   fx = fy = 2100, cx = 960, cy = 540, and no poses. The test below takes the 640x480 poses
-//   for them and checks that it may: every ground-truth object point projects within 1 px
-//   of our corner (the same scene, rendered at three times the focal length).
+//   for them and checks that it may: every ground-truth object point projects within
+//   `VISP_CORNER_TO_TRUTH_PX` of our corner (the same scene at three times the focal length).
 // - AprilTag.pgm (tag36h11 ids 8..19, tag 0.053 m, camera 615.1674805, 615.1675415,
 //   312.1889954, 243.4373779): ground_truth_pose.txt holds `36h11_id:_<id> tx ty tz tux tuy
 //   tuz` (vpPoseVector: translation, theta-u) and ground_truth_detection.txt the corners as
