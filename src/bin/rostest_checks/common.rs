@@ -144,6 +144,9 @@ pub struct CheckParams {
     /// `docking`: the largest accepted distance at DONE of the true port from the estimated
     /// insertion axis (`pose_topic` against `true_pose_topic`), m (0 = not checked).
     pub max_axis_error_m: f64,
+    /// `docking`: the largest accepted angle at DONE between the estimated insertion axis and
+    /// the true port's, deg (0 = not checked).
+    pub max_axis_error_deg: f64,
     /// `docking`: the sources (`marker`, `markerless`, comma-separated) that must each have
     /// had a pose published during the run, by the estimator's status lines ('' = not checked).
     pub estimator_published: String,
@@ -235,6 +238,7 @@ impl Default for CheckParams {
             preview_topic: "/docking_controller/preview".into(),
             preview_joint_states_topic: "/docking_controller/preview_joint_states".into(),
             max_axis_error_m: 0.0,
+            max_axis_error_deg: 0.0,
             estimator_published: String::new(),
             estimator_status_topic: "/trocar_estimator/status".into(),
             hand_eye_node: "/hand_eye_calibration".into(),
@@ -290,6 +294,7 @@ impl CheckParams {
         validate::duration("retract_timeout", self.retract_timeout)?;
         validate::positive("reconfigure_force_stop", self.reconfigure_force_stop)?;
         validate::non_negative("max_axis_error_m", self.max_axis_error_m)?;
+        validate::non_negative("max_axis_error_deg", self.max_axis_error_deg)?;
         validate::positive("max_mount_error_m", self.max_mount_error_m)?;
         validate::positive("max_mount_error_deg", self.max_mount_error_deg)?;
         Ok(())

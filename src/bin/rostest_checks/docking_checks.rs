@@ -234,8 +234,13 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     if let Some(insert) = insert {
         note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }
-    if p.max_axis_error_m > 0.0 {
-        note.push_str(&judge_axis(estimate.get(), truth.get(), p.max_axis_error_m)?);
+    if p.max_axis_error_m > 0.0 || p.max_axis_error_deg > 0.0 {
+        note.push_str(&judge_axis(
+            estimate.get(),
+            truth.get(),
+            p.max_axis_error_m,
+            p.max_axis_error_deg,
+        )?);
     }
     if let Some(published) = published {
         note.push_str(&published.judge()?);
@@ -313,11 +318,13 @@ impl PublishedBy {
 }
 
 /// The true port's distance from the estimated insertion axis (z of the estimated trocar
-/// pose) and the angle between the axes, at DONE; an error above `max_m`.
+/// pose) and the angle between the axes, at DONE; an error above `max_m` or `max_deg`
+/// (each 0 = not checked).
 fn judge_axis(
     estimate: Option<geometry_msgs::PoseStamped>,
     truth: Option<geometry_msgs::PoseStamped>,
     max_m: f64,
+    max_deg: f64,
 ) -> Result<String, String> {
     let (Some(e), Some(t)) = (estimate, truth) else {
         return Err("no estimated or true trocar pose at DONE".into());
@@ -332,11 +339,14 @@ fn judge_axis(
         "; estimated axis {:.2} mm from the true port, {angle:.2} deg",
         lateral * 1e3
     );
-    if lateral > max_m {
+    if max_m > 0.0 && lateral > max_m {
         return Err(format!(
             "DONE, but the estimated axis is over {} mm off{text}",
             max_m * 1e3
         ));
+    }
+    if max_deg > 0.0 && angle > max_deg {
+        return Err(format!("DONE, but the estimated axis is over {max_deg} deg off{text}"));
     }
     Ok(text)
 }
