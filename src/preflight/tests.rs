@@ -69,6 +69,14 @@ fn good(kin: &dyn Kinematics) -> Observations {
             residual_max_m: Some(0.0008),
             residual_max_rad: Some(0.003),
         })),
+        driver_clock: Some(driver_clock::DriverClock {
+            joint_state_delays_s: vec![3e-4; 500],
+            lbr_state_delays_s: vec![3e-4; 500],
+            stamped_commands: false,
+            time_from_start_s: 0.02,
+            driver_period_s: 0.002,
+            input_timeout_s: 0.1,
+        }),
         command_subscribers: vec!["/lbr_med_sim".into()],
         command_topic: "/cmd".into(),
         camera_clock: Some(CameraClock {
@@ -152,6 +160,11 @@ fn each_fault_fails_its_own_check_only() {
         }),
         ("CLOCK", |o| o.simulator = None),
         ("COMMAND_SUBSCRIBER", |o| o.command_subscribers.clear()),
+        ("DRIVER_CLOCK", |o| {
+            if let Some(c) = &mut o.driver_clock {
+                c.joint_state_delays_s = vec![-0.08; 500];
+            }
+        }),
     ];
     for (code, fault) in faults {
         let mut o = good(&k);

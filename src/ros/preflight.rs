@@ -57,6 +57,9 @@ struct Seen {
     high: Vec<f64>,
     lbr: Stamps,
     lbr_stamps: Vec<f64>,
+    /// Arrival minus stamp of each joint state and LBRState, s (the driver's clock).
+    joint_delays: Vec<f64>,
+    lbr_delays: Vec<f64>,
     sample_time: f64,
     tau_ext: Vec<Vec<f64>>,
     images: Stamps,
@@ -75,6 +78,8 @@ struct Seen {
 impl Seen {
     fn joint_states(&mut self, m: &sensor_msgs::JointState) {
         self.joints.add(convert::seconds(m.header.stamp));
+        self.joint_delays
+            .push(convert::seconds(rosrust::now()) - convert::seconds(m.header.stamp));
         if m.name != self.names || m.position.len() != self.low.len() {
             self.names.clone_from(&m.name);
             self.low.clone_from(&m.position);
@@ -179,6 +184,7 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
             let t = convert::seconds(m.stamp.data);
             s.lbr.add(t);
             s.lbr_stamps.push(t);
+            s.lbr_delays.push(convert::seconds(rosrust::now()) - t);
             s.sample_time = m.sample_time;
             s.tau_ext.push(m.external_torque);
         })?,
@@ -426,11 +432,26 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
             markerless: estimator && markerless,
         },
         hand_eye: hand_eye(p, estimator, camera),
+        driver_clock: driver_clock(&s, node),
         command_subscribers,
         command_topic: node.command_topic.clone(),
         camera_clock: camera_clock(camera, &s.image_ages, &topics.image, est_params.as_ref(), node)?,
     };
     Ok(preflight::evaluate(&obs, &p.limits, &node.controller.tare, kin))
+}
+
+/// The driver's stamps against their arrival, and the command stream the controller sends.
+fn driver_clock(s: &Seen, node: &ControllerNodeParams) -> Option<preflight::driver_clock::DriverClock> {
+    let guard = &node.controller.guard;
+    (!s.joint_delays.is_empty()).then(|| preflight::driver_clock::DriverClock {
+        joint_state_delays_s: s.joint_delays.clone(),
+        lbr_state_delays_s: s.lbr_delays.clone(),
+        stamped_commands: node.command_stamp == crate::ros::node::CommandStamp::Step,
+        time_from_start_s: node.command_lookahead_periods * node.controller.dt_s,
+        // Without an LBRState (LBR_STATE fails), the longest FRI period a position controller runs at.
+        driver_period_s: if s.sample_time > 0.0 { s.sample_time } else { 0.005 },
+        input_timeout_s: guard.joint_timeout_s.min(guard.torque_timeout_s),
+    })
 }
 
 /// The `preflight` node: read the controller's parameters from the server (the defaults,
