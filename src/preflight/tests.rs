@@ -125,7 +125,7 @@ fn a_good_set_up_passes_and_says_what_it_does_not_check() {
 fn each_fault_fails_its_own_check_only() {
     let k = kin();
     type Fault = fn(&mut Observations);
-    let faults: [(&str, Fault); 14] = [
+    let faults: [(&str, Fault); 15] = [
         ("JOINT_STATES", |o| {
             o.joint_states.as_mut().unwrap().stream.span_s = 10.0
         }),
