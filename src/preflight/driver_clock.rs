@@ -1,32 +1,49 @@
-//! `DRIVER_CLOCK`: the driver's clock against the controller's, and whether the command
-//! stream survives the driver's `joint_trajectory_controller` with it (pure).
+//! `DRIVER_CLOCK`: whether the command stream survives the driver's
+//! `joint_trajectory_controller` on the driver's clock (pure).
 //!
-//! The driver stamps its joint states with its own clock (the ROS 1 LBR driver calls
-//! `controller_manager.update(ros::Time::now(), period)` once per FRI cycle, and
-//! `joint_state_controller` stamps with that time); its LBRState carries the FRI robot
-//! state's own timestamp. Each message's arrival (controller's clock) minus its stamp is the
-//! transport's latency minus the driver clock's lead; the smallest over the window, the
-//! transport's least latency taken as 0, is how far the driver's clock reads **ahead**.
+//! **Which clock stamps what.** The ROS 1 LBR driver calls
+//! `controller_manager.update(ros::Time::now(), period)` once per FRI cycle on the driver's
+//! PC, and `joint_state_controller` stamps `/lbr/joint_states` with that time: the driver PC's
+//! clock, the clock its trajectory controller judges commands on. Its `/lbr/states`
+//! (`lbr_msgs/LBRState`) carries the FRI robot state's own timestamp
+//! (`lbr_fri_ros/src/lbr_client.h`, `update_lbr`): the KUKA controller's clock, not the driver
+//! PC's; it says nothing of when a command is dropped.
 //!
-//! Two things fail:
-//! - **Stale or future inputs**: the controller takes a joint state or torque only within
-//!   `input_timeout_s` of its own clock either way; a stamp off by more than half of it
-//!   leaves the other half to the transport and the driver's period.
-//! - **Dropped commands** (commands stamped with the step's time only): the trajectory
-//!   controller drops a point due at or before its next update
-//!   ([`crate::ros::trajectory`]), so the point's `time_from_start` must exceed the driver
-//!   clock's lead, the driver's period and the transport's spread (the delays' p99 over
-//!   their least). A zero stamp (`command_stamp: next_update`, as shipped) starts each
-//!   point at the driver's next update on its own clock: `time_from_start > 0` suffices.
+//! **The rule** ([`crate::ros::trajectory`], from ros_controllers' `init_joint_trajectory.h`):
+//! a message whose point is due at or before the controller's next update is dropped whole.
+//! - A **zero stamp** (`command_stamp: next_update`, as shipped) starts the point at the next
+//!   update on the driver's own clock: it is due `time_from_start` after it, whatever the two
+//!   clocks read. Dropped only when `time_from_start` is 0; no measurement enters.
+//! - A **stamped** command (`command_stamp: step`: the controller's step time) is due
+//!   `time_from_start` after the step on the controller's clock. It reaches the driver the
+//!   transport's latency later, by when the driver's clock reads the step time plus its lead
+//!   plus that latency, and the next update comes up to a driver period after that. Its least
+//!   lead over the next update: `time_from_start - lead - latency - period`; dropped at 0.
+//!
+//! **The measurement.** Each joint state's arrival on the controller's clock minus its
+//! stamp is the transport's latency minus the driver clock's lead. The lead is read from the
+//! reference delay: on the wall clock the **least** one (no message arrives before it is
+//! sent; the least latency taken as 0); under `/use_sim_time` the **median**: there the
+//! preflight's clock is the last `/clock` it took in, which lags the simulator's by tens of
+//! ms at times on a loaded host, and a lagging clock reads a message as arriving before its
+//! stamp, i.e. the driver's clock as ahead. A lag that passes moves a few messages, an offset
+//! moves them all; the median follows the offset. The latency's spread is the delays' p99
+//! over the reference.
+//!
+//! **The inputs.** The controller takes a joint state or torque only within its
+//! `input_timeout_s` either way of its own clock (`CommandGuard::fresh`): a driver clock
+//! off by more, whatever the commands, holds the controller at once (stale or future joint
+//! states), so that is refused too. The LBRState's offset is reported, never judged here.
 
 use super::{check, not_checked, Check};
+use crate::stats::quantile_sorted;
 
 /// What the preflight saw of the driver's clock, and the command stream it must carry.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct DriverClock {
-    /// Arrival (controller's clock) minus stamp (driver's clock) of each joint state, s.
+    /// Arrival (controller's clock) minus stamp (driver PC's clock) of each joint state, s.
     pub joint_state_delays_s: Vec<f64>,
-    /// The same for each LBRState, s.
+    /// The same for each LBRState (the robot controller's clock), s: reported only.
     pub lbr_state_delays_s: Vec<f64>,
     /// Whether the commands carry the step's time as their stamp (`command_stamp: step`);
     /// false: a zero stamp.
@@ -35,74 +52,92 @@ pub struct DriverClock {
     pub time_from_start_s: f64,
     /// The driver's period (the LBRState's `sample_time`), s.
     pub driver_period_s: f64,
-    /// The controller's freshness bound on joint states and torques, s.
+    /// The controller's freshness bound on joint states, s.
     pub input_timeout_s: f64,
 }
 
-/// The smallest and the 99th percentile (nearest rank) of `x`, finite values only.
-fn least_and_p99(x: &[f64]) -> Option<(f64, f64)> {
-    let mut v: Vec<f64> = x.iter().copied().filter(|d| d.is_finite()).collect();
+/// The driver's clock against the controller's, as its stamps show it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ClockOffset {
+    /// How far the driver's clock reads ahead of the controller's, s (negative: behind).
+    pub ahead_s: f64,
+    /// The transport's spread: the delays' p99 over the reference delay, s (>= 0).
+    pub spread_s: f64,
+    /// The least delay, s.
+    pub least_s: f64,
+    /// The delays' p99, s.
+    pub p99_s: f64,
+}
+
+/// The driver clock's lead from arrival-minus-stamp `delays_s` (see the module doc;
+/// `sim_time`: the controller's clock is `/clock`). None without a finite delay.
+pub fn clock_offset(delays_s: &[f64], sim_time: bool) -> Option<ClockOffset> {
+    let mut v: Vec<f64> = delays_s.iter().copied().filter(|d| d.is_finite()).collect();
     if v.is_empty() {
         return None;
     }
     v.sort_by(f64::total_cmp);
-    let k = ((v.len() as f64 * 0.99).ceil() as usize).clamp(1, v.len()) - 1;
-    Some((v[0], v[k]))
+    let reference = if sim_time { quantile_sorted(&v, 0.5) } else { v[0] };
+    let p99 = quantile_sorted(&v, 0.99);
+    Some(ClockOffset {
+        ahead_s: -reference,
+        spread_s: (p99 - reference).max(0.0),
+        least_s: v[0],
+        p99_s: p99,
+    })
 }
 
-/// The driver clock's lead over the controller's as its stamps show it, s (None: no stamps).
-pub fn driver_clock_ahead_s(delays_s: &[f64]) -> Option<f64> {
-    least_and_p99(delays_s).map(|(least, _)| -least)
-}
-
-/// The command point's least lead over the driver's next update, s: what the stream has left
-/// once the driver clock's lead, its period and the transport's spread are taken.
-pub fn command_lead_s(c: &DriverClock) -> Option<f64> {
-    if !c.stamped_commands {
-        return Some(c.time_from_start_s);
+/// The command point's least lead over the driver's next update, s (see the module doc):
+/// `time_from_start` for a zero stamp; for a stamped command what is left of it once the
+/// driver clock's lead, the transport's spread and the driver's period are taken.
+pub fn command_lead_s(c: &DriverClock, offset: &ClockOffset) -> f64 {
+    if c.stamped_commands {
+        c.time_from_start_s - offset.ahead_s - offset.spread_s - c.driver_period_s
+    } else {
+        c.time_from_start_s
     }
-    let (least, p99) = least_and_p99(&c.joint_state_delays_s)?;
-    Some(c.time_from_start_s - (-least) - c.driver_period_s - (p99 - least))
 }
 
-const FIX: &str = "synchronise the two machines' clocks (chrony: the controller's machine a server of the \
-                   driver's, or both of one server; `chronyc tracking` within a millisecond), or leave the \
-                   command's stamp 0 (command_stamp: next_update) or raise command_lookahead_periods";
+const FIX: &str =
+    "leave the command's stamp 0 (command_stamp: next_update, as shipped: the driver starts each point at \
+                   its own next update), or raise command_lookahead_periods, or synchronise the two machines' clocks \
+                   (chrony: the controller's machine a server of the driver's, or both of one server; `chronyc \
+                   tracking` within a millisecond)";
 
-/// The `DRIVER_CLOCK` check (None: no driver stamps were seen; `JOINT_STATES` says so).
-pub fn driver_clock_check(c: Option<&DriverClock>) -> Check {
+/// The `DRIVER_CLOCK` check (None: no driver stamps were seen; `JOINT_STATES` says so);
+/// `sim_time`: the controller's clock is `/clock`.
+pub fn driver_clock_check(c: Option<&DriverClock>, sim_time: bool) -> Check {
     let Some(c) = c else {
         return not_checked("DRIVER_CLOCK", "no driver stamps".into());
     };
-    let Some((least, p99)) = least_and_p99(&c.joint_state_delays_s) else {
+    let Some(o) = clock_offset(&c.joint_state_delays_s, sim_time) else {
         return not_checked("DRIVER_CLOCK", "no joint-state stamps".into());
     };
-    let bound = c.input_timeout_s / 2.0;
-    let worst = least.abs().max(p99.abs());
-    let lbr = least_and_p99(&c.lbr_state_delays_s);
-    let lbr_worst = lbr.map_or(0.0, |(l, p)| l.abs().max(p.abs()));
-    let lead = command_lead_s(c).unwrap_or(f64::NAN);
-    let ok = worst <= bound && lbr_worst <= bound && lead > 0.0;
-    let stamp = if c.stamped_commands {
-        "the step's time"
+    let lead = command_lead_s(c, &o);
+    // CommandGuard::fresh: the least age (-ahead) and the largest (-ahead + spread) within
+    // the timeout either way.
+    let fresh = o.ahead_s <= c.input_timeout_s && o.spread_s - o.ahead_s <= c.input_timeout_s;
+    let ok = lead > 0.0 && fresh;
+    let lbr = clock_offset(&c.lbr_state_delays_s, sim_time)
+        .map_or("none".to_string(), |l| format!("{:+.1} ms", l.ahead_s * 1e3));
+    let (stamp, basis) = if c.stamped_commands {
+        ("the step's time", "time_from_start - lead - spread - driver period")
     } else {
-        "0 (the driver's next update)"
+        ("0", "time_from_start after the driver's next update, on its own clock")
     };
     let detail = format!(
-        "the driver's clock {:+.1} ms ahead (joint states delayed {:.1} to {:.1} ms, LBRState {}; each within \
-         +-{:.0} ms); commands stamped {stamp}, due {:.1} ms after the driver's next update at least \
-         (time_from_start {:.1} ms, driver period {:.1} ms; > 0 or dropped)",
-        -least * 1e3,
-        least * 1e3,
-        p99 * 1e3,
-        lbr.map_or("none".to_string(), |(l, p)| format!(
-            "{:.1} to {:.1} ms",
-            l * 1e3,
-            p * 1e3
-        )),
-        bound * 1e3,
+        "the driver PC's clock {:+.1} ms ahead ({} delay of its joint states; least {:.1}, p99 {:.1} ms; \
+         within +-{:.0} ms or the controller holds); commands stamped {stamp}: due {:.1} ms after the \
+         driver's next update at least ({basis}: time_from_start {:.1} ms, spread {:.1} ms, driver period \
+         {:.1} ms; > 0 or dropped); LBRState (robot controller's clock) {lbr}",
+        o.ahead_s * 1e3,
+        if sim_time { "median" } else { "least" },
+        o.least_s * 1e3,
+        o.p99_s * 1e3,
+        c.input_timeout_s * 1e3,
         lead * 1e3,
         c.time_from_start_s * 1e3,
+        o.spread_s * 1e3,
         c.driver_period_s * 1e3,
     );
     check("DRIVER_CLOCK", ok, detail, FIX)
@@ -114,60 +149,90 @@ mod tests {
     use crate::preflight::Verdict;
 
     /// Joint states delayed 0.3-0.8 ms by the transport, the driver's clock `ahead` s ahead.
-    fn seen(ahead: f64, stamped: bool, lookahead: f64) -> DriverClock {
-        let delays: Vec<f64> = (0..100).map(|k| 3e-4 + 5e-6 * f64::from(k) - ahead).collect();
+    fn seen(ahead: f64, stamped: bool, time_from_start: f64) -> DriverClock {
+        let delays: Vec<f64> = (0..101).map(|k| 3e-4 + 5e-6 * f64::from(k) - ahead).collect();
         DriverClock {
             joint_state_delays_s: delays.clone(),
             lbr_state_delays_s: delays,
             stamped_commands: stamped,
-            time_from_start_s: lookahead,
+            time_from_start_s: time_from_start,
             driver_period_s: 0.002,
             input_timeout_s: 0.1,
         }
     }
 
+    fn verdict(c: &DriverClock, sim_time: bool) -> Verdict {
+        driver_clock_check(Some(c), sim_time).verdict
+    }
+
     #[test]
-    fn the_lead_of_the_drivers_clock_is_read_from_the_least_delay() {
-        let a = driver_clock_ahead_s(&seen(0.030, false, 0.02).joint_state_delays_s).unwrap();
-        assert!((a - 0.0297).abs() < 1e-9, "{a}");
-        assert_eq!(driver_clock_ahead_s(&[f64::NAN]), None);
+    fn the_lead_is_read_from_the_least_delay_on_the_wall_clock_and_the_median_on_sim_time() {
+        let c = seen(0.030, false, 0.02);
+        let wall = clock_offset(&c.joint_state_delays_s, false).unwrap();
+        assert!((wall.ahead_s - 0.0297).abs() < 1e-9, "{wall:?}");
+        assert!((wall.spread_s - 0.000495).abs() < 1e-9, "{wall:?}");
+        let sim = clock_offset(&c.joint_state_delays_s, true).unwrap();
+        assert!((sim.ahead_s - 0.02945).abs() < 1e-9, "{sim:?}");
+        assert_eq!(clock_offset(&[f64::NAN], false), None);
+    }
+
+    #[test]
+    fn a_lagging_sim_clock_on_a_few_messages_is_not_read_as_the_drivers_lead() {
+        // Clocks in step; a tenth of the joint states timed on a /clock 60 ms behind.
+        let mut c = seen(0.0, true, 0.020);
+        for d in c.joint_state_delays_s.iter_mut().step_by(10) {
+            *d -= 0.060;
+        }
+        let sim = clock_offset(&c.joint_state_delays_s, true).unwrap();
+        assert!(sim.ahead_s.abs() < 1e-3, "{sim:?}");
+        assert_eq!(verdict(&c, true), Verdict::Pass);
+        // On the wall clock no message arrives before it is sent: the least delay is the lead.
+        assert_eq!(verdict(&c, false), Verdict::Fail);
     }
 
     #[test]
     fn a_zero_stamp_survives_a_drivers_clock_ahead_that_drops_every_stamped_command() {
-        // 100 Hz, two periods of lookahead (20 ms), the driver 30 ms ahead.
-        let zero = driver_clock_check(Some(&seen(0.030, false, 0.020)));
-        assert_eq!(zero.verdict, Verdict::Pass, "{zero}");
-        let stamped = driver_clock_check(Some(&seen(0.030, true, 0.020)));
-        assert_eq!(stamped.verdict, Verdict::Fail, "{stamped}");
-        assert!(stamped.fix.contains("chrony") && stamped.fix.contains("command_lookahead_periods"));
-        // Stamped, 1 kHz (2 ms of lookahead): equal clocks leave 2 - 2 (period) - 0.5 (spread) < 0.
-        assert_eq!(driver_clock_check(Some(&seen(0.0, true, 0.002))).verdict, Verdict::Fail);
-        // Stamped with clocks in step and 20 ms: 20 - 2 - 0.5 ms left.
+        for sim_time in [false, true] {
+            // 100 Hz, two periods of lookahead (20 ms), the driver 30 ms ahead.
+            let zero = driver_clock_check(Some(&seen(0.030, false, 0.020)), sim_time);
+            assert_eq!(zero.verdict, Verdict::Pass, "{zero}");
+            let stamped = driver_clock_check(Some(&seen(0.030, true, 0.020)), sim_time);
+            assert_eq!(stamped.verdict, Verdict::Fail, "{stamped}");
+            assert!(stamped.fix.contains("chrony") && stamped.fix.contains("command_lookahead_periods"));
+            assert!(stamped.fix.contains("command_stamp: next_update"));
+            // Stamped, 5 ms ahead: 20 - 5 - 2 - 0.5 ms left.
+            assert_eq!(verdict(&seen(0.005, true, 0.020), sim_time), Verdict::Pass);
+            // Stamped at 1 kHz (2 ms of lookahead): equal clocks leave 2 - 2 - 0.5 ms < 0 on the
+            // wall clock; the median reference of the simulated clock takes the faster half's
+            // latency (0.25 ms here) for a lag, so there a driver 1 ms ahead.
+            let ahead = if sim_time { 0.001 } else { 0.0 };
+            assert_eq!(verdict(&seen(ahead, true, 0.002), sim_time), Verdict::Fail);
+            // A zero stamp at 1 kHz, 30 ms ahead: due 2 ms after the driver's next update.
+            assert_eq!(verdict(&seen(0.030, false, 0.002), sim_time), Verdict::Pass);
+            // A zero stamp with time_from_start 0 is due at the next update: dropped.
+            assert_eq!(verdict(&seen(0.0, false, 0.0), sim_time), Verdict::Fail);
+        }
         let c = seen(0.0, true, 0.020);
-        assert!((command_lead_s(&c).unwrap() - 0.0175).abs() < 1e-9);
-        assert_eq!(driver_clock_check(Some(&c)).verdict, Verdict::Pass);
+        let o = clock_offset(&c.joint_state_delays_s, false).unwrap();
+        assert!((command_lead_s(&c, &o) - (0.020 - (-0.0003) - 0.000495 - 0.002)).abs() < 1e-9);
     }
 
     #[test]
-    fn a_clock_off_by_half_the_input_timeout_is_refused_in_either_direction() {
-        // 0.1 s timeout: 50 ms either way.
-        assert_eq!(
-            driver_clock_check(Some(&seen(0.045, false, 0.02))).verdict,
-            Verdict::Pass
-        );
-        assert_eq!(
-            driver_clock_check(Some(&seen(0.060, false, 0.02))).verdict,
-            Verdict::Fail
-        );
-        assert_eq!(
-            driver_clock_check(Some(&seen(-0.060, false, 0.02))).verdict,
-            Verdict::Fail
-        );
-        // The LBRState on another clock (the robot controller's) counts the same.
+    fn a_clock_off_by_more_than_the_input_timeout_is_refused_in_either_direction() {
+        // 0.1 s timeout, zero stamps: commands survive any offset; the joint states do not.
+        assert_eq!(verdict(&seen(0.080, false, 0.02), false), Verdict::Pass);
+        assert_eq!(verdict(&seen(0.120, false, 0.02), false), Verdict::Fail);
+        assert_eq!(verdict(&seen(-0.080, false, 0.02), false), Verdict::Pass);
+        assert_eq!(verdict(&seen(-0.120, false, 0.02), false), Verdict::Fail);
+        // The LBRState on another clock (the robot controller's) is reported, not judged.
         let mut c = seen(0.0, false, 0.02);
         c.lbr_state_delays_s = vec![2.0; 10];
-        assert_eq!(driver_clock_check(Some(&c)).verdict, Verdict::Fail);
-        assert_eq!(driver_clock_check(None).verdict, Verdict::NotChecked);
+        let r = driver_clock_check(Some(&c), false);
+        assert_eq!(r.verdict, Verdict::Pass);
+        assert!(
+            r.detail.contains("LBRState (robot controller's clock) -2000.0 ms"),
+            "{r}"
+        );
+        assert_eq!(driver_clock_check(None, false).verdict, Verdict::NotChecked);
     }
 }

@@ -347,7 +347,10 @@ fn not_checked(code: &'static str, detail: String) -> Check {
 pub fn evaluate(obs: &Observations, lim: &Limits, tare: &TareParams, kin: &dyn Kinematics) -> Report {
     let mut checks = vec![clock(obs)];
     checks.extend(driver(obs, lim));
-    checks.push(driver_clock::driver_clock_check(obs.driver_clock.as_ref()));
+    checks.push(driver_clock::driver_clock_check(
+        obs.driver_clock.as_ref(),
+        obs.use_sim_time,
+    ));
     checks.push(joint_names(obs, kin));
     checks.push(torques_at_rest(obs, tare));
     checks.extend(camera(obs, lim));

@@ -162,7 +162,7 @@ fn each_fault_fails_its_own_check_only() {
         ("COMMAND_SUBSCRIBER", |o| o.command_subscribers.clear()),
         ("DRIVER_CLOCK", |o| {
             if let Some(c) = &mut o.driver_clock {
-                c.joint_state_delays_s = vec![-0.08; 500];
+                c.joint_state_delays_s = vec![-0.15; 500];
             }
         }),
     ];

@@ -48,6 +48,10 @@ pub struct SimNodeParams {
     /// behind). The trajectory controller's updates and the driver's stamps
     /// (`/lbr/joint_states`, `/lbr/states`) read it; 0 as shipped.
     pub driver_clock_ahead_ms: f64,
+    /// The driver clock's leads (ms) at which each command is also judged by the trajectory
+    /// controller's rule, beside the one the arm follows (counts only: what the same stream
+    /// meets on a driver whose clock reads so far ahead of the controller's).
+    pub judge_clock_ahead_ms: Vec<f64>,
     /// The command stream's counts ([`crate::ros::trajectory::StreamCounts`]) out, once a
     /// second, as a `diagnostic_msgs/DiagnosticArray`.
     pub diagnostics_topic: String,
@@ -147,6 +151,15 @@ impl SimNodeParams {
     pub fn validate_driver(&self) -> Result<(), crate::validate::RangeError> {
         crate::validate::in_range("fri_rate_hz", self.fri_rate_hz, 200.0, 1000.0)?;
         crate::validate::in_range("driver_clock_ahead_ms", self.driver_clock_ahead_ms, -1000.0, 1000.0)?;
+        crate::validate::integer_in_range(
+            "judge_clock_ahead_ms (count)",
+            self.judge_clock_ahead_ms.len() as i64,
+            0,
+            8,
+        )?;
+        for &a in &self.judge_clock_ahead_ms {
+            crate::validate::in_range("judge_clock_ahead_ms", a, -1000.0, 1000.0)?;
+        }
         Ok(())
     }
 }
@@ -769,6 +782,8 @@ struct ArmCommand {
     jtc: TrajectoryController,
     /// The driver's clock minus the simulated ROS time, s.
     clock_ahead: f64,
+    /// The same stream judged on drivers whose clocks lead by other amounts (s): counts only.
+    judges: Vec<(f64, TrajectoryController)>,
     /// The driver's updates (once per FRI cycle).
     driver_update: Every,
     diagnostics_out: rosrust::Publisher<diagnostic_msgs::DiagnosticArray>,
@@ -789,6 +804,17 @@ impl ArmCommand {
         Ok(Self {
             jtc: TrajectoryController::new(world.joint_positions(), t0 + clock_ahead, 1.0 / p.fri_rate_hz),
             clock_ahead,
+            judges: p
+                .judge_clock_ahead_ms
+                .iter()
+                .map(|&ms| {
+                    let a = ms * 1e-3;
+                    (
+                        a,
+                        TrajectoryController::new(world.joint_positions(), t0 + a, 1.0 / p.fri_rate_hz),
+                    )
+                })
+                .collect(),
             driver_update: Every::new(p.fri_rate_hz, t0),
             diagnostics_out: rosrust::publish(&p.diagnostics_topic, 10).map_err(ros_err)?,
             log: Every::new(0.1, t0 + 10.0),
@@ -821,8 +847,16 @@ impl ArmCommand {
             }
             self.max_lead = self.max_lead.max((c.q - world.joint_positions()).amax());
             match c.timing {
-                Timing::Position => self.jtc.set_position(c.q),
+                Timing::Position => {
+                    self.jtc.set_position(c.q);
+                    for (_, j) in &mut self.judges {
+                        j.set_position(c.q);
+                    }
+                }
                 Timing::Trajectory { stamp, time_from_start } => {
+                    for (_, j) in &mut self.judges {
+                        j.command(stamp, time_from_start, c.q);
+                    }
                     if let Outcome::Dropped { late_by_s } = self.jtc.command(stamp, time_from_start, c.q) {
                         rosrust::ros_warn!(
                             "lbr_med_sim: dropping all 1 trajectory point(s), as they occur before the current \
@@ -841,6 +875,9 @@ impl ArmCommand {
     /// become the arm's setpoint.
     fn update(&mut self, world: &mut SimWorld, now: f64) {
         let _ = world.set_command(&self.jtc.update(now + self.clock_ahead));
+        for (a, j) in &mut self.judges {
+            j.update(now + *a);
+        }
     }
 
     /// The counts to the log (every 10 s) and the diagnostics (every second).
@@ -860,7 +897,7 @@ impl ArmCommand {
             );
         }
         if self.diagnostics.due(now) {
-            let _ = self.diagnostics_out.send(stream_diagnostics(stamp, &n));
+            let _ = self.diagnostics_out.send(stream_diagnostics(stamp, &n, &self.judges));
         }
     }
 }
@@ -868,8 +905,18 @@ impl ArmCommand {
 /// Name of the command stream's diagnostic status.
 pub const STREAM_DIAGNOSTIC: &str = "lbr_med_sim: trajectory controller";
 
-/// The stream's counts as a diagnostic: WARN when a moving command was dropped.
-fn stream_diagnostics(stamp: rosrust::Time, n: &StreamCounts) -> diagnostic_msgs::DiagnosticArray {
+/// The key of the moving commands dropped on a driver whose clock leads by `ahead_s`.
+pub fn judged_dropped_key(ahead_s: f64) -> String {
+    format!("dropped_moving_if_driver_ahead_{:.0}ms", ahead_s * 1e3)
+}
+
+/// The stream's counts as a diagnostic (with the moving commands each judge dropped): WARN
+/// when a moving command was dropped.
+fn stream_diagnostics(
+    stamp: rosrust::Time,
+    n: &StreamCounts,
+    judges: &[(f64, TrajectoryController)],
+) -> diagnostic_msgs::DiagnosticArray {
     let kv = |key: &str, value: String| diagnostic_msgs::KeyValue { key: key.into(), value };
     let level = if n.dropped_moving > 0 {
         diagnostic_msgs::DiagnosticStatus::WARN
@@ -893,7 +940,14 @@ fn stream_diagnostics(stamp: rosrust::Time, n: &StreamCounts) -> diagnostic_msgs
                 kv("dropped_moving", n.dropped_moving.to_string()),
                 kv("late", n.late.to_string()),
                 kv("min_lead_ms", format!("{:.3}", n.min_lead_s * 1e3)),
-            ],
+            ]
+            .into_iter()
+            .chain(
+                judges
+                    .iter()
+                    .map(|(a, j)| kv(&judged_dropped_key(*a), j.counts().dropped_moving.to_string())),
+            )
+            .collect(),
         }],
     }
 }

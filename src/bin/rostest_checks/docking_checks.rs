@@ -162,6 +162,9 @@ fn subscribe_docking_seen(topic: &str) -> Result<(Arc<Mutex<DockingSeen>>, rosru
     Ok((seen, sub))
 }
 
+/// The driver clock's leads (ms) every command stream is judged at (`judge_clock_ahead_ms`).
+const JUDGED_CLOCK_AHEAD_MS: [f64; 3] = [0.0, 5.0, 30.0];
+
 /// The simulator's command stream at DONE (its next diagnostic, once a second): at least
 /// `min_moving` moving commands, none dropped by the trajectory controller's rule.
 fn judge_stream(stream: &Latest<diagnostic_msgs::DiagnosticArray>, min_moving: u64) -> Result<String, String> {
@@ -193,8 +196,23 @@ fn judge_stream(stream: &Latest<diagnostic_msgs::DiagnosticArray>, min_moving: u
              expected, none dropped); smallest lead {lead} ms"
         ));
     }
+    // The same stream judged on drivers whose clocks lead by 0, 5 and 30 ms (lbr_med_sim.yaml).
+    let mut judged = Vec::new();
+    for ms in JUDGED_CLOCK_AHEAD_MS {
+        let key = ::trocar_docking::ros::sim_node::judged_dropped_key(ms * 1e-3);
+        match num(&key)? {
+            0 => judged.push(format!("{ms:.0}")),
+            n => {
+                return Err(format!(
+                    "{n} of {moving} moving commands dropped on a driver {ms:.0} ms ahead"
+                ))
+            }
+        }
+    }
     Ok(format!(
-        "; commands: {moving} moving, 0 dropped, {late} late, smallest lead over the driver's next update {lead} ms"
+        "; commands: {moving} moving, 0 dropped (nor on drivers {} ms ahead), {late} late, smallest lead over the \
+         driver's next update {lead} ms",
+        judged.join(", ")
     ))
 }
 

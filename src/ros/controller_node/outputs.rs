@@ -19,9 +19,7 @@ use crate::kinematics::JointVector;
 use crate::ros::convert;
 use crate::ros::handover::{FaultText, OutputReceiver, RecvError};
 use crate::ros::markers::{self, Scene};
-use crate::ros::msgs::{
-    geometry_msgs, sensor_msgs, std_msgs, tf2_msgs, trajectory_msgs, trocar_docking, visualization_msgs,
-};
+use crate::ros::msgs::{geometry_msgs, sensor_msgs, std_msgs, tf2_msgs, trocar_docking, visualization_msgs};
 use crate::ros::node::{ros_err, CommandStamp, CommandType, NodeError, Throttle};
 use crate::ros::stats::Percentiles;
 
@@ -59,7 +57,7 @@ pub struct LoopSnapshot {
 
 /// Publishers of the node.
 struct Outputs {
-    trajectory: Option<rosrust::Publisher<trajectory_msgs::JointTrajectory>>,
+    trajectory: Option<rosrust::Publisher<convert::AsStamped>>,
     multiarray: Option<rosrust::Publisher<std_msgs::Float64MultiArray>>,
     status: rosrust::Publisher<trocar_docking::DockingStatus>,
     f_ext: rosrust::Publisher<geometry_msgs::WrenchStamped>,
