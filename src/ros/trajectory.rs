@@ -327,6 +327,36 @@ mod tests {
     }
 
     #[test]
+    fn the_drivers_controller_file_names_the_joints_and_the_topic_the_stack_uses() {
+        // config/lbr_fri_ros_controllers.yaml, what a lab loads on the driver: a position
+        // JointTrajectoryController on the driver's joints, whose command topic is the one the
+        // docking controller publishes to and the simulator reads.
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+        let read = |f: &str| -> serde_yaml_ng::Value {
+            serde_yaml_ng::from_str(&std::fs::read_to_string(dir.join(f)).unwrap()).unwrap()
+        };
+        let drv = read("lbr_fri_ros_controllers.yaml");
+        let (name, jtc) = drv
+            .as_mapping()
+            .unwrap()
+            .iter()
+            .find(|(_, v)| v["type"] == "position_controllers/JointTrajectoryController")
+            .expect("a position JointTrajectoryController");
+        let joints: Vec<String> = serde_yaml_ng::from_value(jtc["joints"].clone()).unwrap();
+        assert_eq!(joints, crate::kinematics::joint_names());
+        let sim = read("lbr_med_sim.yaml");
+        let sim_joints: Vec<String> = serde_yaml_ng::from_value(sim["joint_names"].clone()).unwrap();
+        assert_eq!(joints, sim_joints);
+        let topic = format!("/lbr/{}/command", name.as_str().unwrap());
+        assert_eq!(read("docking_controller.yaml")["command_topic"], topic.as_str());
+        assert_eq!(sim["command_topic"], topic.as_str());
+        assert_eq!(
+            drv["joint_state_controller"]["type"],
+            "joint_state_controller/JointStateController"
+        );
+    }
+
+    #[test]
     fn a_long_stream_stamped_ahead_stays_within_its_knots_and_a_position_command_holds() {
         let mut c = at(0.0);
         // Stamped 0.5 s in the driver's future, one a millisecond: the knots stay bounded.
