@@ -75,6 +75,7 @@ fn good(kin: &dyn Kinematics) -> Observations {
             stamped_commands: false,
             time_from_start_s: 0.02,
             driver_period_s: 0.002,
+            control_period_s: 0.01,
             input_timeout_s: 0.1,
         }),
         command_subscribers: vec!["/lbr_med_sim".into()],

@@ -450,6 +450,7 @@ fn driver_clock(s: &Seen, node: &ControllerNodeParams) -> Option<preflight::driv
         time_from_start_s: node.command_lookahead_periods * node.controller.dt_s,
         // Without an LBRState (LBR_STATE fails), the longest FRI period a position controller runs at.
         driver_period_s: if s.sample_time > 0.0 { s.sample_time } else { 0.005 },
+        control_period_s: node.controller.dt_s,
         input_timeout_s: node.controller.guard.joint_timeout_s,
     })
 }
