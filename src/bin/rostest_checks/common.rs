@@ -29,6 +29,10 @@ pub struct CheckParams {
     /// `docking`: the largest accepted RMS speed of the tip (from the measured joints)
     /// during INSERT, m/s (0 = not checked).
     pub max_tip_rms_speed: f64,
+    /// `docking`: the simulator's command stream (its counts on `/diagnostics`, as the
+    /// driver's trajectory controller met it) must hold at least this many moving commands
+    /// and no dropped one (0 = not checked).
+    pub min_moving_commands: u64,
     /// Whether the check calls `~start` itself.
     pub call_start: bool,
     /// For `stale_hold`: the hold's code (`hold_code` of the status) must be this.
@@ -184,6 +188,7 @@ impl Default for CheckParams {
             max_force: 60.0,
             startup_timeout: 30.0,
             max_tip_rms_speed: 0.0,
+            min_moving_commands: 0,
             call_start: true,
             hold_code: "STALE_TROCAR_POSE".into(),
             done_code: String::new(),
