@@ -15,8 +15,9 @@
 //! friction (1.5 N and more) resists the insertion for as long as the shaft slides. The
 //! controller takes as the onset a rise of the axial force resisting the insertion by
 //! `onset_force_n` over its level before (following a fall at once, a rise with a 0.2 s
-//! low-pass), at least twice the force across the axis (the seal acts along the axis; the
-//! funnel's and the bore's contact before it push across it as much or more), that then holds
+//! low-pass), at least twice the rise of the force across the axis (the seal acts along the
+//! axis; the funnel's and the bore's contact before it push across it as much or more), that
+//! then holds
 //! for `confirm_s` (the bore's contact rises and falls again), dated back by the force
 //! estimate's lag (the torques' and the estimate's low-pass time constants: a first-order
 //! chain delays a ramp by the sum of its time constants). Each trocar pose captured within
@@ -45,7 +46,7 @@
 
 use std::fmt;
 
-use nalgebra::{Point3, Vector3};
+use nalgebra::{Point3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::geometry::InsertionAxis;
@@ -150,10 +151,12 @@ impl fmt::Display for DepthBasis {
 /// moves; it follows a fall at once.
 const LEVEL_TIME_CONSTANT_S: f64 = 0.2;
 
-/// The seal's force is along the axis: at least this many times the force across it (in the
-/// realistic world 3-6 times at the seal, at most 1.6 times at the funnel's and the bore's
-/// contact before it, measured on seeds 11 and 103; a cone's or a cylinder's wall pushes across
-/// the axis at least as much as along it, friction at 0.3 of that).
+/// The seal's force is along the axis: its rise is at least this many times the rise of the
+/// force across it (in the realistic world the force along is 3-6 times the force across at
+/// the seal, at most 1.6 times at the funnel's and the bore's contact before it, seeds 11 and
+/// 103; a cone's or a cylinder's wall pushes across the axis at least as much as along it,
+/// friction at 0.3 of that). Rises, not levels: a scope pressed steadily against the bore
+/// (without force feedback) still shows the seal's rise.
 const SEAL_AXIAL_RATIO: f64 = 2.0;
 
 /// How many tip positions the history keeps, at least [`TIP_SPACING_S`] apart (2.56 s at
@@ -213,8 +216,8 @@ struct Pose {
 struct Candidate {
     /// The onset, dated back by the force estimate's lag, s.
     t_on: f64,
-    /// The force's level before it, N.
-    level: f64,
+    /// The force's level before it, along and across the axis, N.
+    level: Vector2<f64>,
     /// The tip's depth on the estimated axis then, m.
     depth: f64,
 }
@@ -224,8 +227,8 @@ struct Candidate {
 pub struct DepthEstimate {
     tips: History<(f64, Point3<f64>), TIP_CAPACITY>,
     poses: History<Pose, POSE_CAPACITY>,
-    /// The axial force's level (None: not in the seal's depth range).
-    level: Option<f64>,
+    /// The force's level along and across the axis (None: not in the seal's depth range), N.
+    level: Option<Vector2<f64>>,
     candidate: Option<Candidate>,
     /// The search is over (refined, refused, or past the seal).
     over: bool,
@@ -351,20 +354,25 @@ impl DepthEstimate {
         {
             self.tips.push((now, *tip));
         }
-        // The force resisting the insertion, and whether it is the seal's: along the axis,
-        // where a funnel's or a bore's contact pushes across it as much or more.
-        let force = -f.dot(&axis.direction);
-        let along = force >= SEAL_AXIAL_RATIO * axis.across(f).norm();
-        if self.over || p.seal_depth_m <= 0.0 || !force.is_finite() || !axis.is_finite() {
+        // The force resisting the insertion, and the force across the axis.
+        let force = Vector2::new(-f.dot(&axis.direction), axis.across(f).norm());
+        if self.over || p.seal_depth_m <= 0.0 || !force.iter().all(|x| x.is_finite()) || !axis.is_finite() {
             return;
         }
+        // Whether a rise over `level` is the seal's: along the axis, where a funnel's or a
+        // bore's contact pushes across it as much or more.
+        let rise = |level: Vector2<f64>| {
+            let r = force - level;
+            r.x >= p.onset_force_n && r.x >= SEAL_AXIAL_RATIO * r.y.max(0.0)
+        };
         let depth = axis.depth_of(tip);
         // Twice the calibration's bound: a seal met farther off than the bound is still
         // seen, and refused by name.
         let reach = 2.0 * p.calibration_bound() + p.seal_uncertainty_m;
         if let Some(c) = self.candidate {
-            if force < c.level + p.onset_force_n || !along {
-                // It fell back: not the seal (the bore's contact); the level goes on from before.
+            if !rise(c.level) {
+                // It fell back, or grew across the axis: not the seal (the bore's contact); the
+                // level goes on from before.
                 self.candidate = None;
                 self.level = Some(c.level);
             } else if now - c.t_on >= p.confirm_s {
@@ -383,19 +391,19 @@ impl DepthEstimate {
             return;
         }
         match self.level {
-            Some(level) if force >= level + p.onset_force_n && along => {
+            Some(level) if rise(level) => {
                 self.candidate = Some(Candidate {
                     t_on: now - filters.force_lag,
                     level,
                     depth,
                 });
             }
-            Some(level) if force < level => self.level = Some(force),
             Some(level) => {
                 // Down at once, up slowly: a contact before the seal that lets go leaves the
                 // level where the force fell to.
                 let dt = self.tips.as_slice().iter().rev().nth(1).map_or(0.0, |(t, _)| now - t);
-                self.level = Some(level + (force - level) * exp_smoothing(dt, LEVEL_TIME_CONSTANT_S));
+                let up = level + (force - level) * exp_smoothing(dt, LEVEL_TIME_CONSTANT_S);
+                self.level = Some(up.inf(&force));
             }
             None => self.level = Some(force),
         }
