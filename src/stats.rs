@@ -1,4 +1,5 @@
-//! Sample statistics of the offline figures: one quantile rule.
+//! Sample statistics: one quantile rule for the offline figures, one median for the real-time
+//! windows ([`upper_median_in_place`]).
 //!
 //! The rule is linear interpolation between the closest ranks (Hyndman and Fan's
 //! definition 7, the default of R and NumPy): the `p`-quantile of `n` ascending samples
@@ -34,6 +35,19 @@ pub fn finite_quantile(v: &[f64], p: f64) -> f64 {
     } else {
         quantile_sorted(&v, p)
     }
+}
+
+/// The upper median of `v` (the sample of rank `n / 2` in ascending order: for an even count
+/// the upper of the middle two, not their mean), found in place by selection, without
+/// allocating or sorting; NaN when empty. The one exception to the interpolation rule of this
+/// module: it is for the real-time windows (the markerless estimator's shaft correction),
+/// where a correction must be one that was seen, and the window is re-ordered in place.
+pub fn upper_median_in_place(v: &mut [f64]) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mid = v.len() / 2;
+    *v.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
 /// Sub-buckets per power of two: 2^10, so a bucket is at most 1/512 of its value wide.
@@ -209,6 +223,15 @@ impl LogHistogram {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_upper_median_is_a_sample_the_upper_middle_of_an_even_count() {
+        assert_eq!(upper_median_in_place(&mut [3.0, -1.0, 2.0]), 2.0);
+        // Even: the upper of the middle two (2 and 5), not their mean.
+        assert_eq!(upper_median_in_place(&mut [9.0, 2.0, 5.0, -4.0]), 5.0);
+        assert_eq!(upper_median_in_place(&mut [7.0]), 7.0);
+        assert!(upper_median_in_place(&mut []).is_nan());
+    }
 
     /// Within the histogram's resolution (a bucket is at most 1/512 of its value wide).
     fn close(got: f64, want: f64) -> bool {

@@ -9,11 +9,14 @@
 //! camera's calibration and image rate, the trocar pose (the marker seen) and the marker's
 //! size, the hand-eye file (age, residuals), the trocar within reach (the scenario's
 //! inverse kinematics, [`Scenario::reachable`], from the current joints), the clock, the
-//! camera's clock against the controller's ([`camera_clock`]: two machines), and a
+//! camera's clock against the controller's ([`camera_clock`]: two machines), the driver's
+//! clock against the controller's and the command's lead ([`driver_clock`]), and a
 //! subscriber on the command topic. The FRI session state and control mode are reported as
 //! not checked: the driver's LBRState carries neither.
 
 use nalgebra::Isometry3;
+
+pub mod driver_clock;
 
 use crate::control::force::tare::TareParams;
 use crate::kinematics::{Kinematics, N_JOINTS};
@@ -311,6 +314,8 @@ pub struct Observations {
     pub marker: Marker,
     /// The hand-eye file (None: no estimator in the set-up; Err: why it cannot be used).
     pub hand_eye: Option<Result<HandEye, String>>,
+    /// The driver's clock and the command stream (None: no driver stamps seen).
+    pub driver_clock: Option<driver_clock::DriverClock>,
     /// Nodes subscribed to the command topic.
     pub command_subscribers: Vec<String>,
     /// The command topic.
@@ -342,6 +347,10 @@ fn not_checked(code: &'static str, detail: String) -> Check {
 pub fn evaluate(obs: &Observations, lim: &Limits, tare: &TareParams, kin: &dyn Kinematics) -> Report {
     let mut checks = vec![clock(obs)];
     checks.extend(driver(obs, lim));
+    checks.push(driver_clock::driver_clock_check(
+        obs.driver_clock.as_ref(),
+        obs.use_sim_time,
+    ));
     checks.push(joint_names(obs, kin));
     checks.push(torques_at_rest(obs, tare));
     checks.extend(camera(obs, lim));

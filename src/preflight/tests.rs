@@ -69,6 +69,15 @@ fn good(kin: &dyn Kinematics) -> Observations {
             residual_max_m: Some(0.0008),
             residual_max_rad: Some(0.003),
         })),
+        driver_clock: Some(driver_clock::DriverClock {
+            joint_state_delays_s: vec![3e-4; 500],
+            lbr_state_delays_s: vec![3e-4; 500],
+            stamped_commands: false,
+            time_from_start_s: 0.02,
+            driver_period_s: 0.002,
+            control_period_s: 0.01,
+            input_timeout_s: 0.1,
+        }),
         command_subscribers: vec!["/lbr_med_sim".into()],
         command_topic: "/cmd".into(),
         camera_clock: Some(CameraClock {
@@ -117,7 +126,7 @@ fn a_good_set_up_passes_and_says_what_it_does_not_check() {
 fn each_fault_fails_its_own_check_only() {
     let k = kin();
     type Fault = fn(&mut Observations);
-    let faults: [(&str, Fault); 14] = [
+    let faults: [(&str, Fault); 15] = [
         ("JOINT_STATES", |o| {
             o.joint_states.as_mut().unwrap().stream.span_s = 10.0
         }),
@@ -152,6 +161,11 @@ fn each_fault_fails_its_own_check_only() {
         }),
         ("CLOCK", |o| o.simulator = None),
         ("COMMAND_SUBSCRIBER", |o| o.command_subscribers.clear()),
+        ("DRIVER_CLOCK", |o| {
+            if let Some(c) = &mut o.driver_clock {
+                c.joint_state_delays_s = vec![-0.15; 500];
+            }
+        }),
     ];
     for (code, fault) in faults {
         let mut o = good(&k);

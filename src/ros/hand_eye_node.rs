@@ -22,7 +22,7 @@ use std::time::Duration;
 use nalgebra::{Isometry3, Vector3};
 
 use super::convert;
-use super::msgs::{geometry_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs};
+use super::msgs::{geometry_msgs, sensor_msgs, std_msgs, visualization_msgs};
 use super::node::{lock, reply_service, ros_err, CommandType, NodeError, Reply};
 use super::params;
 use crate::control::safety::guard::{CommandGuard, GuardParams};
@@ -195,7 +195,7 @@ struct Node {
     state: Mutex<State>,
     samples: rosrust::Publisher<std_msgs::String>,
     markers: rosrust::Publisher<visualization_msgs::MarkerArray>,
-    trajectory: Option<rosrust::Publisher<trajectory_msgs::JointTrajectory>>,
+    trajectory: Option<rosrust::Publisher<convert::AsStamped>>,
     multiarray: Option<rosrust::Publisher<std_msgs::Float64MultiArray>>,
 }
 

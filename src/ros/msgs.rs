@@ -6,6 +6,7 @@
 
 rosrust::rosmsg_include!(
     trocar_docking / DockingStatus,
+    diagnostic_msgs / DiagnosticArray,
     lbr_msgs / LBRState,
     std_msgs / Float64MultiArray,
     std_msgs / Header,

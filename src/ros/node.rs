@@ -16,6 +16,21 @@ pub enum CommandType {
     Float64MultiArray,
 }
 
+/// What a trajectory command's `header.stamp` is. The driver's `joint_trajectory_controller`
+/// starts a message at its stamp, or at its own next update when the stamp is 0, and drops a
+/// message whose point is due at or before that update ([`crate::ros::trajectory`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CommandStamp {
+    /// 0: each point is due `time_from_start` after the driver's next update, on the
+    /// driver's own clock: never dropped, whatever the two clocks read.
+    NextUpdate,
+    /// The control step's time: the point is due at a fixed time after the step, on the
+    /// controller's clock; dropped once the transport, the driver's period and the driver's
+    /// clock lead take up `time_from_start` (the preflight's `DRIVER_CLOCK` check).
+    Step,
+}
+
 /// Errors that stop a node at start-up (the loops themselves never stop on bad data).
 #[derive(Debug, thiserror::Error)]
 pub enum NodeError {

@@ -57,6 +57,10 @@ struct Seen {
     high: Vec<f64>,
     lbr: Stamps,
     lbr_stamps: Vec<f64>,
+    /// Arrival (this node's clock) minus stamp of each joint state (the driver PC's clock) and
+    /// LBRState (the robot controller's clock), s.
+    joint_delays: Vec<f64>,
+    lbr_delays: Vec<f64>,
     sample_time: f64,
     tau_ext: Vec<Vec<f64>>,
     images: Stamps,
@@ -73,8 +77,10 @@ struct Seen {
 }
 
 impl Seen {
-    fn joint_states(&mut self, m: &sensor_msgs::JointState) {
+    /// A joint state that arrived at `arrival` (this node's clock, s).
+    fn joint_states(&mut self, m: &sensor_msgs::JointState, arrival: f64) {
         self.joints.add(convert::seconds(m.header.stamp));
+        self.joint_delays.push(arrival - convert::seconds(m.header.stamp));
         if m.name != self.names || m.position.len() != self.low.len() {
             self.names.clone_from(&m.name);
             self.low.clone_from(&m.position);
@@ -173,12 +179,13 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
             &t.joint_states,
             topics::DRIVER_QUEUE,
             seen,
-            |s, m: sensor_msgs::JointState| s.joint_states(&m),
+            |s, m: sensor_msgs::JointState| s.joint_states(&m, convert::seconds(rosrust::now())),
         )?,
         watch(&t.lbr_state, topics::DRIVER_QUEUE, seen, |s, m: lbr_msgs::LBRState| {
             let t = convert::seconds(m.stamp.data);
             s.lbr.add(t);
             s.lbr_stamps.push(t);
+            s.lbr_delays.push(convert::seconds(rosrust::now()) - t);
             s.sample_time = m.sample_time;
             s.tau_ext.push(m.external_torque);
         })?,
@@ -426,11 +433,26 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
             markerless: estimator && markerless,
         },
         hand_eye: hand_eye(p, estimator, camera),
+        driver_clock: driver_clock(&s, node),
         command_subscribers,
         command_topic: node.command_topic.clone(),
         camera_clock: camera_clock(camera, &s.image_ages, &topics.image, est_params.as_ref(), node)?,
     };
     Ok(preflight::evaluate(&obs, &p.limits, &node.controller.tare, kin))
+}
+
+/// The driver's stamps against their arrival, and the command stream the controller sends.
+fn driver_clock(s: &Seen, node: &ControllerNodeParams) -> Option<preflight::driver_clock::DriverClock> {
+    (!s.joint_delays.is_empty()).then(|| preflight::driver_clock::DriverClock {
+        joint_state_delays_s: s.joint_delays.clone(),
+        lbr_state_delays_s: s.lbr_delays.clone(),
+        stamped_commands: node.command_stamp == crate::ros::node::CommandStamp::Step,
+        time_from_start_s: node.command_lookahead_periods * node.controller.dt_s,
+        // Without an LBRState (LBR_STATE fails), the longest FRI period a position controller runs at.
+        driver_period_s: if s.sample_time > 0.0 { s.sample_time } else { 0.005 },
+        control_period_s: node.controller.dt_s,
+        input_timeout_s: node.controller.guard.joint_timeout_s,
+    })
 }
 
 /// The `preflight` node: read the controller's parameters from the server (the defaults,
@@ -542,7 +564,7 @@ mod tests {
         };
         // Out of order, as a queue may deliver them: the span is first to last stamp.
         for (t, q) in [(10.0, 0.0), (10.02, 0.003), (10.01, -0.001)] {
-            s.joint_states(&msg(t, q));
+            s.joint_states(&msg(t, q), t + 0.001);
         }
         let seen = s.observations(false, None);
         let j = seen.joint_states.unwrap();
@@ -553,8 +575,15 @@ mod tests {
         // Renamed joints restart the motion's range.
         let mut m = msg(10.03, 5.0);
         m.name = vec!["x".into(), "y".into()];
-        s.joint_states(&m);
+        s.joint_states(&m, 10.031);
         assert_eq!(s.observations(true, None).joint_states.unwrap().motion_rad, 0.0);
+        // Each arrival minus its stamp: the driver clock's evidence.
+        assert_eq!(s.joint_delays.len(), 4);
+        assert!(
+            s.joint_delays.iter().all(|d| (d - 0.001).abs() < 1e-9),
+            "{:?}",
+            s.joint_delays
+        );
         assert!(s.observations(true, None).camera.is_some());
     }
 }

@@ -14,10 +14,12 @@ use nalgebra::Isometry3;
 use super::convert;
 use super::convert::image as image_msgs;
 use super::markers;
-use super::msgs::{geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs};
+use super::msgs::{
+    diagnostic_msgs, geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs,
+};
 use super::params;
 use super::topics;
-use super::trajectory::TrajectoryFollower;
+use super::trajectory::{Outcome, StreamCounts, TrajectoryController};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::sim::SimWorld;
@@ -39,8 +41,20 @@ pub struct SimNodeParams {
     pub model: LbrModel,
     /// Joint names (as the driver publishes them).
     pub joint_names: Vec<String>,
-    /// FRI rate: joint states and LBRState, Hz.
+    /// FRI rate: joint states and LBRState, Hz; the driver's trajectory controller updates
+    /// once per FRI cycle (its period: 1 to 5 ms, 200 to 1000 Hz).
     pub fri_rate_hz: f64,
+    /// Tests only: the driver's clock ahead of the controller's (ROS time), ms (negative:
+    /// behind). The trajectory controller's updates and the driver's stamps
+    /// (`/lbr/joint_states`, `/lbr/states`) read it; 0 as shipped.
+    pub driver_clock_ahead_ms: f64,
+    /// The driver clock's leads (ms) at which each command is also judged by the trajectory
+    /// controller's rule, beside the one the arm follows (counts only: what the same stream
+    /// meets on a driver whose clock reads so far ahead of the controller's).
+    pub judge_clock_ahead_ms: Vec<f64>,
+    /// The command stream's counts ([`crate::ros::trajectory::StreamCounts`]) out, once a
+    /// second, as a `diagnostic_msgs/DiagnosticArray`.
+    pub diagnostics_topic: String,
     /// Simulated seconds per wall second.
     pub real_time_factor: f64,
     /// Publish `/clock` (set with `/use_sim_time`).
@@ -128,6 +142,25 @@ impl SimNodeParams {
             p.world = params::from_value(&format!("{ns}/world"), w)?;
         }
         Ok(p)
+    }
+}
+
+impl SimNodeParams {
+    /// The driver's period (1 to 5 ms, the FRI send periods a position controller runs at)
+    /// and the test clock offset (at most 1 s either way).
+    pub fn validate_driver(&self) -> Result<(), crate::validate::RangeError> {
+        crate::validate::in_range("fri_rate_hz", self.fri_rate_hz, 200.0, 1000.0)?;
+        crate::validate::in_range("driver_clock_ahead_ms", self.driver_clock_ahead_ms, -1000.0, 1000.0)?;
+        crate::validate::integer_in_range(
+            "judge_clock_ahead_ms (count)",
+            self.judge_clock_ahead_ms.len() as i64,
+            0,
+            8,
+        )?;
+        for &a in &self.judge_clock_ahead_ms {
+            crate::validate::in_range("judge_clock_ahead_ms", a, -1000.0, 1000.0)?;
+        }
+        Ok(())
     }
 }
 
@@ -526,36 +559,50 @@ fn lower_priority() {
     }
 }
 
-/// A command point: positions and when they are due (ROS time, s; `None`: at once).
+/// When a command's point is due.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Timing {
+    /// A trajectory point: its `header.stamp` (s; `None`: zero) and `time_from_start` (s).
+    Trajectory { stamp: Option<f64>, time_from_start: f64 },
+    /// A position command (Float64MultiArray): at once.
+    Position,
+}
+
+/// A command as it arrived.
 #[derive(Debug, Clone, Copy)]
 struct CommandPoint {
     q: JointVector,
-    due: Option<f64>,
+    timing: Timing,
 }
 
-/// The newest valid command point.
-type CommandSlot = Arc<Mutex<Option<CommandPoint>>>;
+/// Commands arrived since the last physics step, oldest first: each is judged by the
+/// trajectory controller's rule, none replaced unseen.
+type CommandQueue = Arc<Mutex<std::collections::VecDeque<CommandPoint>>>;
 
-/// When a trajectory's first point is due: `header.stamp + time_from_start` (a zero stamp
-/// means "now", as for a joint_trajectory_controller).
-fn due_time(m: &trajectory_msgs::JointTrajectory) -> Option<f64> {
-    let tfs = m.points.first()?.time_from_start;
-    let tfs = f64::from(tfs.sec) + f64::from(tfs.nsec) * 1e-9;
+/// Commands kept between two physics steps (1 ms): a flood beyond loses the oldest.
+const COMMAND_QUEUE: usize = 32;
+
+/// A trajectory message's timing: its stamp (0: none) and its first point's time_from_start.
+fn timing(m: &trajectory_msgs::JointTrajectory) -> Timing {
+    let tfs = m.points.first().map_or(0.0, |p| {
+        f64::from(p.time_from_start.sec) + f64::from(p.time_from_start.nsec) * 1e-9
+    });
     let stamp = convert::seconds(m.header.stamp);
-    let start = if stamp > 0.0 {
-        stamp
-    } else {
-        convert::seconds(rosrust::now())
-    };
-    Some(start + tfs)
+    Timing::Trajectory {
+        stamp: (stamp != 0.0).then_some(stamp),
+        time_from_start: tfs,
+    }
 }
 
-fn subscribe_command(p: &SimNodeParams, slot: &CommandSlot) -> Result<rosrust::Subscriber, NodeError> {
-    let (slot, topic, names) = (slot.clone(), p.command_topic.clone(), p.joint_names.clone());
-    let accept = move |r: Result<JointVector, convert::InputError>, due: Option<f64>| match r {
+fn subscribe_command(p: &SimNodeParams, queue: &CommandQueue) -> Result<rosrust::Subscriber, NodeError> {
+    let (queue, topic, names) = (queue.clone(), p.command_topic.clone(), p.joint_names.clone());
+    let accept = move |r: Result<JointVector, convert::InputError>, timing: Timing| match r {
         Ok(q) => {
-            if let Ok(mut s) = slot.lock() {
-                *s = Some(CommandPoint { q, due });
+            if let Ok(mut s) = queue.lock() {
+                if s.len() == COMMAND_QUEUE {
+                    s.pop_front();
+                }
+                s.push_back(CommandPoint { q, timing });
             }
         }
         Err(e) => {
@@ -565,12 +612,12 @@ fn subscribe_command(p: &SimNodeParams, slot: &CommandSlot) -> Result<rosrust::S
     match p.command_type {
         CommandType::Trajectory => {
             rosrust::subscribe(&p.command_topic, 2, move |m: trajectory_msgs::JointTrajectory| {
-                accept(convert::trajectory_positions(&topic, &m, &names), due_time(&m))
+                accept(convert::trajectory_positions(&topic, &m, &names), timing(&m))
             })
         }
         CommandType::Float64MultiArray => {
             rosrust::subscribe(&p.command_topic, 2, move |m: std_msgs::Float64MultiArray| {
-                accept(convert::multiarray_positions(&topic, &m), None)
+                accept(convert::multiarray_positions(&topic, &m), Timing::Position)
             })
         }
     }
@@ -728,58 +775,189 @@ impl Outputs {
     }
 }
 
-/// The commands as the driver's trajectory controller takes them: the newest point becomes
-/// the setpoint's next target ([`TrajectoryFollower`]); every 10 s the late share and the
-/// largest lead of a command over the measured joints are logged.
+/// The commands as the driver's trajectory controller takes them
+/// ([`TrajectoryController`], updated once per FRI cycle on the driver's clock); its
+/// counts go out on the diagnostics once a second, and every 10 s to the log.
 struct ArmCommand {
-    follower: TrajectoryFollower,
-    report: Every,
+    jtc: TrajectoryController,
+    /// The driver's clock minus the simulated ROS time, s.
+    clock_ahead: f64,
+    /// The same stream judged on drivers whose clocks lead by other amounts (s): counts only.
+    judges: Vec<(f64, TrajectoryController)>,
+    /// The driver's updates (once per FRI cycle).
+    driver_update: Every,
+    diagnostics_out: rosrust::Publisher<diagnostic_msgs::DiagnosticArray>,
+    log: Every,
+    diagnostics: Every,
     /// The largest lead of a command over the measured joints, rad.
     max_lead: f64,
     /// When the first moving command came (simulated time, s).
     first_motion: Option<f64>,
+    /// Commands taken from the queue this step (its own buffer: no allocation per step).
+    taken: std::collections::VecDeque<CommandPoint>,
 }
 
 impl ArmCommand {
-    fn new(world: &SimWorld, t0: f64) -> Self {
-        Self {
-            follower: TrajectoryFollower::new(world.joint_positions()),
-            report: Every::new(0.1, t0 + 10.0),
+    fn new(p: &SimNodeParams, world: &SimWorld, t0: f64) -> Result<Self, NodeError> {
+        p.validate_driver()?;
+        let clock_ahead = p.driver_clock_ahead_ms * 1e-3;
+        Ok(Self {
+            jtc: TrajectoryController::new(world.joint_positions(), t0 + clock_ahead, 1.0 / p.fri_rate_hz),
+            clock_ahead,
+            judges: p
+                .judge_clock_ahead_ms
+                .iter()
+                .map(|&ms| {
+                    let a = ms * 1e-3;
+                    (
+                        a,
+                        TrajectoryController::new(world.joint_positions(), t0 + a, 1.0 / p.fri_rate_hz),
+                    )
+                })
+                .collect(),
+            driver_update: Every::new(p.fri_rate_hz, t0),
+            diagnostics_out: rosrust::publish(&p.diagnostics_topic, 10).map_err(ros_err)?,
+            log: Every::new(0.1, t0 + 10.0),
+            diagnostics: Every::new(1.0, t0 + 1.0),
             max_lead: 0.0,
             first_motion: None,
+            taken: std::collections::VecDeque::with_capacity(COMMAND_QUEUE),
+        })
+    }
+
+    /// One physics step at simulated ROS time `now`: the commands arrived since the last
+    /// step judged, then the driver's update where one is due.
+    fn step(&mut self, queue: &CommandQueue, world: &mut SimWorld, now: f64) {
+        self.take(queue, world);
+        if self.driver_update.due(now) {
+            self.update(world, now);
         }
     }
 
-    /// Take the newest point from `slot`, and set the arm's setpoint at `now`.
-    fn apply(&mut self, slot: &CommandSlot, world: &mut SimWorld, now: f64) {
-        if let Some(c) = slot.lock().ok().and_then(|mut s| s.take()) {
-            // Checked by the arm first: a point it refuses never becomes the setpoint.
-            match world.set_command(&c.q) {
-                Ok(()) => {
-                    self.max_lead = self.max_lead.max((c.q - world.joint_positions()).amax());
-                    self.follower.push(now, c.q, c.due.unwrap_or(now));
-                    if self.first_motion.is_none() && self.follower.moving() > 0 {
-                        self.first_motion = Some(world.time());
+    /// Judge the commands arrived since the last step (simulated ROS time `now`, s).
+    fn take(&mut self, queue: &CommandQueue, world: &SimWorld) {
+        if let Ok(mut q) = queue.lock() {
+            std::mem::swap(&mut *q, &mut self.taken);
+        }
+        while let Some(c) = self.taken.pop_front() {
+            // A point the arm would refuse never reaches the controller.
+            if let Some(i) = c.q.iter().position(|x| !x.is_finite()) {
+                rosrust::ros_warn!("command rejected: joint {i} is not finite; the arm keeps its trajectory");
+                continue;
+            }
+            self.max_lead = self.max_lead.max((c.q - world.joint_positions()).amax());
+            match c.timing {
+                Timing::Position => {
+                    self.jtc.set_position(c.q);
+                    for (_, j) in &mut self.judges {
+                        j.set_position(c.q);
                     }
                 }
-                Err(e) => {
-                    rosrust::ros_warn!("command rejected by the arm, keeping the last one: {e}");
+                Timing::Trajectory { stamp, time_from_start } => {
+                    for (_, j) in &mut self.judges {
+                        j.command(stamp, time_from_start, c.q);
+                    }
+                    if let Outcome::Dropped { late_by_s } = self.jtc.command(stamp, time_from_start, c.q) {
+                        rosrust::ros_warn!(
+                            "lbr_med_sim: dropping all 1 trajectory point(s), as they occur before the current \
+                             time: last point is {late_by_s:.4} s in the past (joint_trajectory_controller's rule)"
+                        );
+                    }
                 }
             }
+            if self.first_motion.is_none() && self.jtc.counts().moving > 0 {
+                self.first_motion = Some(world.time());
+            }
         }
-        // Between valid points, within the same joint box: valid.
-        let _ = world.set_command(&self.follower.setpoint(now));
-        let f = &self.follower;
-        if self.report.due(now) && f.moving() > 0 {
+    }
+
+    /// The driver's update at simulated ROS time `now`: the controller's desired positions
+    /// become the arm's setpoint.
+    fn update(&mut self, world: &mut SimWorld, now: f64) {
+        let _ = world.set_command(&self.jtc.update(now + self.clock_ahead));
+        for (a, j) in &mut self.judges {
+            j.update(now + *a);
+        }
+    }
+
+    /// The counts to the log (every 10 s) and the diagnostics (every second).
+    fn report(&mut self, now: f64, stamp: rosrust::Time) {
+        let n = self.jtc.counts();
+        if self.log.due(now) && n.moving > 0 {
             rosrust::ros_info!(
-                "lbr_med_sim: {} trajectory points, {} moving, {} of them late ({:.1} %): the arm had stopped at the previous point; largest command lead {:.2} deg",
-                f.points(),
-                f.moving(),
-                f.late(),
-                100.0 * f.late() as f64 / f.moving() as f64,
+                "lbr_med_sim: {} trajectory messages, {} moving, {} dropped ({} moving), {} late (the arm held at \
+                 the previous point); smallest lead over the next update {:.1} ms; largest command lead {:.2} deg",
+                n.messages,
+                n.moving,
+                n.dropped,
+                n.dropped_moving,
+                n.late,
+                n.min_lead_s * 1e3,
                 self.max_lead.to_degrees()
             );
         }
+        if self.diagnostics.due(now) {
+            let _ = self.diagnostics_out.send(stream_diagnostics(stamp, &n, &self.judges));
+        }
+    }
+}
+
+/// Name of the command stream's diagnostic status.
+pub const STREAM_DIAGNOSTIC: &str = "lbr_med_sim: trajectory controller";
+
+/// The key of the moving commands dropped on a driver whose clock leads by `ahead_s`.
+pub fn judged_dropped_key(ahead_s: f64) -> String {
+    format!("dropped_moving_if_driver_ahead_{:.0}ms", ahead_s * 1e3)
+}
+
+/// The stream's counts as a diagnostic (with the moving commands each judge dropped): WARN
+/// when a moving command was dropped.
+fn stream_diagnostics(
+    stamp: rosrust::Time,
+    n: &StreamCounts,
+    judges: &[(f64, TrajectoryController)],
+) -> diagnostic_msgs::DiagnosticArray {
+    let kv = |key: &str, value: String| diagnostic_msgs::KeyValue { key: key.into(), value };
+    let level = if n.dropped_moving > 0 {
+        diagnostic_msgs::DiagnosticStatus::WARN
+    } else {
+        diagnostic_msgs::DiagnosticStatus::OK
+    };
+    diagnostic_msgs::DiagnosticArray {
+        header: convert::header(stamp, ""),
+        status: vec![diagnostic_msgs::DiagnosticStatus {
+            level,
+            name: STREAM_DIAGNOSTIC.into(),
+            message: format!(
+                "{} of {} moving commands dropped, {} late",
+                n.dropped_moving, n.moving, n.late
+            ),
+            hardware_id: "lbr_med_sim".into(),
+            values: vec![
+                kv("messages", n.messages.to_string()),
+                kv("moving", n.moving.to_string()),
+                kv("dropped", n.dropped.to_string()),
+                kv("dropped_moving", n.dropped_moving.to_string()),
+                kv("late", n.late.to_string()),
+                kv("min_lead_ms", format!("{:.3}", n.min_lead_s * 1e3)),
+            ]
+            .into_iter()
+            .chain(
+                judges
+                    .iter()
+                    .map(|(a, j)| kv(&judged_dropped_key(*a), j.counts().dropped_moving.to_string())),
+            )
+            .collect(),
+        }],
+    }
+}
+
+/// `stamp` read on the driver's clock, `ahead` s ahead.
+fn driver_clock(stamp: rosrust::Time, ahead: f64) -> rosrust::Time {
+    if ahead == 0.0 {
+        stamp
+    } else {
+        convert::ros_time(convert::seconds(stamp) + ahead)
     }
 }
 
@@ -809,7 +987,7 @@ pub fn run() -> Result<(), NodeError> {
         SimWorld::new(&world_cfg.sim, shared_kin, p.seed).map_err(|e| NodeError::Invalid(format!("sim: {e}")))?;
     let dt = world_cfg.sim.dt();
 
-    let command: CommandSlot = Arc::new(Mutex::new(None));
+    let command: CommandQueue = Arc::new(Mutex::new(std::collections::VecDeque::with_capacity(COMMAND_QUEUE)));
     let _sub = subscribe_command(&p, &command)?;
     let out = Outputs::new(&p)?;
     let mut camera = if p.camera_enabled {
@@ -827,7 +1005,6 @@ pub fn run() -> Result<(), NodeError> {
     let (mut fri, mut truth) = (Every::new(p.fri_rate_hz, t0), Every::new(10.0, t0));
     let mut frames = Every::new(p.camera_rate_hz, t0);
     let mut last_measurement = f64::NEG_INFINITY;
-    let sample_time = 1.0 / p.fri_rate_hz;
     rosrust::ros_info!(
         "lbr_med_sim: {:?}, world protocol '{}', FRI {} Hz, physics {} s, x{} real time, clock {}",
         p.model,
@@ -837,14 +1014,14 @@ pub fn run() -> Result<(), NodeError> {
         p.real_time_factor,
         p.publish_clock
     );
-    let mut arm = ArmCommand::new(&world, t0);
+    let mut arm = ArmCommand::new(&p, &world, t0)?;
     while rosrust::is_ok() {
         let now = if p.publish_clock {
             t0 + world.time()
         } else {
             convert::seconds(rosrust::now())
         };
-        arm.apply(&command, &mut world, now);
+        arm.step(&command, &mut world, now);
         if let Err(e) = world.step(dt) {
             return Err(NodeError::Invalid(format!("simulation stopped: {e}")));
         }
@@ -858,8 +1035,9 @@ pub fn run() -> Result<(), NodeError> {
             let _ = c.send(rosgraph_msgs::Clock { clock: stamp });
         }
         if fri.due(t) {
-            out.driver(&p, &world, stamp, sample_time);
+            out.driver(&p, &world, driver_clock(stamp, arm.clock_ahead), 1.0 / p.fri_rate_hz);
         }
+        arm.report(t, stamp);
         let live = trocar_live(
             p.trocar_dropout_after_s,
             p.trocar_dropout_from,

@@ -29,6 +29,10 @@ pub struct CheckParams {
     /// `docking`: the largest accepted RMS speed of the tip (from the measured joints)
     /// during INSERT, m/s (0 = not checked).
     pub max_tip_rms_speed: f64,
+    /// `docking`: the simulator's command stream (its counts on `/diagnostics`, as the
+    /// driver's trajectory controller met it) must hold at least this many moving commands
+    /// and no dropped one (0 = not checked).
+    pub min_moving_commands: u64,
     /// Whether the check calls `~start` itself.
     pub call_start: bool,
     /// For `stale_hold`: the hold's code (`hold_code` of the status) must be this.
@@ -144,6 +148,9 @@ pub struct CheckParams {
     /// `docking`: the largest accepted distance at DONE of the true port from the estimated
     /// insertion axis (`pose_topic` against `true_pose_topic`), m (0 = not checked).
     pub max_axis_error_m: f64,
+    /// `docking`: the largest accepted angle at DONE between the estimated insertion axis and
+    /// the true port's, deg (0 = not checked).
+    pub max_axis_error_deg: f64,
     /// `docking`: the sources (`marker`, `markerless`, comma-separated) that must each have
     /// had a pose published during the run, by the estimator's status lines ('' = not checked).
     pub estimator_published: String,
@@ -181,6 +188,7 @@ impl Default for CheckParams {
             max_force: 60.0,
             startup_timeout: 30.0,
             max_tip_rms_speed: 0.0,
+            min_moving_commands: 0,
             call_start: true,
             hold_code: "STALE_TROCAR_POSE".into(),
             done_code: String::new(),
@@ -235,6 +243,7 @@ impl Default for CheckParams {
             preview_topic: "/docking_controller/preview".into(),
             preview_joint_states_topic: "/docking_controller/preview_joint_states".into(),
             max_axis_error_m: 0.0,
+            max_axis_error_deg: 0.0,
             estimator_published: String::new(),
             estimator_status_topic: "/trocar_estimator/status".into(),
             hand_eye_node: "/hand_eye_calibration".into(),
@@ -290,6 +299,7 @@ impl CheckParams {
         validate::duration("retract_timeout", self.retract_timeout)?;
         validate::positive("reconfigure_force_stop", self.reconfigure_force_stop)?;
         validate::non_negative("max_axis_error_m", self.max_axis_error_m)?;
+        validate::non_negative("max_axis_error_deg", self.max_axis_error_deg)?;
         validate::positive("max_mount_error_m", self.max_mount_error_m)?;
         validate::positive("max_mount_error_deg", self.max_mount_error_deg)?;
         Ok(())

@@ -7,7 +7,9 @@ use std::time::{Duration, Instant};
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{joint_names, JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
-use ::trocar_docking::ros::msgs::{geometry_msgs, lbr_msgs, sensor_msgs, std_msgs, trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::msgs::{
+    diagnostic_msgs, geometry_msgs, lbr_msgs, sensor_msgs, std_msgs, trajectory_msgs, trocar_docking,
+};
 use ::trocar_docking::ros::topics;
 
 use crate::common::{subscribe_latest, trigger, wait_for, wait_until_still, CheckParams, Latest};
@@ -160,6 +162,60 @@ fn subscribe_docking_seen(topic: &str) -> Result<(Arc<Mutex<DockingSeen>>, rosru
     Ok((seen, sub))
 }
 
+/// The driver clock's leads (ms) every command stream is judged at (`judge_clock_ahead_ms`).
+const JUDGED_CLOCK_AHEAD_MS: [f64; 3] = [0.0, 5.0, 30.0];
+
+/// The simulator's command stream at DONE (its next diagnostic, once a second): at least
+/// `min_moving` moving commands, none dropped by the trajectory controller's rule.
+fn judge_stream(stream: &Latest<diagnostic_msgs::DiagnosticArray>, min_moving: u64) -> Result<String, String> {
+    let count = |a: &diagnostic_msgs::DiagnosticArray, key: &str| -> Option<String> {
+        let s = a
+            .status
+            .iter()
+            .find(|s| s.name == ::trocar_docking::ros::sim_node::STREAM_DIAGNOSTIC)?;
+        s.values.iter().find(|v| v.key == key).map(|v| v.value.clone())
+    };
+    let first = stream.get().and_then(|a| count(&a, "messages"));
+    let a = wait_for(3.0, || {
+        stream
+            .get()
+            .filter(|a| count(a, "messages") != first && first.is_some())
+    })
+    .or_else(|| stream.get())
+    .ok_or("no command stream diagnostics from lbr_med_sim on /diagnostics")?;
+    let num = |key: &str| -> Result<u64, String> {
+        count(&a, key)
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| format!("the stream diagnostics have no '{key}'"))
+    };
+    let (moving, dropped, late) = (num("moving")?, num("dropped_moving")?, num("late")?);
+    let lead = count(&a, "min_lead_ms").unwrap_or_default();
+    if dropped > 0 || moving < min_moving {
+        return Err(format!(
+            "the trajectory controller dropped {dropped} of {moving} moving commands (at least {min_moving} \
+             expected, none dropped); smallest lead {lead} ms"
+        ));
+    }
+    // The same stream judged on drivers whose clocks lead by 0, 5 and 30 ms (lbr_med_sim.yaml).
+    let mut judged = Vec::new();
+    for ms in JUDGED_CLOCK_AHEAD_MS {
+        let key = ::trocar_docking::ros::sim_node::judged_dropped_key(ms * 1e-3);
+        match num(&key)? {
+            0 => judged.push(format!("{ms:.0}")),
+            n => {
+                return Err(format!(
+                    "{n} of {moving} moving commands dropped on a driver {ms:.0} ms ahead"
+                ))
+            }
+        }
+    }
+    Ok(format!(
+        "; commands: {moving} moving, 0 dropped (nor on drivers {} ms ahead), {late} late, smallest lead over the \
+         driver's next update {lead} ms",
+        judged.join(", ")
+    ))
+}
+
 /// Wait up to `time_limit` for DONE or ABORTED on `status`; that status, or why not.
 pub fn wait_for_end(
     p: &CheckParams,
@@ -193,6 +249,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     let (estimate, _sub_estimate) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.pose_topic)?;
     let (truth, _sub_truth) = subscribe_latest::<geometry_msgs::PoseStamped>(&p.true_pose_topic)?;
     let published = PublishedBy::for_params(p)?;
+    let (stream, _sub_stream) = subscribe_latest::<diagnostic_msgs::DiagnosticArray>("/diagnostics")?;
     wait_for(p.startup_timeout, || status.get()).ok_or("no status message")?;
     if p.call_start {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
@@ -234,11 +291,19 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     if let Some(insert) = insert {
         note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }
-    if p.max_axis_error_m > 0.0 {
-        note.push_str(&judge_axis(estimate.get(), truth.get(), p.max_axis_error_m)?);
+    if p.max_axis_error_m > 0.0 || p.max_axis_error_deg > 0.0 {
+        note.push_str(&judge_axis(
+            estimate.get(),
+            truth.get(),
+            p.max_axis_error_m,
+            p.max_axis_error_deg,
+        )?);
     }
     if let Some(published) = published {
         note.push_str(&published.judge()?);
+    }
+    if p.min_moving_commands > 0 {
+        note.push_str(&judge_stream(&stream, p.min_moving_commands)?);
     }
     Ok(format!(
         "success: DONE in {:.2} s (ROS time; {:.1} s wall), M = {:.2} N (paper-code scale {:.2}), max force {:.2} N, \
@@ -313,11 +378,13 @@ impl PublishedBy {
 }
 
 /// The true port's distance from the estimated insertion axis (z of the estimated trocar
-/// pose) and the angle between the axes, at DONE; an error above `max_m`.
+/// pose) and the angle between the axes, at DONE; an error above `max_m` or `max_deg`
+/// (each 0 = not checked).
 fn judge_axis(
     estimate: Option<geometry_msgs::PoseStamped>,
     truth: Option<geometry_msgs::PoseStamped>,
     max_m: f64,
+    max_deg: f64,
 ) -> Result<String, String> {
     let (Some(e), Some(t)) = (estimate, truth) else {
         return Err("no estimated or true trocar pose at DONE".into());
@@ -332,11 +399,14 @@ fn judge_axis(
         "; estimated axis {:.2} mm from the true port, {angle:.2} deg",
         lateral * 1e3
     );
-    if lateral > max_m {
+    if max_m > 0.0 && lateral > max_m {
         return Err(format!(
             "DONE, but the estimated axis is over {} mm off{text}",
             max_m * 1e3
         ));
+    }
+    if max_deg > 0.0 && angle > max_deg {
+        return Err(format!("DONE, but the estimated axis is over {max_deg} deg off{text}"));
     }
     Ok(text)
 }

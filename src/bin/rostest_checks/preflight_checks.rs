@@ -60,7 +60,11 @@ pub fn preflight(p: &CheckParams) -> Result<String, String> {
     }
     let summary = text
         .lines()
-        .filter(|l| l.starts_with("FAIL") || l.starts_with("preflight"))
+        .filter(|l| {
+            l.starts_with("FAIL")
+                || l.starts_with("preflight")
+                || (!p.preflight_pass.is_empty() && l.starts_with(&must_pass))
+        })
         .collect::<Vec<_>>()
         .join(" | ");
     if !p.call_start {

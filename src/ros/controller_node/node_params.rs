@@ -51,6 +51,8 @@ pub struct ControllerNodeParams {
     pub command_type: CommandType,
     /// `time_from_start` of the trajectory point, in control periods.
     pub command_lookahead_periods: f64,
+    /// The trajectory command's `header.stamp`: 0 (`next_update`) or the step's time.
+    pub command_stamp: crate::ros::node::CommandStamp,
     /// Joint states that resume after a gap longer than this (s) are a driver restart: the
     /// controller holds (`DRIVER_RESTART`) until a new start. Shorter gaps hold as stale
     /// data and resume by themselves. Stamps that go back or names in another order are a

@@ -2,7 +2,9 @@
 //! [`StepRecord`] per step into a lock-free queue ([`crate::ros::handover::outputs`]) and
 //! a publisher thread turns it into messages (rosrust's publish serialises and allocates):
 //! the joint command every step, `/docking/status` and `/docking/f_ext` at the status rate,
-//! markers and tf at the markers rate. A scope command the controller ignored (not finite,
+//! markers and tf at the markers rate. The trajectory command's stamp is 0 as shipped
+//! (`command_stamp: next_update`: the driver's trajectory controller starts it at its own next
+//! update, [`crate::ros::node::CommandStamp`]). A scope command the controller ignored (not finite,
 //! stamped in the future) is logged here, throttled. In a dry run the command goes to the
 //! preview topic instead, with the ghost's joints, the ghost's base frame and the tip's path.
 
@@ -17,10 +19,8 @@ use crate::kinematics::JointVector;
 use crate::ros::convert;
 use crate::ros::handover::{FaultText, OutputReceiver, RecvError};
 use crate::ros::markers::{self, Scene};
-use crate::ros::msgs::{
-    geometry_msgs, sensor_msgs, std_msgs, tf2_msgs, trajectory_msgs, trocar_docking, visualization_msgs,
-};
-use crate::ros::node::{ros_err, CommandType, NodeError, Throttle};
+use crate::ros::msgs::{geometry_msgs, sensor_msgs, std_msgs, tf2_msgs, trocar_docking, visualization_msgs};
+use crate::ros::node::{ros_err, CommandStamp, CommandType, NodeError, Throttle};
 use crate::ros::stats::Percentiles;
 
 /// What the loop hands the publisher after a step.
@@ -57,7 +57,7 @@ pub struct LoopSnapshot {
 
 /// Publishers of the node.
 struct Outputs {
-    trajectory: Option<rosrust::Publisher<trajectory_msgs::JointTrajectory>>,
+    trajectory: Option<rosrust::Publisher<convert::AsStamped>>,
     multiarray: Option<rosrust::Publisher<std_msgs::Float64MultiArray>>,
     status: rosrust::Publisher<trocar_docking::DockingStatus>,
     f_ext: rosrust::Publisher<geometry_msgs::WrenchStamped>,
@@ -111,7 +111,10 @@ impl Outputs {
     fn command(&self, p: &ControllerNodeParams, stamp: rosrust::Time, q: &JointVector) {
         let r = match (&self.trajectory, &self.multiarray) {
             (Some(t), _) => t.send(convert::trajectory_command(
-                stamp,
+                match p.command_stamp {
+                    CommandStamp::NextUpdate => rosrust::Time::default(),
+                    CommandStamp::Step => stamp,
+                },
                 &p.joint_names,
                 q,
                 p.command_lookahead_periods * p.controller.dt_s,

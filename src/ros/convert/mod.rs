@@ -4,8 +4,11 @@
 //! the node logs and hands to the supervisor as the hold reason. [`image`] converts camera
 //! images and intrinsics, [`scope`] the surgeon's scope commands.
 
+pub mod as_stamped;
 pub mod image;
 pub mod scope;
+
+pub use as_stamped::AsStamped;
 
 pub use scope::{scope_command, scope_stamp, scope_twist};
 
@@ -222,14 +225,10 @@ pub fn multiarray_positions(topic: &str, msg: &std_msgs::Float64MultiArray) -> R
     joint_vector(topic, "data", &msg.data)
 }
 
-/// A one-point JointTrajectory reaching `q` after `time_from_start` seconds.
-pub fn trajectory_command(
-    stamp: rosrust::Time,
-    names: &[String],
-    q: &JointVector,
-    time_from_start: f64,
-) -> trajectory_msgs::JointTrajectory {
-    trajectory_msgs::JointTrajectory {
+/// A one-point JointTrajectory reaching `q` after `time_from_start` seconds, published with
+/// exactly `stamp` (0 included: [`AsStamped`]).
+pub fn trajectory_command(stamp: rosrust::Time, names: &[String], q: &JointVector, time_from_start: f64) -> AsStamped {
+    AsStamped(trajectory_msgs::JointTrajectory {
         header: header(stamp, ""),
         joint_names: names.to_vec(),
         points: vec![trajectory_msgs::JointTrajectoryPoint {
@@ -239,7 +238,7 @@ pub fn trajectory_command(
             effort: Vec::new(),
             time_from_start: rosrust::Duration::from_nanos((time_from_start.max(0.0) * 1e9) as i64),
         }],
-    }
+    })
 }
 
 /// A Float64MultiArray command (JointGroupPositionController).
@@ -470,7 +469,8 @@ mod tests {
     fn commands_round_trip() {
         let q = JointVector::from_fn(|i, _| 0.1 * i as f64);
         let traj = trajectory_command(ros_time(3.0), &names(), &q, 0.01);
-        assert_eq!(trajectory_positions("t", &traj, &names()).unwrap(), q);
+        assert_eq!(trajectory_positions("t", &traj.0, &names()).unwrap(), q);
+        assert_eq!(traj.0.header.stamp, ros_time(3.0));
         assert_eq!(multiarray_positions("t", &multiarray_command(&q)).unwrap(), q);
         let empty = trajectory_msgs::JointTrajectory::default();
         assert!(trajectory_positions("t", &empty, &names()).is_err());

@@ -143,7 +143,7 @@ impl ScopeInView {
             for (c, w) in col.iter_mut().zip(&self.window[..self.len]) {
                 *c = w[k];
             }
-            *out = median(&mut col[..self.len]);
+            *out = crate::stats::upper_median_in_place(&mut col[..self.len]);
         }
         let (offset, seen) = (Vector3::new(m[0], m[1], m[2]), Vector3::new(m[3], m[4], m[5]));
         let seen = seen.try_normalize(1e-12).unwrap_or(self.direction.into_inner());
@@ -154,12 +154,6 @@ impl ScopeInView {
         let onto = foot + seen * (turned - foot).dot(&seen);
         Translation3::from(onto - turned) * rot
     }
-}
-
-/// The median of `v` (the upper one of an even count), in place, no allocation.
-fn median(v: &mut [f64]) -> f64 {
-    let mid = v.len() / 2;
-    *v.select_nth_unstable_by(mid, f64::total_cmp).1
 }
 
 #[cfg(test)]
