@@ -24,7 +24,10 @@
 //! holds still; only the fulcrum's lateral adaptation moves it, with the wall.
 //!
 //! **Retract** (`~retract`): the commands are ignored and s_t falls at `retract_speed_m_s` to
-//! the stand-off point before the port (`-standoff_m`); then the run ends (IDLE).
+//! the stand-off point before the port (`-standoff_m`); then the run ends (IDLE). The port's
+//! breathing is not followed meanwhile: the seal drags the trocar out with the withdrawing
+//! scope, and a port followed there fed the withdrawal back into itself (the followed
+//! offset caught up at its own `max_speed_m_s` on top of the withdrawal).
 //!
 //! **Held** ([`Pivot::stop`], the force stop while steering or withdrawing, a guard's
 //! hold): the commands are ignored, the shaped rates are at rest, and nothing else moves
@@ -397,8 +400,11 @@ impl Pivot {
             let moved = self.fulcrum.step(&p.fulcrum, force, &d, &m, dt);
             self.fulcrum_base += d.into_inner() * moved;
             // The port's breathing along the docking axis: the port, the fulcrum and the
-            // tip's target move with it while the surgeon steers.
-            self.fulcrum_base += self.follow.step(&p.breathing, steering, dt);
+            // tip's target move with it while the surgeon steers; not while withdrawing
+            // (the seal drags the trocar out with the scope, and a port followed there fed
+            // the withdrawal back into itself: the tip left at 25 mm/s for a 5 mm/s retract).
+            let follow = steering && self.retract_to.is_none();
+            self.fulcrum_base += self.follow.step(&p.breathing, follow, dt);
         }
         let port = self.port();
         PivotTargets {
