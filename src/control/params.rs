@@ -183,13 +183,13 @@ mod tests {
     fn a_shaped_angular_acceleration_above_the_joints_limit_is_refused() {
         let mut p = ControllerParams::default();
         assert!(p.motion.max_angular_accel_rad_s2 <= p.guard.max_acceleration_rad_s2);
-        p.motion.max_angular_accel_rad_s2 = 20.0;
+        p.motion.max_angular_accel_rad_s2 = 10.0;
         let e = p.validate().unwrap_err();
         assert!(
             e.contains("motion.max_angular_accel_rad_s2") && e.contains("guard.max_acceleration_rad_s2"),
             "{e}"
         );
-        p.guard.max_acceleration_rad_s2 = 20.0;
+        p.guard.max_acceleration_rad_s2 = 10.0;
         p.validate().unwrap();
     }
 
