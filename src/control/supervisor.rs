@@ -158,6 +158,9 @@ impl Supervisor {
                 self.phase = Phase::Hold;
                 self.latched = latched;
             }
+            // A latched hold keeps its reason: a passing one (a stale input) must not hide
+            // what only a start ends (the status would name the stale input, latched).
+            Phase::Hold if self.latched && !latched => return,
             Phase::Hold => self.latched |= latched,
             _ => {}
         }
@@ -332,6 +335,13 @@ mod tests {
             Some("FORCE_LIMIT"),
             "and keeps its reason"
         );
+        s.hold(HoldReason::StaleTorques { age: 0.2 }, false);
+        assert_eq!(
+            s.reason().map(HoldReason::code),
+            Some("FORCE_LIMIT"),
+            "a passing hold (a stale input) does not hide the latched one"
+        );
+        assert!(s.is_latched());
         s.start().unwrap();
         assert_eq!(s.phase(), Phase::Insert);
         s.abort("surgeon");
