@@ -18,6 +18,8 @@ pub struct CheckParams {
     pub status_topic: String,
     /// Command topic (JointTrajectory).
     pub command_topic: String,
+    /// The controller's stamped copy of each command (sensor_msgs/JointState).
+    pub command_joints_topic: String,
     /// Wall-clock limit for the whole docking, s.
     pub time_limit: f64,
     /// Upper bound on M (N) for a successful docking.
@@ -183,6 +185,7 @@ impl Default for CheckParams {
             controller: "/docking_controller".into(),
             status_topic: topics::DOCKING_STATUS.into(),
             command_topic: topics::COMMAND.into(),
+            command_joints_topic: topics::DOCKING_COMMAND_JOINTS.into(),
             time_limit: 60.0,
             max_metric_m: 10.0,
             max_force: 60.0,

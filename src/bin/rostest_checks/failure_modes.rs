@@ -74,7 +74,7 @@ struct Mode {
 }
 
 /// What the plant saw of the commands.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 struct Seen {
     /// Commands received.
     commands: u64,
@@ -94,9 +94,9 @@ struct Seen {
 }
 
 impl Seen {
-    /// Record a command `cmd`, message `seq` stamped `stamp` (s), against the `measured`
-    /// joints and the lead bound (rad).
-    fn record(&mut self, cmd: &JointVector, measured: &JointVector, (seq, stamp): (u32, f64), lead_bound: f64) {
+    /// Record a command `cmd`, message `seq`, against the `measured` joints and the lead
+    /// bound (rad).
+    fn record(&mut self, cmd: &JointVector, measured: &JointVector, seq: u32, lead_bound: f64) {
         let lead = (cmd - measured).amax();
         self.max_lead = self.max_lead.max(lead);
         // The guard's not-following watch runs from a quarter of the bound.
@@ -106,7 +106,7 @@ impl Seen {
         if let Some(prev) = self.last {
             self.max_step = self.max_step.max((cmd - prev).amax());
         }
-        self.audit.add(seq, stamp, cmd);
+        self.audit.command(seq, cmd);
         if self.first_lead.is_none() {
             self.first_lead = Some(lead);
         }
@@ -123,7 +123,7 @@ struct Plant {
     lead_bound: f64,
     stop: Arc<AtomicBool>,
     threads: [Option<std::thread::JoinHandle<()>>; 2],
-    _sub: rosrust::Subscriber,
+    _subs: [rosrust::Subscriber; 2],
 }
 
 /// The publishers of the plant's thread.
@@ -228,10 +228,22 @@ impl Plant {
                     return;
                 };
                 let measured = *lock(&q);
-                lock(&seen).record(&cmd, &measured, (m.header.seq, m.header.stamp.seconds()), lead_bound);
+                lock(&seen).record(&cmd, &measured, m.header.seq, lead_bound);
                 if !lock(&mode).blocked {
                     // An ideal position-controlled arm: it is where it was commanded.
                     *lock(&q) = cmd;
+                }
+            })
+            .map_err(e)?
+        };
+        let copies = {
+            let seen = seen.clone();
+            let names = ::trocar_docking::kinematics::joint_names();
+            rosrust::subscribe(&p.command_joints_topic, 1000, move |m: sensor_msgs::JointState| {
+                if let Ok(q) = convert::joint_positions("command copy", &m, &names) {
+                    lock(&seen)
+                        .audit
+                        .copy(m.header.seq, convert::seconds(m.header.stamp), &q);
                 }
             })
             .map_err(e)?
@@ -252,7 +264,7 @@ impl Plant {
             lead_bound,
             stop,
             threads: [Some(thread), camera],
-            _sub: sub,
+            _subs: [sub, copies],
         })
     }
 
@@ -261,7 +273,7 @@ impl Plant {
     }
 
     fn seen(&self) -> Seen {
-        *lock(&self.seen)
+        lock(&self.seen).clone()
     }
 
     /// Forget the lead, step and first-command records (the last command stays).
@@ -270,7 +282,7 @@ impl Plant {
         *s = Seen {
             commands: s.commands,
             last: s.last,
-            audit: s.audit,
+            audit: s.audit.clone(),
             ..Seen::default()
         };
     }

@@ -15,7 +15,7 @@ use std::sync::{Arc, Mutex};
 
 use ::trocar_docking::kinematics::joint_names;
 use ::trocar_docking::ros::convert;
-use ::trocar_docking::ros::msgs::{trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::msgs::{sensor_msgs, trajectory_msgs, trocar_docking};
 
 use crate::bag_sync;
 use crate::command_audit::TopicAudit;
@@ -31,7 +31,16 @@ struct Audit {
 impl Audit {
     fn add(&mut self, msg: &trajectory_msgs::JointTrajectory, names: &[String]) {
         match convert::trajectory_positions("command", msg, names) {
-            Ok(q) => self.guard.add(msg.header.seq, convert::seconds(msg.header.stamp), &q),
+            Ok(q) => self.guard.command(msg.header.seq, &q),
+            Err(e) => {
+                self.malformed.get_or_insert(e.to_string());
+            }
+        }
+    }
+
+    fn copy(&mut self, msg: &sensor_msgs::JointState, names: &[String]) {
+        match convert::joint_positions("command copy", msg, names) {
+            Ok(q) => self.guard.copy(msg.header.seq, convert::seconds(msg.header.stamp), &q),
             Err(e) => {
                 self.malformed.get_or_insert(e.to_string());
             }
@@ -74,6 +83,16 @@ pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
         rosrust::subscribe(&p.command_topic, 1000, move |m: trajectory_msgs::JointTrajectory| {
             if let Ok(mut a) = audit.lock() {
                 a.add(&m, &names);
+            }
+        })
+        .map_err(|e| e.to_string())?
+    };
+    let _copies = {
+        let audit = audit.clone();
+        let names = joint_names();
+        rosrust::subscribe(&p.command_joints_topic, 1000, move |m: sensor_msgs::JointState| {
+            if let Ok(mut a) = audit.lock() {
+                a.copy(&m, &names);
             }
         })
         .map_err(|e| e.to_string())?
@@ -181,11 +200,10 @@ mod tests {
         }
     }
 
-    /// A command message numbered `seq`, stamped `t`.
-    fn msg(seq: u32, t: f64, q: &JointVector) -> trajectory_msgs::JointTrajectory {
+    /// A command message numbered `seq` (its stamp 0, as the controller sends it).
+    fn msg(seq: u32, q: &JointVector) -> trajectory_msgs::JointTrajectory {
         let mut m = trajectory_msgs::JointTrajectory::default();
         m.header.seq = seq;
-        m.header.stamp = rosrust::Time::from_nanos((t * 1e9) as i64);
         m.joint_names = joint_names();
         m.points.push(trajectory_msgs::JointTrajectoryPoint {
             positions: q.iter().copied().collect(),
@@ -194,16 +212,29 @@ mod tests {
         m
     }
 
+    /// The command numbered `seq`, `q` at its step `t`: the command and its stamped copy.
+    fn sent(a: &mut Audit, seq: u32, t: f64, q: &JointVector) {
+        a.add(&msg(seq, q), &joint_names());
+        let mut c = convert::joint_state(
+            rosrust::Time::from_nanos((t * 1e9) as i64),
+            &joint_names(),
+            q,
+            &JointVector::zeros(),
+        );
+        c.header.seq = seq;
+        a.copy(&c, &joint_names());
+    }
+
     /// `n` commands at 100 Hz standing still, then (`jump`) one 0.1 rad step of joint 2.
     fn audited(n: u32, jump: bool) -> Audit {
         let mut a = Audit::default();
         let mut q = JointVector::zeros();
         for k in 0..n {
-            a.add(&msg(k, f64::from(k) * 0.01, &q), &joint_names());
+            sent(&mut a, k, f64::from(k) * 0.01, &q);
         }
         if jump {
             q[1] = 0.1;
-            a.add(&msg(n, f64::from(n) * 0.01, &q), &joint_names());
+            sent(&mut a, n, f64::from(n) * 0.01, &q);
         }
         a
     }
@@ -235,22 +266,22 @@ mod tests {
             .unwrap_err()
             .contains("silence"));
         let mut bad = audited(150, false);
-        let mut m = msg(150, 1.5, &JointVector::zeros());
+        let mut m = msg(150, &JointVector::zeros());
         m.joint_names.pop();
         bad.add(&m, &joint_names());
         assert!(judge(&p, &good, Some(10.5), &bad).unwrap_err().contains("malformed"));
     }
 
-    /// The audit reads each message's sequence number and stamp: the same jump across a
+    /// The audit reads each copy's sequence number and stamp: the same jump across a
     /// missed message is not judged as one step.
     #[test]
     fn the_audit_reads_each_message_sequence_number_and_stamp() {
         let mut a = audited(10, false);
         let mut q = JointVector::zeros();
         q[1] = 0.1;
-        a.add(&msg(12, 0.12, &q), &joint_names());
+        sent(&mut a, 12, 0.12, &q);
         assert!(a.guard.verdict("X").is_ok());
-        a.add(&msg(13, 0.13, &q), &joint_names());
+        sent(&mut a, 13, 0.13, &q);
         assert!(a.guard.verdict("X").is_ok());
         assert_eq!(a.guard.count(), 12);
         assert!(audited(10, true).guard.verdict("X").is_err());

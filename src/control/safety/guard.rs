@@ -5,8 +5,8 @@
 //! ([`CommandGuard::step_box`]): the joint position limits less a margin, each joint's speed
 //! limit (`velocity_scale` of the datasheet's), its acceleration limit
 //! (`max_acceleration_rad_s2`) from the velocity of the last published command, a speed
-//! from which the joint can still brake before its position limit, and the lead bound
-//! around the measured joints. Otherwise the guard answers with a hold that brakes to a stop
+//! from which the joint can still brake before its position limit and before the lead
+//! bound around the measured joints, and that lead bound. Otherwise the guard answers with a hold that brakes to a stop
 //! within the same limits ([`CommandGuard::walk`]: never an instant stop from speed). Stale
 //! joint state, a stale or missing trocar pose, and a tip force over the threshold are
 //! reasons to hold as well. [`crate::control::safety::guarded::Guarded`] puts the command
@@ -211,8 +211,7 @@ impl CommandGuard {
         let a = self.params.max_acceleration_rad_s2;
         for i in 0..prev.len() {
             let (u, v) = (a * dt, self.velocity[i]);
-            let up = self.vmax[i].min(braking_speed(self.upper[i] - prev[i], a, dt)).max(0.0);
-            let down = self.vmax[i].min(braking_speed(prev[i] - self.lower[i], a, dt)).max(0.0);
+            let (up, down) = self.brakeable_speeds(i, prev[i], dt);
             let (vl, vh) = nearest_interval((-down, up), (v - u, v + u));
             let (l, h) = (prev[i] + vl * dt, prev[i] + vh * dt);
             let (lead_lo, lead_hi) = self.lead_bounds(i);
@@ -239,6 +238,22 @@ impl CommandGuard {
                 .min(braking_speed(d.abs(), a, dt).max(a * dt));
             (prev[i] + d.signum() * speed * dt).clamp(lo[i], hi[i])
         })
+    }
+
+    /// The largest speeds of joint `i` at `prev` up and down: within the speed limit, and
+    /// slow enough to brake within the acceleration limit before the position limit (with
+    /// margin) and before the lead bound around the measured joints (an arm that stops
+    /// dead never finds the command more than `max_command_lead_rad` ahead of it).
+    fn brakeable_speeds(&self, i: usize, prev: f64, dt: f64) -> (f64, f64) {
+        let a = self.params.max_acceleration_rad_s2;
+        let (lead_lo, lead_hi) = self.lead_bounds(i);
+        let up = self.vmax[i]
+            .min(braking_speed(self.upper[i] - prev, a, dt))
+            .min(braking_speed(lead_hi - prev, a, dt));
+        let down = self.vmax[i]
+            .min(braking_speed(prev - self.lower[i], a, dt))
+            .min(braking_speed(prev - lead_lo, a, dt));
+        (up.max(0.0), down.max(0.0))
     }
 
     /// The lead bounds of joint `i` (infinite without measured joints).
@@ -292,7 +307,12 @@ impl CommandGuard {
             if (step / dt - self.velocity[i]).abs() > self.params.max_acceleration_rad_s2 * dt + tol / dt {
                 return Err(HoldReason::AccelerationLimit { joint: i });
             }
-            // Too fast to brake before the position limit.
+            // Too fast to brake before the lead bound, or else before the position limit.
+            let brake = |d: f64| braking_speed(d, self.params.max_acceleration_rad_s2, dt) * dt + tol;
+            if (step > 0.0 && step > brake(lead_hi - prev[i])) || (step < 0.0 && -step > brake(prev[i] - lead_lo)) {
+                let lead = self.measured.map_or(0.0, |q| cmd[i] - q[i]);
+                return Err(HoldReason::ArmNotFollowing { joint: i, lead });
+            }
             return Err(HoldReason::PositionLimit { joint: i });
         }
         Ok(())
@@ -386,6 +406,37 @@ mod tests {
             .fold(0.0, f64::max)
             / g.max_acceleration();
         (speed, accel)
+    }
+
+    /// An arm that stops dead never finds a command walking away from it more than the lead
+    /// bound ahead, within the acceleration limit: the walk slows to the braking speed of
+    /// what is left of the bound, from rest and from speed alike.
+    #[test]
+    fn the_command_brakes_before_the_lead_bound_of_a_stopped_arm() {
+        let dt = 0.01;
+        let bound = GuardParams::default().max_command_lead_rad;
+        for v0 in [0.0f64, 0.3, 0.8] {
+            let mut g = guard();
+            let measured = JointVector::zeros();
+            g.set_measured(Some(measured));
+            let mut v = JointVector::zeros();
+            v[1] = v0.min(braking_speed(bound, g.max_acceleration(), dt));
+            g.set_velocity(v);
+            let mut to = measured;
+            to[1] = 1.0;
+            let qs = walk_all(&mut g, measured, to, dt, 300);
+            let lead = qs.iter().map(|q| (q - measured).amax()).fold(0.0, f64::max);
+            assert!(
+                lead <= bound + 1e-9,
+                "from {v0} rad/s: led by {lead} rad, bound {bound}"
+            );
+            assert!(lead > 0.95 * bound, "from {v0} rad/s: stopped short at {lead} rad");
+            let step = qs[1] - qs[0];
+            assert!(
+                g.check_command(&(qs[300] + step), &qs[300], dt).is_err(),
+                "beyond the bound is refused"
+            );
+        }
     }
 
     proptest! {
