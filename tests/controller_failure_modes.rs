@@ -3,10 +3,12 @@
 //! leads the arm by more than `guard.max_command_lead_rad`; a blocked arm holds
 //! (`ARM_NOT_FOLLOWING`) within 0.2 s of the lead reaching its bound, where the arm is; the
 //! clock going back or jumping forward holds with its reason; an input restart
-//! (`Controller::interrupt`) holds; every such hold is latched, walks to where it stands
-//! within the speed limits, and the new start begins from the last published command.
+//! (`Controller::interrupt`) holds; every such hold is latched, brakes and walks to where it
+//! stands within the guard's speed and acceleration limits (every command of every run
+//! audited by [`CommandAudit`]), and the new start begins from the last published command.
 
 use nalgebra::Isometry3;
+use trocar_docking::control::safety::audit::CommandAudit;
 use trocar_docking::control::safety::guard::LEAD_WATCH_FRACTION;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, HoldReason, Phase, Stamped};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -24,13 +26,17 @@ struct Rig {
     q: JointVector,
     t: f64,
     blocked: bool,
+    /// Every command of the run, against the guard's speed and acceleration limits.
+    audit: CommandAudit,
 }
 
 impl Rig {
     fn new() -> Self {
         let kin = kin();
         let trocar = trocar(&kin);
-        let c = Controller::new(ControllerParams::default(), kin.limits().clone()).unwrap();
+        let p = ControllerParams::default();
+        let audit = CommandAudit::new(&p.guard, kin.limits(), p.dt_s);
+        let c = Controller::new(p, kin.limits().clone()).unwrap();
         Self {
             kin,
             trocar,
@@ -38,6 +44,7 @@ impl Rig {
             q: q_start(),
             t: 0.0,
             blocked: false,
+            audit,
         }
     }
 
@@ -57,10 +64,38 @@ impl Rig {
             }),
         };
         let out = self.c.step(&self.kin, &input);
+        match out.command {
+            Some(cmd) => self.audit.add(t, &cmd),
+            None => self.audit.gap(),
+        }
         if let (Some(cmd), false) = (out.command, self.blocked) {
             self.q = cmd;
         }
         out
+    }
+
+    /// Step while held with `code` until the command has stood still for 5 steps (at most 2 s):
+    /// where it stands.
+    fn settle(&mut self, code: &str) -> JointVector {
+        let (mut last, mut still) = (None, 0);
+        for _ in 0..200 {
+            let out = self.step();
+            assert_eq!((out.phase, out.reason_code()), (Phase::Hold, code), "{:?}", out.hold);
+            let cmd = out.command.expect("a held command every step");
+            still = if last == Some(cmd) { still + 1 } else { 0 };
+            last = Some(cmd);
+            if still == 5 {
+                return cmd;
+            }
+        }
+        panic!("{code}: the hold never stood still");
+    }
+
+    /// The audit's verdict: every command within the guard's limits.
+    fn audited(&self) {
+        if let Err(e) = self.audit.verdict() {
+            panic!("{e}");
+        }
     }
 
     fn step(&mut self) -> ControlOutput {
@@ -95,10 +130,7 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
     r.start_moving(20);
     r.blocked = true;
     let frozen = r.q;
-    let vmax = r.kin.limits().velocity * r.c.params().guard.velocity_scale;
-    let within_a_step = |a: &JointVector, b: &JointVector| (0..7).all(|i| (a[i] - b[i]).abs() <= vmax[i] * DT + 1e-9);
     let (mut saturated_at, mut held_at, mut max_lead) = (None, None, 0.0f64);
-    let mut last = frozen;
     for _ in 0..300 {
         let out = r.step();
         let cmd = out.command.expect("a command every step");
@@ -106,24 +138,16 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
         if lead(&cmd, &frozen) >= LEAD_WATCH_FRACTION * bound && saturated_at.is_none() {
             saturated_at = Some(r.t);
         }
-        assert!(within_a_step(&cmd, &last), "no command step over the speed limit");
-        last = cmd;
         if out.phase == Phase::Hold {
             assert_eq!(out.reason_code(), "ARM_NOT_FOLLOWING", "{:?}", out.hold);
             held_at = Some(r.t);
             break;
         }
     }
-    // The hold walks the command back to where the arm is within the speed limits (a jump
-    // there stepped by the whole lead, twice the limit), and stands there.
-    for _ in 0..10 {
-        let out = r.step();
-        assert_eq!(out.phase, Phase::Hold);
-        let cmd = out.command.unwrap();
-        assert!(within_a_step(&cmd, &last), "the hold's walk within the speed limit");
-        last = cmd;
-    }
-    assert_eq!(last, frozen, "held where the arm is, not ahead of it");
+    // The hold brakes and walks the command back to where the arm is, within the limits
+    // (a jump there stepped by the whole lead), and stands there.
+    let stood = r.settle("ARM_NOT_FOLLOWING");
+    assert!(lead(&stood, &frozen) < 1e-12, "held where the arm is, not ahead of it");
     assert!(
         max_lead <= bound + 1e-9,
         "the command led by {:.3} deg",
@@ -142,28 +166,25 @@ fn a_blocked_arm_holds_without_winding_up_and_a_new_start_begins_where_it_is() {
     r.blocked = false;
     for _ in 0..50 {
         let out = r.step();
-        assert_eq!((out.phase, out.command), (Phase::Hold, Some(frozen)));
+        assert_eq!((out.phase, out.command), (Phase::Hold, Some(stood)));
         assert_eq!(out.reason_code(), "ARM_NOT_FOLLOWING");
     }
     // Moved by hand while held (2.5 deg on joint 2): the new start begins from there.
     r.blocked = true;
     r.q[1] += 2.5f64.to_radians();
     let moved = r.q;
-    assert_eq!(r.step().command, Some(frozen), "held");
+    assert_eq!(r.step().command, Some(stood), "held");
     r.blocked = false;
     r.c.start().unwrap();
-    // From the last published command (where the hold stood), within the speed limit.
-    let mut prev = frozen;
-    for k in 0..30 {
+    // From the last published command (where the hold stood), within the limits.
+    let mut prev = stood;
+    for _ in 0..30 {
         let out = r.step();
         assert!(out.phase.is_moving(), "{:?}", out.hold);
-        let cmd = out.command.unwrap();
-        for i in 0..7 {
-            assert!((cmd[i] - prev[i]).abs() <= vmax[i] * DT + 1e-9, "step {k}: no jump");
-        }
-        prev = cmd;
+        prev = out.command.unwrap();
     }
     assert!(lead(&prev, &moved) > 1e-4, "docking goes on after the start");
+    r.audited();
 }
 
 #[test]
@@ -192,6 +213,7 @@ fn the_command_never_leads_a_lagging_arm_by_more_than_the_bound_in_any_phase() {
         }
     }
     assert!(phases.contains(&Phase::Approach), "it moved");
+    r.audited();
 }
 
 fn jump_holds_until_a_new_start(jump: f64, code: &str) {
@@ -201,12 +223,22 @@ fn jump_holds_until_a_new_start(jump: f64, code: &str) {
     let out = r.step_at(r.t + jump);
     assert_eq!(out.phase, Phase::Hold, "{code}: {:?}", out.hold);
     assert_eq!(out.reason_code(), code);
-    assert_eq!(out.command, Some(before), "{code}: the hold does not move");
     assert!(out.reason_text().unwrap().contains("clock"), "{:?}", out.reason_text());
+    // Braked to rest within the limits, near where it was (no walk elsewhere): the
+    // distance a joint at the guard's speed limit brakes in, at most.
+    let stood = r.settle(code);
+    let p = r.c.params();
+    let vmax = r.kin.limits().velocity.amax() * p.guard.velocity_scale;
+    let braking = vmax * vmax / (2.0 * p.guard.max_acceleration_rad_s2) + vmax * DT;
+    assert!(
+        lead(&stood, &before) <= braking,
+        "{code}: stood {} rad away",
+        lead(&stood, &before)
+    );
     // Time goes on from the new clock, every input fresh: still held, with the same reason.
     for _ in 0..100 {
         let out = r.step();
-        assert_eq!((out.phase, out.command), (Phase::Hold, Some(before)), "{code}");
+        assert_eq!((out.phase, out.command), (Phase::Hold, Some(stood)), "{code}");
         assert_eq!(out.reason_code(), code);
     }
     r.c.start().unwrap();
@@ -216,9 +248,10 @@ fn jump_holds_until_a_new_start(jump: f64, code: &str) {
     }
     assert!(moved.phase.is_moving(), "{code}: {:?}", moved.hold);
     assert!(
-        lead(&moved.command.unwrap(), &before) > 1e-4,
+        lead(&moved.command.unwrap(), &stood) > 1e-4,
         "{code}: moves again after a start"
     );
+    r.audited();
 }
 
 #[test]
@@ -247,28 +280,15 @@ fn an_input_restart_holds_until_a_new_start_in_every_phase() {
     // not resume it.
     let mut r = Rig::new();
     r.start_moving(20);
-    let mut last = r.q;
     r.c.interrupt(restart.clone());
-    let vmax = r.kin.limits().velocity * r.c.params().guard.velocity_scale;
-    let mut commands = Vec::new();
-    for _ in 0..50 {
+    let stood = r.settle("DRIVER_RESTART");
+    for _ in 0..20 {
         let out = r.step();
-        assert_eq!(out.phase, Phase::Hold);
-        assert_eq!(out.reason_code(), "DRIVER_RESTART");
-        let cmd = out.command.unwrap();
-        assert!(
-            (0..7).all(|i| (cmd[i] - last[i]).abs() <= vmax[i] * DT + 1e-9),
-            "no jump"
-        );
-        last = cmd;
-        commands.push(cmd);
+        assert_eq!((out.phase, out.command), (Phase::Hold, Some(stood)), "standing still");
     }
-    assert!(
-        commands[10..].iter().all(|c| *c == last),
-        "standing still after the walk"
-    );
     r.c.start().unwrap();
     assert!(r.step().phase.is_moving());
+    r.audited();
     // Taring: back to IDLE with the reason, nothing commanded; a start tares again.
     let mut r = Rig::new();
     r.c.start().unwrap();

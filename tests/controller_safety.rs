@@ -1,10 +1,12 @@
 //! The controller under bad and hostile input: every command is finite, inside the joint
-//! limits and inside the per-step velocity limit; force and stale data give holds with
-//! reasons; force stops latch; retreat backs out along the axis.
+//! limits and, the whole stream audited, within the guard's own speed and acceleration
+//! limits (read from the shipped `config/controller.yaml`; holds included); force and stale
+//! data give holds with reasons; force stops latch; retreat backs out along the axis.
 
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use proptest::prelude::*;
 use trocar_docking::control::docking::geometry::InsertionAxis;
+use trocar_docking::control::safety::audit::CommandAudit;
 use trocar_docking::control::sqp::SqpStatus;
 use trocar_docking::control::{ControlInput, ControlOutput, Controller, ControllerParams, Phase, Stamped};
 use trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -57,17 +59,14 @@ fn torques_for(kin: &LbrKinematics, q: &JointVector, f: Vector3<f64>) -> JointVe
     j.fixed_rows::<3>(0).transpose() * f
 }
 
-fn assert_safe(out: &ControlOutput, prev: &JointVector, kin: &LbrKinematics, p: &ControllerParams) {
+/// Finite, inside the limits (or not moving further out of them); the speed and the
+/// acceleration are the audit's ([`CommandAudit`], over the whole stream).
+fn assert_safe(out: &ControlOutput, prev: &JointVector, kin: &LbrKinematics) {
     if let Some(c) = out.command {
         let lim = kin.limits();
         for i in 0..7 {
             assert!(c[i].is_finite(), "non-finite command");
-            // Inside the limits, or not moving further out of them.
             assert!(c[i] >= lim.lower[i].min(prev[i]) - 1e-12 && c[i] <= lim.upper[i].max(prev[i]) + 1e-12);
-            assert!(
-                (c[i] - prev[i]).abs() <= lim.velocity[i] * p.guard.velocity_scale * p.dt_s + 1e-9,
-                "joint {i} jumps"
-            );
         }
     }
 }
@@ -191,6 +190,9 @@ fn run_hostile(kin: &LbrKinematics, case: &HostileCase) -> Reached {
     let mut reached = Reached::default();
     let mut prev: Option<JointVector> = None;
     let mut measured = q0;
+    // The arm at rest at q0 begins the stream.
+    let mut audit = CommandAudit::new(&p.guard, kin.limits(), p.dt_s);
+    audit.add(0.0, &q0);
     for k in 0..STEPS {
         let now = 0.01 * (k + 1) as f64;
         let inp = if k < case.onset {
@@ -208,7 +210,11 @@ fn run_hostile(kin: &LbrKinematics, case: &HostileCase) -> Reached {
         let out = c.step(kin, &inp);
         // Before any command, "not moving" means the measured position.
         let q_in = inp.joints.unwrap().value;
-        assert_safe(&out, &prev.unwrap_or(q_in), kin, &p);
+        assert_safe(&out, &prev.unwrap_or(q_in), kin);
+        match out.command {
+            Some(c) => audit.add(now, &c),
+            None => audit.gap(),
+        }
         if let Some(solve) = &out.solve {
             reached.sqp_steps += 1;
             reached.insert_steps += usize::from(out.phase == Phase::Insert);
@@ -221,6 +227,9 @@ fn run_hostile(kin: &LbrKinematics, case: &HostileCase) -> Reached {
             prev = Some(cmd);
             measured = cmd;
         }
+    }
+    if let Err(e) = audit.verdict() {
+        panic!("{e}");
     }
     reached
 }
@@ -295,7 +304,7 @@ fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
         assert_eq!(solve.iterations, 0);
         // No QP finished in time: the command stays where the arm is, finite and in the box.
         assert_eq!(out.command, Some(q0));
-        assert_safe(&out, &q0, &kin, &p);
+        assert_safe(&out, &q0, &kin);
     }
     // Without a time budget (the default), the same step moves the arm.
     p.sqp.time_budget_us = 0.0;
@@ -305,7 +314,7 @@ fn a_spent_time_budget_keeps_the_arm_in_place_without_a_hold() {
     let solve = out.solve.as_ref().expect("the SQP ran");
     assert!(solve.iterations >= 1, "{:?}", solve.status);
     assert!((out.command.unwrap() - q0).amax() > 1e-6);
-    assert_safe(&out, &q0, &kin, &p);
+    assert_safe(&out, &q0, &kin);
 }
 
 #[test]
@@ -327,8 +336,10 @@ fn force_over_threshold_latches_a_hold() {
     let tau = torques_for(&kin, &q, Vector3::new(0.0, 40.0, 0.0));
     let held = q;
     let mut out = None;
+    let mut before = q;
     for k in 21..=40 {
         let o = c.step(&kin, &input(t0 + k as f64 * 0.01, q, tau, troc));
+        before = q;
         q = o.command.unwrap();
         out = Some(o);
         if c.phase() == Phase::Hold {
@@ -338,14 +349,26 @@ fn force_over_threshold_latches_a_hold() {
     let out = out.unwrap();
     assert_eq!(out.phase, Phase::Hold);
     assert_eq!(out.reason_code(), "FORCE_LIMIT", "{:?}", out.hold);
-    // Held: the command no longer changes, even when the force is gone (latched).
-    let at_hold = q;
-    assert!((at_hold - held).amax() < 0.1);
+    // Held: braked to rest within the guard's acceleration limit (in the steps that limit
+    // needs from the speed the command had), then the command no longer changes, even
+    // when the force is gone (latched).
+    let speed = (q - before).amax() / 0.01;
+    let brake_steps = (speed / (p.guard.max_acceleration_rad_s2 * 0.01)).ceil() as usize + 1;
+    let mut cmds = vec![q];
     for k in 41..=60 {
         let o = c.step(&kin, &input(t0 + k as f64 * 0.01, q, JointVector::zeros(), troc));
         assert_eq!(o.phase, Phase::Hold);
-        assert_eq!(o.command, Some(at_hold));
+        q = o.command.unwrap();
+        cmds.push(q);
     }
+    let still = cmds.windows(2).position(|w| w[0] == w[1]).expect("never at rest");
+    assert!(
+        still <= brake_steps,
+        "at rest after {still} steps, {brake_steps} expected"
+    );
+    let at_hold = cmds[still];
+    assert!(cmds[still..].iter().all(|c| *c == at_hold));
+    assert!((at_hold - held).amax() < 0.1);
     // The surgeon resumes.
     c.start().unwrap();
     let o = c.step(&kin, &input(t0 + 0.61, q, JointVector::zeros(), troc));
@@ -368,6 +391,8 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
     }
     // The marker is lost: the trocar pose stops at t = 0.1 s.
     let mut last = q;
+    let mut before = q;
+    let mut held = Vec::new();
     for k in 11..=100 {
         let now = k as f64 * 0.01;
         let mut inp = input(now, q, JointVector::zeros(), troc);
@@ -380,10 +405,28 @@ fn stale_or_missing_data_holds_and_fresh_data_resumes() {
         if now > 0.1 + p.guard.trocar_timeout_s + 0.011 {
             assert_eq!(o.phase, Phase::Hold, "at {now}");
             assert_eq!(o.reason_code(), "STALE_TROCAR_POSE");
-            assert_eq!(q, last, "holding means not moving");
+            if held.is_empty() {
+                held.push(last);
+            }
+            held.push(q);
+        } else {
+            before = last;
         }
         last = q;
     }
+    // Holding: braked to rest within the acceleration limit (in the steps it needs from
+    // the command's speed at the hold, one more for rounding), then not moving.
+    let speed = (held[0] - before).amax() / 0.01;
+    let brake_steps = (speed / (p.guard.max_acceleration_rad_s2 * 0.01)).ceil() as usize + 1;
+    let still = held.windows(2).position(|w| w[0] == w[1]).expect("never at rest");
+    assert!(
+        still <= brake_steps,
+        "at rest after {still} steps, {brake_steps} expected"
+    );
+    assert!(
+        held[still..].iter().all(|c| *c == held[still]),
+        "holding means not moving"
+    );
     // Back: resumes by itself.
     let o = c.step(&kin, &input(1.01, q, JointVector::zeros(), troc));
     assert_eq!(o.phase, Phase::Approach);
@@ -527,9 +570,11 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     // where the arm is (tests/controller_failure_modes.rs has the timing).
     let frozen = q_start();
     let mut held_at = None;
+    let (mut last, mut before_hold) = (frozen, frozen);
     for k in 1..=200 {
         let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
-        let last = out.command.unwrap();
+        before_hold = last;
+        last = out.command.unwrap();
         for i in 0..7 {
             assert!((last[i] - frozen[i]).abs() <= p.guard.max_command_lead_rad + 1e-9);
         }
@@ -541,30 +586,61 @@ fn holds_while_the_arm_does_not_follow_and_resumes_when_it_catches_up() {
     }
     let k0 = held_at.expect("no hold although the arm never moved");
     // Still frozen: the hold stays and walks the command to where the arm is (within the
-    // speed limits, src/control/safety/guarded.rs), then stays put; a start resumes.
+    // speed and acceleration limits, src/control/safety/guarded.rs), then stays put; a
+    // start resumes. The walk takes what the acceleration limit needs: braking from the
+    // command's speed (v / a), then ramping up and braking over what is left (the lead
+    // plus the braking distance, 2 sqrt(d / a)), and a step of rounding per phase.
+    let a = p.guard.max_acceleration_rad_s2;
+    let v = (last - before_hold).amax() / 0.01;
+    let d = (last - frozen).amax() + v * v / (2.0 * a);
+    let most = ((v / a + 2.0 * (d / a).sqrt()) / 0.01).ceil() as usize + 3;
     let mut held = None;
-    for k in k0 + 1..=k0 + 10 {
-        let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
+    let mut steps = 0;
+    while held != Some(frozen) {
+        let out = c.step(
+            &kin,
+            &input((k0 + steps + 1) as f64 * 0.01, frozen, JointVector::zeros(), troc),
+        );
         assert_eq!(out.phase, Phase::Hold);
         held = out.command;
+        steps += 1;
+        assert!(steps <= most, "not where the arm is after {steps} steps: {held:?}");
     }
-    assert_eq!(held, Some(frozen), "held where the arm is");
+    for k in k0 + steps + 1..=k0 + steps + 10 {
+        let out = c.step(&kin, &input(k as f64 * 0.01, frozen, JointVector::zeros(), troc));
+        assert_eq!(out.command, Some(frozen), "held where the arm is");
+    }
+    let k0 = k0 + steps;
     c.start().unwrap();
     let mut q = frozen;
+    let mut before = q;
     let mut t = (k0 + 10) as f64 * 0.01;
     for _ in 0..10 {
         t += 0.01;
+        before = q;
         q = c.step(&kin, &input(t, q, JointVector::zeros(), troc)).command.unwrap();
     }
     // Pushed off its command by more than the tracking tolerance for one step: hold at the
-    // last command; back within the follow timeout: docking resumes by itself.
+    // last command, braking from its speed within the guard's acceleration limit (one step
+    // of that speed less one of the limit, no further); back within the follow timeout:
+    // docking resumes by itself.
     let mut pushed = q;
     pushed[3] += p.guard.max_tracking_error_rad * 1.2;
     t += 0.01;
     let out = c.step(&kin, &input(t, pushed, JointVector::zeros(), troc));
     assert_eq!(out.phase, Phase::Hold);
     assert_eq!(out.reason_code(), "TRACKING_ERROR", "{:?}", out.hold);
-    assert_eq!(out.command, Some(q), "holding at the last command");
+    let braked = out.command.unwrap() - q;
+    let step = q - before;
+    for i in 0..7 {
+        let most = step[i].abs() - (p.guard.max_acceleration_rad_s2 * 1e-4).min(step[i].abs());
+        assert!(
+            braked[i].abs() <= most + 1e-12,
+            "joint {i}: {} past the last command",
+            braked[i]
+        );
+        assert!(braked[i] * step[i] >= 0.0, "joint {i} went back");
+    }
     t += 0.01;
     let out = c.step(&kin, &input(t, q, JointVector::zeros(), troc));
     assert_eq!(out.phase, Phase::Approach, "{:?}", out.hold);

@@ -582,3 +582,40 @@ fn the_port_follows_the_breathing_along_the_docking_axis_while_steering() {
         "shaft from the true port, p95 sums: {dist} vs {dist_off}"
     );
 }
+
+/// A withdrawal leaves at `scope.retract_speed_m_s` along the shaft, although the port
+/// breathed while the scope held still before it: the law's port does not follow the
+/// breathing while withdrawing (the seal drags the trocar out with the scope, and a port
+/// followed there fed the withdrawal back into itself: measured 25-26 mm/s along the shaft
+/// for a 5 mm/s withdrawal, seed 1, before). The true tip, every control period.
+#[test]
+fn a_withdrawal_leaves_at_its_own_speed_along_the_shaft() {
+    let c = shipped();
+    for seed in SEEDS {
+        let mut s = docked(seed);
+        let t0 = s.world().time();
+        while s.world().time() < t0 + 1.0 {
+            s.tick(None).unwrap();
+        }
+        assert!(s.controller().retract().is_ok());
+        let (mut last, axis) = s.shaft();
+        let mut fastest = 0.0f64;
+        loop {
+            let o = s.tick(None).unwrap();
+            if o.phase != Phase::Retract {
+                assert_eq!(o.phase, Phase::Idle, "seed {seed}: {:?}", o.hold);
+                break;
+            }
+            let (tip, _) = s.shaft();
+            fastest = fastest.max(-(tip - last).dot(&axis) / c.dt_s);
+            last = tip;
+            assert!(s.world().time() < t0 + 30.0, "seed {seed}: still withdrawing");
+        }
+        eprintln!("seed {seed}: fastest {:.1} mm/s along the shaft", fastest * 1e3);
+        assert!(
+            fastest < 1.25 * c.scope.retract_speed_m_s,
+            "seed {seed}: the tip withdrew at {:.1} mm/s",
+            fastest * 1e3
+        );
+    }
+}

@@ -9,6 +9,12 @@
 //! interior-point iterations) or ran on a slowed CPU: in a virtual machine the guest's CPU
 //! clock also runs while the hypervisor has the vCPU descheduled, and a busy sibling
 //! hardware thread slows it too, so the iteration count is the algorithm's own measure.
+//!
+//! **What is sampled.** Every APPROACH and INSERT step with a solve. Left out, each counted
+//! by class in the report's `excluded_steps` ([`Excluded`]): the TARE steps at each start
+//! (0.3 s: 29-30 steps of the arm held still, no solve), the step that ends the tare (it
+//! reports APPROACH without a solve), and the step that ends a docking (DONE or a hold), after
+//! which the run starts over.
 
 use nalgebra::{Isometry3, Translation3, Unit, UnitQuaternion, Vector3};
 

@@ -89,7 +89,18 @@ pub fn run(a: &SoakArgs) -> CliResult {
             r.reference.max_us
         );
         for f in &r.failures {
-            println!("  seed {}: {} in {} ({})", f.seed, f.outcome, f.phase, f.hold_code);
+            println!(
+                "  seed {}: {} in {} ({}){}",
+                f.seed,
+                f.outcome,
+                f.phase,
+                f.hold_code,
+                if f.error.is_empty() {
+                    String::new()
+                } else {
+                    format!(": {}", f.error)
+                }
+            );
         }
     }
     if r.every_cycle_docked {

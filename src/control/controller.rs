@@ -97,6 +97,9 @@ struct RunState {
     pivot: Option<Pivot>,
     /// A start resumed DONE or RETRACT from a hold: the law re-anchors at the measured tip.
     reanchor: bool,
+    /// The measured joints when the force stop after docking fired: the held command walks
+    /// back to them ([`OptimalController::pivot_force_stop`]).
+    force_stop_at: Option<JointVector>,
 }
 
 /// An early end of a step: hold (or stay idle) for `reason`, commanding `hold_at`.
@@ -402,22 +405,26 @@ impl OptimalController {
                 return Ok(());
             }
         }
-        self.pivot_force_stop(phase, f.norm(), (f.norm() - before) / dt);
+        self.pivot_force_stop(phase, f.norm(), (f.norm() - before) / dt, &arm.q);
         Ok(())
     }
 
     /// The force stop after docking: in DONE over the guard's `force_stop_n`, in RETRACT over
     /// `scope.retract_force_stop_n` (lower: the withdrawal must brake before the stop), hold,
-    /// latched, `FORCE_LIMIT`; the law brakes its rates to rest within the motion limits and
-    /// then stands still ([`Pivot::hold`]): the scope stays where it stopped, neither
-    /// pulled out nor pushed in. Only the operator's start resumes (DONE re-anchored at the
-    /// measured tip, RETRACT going on).
+    /// latched, `FORCE_LIMIT`; the law stops ([`Pivot::stop`]) and the command walks back to
+    /// the joints `measured` now, within the guard's speed and acceleration limits
+    /// ([`CommandGuard::walk`]), and stands there: the scope stays where it stopped, neither
+    /// pulled out nor pushed in. Not at the last command: a position-mode arm reaches a
+    /// command `scope.arm_lag_s` late, so the last command leads the arm by its speed times
+    /// that lag (0.4 mm at 20 mm/s, 8 N into a 20 000 N/m obstacle), and standing there
+    /// went on pushing into what stopped it. Only the operator's start resumes (DONE
+    /// re-anchored at the measured tip, RETRACT going on).
     ///
     /// It acts on the force predicted when the arm will have stopped: `force` (the
     /// estimate's norm) plus its rate `rate` times [`force_stop_lead`]
     /// (a rising force only): against a stiff obstacle the true force rises on while the
     /// estimate lags it and the arm brakes and catches up with its command.
-    fn pivot_force_stop(&mut self, phase: Phase, force: f64, rate: f64) {
+    fn pivot_force_stop(&mut self, phase: Phase, force: f64, rate: f64, measured: &JointVector) {
         let limit = match phase {
             Phase::Done => self.params.guard.force_stop_n,
             Phase::Retract => self.params.scope.retract_force_stop_n,
@@ -435,7 +442,8 @@ impl OptimalController {
         let force = force + ahead;
         self.run.supervisor.hold(HoldReason::ForceLimit { force, limit }, true);
         if let Some(p) = self.run.pivot.as_mut() {
-            p.hold();
+            p.stop();
+            self.run.force_stop_at = Some(*measured);
         }
     }
 
@@ -697,11 +705,15 @@ impl OptimalController {
         }
         let sp = &self.params.scope;
         if held {
-            // Braking to rest, then standing at the last command (the hold's reason stays:
-            // no input of this step clears a latched hold).
+            // Standing at the last command, or walking to where the force stop found the
+            // arm (the hold's reason stays: no input of this step clears a latched hold).
             if self.run.pivot.as_ref().is_none_or(|p| !p.held() || p.at_rest()) {
-                self.run.last_command = Some(arm.prev);
-                let mut out = self.output(Some(arm.prev), Some(arm.tip), None);
+                let stand = self
+                    .run
+                    .force_stop_at
+                    .map_or(arm.prev, |q| ctx.guard.walk(&arm.prev, &q, ctx.dt));
+                self.run.last_command = Some(stand);
+                let mut out = self.output(Some(stand), Some(arm.tip), None);
                 out.pivot = self.run.pivot.as_ref().map(|p| p.report(sp, &arm.tip, &out.f_ext));
                 return Some(out);
             }
@@ -856,6 +868,7 @@ impl CommandSource for OptimalController {
         self.run.supervisor.start()?;
         if was == Phase::Hold && matches!(resumes, Phase::Done | Phase::Retract) {
             self.run.reanchor = true;
+            self.run.force_stop_at = None;
         }
         if was == Phase::Idle {
             // A new run starts from where the arm is (it may have been moved by hand while
@@ -913,5 +926,13 @@ impl CommandSource for OptimalController {
         self.run.motion.rest();
         self.run.goal_window.reset();
         self.run.last_command = Some(hold_at);
+    }
+
+    fn settle(&mut self, at: JointVector) {
+        // A hold braked within the guard's acceleration limit: the law stands where it came
+        // to rest (its next hold command, or its next step box, begins there).
+        if self.run.supervisor.phase() != Phase::Idle {
+            self.run.last_command = Some(at);
+        }
     }
 }

@@ -140,6 +140,13 @@ impl ControllerParams {
                 self.scope.retract_force_stop_n, self.guard.force_stop_n
             ));
         }
+        if self.motion.max_angular_accel_rad_s2 > self.guard.max_acceleration_rad_s2 {
+            return Err(format!(
+                "motion.max_angular_accel_rad_s2 ({} rad/s^2) must not be above guard.max_acceleration_rad_s2 \
+                 ({} rad/s^2): the arm could not follow the shaped motion",
+                self.motion.max_angular_accel_rad_s2, self.guard.max_acceleration_rad_s2
+            ));
+        }
         self.sqp.validate()
     }
 }
@@ -170,6 +177,20 @@ mod tests {
             (p.dt_s, p.guard.force_stop_n, p.scope.fulcrum.prior_depth_m),
             (0.01, 20.0, 0.02)
         );
+    }
+
+    #[test]
+    fn a_shaped_angular_acceleration_above_the_joints_limit_is_refused() {
+        let mut p = ControllerParams::default();
+        assert!(p.motion.max_angular_accel_rad_s2 <= p.guard.max_acceleration_rad_s2);
+        p.motion.max_angular_accel_rad_s2 = 10.0;
+        let e = p.validate().unwrap_err();
+        assert!(
+            e.contains("motion.max_angular_accel_rad_s2") && e.contains("guard.max_acceleration_rad_s2"),
+            "{e}"
+        );
+        p.guard.max_acceleration_rad_s2 = 10.0;
+        p.validate().unwrap();
     }
 
     #[test]

@@ -3,13 +3,15 @@
 //! (`/trocar_estimator/marker_pose`) and camera_info in; services (std_srvs/Trigger)
 //! `~take_sample`, `~remove_sample`, `~compute`, `~auto`, `~save`, `~save_force`; `~samples`
 //! (the count and the rotation spread) and `~markers` (the calibrated camera frame, each
-//! sample's marker) out. The maths is `vision::hand_eye`'s; `~auto` streams speed-limited
-//! joint commands on the driver's command topic and stops, holding, on stale joint states or
-//! an arm not following. A sample waits for the arm to be still, then watches the marker for
-//! a window (`vision::hand_eye::target`: a still target's mean, a breathing one's same
-//! phase). `~save` writes only a calibration within the preflight's residual bounds
-//! (`~save_force`: whatever its residuals), by default under `$ROS_HOME` (never into the
-//! package).
+//! sample's marker) out. The maths is `vision::hand_eye`'s; `~auto` streams joint commands on
+//! the driver's command topic through the controller's command guard (the shipped `guard:` of
+//! `config/controller.yaml`: its speed, acceleration and position limits,
+//! [`crate::control::safety::guard::CommandGuard::follow`]) and, on stale joint states or an
+//! arm not following, brakes to a stop within the same limits and holds there. A sample waits
+//! for the arm to be still, then watches the marker for a window (`vision::hand_eye::target`:
+//! a still target's mean, a breathing one's same phase). `~save` writes only a calibration
+//! within the preflight's residual bounds (`~save_force`: whatever its residuals), by default
+//! under `$ROS_HOME` (never into the package).
 
 use std::collections::VecDeque;
 use std::f64::consts::PI;
@@ -23,6 +25,7 @@ use super::convert;
 use super::msgs::{geometry_msgs, sensor_msgs, std_msgs, visualization_msgs};
 use super::node::{lock, reply_service, ros_err, CommandType, NodeError, Reply};
 use super::params;
+use crate::control::safety::guard::{CommandGuard, GuardParams};
 use crate::kinematics::lbr::LbrModel;
 use crate::kinematics::{JointVector, Kinematics, LbrKinematics, FLANGE_LINK};
 use crate::validate;
@@ -408,14 +411,18 @@ impl Node {
     }
 
     /// Move to `target` on a cosine profile at most `max_joint_speed_rad_s` fast, streaming
-    /// commands; on stale joint states or an arm lagging its command, hold where the arm is
-    /// and stop with the reason.
+    /// commands through the command guard; on stale joint states or an arm lagging its
+    /// command, brake to a stop within the guard's limits, hold there and stop with the
+    /// reason.
     fn move_to(&self, target: &JointVector) -> Result<(), String> {
         let start = self.fresh(lock(&self.state).q, now()).ok_or("no fresh joint state")?;
         let delta = target - start;
         let duration = (delta.amax() * PI / (2.0 * self.p.max_joint_speed_rad_s)).max(0.2);
         let dt = 1.0 / self.p.command_rate_hz;
         let steps = (duration / dt).ceil() as usize;
+        // The arm is at rest at the start of each move (the last one ended standing).
+        let mut guard = CommandGuard::new(GuardParams::default(), self.kin.limits());
+        let mut sent = start;
         // The commands of the last `stale_after_s` (a joint state accepted as fresh may be
         // that old: on a loaded host it arrives late), the lag measured from the nearest.
         let mut recent: VecDeque<(f64, JointVector)> = VecDeque::from([(now(), start)]);
@@ -438,19 +445,32 @@ impl Node {
                 _ => None,
             };
             if let Some(f) = fault {
-                if let Some(q) = measured {
-                    self.command(&q, 2.0 * dt);
-                }
+                self.brake(&mut guard, sent, dt);
                 return Err(format!("motion stopped, the arm held: {f}"));
             }
             if !rosrust::is_ok() {
                 return Err("shutting down".into());
             }
-            self.command(&q_cmd, 2.0 * dt);
-            recent.push_back((t, q_cmd));
+            sent = guard.follow(&sent, &q_cmd, dt);
+            self.command(&sent, 2.0 * dt);
+            recent.push_back((t, sent));
             std::thread::sleep(Duration::from_secs_f64(dt));
         }
         Ok(())
+    }
+
+    /// Brake from `sent` to a stop within the guard's limits, streaming the commands.
+    fn brake(&self, guard: &mut CommandGuard, mut sent: JointVector, dt: f64) {
+        let most = (guard.max_velocity().amax() / (guard.max_acceleration() * dt)).ceil() as usize + 2;
+        for _ in 0..most {
+            if guard.velocity().amax() == 0.0 || !rosrust::is_ok() {
+                break;
+            }
+            sent = guard.follow(&sent, &sent, dt);
+            self.command(&sent, 2.0 * dt);
+            std::thread::sleep(Duration::from_secs_f64(dt));
+        }
+        self.command(&sent, 2.0 * dt);
     }
 
     /// `~auto`: 12 poses around the current one, a sample at each, back, compute.

@@ -40,6 +40,8 @@ pub const TROCAR_POSE_TRUE: &str = "/trocar/pose_true";
 pub const TROCAR_FULCRUM_TRUE: &str = "/trocar/fulcrum_true";
 /// The controller's status (trocar_docking/DockingStatus).
 pub const DOCKING_STATUS: &str = "/docking/status";
+/// Each joint command again (sensor_msgs/JointState), stamped with its control step's time.
+pub const DOCKING_COMMAND_JOINTS: &str = "/docking/command_joints";
 /// The estimated external force at the tip (geometry_msgs/WrenchStamped).
 pub const DOCKING_F_EXT: &str = "/docking/f_ext";
 /// RViz markers (visualization_msgs/MarkerArray).

@@ -376,10 +376,33 @@ impl PivotSession {
         &mut self,
         scope: Option<Stamped<ScopeCommand>>,
     ) -> Result<crate::control::ControlOutput, SimError> {
+        self.tick_watched_stamped(scope, |_| {})
+    }
+
+    /// As [`PivotSession::tick`]; `each` sees the world after every physics tick (a force
+    /// peak between two control steps).
+    pub fn tick_watched(
+        &mut self,
+        scope: Option<ScopeCommand>,
+        each: impl FnMut(&SimWorld),
+    ) -> Result<crate::control::ControlOutput, SimError> {
+        let t = self.world.time();
+        self.tick_watched_stamped(scope.map(|value| Stamped { stamp: t, value }), each)
+    }
+
+    fn tick_watched_stamped(
+        &mut self,
+        scope: Option<Stamped<ScopeCommand>>,
+        mut each: impl FnMut(&SimWorld),
+    ) -> Result<crate::control::ControlOutput, SimError> {
         let input = control_input(&self.plant.observe(&self.world), scope);
         let out = self.ctrl.step(self.kin.as_ref(), &input);
         self.plant
-            .advance(&mut self.world, out.command.as_ref())
+            .advance_until(&mut self.world, out.command.as_ref(), |w| {
+                each(w);
+                std::ops::ControlFlow::<()>::Continue(())
+            })
+            .map(|_| ())
             .map_err(PlantError::into_sim)?;
         Ok(out)
     }

@@ -305,6 +305,19 @@ pub fn run_trial(world: &mut SimWorld, policy: &mut dyn Policy, p: &TrialParams,
     }
 }
 
+/// The trials' force abort (a soak cycle's too): after any physics tick, the true contact
+/// force over `abort_force_n` ends the run with it (`Break`, N).
+pub fn over_abort_force(abort_force_n: f64) -> impl FnMut(&SimWorld) -> ControlFlow<f64> {
+    move |w: &SimWorld| {
+        let f = w.contact().force.norm();
+        if f > abort_force_n {
+            ControlFlow::Break(f)
+        } else {
+            ControlFlow::Continue(())
+        }
+    }
+}
+
 /// Whether the truth agrees with a DONE in `world` now, by the trial's rule (see the
 /// module doc): the soak judges its cycles by it too.
 pub fn docked_at_done(world: &SimWorld, p: &TrialParams) -> bool {
@@ -423,15 +436,7 @@ fn drive(
         if let Some(why) = end_of_tick(world, p, &action, t, end) {
             return Ok(why);
         }
-        let over_force = |w: &SimWorld| {
-            let f = w.contact().force.norm();
-            if f > p.abort_force_n {
-                ControlFlow::Break(f)
-            } else {
-                ControlFlow::Continue(())
-            }
-        };
-        match plant.advance_until(world, action.command.as_ref(), over_force) {
+        match plant.advance_until(world, action.command.as_ref(), over_abort_force(p.abort_force_n)) {
             Ok(ControlFlow::Continue(())) => {}
             Ok(ControlFlow::Break(f)) => {
                 end.outcome = Outcome::ForceAbort;

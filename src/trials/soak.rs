@@ -15,7 +15,7 @@ use serde::Serialize;
 
 use super::closed_loop::{control_input, ClosedLoop};
 use super::config::{load_controller, Protocol, SimConfig};
-use super::run::{docked_at_done, TrialParams};
+use super::run::{docked_at_done, over_abort_force, TrialParams};
 use crate::control::{Controller, Phase};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
 use crate::kinematics::{Kinematics, LbrKinematics};
@@ -48,8 +48,11 @@ pub struct SoakOptions {
 pub struct Failure {
     /// Its seed.
     pub seed: u64,
-    /// How it ended (the trials' outcome names: `false_done`, `held`, `timeout`, `aborted`).
+    /// How it ended (the trials' outcome names: `false_done`, `held`, `timeout`, `aborted`,
+    /// `force_abort`; `error`: the cycle failed, its error in `error`).
     pub outcome: &'static str,
+    /// The error of a cycle that failed ('' = none).
+    pub error: String,
     /// Its final phase.
     pub phase: &'static str,
     /// Its final hold code ('' = none).
@@ -193,6 +196,8 @@ struct Cycle {
     latched: bool,
     /// It ended DONE and the truth agreed.
     docked: bool,
+    /// The true contact force passed the trials' `abort_force_n` (its value, N).
+    force_abort: Option<f64>,
     sim_s: f64,
     /// Read by the tests: a reset controller must command what a new one does.
     #[cfg_attr(not(test), allow(dead_code))]
@@ -202,6 +207,9 @@ struct Cycle {
 impl Cycle {
     /// Its outcome by the trials' names.
     fn outcome(&self) -> &'static str {
+        if self.force_abort.is_some() {
+            return "force_abort";
+        }
         match self.phase {
             Phase::Done if self.docked => "docked",
             Phase::Done => "false_done",
@@ -265,8 +273,9 @@ fn fold(sum: u64, q: &crate::kinematics::JointVector) -> u64 {
     })
 }
 
-/// Run one cycle to DONE, an abort, a latched hold or the timeout, as a trial ends; `on_step`
-/// sees every step (its wall and CPU time) and the command's lead over the arm.
+/// Run one cycle to DONE, an abort, a latched hold, the trials' force abort
+/// ([`over_abort_force`]) or the timeout, as a trial ends; `on_step` sees every step (its
+/// wall and CPU time) and the command's lead over the arm.
 fn run_cycle(
     world: &mut SimWorld,
     ctrl: &mut Controller,
@@ -280,6 +289,7 @@ fn run_cycle(
     let mut out_phase = ctrl.phase();
     let (mut hold_code, mut latched) = ("", false);
     let mut checksum = 0u64;
+    let mut force_abort = None;
     let mut plant = ClosedLoop::new(world, ctrl.params().dt_s);
     while world.time() < a.cycle_timeout {
         let input = control_input(&plant.observe(world), None);
@@ -302,13 +312,22 @@ fn run_cycle(
         if let Some(q) = &out.command {
             checksum = fold(checksum, q);
         }
-        plant.advance(world, out.command.as_ref()).map_err(|e| e.to_string())?;
+        let over = over_abort_force(setup.trial.abort_force_n);
+        match plant.advance_until(world, out.command.as_ref(), over) {
+            Ok(std::ops::ControlFlow::Continue(())) => {}
+            Ok(std::ops::ControlFlow::Break(f)) => {
+                force_abort = Some(f);
+                break;
+            }
+            Err(e) => return Err(e.to_string()),
+        }
     }
     Ok(Cycle {
         phase: out_phase,
         hold_code,
         latched,
-        docked: out_phase == Phase::Done && docked_at_done(world, &setup.trial),
+        docked: force_abort.is_none() && out_phase == Phase::Done && docked_at_done(world, &setup.trial),
+        force_abort,
         sim_s: world.time(),
         checksum,
     })
@@ -436,14 +455,33 @@ fn run_cycles(a: &SoakOptions, setup: &Setup, deadline: Duration) -> Result<(Cyc
     };
     while r.count == 0 || t0.elapsed() < deadline {
         let seed = a.seed.wrapping_add(r.count as u64);
-        let mut world = setup.world(seed)?;
         let timing = &mut r.timing;
         let mut on_step = |s: &Sample, lead: f64| {
             timing.add(s);
             timing.max_lead = timing.max_lead.max(lead);
         };
-        let c = run_cycle(&mut world, &mut ctrl, setup, a, &mut on_step)?;
+        // An error in one cycle (its world, its start, its physics) is that cycle's
+        // outcome: the soak goes on with the next.
+        let cycle = setup
+            .world(seed)
+            .and_then(|mut world| run_cycle(&mut world, &mut ctrl, setup, a, &mut on_step));
         r.count += 1;
+        let c = match cycle {
+            Ok(c) => c,
+            Err(error) => {
+                *r.outcomes.entry("error".to_string()).or_insert(0) += 1;
+                if r.failures.len() < MAX_LISTED {
+                    r.failures.push(Failure {
+                        seed,
+                        outcome: "error",
+                        phase: ctrl.phase().as_str(),
+                        hold_code: "",
+                        error,
+                    });
+                }
+                continue;
+            }
+        };
         r.sim_s += c.sim_s;
         let outcome = c.outcome();
         let key = match c.hold_code {
@@ -459,11 +497,12 @@ fn run_cycles(a: &SoakOptions, setup: &Setup, deadline: Duration) -> Result<(Cyc
                 outcome,
                 phase: c.phase.as_str(),
                 hold_code: c.hold_code,
+                error: String::new(),
             });
         }
         let rss = rss_kb();
         r.rss_max = r.rss_max.max(rss);
-        if r.count == 1 {
+        if r.rss_start == 0 {
             // The first cycle warms up (allocator pools, lazy statics): the baseline.
             (r.rss_start, baseline_at) = (rss, Instant::now());
         }
@@ -565,6 +604,33 @@ mod tests {
             c.p50_us > 0.0 && c.p50_us <= c.p99_us && c.p99_us <= c.p999_us && c.p999_us <= c.max_us,
             "{c:?}"
         );
+    }
+
+    /// The trials' force abort ends a soak cycle as it ends a trial (a 0.5 N abort: the
+    /// first contact passes it), and a cycle that fails (here its world cannot be made) is
+    /// counted as an `error` with its reason, the soak going on.
+    #[test]
+    fn a_force_abort_and_an_error_are_outcomes_of_their_cycle() {
+        let a = args();
+        let mut s = Setup::new(&a).unwrap();
+        s.trial.abort_force_n = 0.5;
+        let c = run_cycle(
+            &mut s.world(1).unwrap(),
+            &mut s.controller().unwrap(),
+            &s,
+            &a,
+            &mut |_, _| {},
+        )
+        .unwrap();
+        assert_eq!(c.outcome(), "force_abort");
+        assert!(c.force_abort.is_some_and(|f| f > 0.5), "{:?}", c.force_abort);
+        assert!(!c.docked);
+        s.sim.physics_rate_hz = -1.0;
+        let (r, _) = run_cycles(&a, &s, Duration::ZERO).unwrap();
+        assert_eq!(r.count, 1);
+        assert_eq!(r.outcomes.get("error").copied(), Some(1));
+        assert_eq!(r.failures[0].outcome, "error");
+        assert!(r.failures[0].error.contains("physics_rate"), "{}", r.failures[0].error);
     }
 
     #[test]

@@ -18,6 +18,8 @@ pub struct CheckParams {
     pub status_topic: String,
     /// Command topic (JointTrajectory).
     pub command_topic: String,
+    /// The controller's stamped copy of each command (sensor_msgs/JointState).
+    pub command_joints_topic: String,
     /// Wall-clock limit for the whole docking, s.
     pub time_limit: f64,
     /// Upper bound on M (N) for a successful docking.
@@ -183,6 +185,7 @@ impl Default for CheckParams {
             controller: "/docking_controller".into(),
             status_topic: topics::DOCKING_STATUS.into(),
             command_topic: topics::COMMAND.into(),
+            command_joints_topic: topics::DOCKING_COMMAND_JOINTS.into(),
             time_limit: 60.0,
             max_metric_m: 10.0,
             max_force: 60.0,
@@ -363,6 +366,22 @@ pub fn subscribe_latest<T: rosrust::Message>(topic: &str) -> Result<(Latest<T>, 
     let l = latest.clone();
     let sub = rosrust::subscribe(topic, 10, move |m: T| l.put(m)).map_err(|e| format!("subscribe {topic}: {e}"))?;
     Ok((latest, sub))
+}
+
+/// Wait until `current` has not changed for 50 ms, at most `most` s: a hold brakes to rest
+/// within the guard's acceleration limit (never an instant stop from speed), and stillness
+/// is judged from rest on.
+pub fn wait_until_still<T: PartialEq>(most: f64, current: impl Fn() -> T) {
+    let until = Instant::now() + Duration::from_secs_f64(most);
+    let mut last = current();
+    loop {
+        std::thread::sleep(Duration::from_millis(50));
+        let now = current();
+        if now == last || Instant::now() > until {
+            break;
+        }
+        last = now;
+    }
 }
 
 /// Poll `f` every 10 ms until it gives `Some` or `timeout` passes (wall clock).

@@ -12,7 +12,7 @@ use ::trocar_docking::ros::msgs::{
 };
 use ::trocar_docking::ros::topics;
 
-use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
+use crate::common::{subscribe_latest, trigger, wait_for, wait_until_still, CheckParams, Latest};
 
 /// Publish a DockingStatus and an LBRState on `/rostest/{status,lbr}_out` and read them
 /// back from `/rostest/{status,lbr}_back`, where a rospy relay (tests/nodes/genpy_relay)
@@ -412,7 +412,8 @@ fn judge_axis(
 }
 
 /// Start the controller, wait for HOLD with a reason containing the expected text (the
-/// launch makes the trocar pose stop), then check that the command stays still.
+/// launch makes the trocar pose stop), then check that the command, once braked to rest,
+/// stays still.
 pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
     let (status, _sub) = subscribe_latest::<trocar_docking::DockingStatus>(&p.status_topic)?;
     let (command, _sub2) = subscribe_latest::<trajectory_msgs::JointTrajectory>(&p.command_topic)?;
@@ -434,9 +435,14 @@ pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
             held.hold_code, held.hold_reason, p.hold_code
         ));
     }
-    let before = command
-        .get()
-        .and_then(|c| c.points.first().map(|pt| pt.positions.clone()));
+    let positions = || {
+        command
+            .get()
+            .and_then(|c| c.points.first().map(|pt| pt.positions.clone()))
+    };
+    // The hold brakes to rest within the guard's acceleration limit first.
+    wait_until_still(1.0, positions);
+    let before = positions();
     std::thread::sleep(Duration::from_secs_f64(p.hold_observe));
     let after = command
         .get()

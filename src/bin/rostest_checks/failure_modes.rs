@@ -23,6 +23,12 @@
 //!   within `rate_tolerance`, the RSS of the
 //!   controller and the estimator flat (`max_rss_growth_mb`), the estimator's poses fresh
 //!   (it drops frames rather than queueing them).
+//!
+//! "Nothing moves" is judged once the hold has braked to rest (its command unchanged for
+//! 50 ms): a hold brakes within the guard's acceleration limit, never at once from speed.
+//! `blocked_arm`, the clock jumps and `driver_restart` also audit every command of the run,
+//! holds and re-anchors included, against the guard's speed and acceleration limits
+//! ([`crate::command_audit`]).
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -31,7 +37,8 @@ use std::time::{Duration, Instant};
 use nalgebra::{Isometry3, Translation3, Vector3};
 
 use crate::camera_checks::camera_frame;
-use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
+use crate::command_audit::TopicAudit;
+use crate::common::{subscribe_latest, trigger, wait_for, wait_until_still, CheckParams, Latest};
 use ::trocar_docking::control::safety::guard::LEAD_WATCH_FRACTION;
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
@@ -67,7 +74,7 @@ struct Mode {
 }
 
 /// What the plant saw of the commands.
-#[derive(Debug, Clone, Copy, Default)]
+#[derive(Debug, Clone, Default)]
 struct Seen {
     /// Commands received.
     commands: u64,
@@ -81,18 +88,15 @@ struct Seen {
     max_step: f64,
     /// Largest |command - measured| of the first command after the last clear, rad.
     first_lead: Option<f64>,
-    /// Over the whole run (never cleared), holds and re-anchors included: the largest
-    /// joint speed between consecutive commands (by their header stamps), as a fraction of
-    /// that joint's speed limit (the LBR Med 7 datasheet's, `JointLimits::of_model`).
-    max_speed_ratio: f64,
-    /// The newest command's header stamp, s.
-    last_stamp: Option<f64>,
+    /// Over the whole run (never cleared), holds and re-anchors included: every pair of
+    /// consecutive commands against the guard's speed and acceleration limits.
+    audit: TopicAudit,
 }
 
 impl Seen {
-    /// Record a command `cmd` stamped `stamp` (s) against the `measured` joints, the lead
-    /// bound (rad) and the joints' speed limits (rad/s).
-    fn record(&mut self, cmd: &JointVector, measured: &JointVector, stamp: f64, lead_bound: f64, speed: &JointVector) {
+    /// Record a command `cmd`, message `seq`, against the `measured` joints and the lead
+    /// bound (rad).
+    fn record(&mut self, cmd: &JointVector, measured: &JointVector, seq: u32, lead_bound: f64) {
         let lead = (cmd - measured).amax();
         self.max_lead = self.max_lead.max(lead);
         // The guard's not-following watch runs from a quarter of the bound.
@@ -101,49 +105,14 @@ impl Seen {
         }
         if let Some(prev) = self.last {
             self.max_step = self.max_step.max((cmd - prev).amax());
-            let dt = self.last_stamp.map_or(f64::NAN, |t| stamp - t);
-            if let Some(r) = speed_ratio(&prev, cmd, dt, speed) {
-                self.max_speed_ratio = self.max_speed_ratio.max(r);
-            }
         }
-        self.last_stamp = Some(stamp);
+        self.audit.command(seq, cmd);
         if self.first_lead.is_none() {
             self.first_lead = Some(lead);
         }
         self.last = Some(*cmd);
         self.commands += 1;
     }
-}
-
-/// Largest `|b - a| / (limit * dt)` over the joints; none for a stamp step outside
-/// (0, 1 s]: a clock that stalls or jumps is the fault some tests inject, not a speed.
-pub(crate) fn speed_ratio(a: &JointVector, b: &JointVector, dt: f64, limit: &JointVector) -> Option<f64> {
-    (dt > 0.0 && dt <= 1.0).then(|| {
-        (b - a)
-            .iter()
-            .zip(limit.iter())
-            .map(|(d, v)| d.abs() / (v * dt))
-            .fold(0.0, f64::max)
-    })
-}
-
-/// The speed audit's bound: consecutive commands within 110 % of every joint's speed limit.
-pub(crate) const MAX_SPEED_RATIO: f64 = 1.10;
-
-/// The audit over the whole run: an error when a command pair broke the bound.
-fn speed_audit(code: &str, seen: &Seen) -> Result<String, String> {
-    if seen.max_speed_ratio > MAX_SPEED_RATIO {
-        return Err(format!(
-            "{code}: consecutive commands moved a joint at {:.0} % of its speed limit (bound {:.0} %)",
-            seen.max_speed_ratio * 100.0,
-            MAX_SPEED_RATIO * 100.0
-        ));
-    }
-    Ok(format!(
-        "every command within {:.0} % of the joints' speed limits (bound {:.0} %)",
-        seen.max_speed_ratio * 100.0,
-        MAX_SPEED_RATIO * 100.0
-    ))
 }
 
 /// The played arm: state shared with its publishing thread and the command subscriber.
@@ -154,7 +123,7 @@ struct Plant {
     lead_bound: f64,
     stop: Arc<AtomicBool>,
     threads: [Option<std::thread::JoinHandle<()>>; 2],
-    _sub: rosrust::Subscriber,
+    _subs: [rosrust::Subscriber; 2],
 }
 
 /// The publishers of the plant's thread.
@@ -254,18 +223,27 @@ impl Plant {
             let (q, seen, mode) = (q.clone(), seen.clone(), mode.clone());
             let names = ::trocar_docking::kinematics::joint_names();
             let topic = p.command_topic.clone();
-            let speed =
-                ::trocar_docking::kinematics::JointLimits::of_model(::trocar_docking::kinematics::lbr::LbrModel::Med7)
-                    .velocity;
             rosrust::subscribe(&p.command_topic, 100, move |m: trajectory_msgs::JointTrajectory| {
                 let Ok(cmd) = convert::trajectory_positions(&topic, &m, &names) else {
                     return;
                 };
                 let measured = *lock(&q);
-                lock(&seen).record(&cmd, &measured, m.header.stamp.seconds(), lead_bound, &speed);
+                lock(&seen).record(&cmd, &measured, m.header.seq, lead_bound);
                 if !lock(&mode).blocked {
                     // An ideal position-controlled arm: it is where it was commanded.
                     *lock(&q) = cmd;
+                }
+            })
+            .map_err(e)?
+        };
+        let copies = {
+            let seen = seen.clone();
+            let names = ::trocar_docking::kinematics::joint_names();
+            rosrust::subscribe(&p.command_joints_topic, 1000, move |m: sensor_msgs::JointState| {
+                if let Ok(q) = convert::joint_positions("command copy", &m, &names) {
+                    lock(&seen)
+                        .audit
+                        .copy(m.header.seq, convert::seconds(m.header.stamp), &q);
                 }
             })
             .map_err(e)?
@@ -286,7 +264,7 @@ impl Plant {
             lead_bound,
             stop,
             threads: [Some(thread), camera],
-            _sub: sub,
+            _subs: [sub, copies],
         })
     }
 
@@ -295,7 +273,7 @@ impl Plant {
     }
 
     fn seen(&self) -> Seen {
-        *lock(&self.seen)
+        lock(&self.seen).clone()
     }
 
     /// Forget the lead, step and first-command records (the last command stays).
@@ -304,8 +282,7 @@ impl Plant {
         *s = Seen {
             commands: s.commands,
             last: s.last,
-            max_speed_ratio: s.max_speed_ratio,
-            last_stamp: s.last_stamp,
+            audit: s.audit.clone(),
             ..Seen::default()
         };
     }
@@ -431,6 +408,8 @@ fn no_motion_until_start(
     status: &Latest<trocar_docking::DockingStatus>,
     code: &str,
 ) -> Result<String, String> {
+    // The hold's braking (its commands are audited against the guard's limits) first.
+    wait_until_still(1.0, || plant.seen().last);
     let before = (plant.seen().last, status.count());
     plant.clear();
     std::thread::sleep(Duration::from_secs_f64(p.hold_observe));
@@ -528,7 +507,7 @@ pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
     // The arm frees itself: it is at the held command, and nothing moves until ~start.
     plant.set(|m| m.blocked = false);
     let rest = no_motion_until_start(p, &plant, &status, "ARM_NOT_FOLLOWING")?;
-    let speed = speed_audit("ARM_NOT_FOLLOWING", &plant.seen())?;
+    let speed = plant.seen().audit.verdict("ARM_NOT_FOLLOWING")?;
     Ok(format!(
         "lead at most {:.3} deg; HOLD {:.3} s after blocking, {delay:.3} s after the lead reached a quarter of its bound; {rest}; {speed}",
         seen.max_lead.to_degrees(),
@@ -554,7 +533,7 @@ pub fn clock_jump(p: &CheckParams, jump: f64) -> Result<String, String> {
     })?;
     let delay = jumped_at.elapsed().as_secs_f64();
     let rest = no_motion_until_start(p, &plant, &status, code)?;
-    let speed = speed_audit(code, &plant.seen())?;
+    let speed = plant.seen().audit.verdict(code)?;
     Ok(format!(
         "clock {jump:+} s: {} within {delay:.2} s; {rest}; {speed}",
         held.hold_code
@@ -585,7 +564,7 @@ pub fn driver_restart(p: &CheckParams) -> Result<String, String> {
         seen.push(format!("{what}: {rest}"));
         std::thread::sleep(Duration::from_millis(300));
     }
-    seen.push(speed_audit("DRIVER_RESTART", &plant.seen())?);
+    seen.push(plant.seen().audit.verdict("DRIVER_RESTART")?);
     Ok(seen.join(" | "))
 }
 
@@ -684,32 +663,4 @@ pub fn flood(p: &CheckParams) -> Result<String, String> {
         return Err(format!("{summary}: the estimator queued (or dropped every) frame"));
     }
     Ok(summary)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn the_speed_audit_measures_each_joint_against_its_limit() {
-        let limit = JointVector::from_column_slice(&[1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 2.0]);
-        let a = JointVector::zeros();
-        let mut b = JointVector::zeros();
-        b[6] = 0.011; // 1.1 rad/s over 10 ms on a 2 rad/s joint: 55 %
-        b[0] = 0.0105; // 1.05 rad/s on a 1 rad/s joint: 105 %
-        let r = speed_ratio(&a, &b, 0.01, &limit).unwrap();
-        assert!((r - 1.05).abs() < 1e-9, "{r}");
-        assert!(
-            speed_ratio(&a, &b, 0.0, &limit).is_none(),
-            "a stalled clock is no speed"
-        );
-        assert!(speed_ratio(&a, &b, 2.0, &limit).is_none(), "a clock jump is no speed");
-        let mut seen = Seen {
-            max_speed_ratio: 1.2,
-            ..Seen::default()
-        };
-        assert!(speed_audit("X", &seen).is_err());
-        seen.max_speed_ratio = 1.05;
-        assert!(speed_audit("X", &seen).unwrap().contains("105 %"));
-    }
 }

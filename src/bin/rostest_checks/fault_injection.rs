@@ -14,7 +14,7 @@ use std::time::Duration;
 
 use nalgebra::{Isometry3, Translation3, Vector3};
 
-use crate::common::{subscribe_latest, trigger, wait_for, CheckParams};
+use crate::common::{subscribe_latest, trigger, wait_for, wait_until_still, CheckParams};
 use ::trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use ::trocar_docking::kinematics::{JointVector, Kinematics, LbrKinematics};
 use ::trocar_docking::ros::convert;
@@ -147,7 +147,8 @@ fn reason_names(f: Fault, reason: &str) -> Result<(), String> {
     }
 }
 
-/// Over `hold_observe` after a hold for `f`, neither the arm (the joints the driver
+/// Over `hold_observe` after a hold for `f` has braked to rest (within the guard's
+/// acceleration limit: [`wait_until_still`]), neither the arm (the joints the driver
 /// reports) nor the command moves more than `max_hold_motion_deg`: the largest motion, rad.
 fn held_still(
     p: &CheckParams,
@@ -155,6 +156,7 @@ fn held_still(
     arm: &Arc<Mutex<JointVector>>,
     commanded: &dyn Fn() -> Option<JointVector>,
 ) -> Result<f64, String> {
+    wait_until_still(1.0, commanded);
     let (arm_at, cmd_at) = (*lock(arm), commanded());
     let (mut arm_moved, mut cmd_moved) = (0.0_f64, 0.0_f64);
     let t0 = std::time::Instant::now();

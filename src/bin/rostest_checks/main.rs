@@ -8,6 +8,7 @@
 
 mod bag_sync;
 mod camera_checks;
+mod command_audit;
 mod common;
 mod docking_checks;
 mod dry_run_checks;

@@ -8,52 +8,43 @@
 //! the controller publishes commands (at least `min_commands`); it does not hold before the
 //! fault (`fault_after_s` after the recorded APPROACH), holds with the fault's code
 //! (`hold_code`) after it, and still holds with it at the end;
-//! every pair of consecutive commands, holds included, moves each joint within 110 % of its
-//! speed limit times their stamps' difference (the audit of the live fault tests,
-//! [`crate::failure_modes`]).
+//! every pair of consecutive commands, holds included, within the guard's own speed and
+//! acceleration limits (the audit of the live fault tests, [`crate::command_audit`]).
 
 use std::sync::{Arc, Mutex};
 
-use ::trocar_docking::kinematics::lbr::LbrModel;
-use ::trocar_docking::kinematics::{joint_names, JointLimits, JointVector};
+use ::trocar_docking::kinematics::joint_names;
 use ::trocar_docking::ros::convert;
-use ::trocar_docking::ros::msgs::{trajectory_msgs, trocar_docking};
+use ::trocar_docking::ros::msgs::{sensor_msgs, trajectory_msgs, trocar_docking};
 
 use crate::bag_sync;
+use crate::command_audit::TopicAudit;
 use crate::common::{call_trigger, trigger_client, wait_for, CheckParams};
-use crate::failure_modes::{speed_ratio, MAX_SPEED_RATIO};
 
 /// The live commands, audited as they arrive.
 #[derive(Default)]
 struct Audit {
-    count: usize,
-    last: Option<(f64, JointVector)>,
-    /// The largest joint speed between consecutive commands, as a share of its limit.
-    worst: f64,
-    /// The stamp of the pair where it happened, s.
-    worst_at: f64,
+    guard: TopicAudit,
     malformed: Option<String>,
 }
 
 impl Audit {
-    fn add(&mut self, msg: &trajectory_msgs::JointTrajectory, names: &[String], limit: &JointVector) {
-        self.count += 1;
-        let q = match convert::trajectory_positions("command", msg, names) {
-            Ok(q) => q,
+    fn add(&mut self, msg: &trajectory_msgs::JointTrajectory, names: &[String]) {
+        match convert::trajectory_positions("command", msg, names) {
+            Ok(q) => self.guard.command(msg.header.seq, &q),
             Err(e) => {
                 self.malformed.get_or_insert(e.to_string());
-                return;
-            }
-        };
-        let stamp = convert::seconds(msg.header.stamp);
-        if let Some((t0, q0)) = self.last {
-            if let Some(r) = speed_ratio(&q0, &q, stamp - t0, limit) {
-                if r > self.worst {
-                    (self.worst, self.worst_at) = (r, stamp);
-                }
             }
         }
-        self.last = Some((stamp, q));
+    }
+
+    fn copy(&mut self, msg: &sensor_msgs::JointState, names: &[String]) {
+        match convert::joint_positions("command copy", msg, names) {
+            Ok(q) => self.guard.copy(msg.header.seq, convert::seconds(msg.header.stamp), &q),
+            Err(e) => {
+                self.malformed.get_or_insert(e.to_string());
+            }
+        }
     }
 }
 
@@ -86,13 +77,22 @@ impl Holds {
 /// Play a fault bag into the controller (module doc).
 pub fn replay_fault(p: &CheckParams) -> Result<String, String> {
     let names = joint_names();
-    let limit = JointLimits::of_model(LbrModel::Med7).velocity;
     let audit = Arc::new(Mutex::new(Audit::default()));
     let _commands = {
         let audit = audit.clone();
         rosrust::subscribe(&p.command_topic, 1000, move |m: trajectory_msgs::JointTrajectory| {
             if let Ok(mut a) = audit.lock() {
-                a.add(&m, &names, &limit);
+                a.add(&m, &names);
+            }
+        })
+        .map_err(|e| e.to_string())?
+    };
+    let _copies = {
+        let audit = audit.clone();
+        let names = joint_names();
+        rosrust::subscribe(&p.command_joints_topic, 1000, move |m: sensor_msgs::JointState| {
+            if let Ok(mut a) = audit.lock() {
+                a.copy(&m, &names);
             }
         })
         .map_err(|e| e.to_string())?
@@ -160,16 +160,13 @@ fn judge(p: &CheckParams, seen: &Holds, fault_at: Option<f64>, a: &Audit) -> Res
     if let Some(e) = &a.malformed {
         return Err(format!("a malformed command: {e}"));
     }
-    if a.worst > MAX_SPEED_RATIO {
+    let audit = a.guard.verdict(code)?;
+    if a.guard.count() < p.min_commands {
         return Err(format!(
-            "{code}: consecutive commands moved a joint at {:.0} % of its speed limit (stamp {:.3} s; bound {:.0} %)",
-            a.worst * 100.0,
-            a.worst_at,
-            MAX_SPEED_RATIO * 100.0
+            "{} commands, fewer than {} (silence)",
+            a.guard.count(),
+            p.min_commands
         ));
-    }
-    if a.count < p.min_commands {
-        return Err(format!("{} commands, fewer than {} (silence)", a.count, p.min_commands));
     }
     // Nothing held before the fault: the live controller followed the recording until then.
     match (fault_at, first_hold) {
@@ -187,18 +184,13 @@ fn judge(p: &CheckParams, seen: &Holds, fault_at: Option<f64>, a: &Audit) -> Res
         .iter()
         .map(|(ph, c)| if c.is_empty() { ph.clone() } else { format!("{ph} {c}") })
         .collect();
-    Ok(format!(
-        "{}; {} commands, every one within {:.0} % of the joints' speed limits (bound {:.0} %); {timeline}",
-        phases.join(" -> "),
-        a.count,
-        a.worst * 100.0,
-        MAX_SPEED_RATIO * 100.0
-    ))
+    Ok(format!("{}; {audit}; {timeline}", phases.join(" -> ")))
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use ::trocar_docking::kinematics::JointVector;
 
     fn holds(seen: &[(&str, &str)], first_hold: Option<f64>) -> Holds {
         Holds {
@@ -208,8 +200,48 @@ mod tests {
         }
     }
 
+    /// A command message numbered `seq` (its stamp 0, as the controller sends it).
+    fn msg(seq: u32, q: &JointVector) -> trajectory_msgs::JointTrajectory {
+        let mut m = trajectory_msgs::JointTrajectory::default();
+        m.header.seq = seq;
+        m.joint_names = joint_names();
+        m.points.push(trajectory_msgs::JointTrajectoryPoint {
+            positions: q.iter().copied().collect(),
+            ..Default::default()
+        });
+        m
+    }
+
+    /// The command numbered `seq`, `q` at its step `t`: the command and its stamped copy.
+    fn sent(a: &mut Audit, seq: u32, t: f64, q: &JointVector) {
+        a.add(&msg(seq, q), &joint_names());
+        let mut c = convert::joint_state(
+            rosrust::Time::from_nanos((t * 1e9) as i64),
+            &joint_names(),
+            q,
+            &JointVector::zeros(),
+        );
+        c.header.seq = seq;
+        a.copy(&c, &joint_names());
+    }
+
+    /// `n` commands at 100 Hz standing still, then (`jump`) one 0.1 rad step of joint 2.
+    fn audited(n: u32, jump: bool) -> Audit {
+        let mut a = Audit::default();
+        let mut q = JointVector::zeros();
+        for k in 0..n {
+            sent(&mut a, k, f64::from(k) * 0.01, &q);
+        }
+        if jump {
+            q[1] = 0.1;
+            sent(&mut a, n, f64::from(n) * 0.01, &q);
+        }
+        a
+    }
+
     /// The verdict fails on each broken condition: a hold before the fault, another code at
-    /// the end, a command pair over 110 % of the speed limit, too few commands.
+    /// the end, a command pair over the guard's speed or acceleration limit, too few
+    /// commands, a malformed command.
     #[test]
     fn the_verdict_fails_on_each_broken_condition() {
         let p = CheckParams {
@@ -221,53 +253,37 @@ mod tests {
             &[("TARE", ""), ("APPROACH", ""), ("HOLD", "ARM_NOT_FOLLOWING")],
             Some(10.7),
         );
-        let a = Audit {
-            count: 150,
-            worst: 0.5,
-            ..Audit::default()
-        };
-        assert!(judge(&p, &good, Some(10.5), &a).is_ok());
+        let a = audited(150, false);
+        let ok = judge(&p, &good, Some(10.5), &a).unwrap();
+        assert!(ok.contains("150 commands, fastest joint at 0 %"), "{ok}");
         let early = judge(&p, &good, Some(10.8), &a).unwrap_err();
         assert!(early.contains("before the fault"), "{early}");
         let other = holds(&[("APPROACH", ""), ("HOLD", "TRACKING_ERROR")], Some(10.7));
         assert!(judge(&p, &other, Some(10.5), &a).unwrap_err().contains("not HOLD"));
-        let fast = Audit {
-            worst: 1.2,
-            ..Audit::default()
-        };
-        assert!(judge(&p, &good, Some(10.5), &Audit { count: 150, ..fast })
+        let fast = judge(&p, &good, Some(10.5), &audited(150, true)).unwrap_err();
+        assert!(fast.contains("over the limit at t = 1.500"), "{fast}");
+        assert!(judge(&p, &good, Some(10.5), &audited(20, false))
             .unwrap_err()
-            .contains("speed limit"));
-        let silent = Audit {
-            count: 20,
-            ..Audit::default()
-        };
-        assert!(judge(&p, &good, Some(10.5), &silent).unwrap_err().contains("silence"));
+            .contains("silence"));
+        let mut bad = audited(150, false);
+        let mut m = msg(150, &JointVector::zeros());
+        m.joint_names.pop();
+        bad.add(&m, &joint_names());
+        assert!(judge(&p, &good, Some(10.5), &bad).unwrap_err().contains("malformed"));
     }
 
-    /// The audit measures each consecutive pair by its stamps: a joint moving its whole
-    /// speed limit's worth in one stamp step is 100 %.
+    /// The audit reads each copy's sequence number and stamp: the same jump across a
+    /// missed message is not judged as one step.
     #[test]
-    fn the_audit_divides_each_step_by_the_stamps_difference() {
-        let names = joint_names();
-        let limit = JointLimits::of_model(LbrModel::Med7).velocity;
-        let mut a = Audit::default();
-        let msg = |t: f64, q: &JointVector| {
-            let mut m = trajectory_msgs::JointTrajectory::default();
-            m.header.stamp = rosrust::Time::from_nanos((t * 1e9) as i64);
-            m.joint_names.clone_from(&names);
-            m.points.push(trajectory_msgs::JointTrajectoryPoint {
-                positions: q.iter().copied().collect(),
-                ..Default::default()
-            });
-            m
-        };
-        let q0 = JointVector::zeros();
-        let mut q1 = q0;
-        q1[1] = limit[1] * 0.01;
-        a.add(&msg(1.0, &q0), &names, &limit);
-        a.add(&msg(1.01, &q1), &names, &limit);
-        assert_eq!(a.count, 2);
-        assert!((a.worst - 1.0).abs() < 1e-3, "{}", a.worst);
+    fn the_audit_reads_each_message_sequence_number_and_stamp() {
+        let mut a = audited(10, false);
+        let mut q = JointVector::zeros();
+        q[1] = 0.1;
+        sent(&mut a, 12, 0.12, &q);
+        assert!(a.guard.verdict("X").is_ok());
+        sent(&mut a, 13, 0.13, &q);
+        assert!(a.guard.verdict("X").is_ok());
+        assert_eq!(a.guard.count(), 12);
+        assert!(audited(10, true).guard.verdict("X").is_err());
     }
 }

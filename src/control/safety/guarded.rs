@@ -19,11 +19,15 @@
 //!   (`CLOCK_FORWARD`); never a silent freeze;
 //! - **an input restarts** (the node's call to [`Guarded::interrupt`], e.g. a driver restart).
 //!
-//! **Every published command within the speed limits, holds included.** The wrapper keeps
-//! the last command it published, and every command it publishes, the source's or a
-//! hold's, is at most one step of the guard's per-joint speed limit (`dt` times the usable
-//! velocity) from it: a hold never jumps to where it must stand, it walks there
-//! ([`Guarded::step`], [`HoldTarget`]); a start resumes from the last published command.
+//! **Every published command within the speed and acceleration limits, holds included.**
+//! The wrapper keeps the last command it published and its velocity (the guard judges the
+//! next command's acceleration from it), and every command it publishes, the source's or a
+//! hold's, lies in the guard's step box from it: a rejection or a source's own hold brakes
+//! to a stop within the acceleration limit (never an instant stop from speed), and the
+//! source is told where it stands ([`CommandSource::settle`]); a hold walks to where it
+//! must stand, ramping up and braking ([`CommandGuard::walk`], [`HoldTarget`]); a start
+//! resumes from the last published command and its velocity. A step whose clock did not
+//! advance (`dt` 0: a clock fault) walks on the nominal period, the loop's own pace.
 
 use crate::control::io::{ControlInput, ControlOutput};
 use crate::control::safety::guard::{CommandGuard, HoldReason};
@@ -63,6 +67,10 @@ pub trait CommandSource {
     fn step(&mut self, kin: &dyn Kinematics, input: &ControlInput, ctx: &StepContext<'_>) -> ControlOutput;
     /// The guard rejected the command just proposed: hold at `hold_at` (latched) for `reason`.
     fn reject(&mut self, reason: HoldReason, hold_at: JointVector);
+    /// The command published this step was `at`, not the one proposed (a stand-still or a
+    /// hold braked within the acceleration limit, a hold's walk): the source's last command
+    /// is `at` from now on, in whatever phase it is.
+    fn settle(&mut self, at: JointVector);
     /// Whether the source holds, latched: only the operator's `start` resumes it (a hold
     /// for stale data resumes by itself).
     fn hold_latched(&self) -> bool {
@@ -75,11 +83,12 @@ pub trait CommandSource {
 pub const MIN_PROGRESS: f64 = 0.1;
 
 /// Where a hold of the wrapper's stands. Either way it gets there from the last published
-/// command within the guard's per-step speed limit on every joint (never a jump); only the
-/// place differs, by what the fault says about the arm.
+/// command within the guard's speed and acceleration limits on every joint (never a jump,
+/// never an instant stop); only the place differs, by what the fault says about the arm.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum HoldTarget {
-    /// At the last published command: the arm was following it, and the fault says nothing
+    /// At the last published command, braked to rest within the acceleration limit (beyond
+    /// it by the braking distance): the arm was following it, and the fault says nothing
     /// of where the arm is (a clock that jumped back or forward: the newest joint states
     /// may be stamped on the broken clock). The arm settles on the command it already
     /// tracks; walking anywhere else would move it on data the fault put in doubt.
@@ -122,8 +131,10 @@ pub struct Guarded<S> {
     /// The reason of the last output, for a start that re-anchors a hold.
     last_reason: Option<HoldReason>,
     /// The last command published (`None` while nothing is): every command after it, a
-    /// hold's included, is within one step of the speed limits of it.
+    /// hold's included, is in the guard's step box from it.
     sent: Option<JointVector>,
+    /// The velocity of the last published step, rad/s (zero when nothing is published).
+    velocity: JointVector,
 }
 
 impl<S: CommandSource> Guarded<S> {
@@ -140,6 +151,7 @@ impl<S: CommandSource> Guarded<S> {
             latched: None,
             last_reason: None,
             sent: None,
+            velocity: JointVector::zeros(),
         }
     }
 
@@ -216,6 +228,7 @@ impl<S: CommandSource> Guarded<S> {
     pub fn reset(&mut self) {
         self.latched = None;
         self.sent = None;
+        self.velocity = JointVector::zeros();
         self.behind_for = 0.0;
         self.behind_from = None;
         self.last_now = None;
@@ -349,13 +362,20 @@ impl<S: CommandSource> Guarded<S> {
         // Every command is checked against the last one published (the source's own last
         // command is the same one, but for a hold's walk, which the source is told of).
         let prev = self.sent.or(self.source.last_command()).or(measured);
+        if self.sent.is_none() {
+            self.velocity = JointVector::zeros();
+        }
+        self.guard.set_velocity(self.velocity);
         let ctx = StepContext { guard: &self.guard, dt };
         let mut out = self.source.step(kin, input, &ctx);
+        // Where a hold stands (braked or walked to), instead of the source's command.
+        let mut stand: Option<JointVector> = None;
         match (out.command, prev) {
+            (Some(cmd), Some(prev)) if cmd == prev => stand = Some(prev),
             (Some(cmd), Some(prev)) => {
                 if let Err(reason) = self.guard.check_command(&cmd, &prev, dt) {
                     self.source.reject(reason.clone(), prev);
-                    out.command = Some(prev);
+                    stand = Some(prev);
                     out.phase = self.source.phase();
                     out.hold = Some(reason);
                 }
@@ -380,30 +400,41 @@ impl<S: CommandSource> Guarded<S> {
             }
         }
         if let Some(l) = &self.latched {
-            let held = match (out.command, l.hold_at) {
-                (Some(_), Some(HoldTarget::Arm(q))) => Some(prev.map_or(q, |from| self.toward(&from, &q, dt))),
-                (Some(_), Some(HoldTarget::Still)) => prev,
+            stand = match (out.command, l.hold_at, prev) {
+                (Some(_), Some(HoldTarget::Arm(q)), _) => Some(q),
+                (Some(_), Some(HoldTarget::Still), Some(p)) => Some(p),
                 _ => None,
             };
-            if let Some(q) = held {
-                // The source holds where the walk is, so that a start resumes from there.
-                self.source.reject(l.reason.clone(), q);
+            if stand.is_none() {
+                out.command = None;
             }
-            out.command = held;
             out.phase = self.source.phase();
             out.hold = Some(l.reason.clone());
             out.solve = None;
         }
+        self.publish(&mut out, stand, prev, dt);
         self.last_reason.clone_from(&out.hold);
         self.sent = out.command;
         out
     }
 
-    /// One step from `from` towards `to`, inside the guard's step box of `dt` (the speed
-    /// limit on every joint, the position limits, the lead bound): at `to` once within it.
-    fn toward(&self, from: &JointVector, to: &JointVector, dt: f64) -> JointVector {
-        let (lo, hi) = self.guard.step_box(from, dt);
-        to.zip_zip_map(&lo, &hi, |q, l, h| q.clamp(l, h))
+    /// The command that leaves: a hold's (`stand`: braked or walked there from `prev`
+    /// within the limits, the source told where it is; on a step whose clock did not
+    /// advance, at the loop's own pace) or the checked one; the velocity follows it.
+    fn publish(&mut self, out: &mut ControlOutput, stand: Option<JointVector>, prev: Option<JointVector>, dt: f64) {
+        if let (Some(to), Some(from)) = (stand, prev) {
+            let pace = if dt > 0.0 { dt } else { self.source.period() };
+            let q = self.guard.walk(&from, &to, pace);
+            self.source.settle(q);
+            self.velocity = (q - from) / pace;
+            out.command = Some(q);
+        } else {
+            self.velocity = match (out.command, prev) {
+                (Some(c), Some(p)) if dt > 0.0 => (c - p) / dt,
+                (Some(_), Some(_)) => self.velocity,
+                _ => JointVector::zeros(),
+            };
+        }
     }
 }
 
@@ -454,6 +485,9 @@ mod tests {
             self.phase = Phase::Hold;
             self.last = Some(hold_at);
             self.rejected = Some(reason);
+        }
+        fn settle(&mut self, at: JointVector) {
+            self.last = Some(at);
         }
     }
 
@@ -571,8 +605,8 @@ mod tests {
 
 #[cfg(test)]
 mod walk_tests {
-    //! Every published command within the guard's per-step speed limit, through each of
-    //! the wrapper's latched holds and the start that resumes it.
+    //! Every published command within the guard's speed and acceleration limits, through
+    //! each of the wrapper's latched holds and the start that resumes it.
     use super::*;
     use crate::control::safety::guard::GuardParams;
     use crate::control::Stamped;
@@ -582,12 +616,10 @@ mod walk_tests {
 
     const PERIOD: f64 = 0.01;
 
-    /// A source that walks its command towards `goal` at `rate` of the guard's usable
-    /// velocity (a law whose commands lead a blocked arm), and stands while held.
+    /// A source that walks its command towards `goal` inside the guard's step box (a law
+    /// whose commands lead a blocked arm), and stands while held.
     struct Chaser {
         goal: JointVector,
-        vmax: JointVector,
-        rate: f64,
         last: Option<JointVector>,
         phase: Phase,
     }
@@ -616,8 +648,7 @@ mod walk_tests {
         fn step(&mut self, _kin: &dyn Kinematics, input: &ControlInput, ctx: &StepContext<'_>) -> ControlOutput {
             let from = self.last.or(input.joints.map(|j| j.value)).unwrap_or(self.goal);
             let cmd = if self.phase == Phase::Approach {
-                let step = self.vmax * (self.rate * ctx.dt);
-                from.zip_zip_map(&self.goal, &step, |f, g, s| f + (g - f).clamp(-s, s))
+                ctx.guard.walk(&from, &self.goal, ctx.dt)
             } else {
                 from
             };
@@ -630,6 +661,9 @@ mod walk_tests {
         fn reject(&mut self, _reason: HoldReason, hold_at: JointVector) {
             self.phase = Phase::Hold;
             self.last = Some(hold_at);
+        }
+        fn settle(&mut self, at: JointVector) {
+            self.last = Some(at);
         }
     }
 
@@ -653,8 +687,6 @@ mod walk_tests {
         let q = JointVector::from_column_slice(&[0.1, 0.5, -0.2, -1.2, 0.3, 1.0, -0.4]);
         let source = Chaser {
             goal: q + lead,
-            vmax: *guard.max_velocity(),
-            rate: 0.9,
             last: None,
             phase: Phase::Approach,
         };
@@ -662,7 +694,8 @@ mod walk_tests {
         let mut g = Guarded::wrap(source, guard);
         let mut now = 10.0;
         let mut last_now: Option<f64> = None;
-        let mut sent = Vec::new();
+        // The arm at rest at q begins the stream (the first command is one step from it).
+        let mut sent = vec![(q, PERIOD)];
         let (mut code, mut before) = (String::new(), q);
         let mut struck = None;
         for k in 0..200 {
@@ -674,26 +707,35 @@ mod walk_tests {
                 ..ControlInput::default()
             };
             let out = g.step(&kin, &input);
+            // The loop's own pace where the clock jumped (the wrapper walks on it then).
             let dt = last_now.map_or(PERIOD, |t| {
                 let d = now - t;
-                if !(0.0..=max_jump).contains(&d) {
-                    0.0
-                } else {
+                if (0.0..=max_jump).contains(&d) && d > 0.0 {
                     d.min(PERIOD)
+                } else {
+                    PERIOD
                 }
             });
             last_now = Some(now);
+            if out.phase == Phase::Hold && code.is_empty() {
+                code = out.reason_code().to_string();
+                // The last command before the hold.
+                before = sent[sent.len() - 1].0;
+            }
             if let Some(c) = out.command {
                 sent.push((c, dt));
             }
-            if out.phase == Phase::Hold && code.is_empty() {
-                code = out.reason_code().to_string();
-            }
             let reached = (g.source().goal - out.command.unwrap_or(q)).amax() < 1e-12;
             now += PERIOD;
-            if struck.is_none() && (reached || k == 60) {
+            // A clock fault or a restart strikes while the command moves (before the
+            // not-following watch could judge the lead); the blocked arm once the command
+            // has reached its lead.
+            let strike = match fault {
+                Fault::Blocked => reached || k == 60,
+                _ => k == 8,
+            };
+            if struck.is_none() && strike {
                 struck = Some(k);
-                before = out.command.unwrap_or(q);
                 match fault {
                     Fault::Blocked => {} // the watch sees the still arm
                     Fault::ClockBack => now -= 5.0,
@@ -712,23 +754,34 @@ mod walk_tests {
         (sent, code, before)
     }
 
-    /// The largest step of `sent` as a share of the guard's per-step limit (`dt` times the
-    /// usable velocity), over every joint and step; a step in a `dt` of 0 counts as
-    /// infinite unless it is none.
-    fn worst_share(sent: &[(JointVector, f64)], vmax: &JointVector) -> f64 {
-        sent.windows(2)
-            .flat_map(|w| {
-                let (a, (b, dt)) = (w[0].0, w[1]);
-                (0..7).map(move |i| {
-                    let step = (b[i] - a[i]).abs();
-                    if step <= 1e-12 {
-                        0.0
-                    } else {
-                        step / (vmax[i] * dt)
-                    }
-                })
-            })
-            .fold(0.0, f64::max)
+    /// The largest speed and acceleration of `sent` (each with its step's `dt`), as shares
+    /// of the guard's limits, over every joint and step; the stream starts at rest.
+    fn worst_shares(sent: &[(JointVector, f64)], vmax: &JointVector) -> (f64, f64) {
+        let a = GuardParams::default().max_acceleration_rad_s2;
+        let v: Vec<(JointVector, f64)> = sent.windows(2).map(|w| ((w[1].0 - w[0].0) / w[1].1, w[1].1)).collect();
+        let speed = v
+            .iter()
+            .flat_map(|(v, _)| (0..7).map(move |i| v[i].abs() / vmax[i]))
+            .fold(0.0, f64::max);
+        let rest = [(JointVector::zeros(), PERIOD)];
+        let all: Vec<&(JointVector, f64)> = rest.iter().chain(v.iter()).collect();
+        let accel = all
+            .windows(2)
+            .flat_map(|w| (0..7).map(move |i| (w[1].0[i] - w[0].0[i]).abs() / (w[1].1 * a)))
+            .fold(0.0, f64::max);
+        (speed, accel)
+    }
+
+    /// Whether `sent` comes to rest within `steps` of index `from` and stays there for
+    /// `stay` steps; where it stands.
+    fn rests(sent: &[(JointVector, f64)], from: usize, steps: usize, stay: usize) -> Option<JointVector> {
+        (from..from + steps).find_map(|k| {
+            let at = sent.get(k)?.0;
+            sent.get(k..k + stay)?
+                .iter()
+                .all(|(c, _)| (c - at).amax() < 1e-12)
+                .then_some(at)
+        })
     }
 
     fn vmax() -> JointVector {
@@ -758,17 +811,24 @@ mod walk_tests {
                 Fault::DriverRestart => "DRIVER_RESTART",
             };
             prop_assert_eq!(code.as_str(), want);
-            let share = worst_share(&sent, &vmax());
-            prop_assert!(share <= 1.0 + 1e-9, "{:?}: a step of {:.3} x the limit", fault, share);
-            // Where the hold stands: at the arm (walked there), or at the last command.
+            let (speed, accel) = worst_shares(&sent, &vmax());
+            prop_assert!(speed <= 1.0 + 1e-9, "{:?}: a speed of {:.3} x the limit", fault, speed);
+            prop_assert!(accel <= 1.0 + 1e-6, "{:?}: an acceleration of {:.3} x the limit", fault, accel);
+            // Where the hold stands: at the arm (walked there), or braked to rest from the
+            // last command (within its braking distance of it).
             let q = JointVector::from_column_slice(&[0.1, 0.5, -0.2, -1.2, 0.3, 1.0, -0.4]);
-            let held_at = sent.iter().map(|(c, _)| *c).rev().find(|c| (c - q).amax() < 1e-12 || (c - before).amax() < 1e-12);
             match fault {
                 Fault::Blocked | Fault::DriverRestart => {
                     prop_assert!(sent.iter().any(|(c, _)| (c - q).amax() < 1e-12), "{:?}: never reached the arm", fault);
                 }
                 Fault::ClockBack | Fault::ClockForward => {
-                    prop_assert!(held_at.is_some(), "{:?}: did not stand at the last command", fault);
+                    let at = sent.iter().position(|(c, _)| (c - before).amax() < 1e-12).unwrap();
+                    let a = GuardParams::default().max_acceleration_rad_s2;
+                    let stop = (vmax().amax() / (a * PERIOD)).ceil() as usize + 2;
+                    let stood = rests(&sent, at, stop, 20);
+                    prop_assert!(stood.is_some(), "{:?}: did not come to rest", fault);
+                    let reach = vmax().amax().powi(2) / (2.0 * a) + vmax().amax() * PERIOD;
+                    prop_assert!((stood.unwrap() - before).amax() <= reach, "{:?}: stood too far", fault);
                 }
             }
         }
@@ -782,21 +842,23 @@ mod walk_tests {
         let (sent, code, before) = play(Fault::Blocked, &lead);
         assert_eq!(code, "ARM_NOT_FOLLOWING");
         let vmax = vmax();
-        // From the command's lead back to the arm in ceil(lead / (vmax dt)) steps, each a
-        // full step of the limit: no jump, no dawdling.
-        let reached = sent.iter().position(|(c, _)| (c - q).amax() < 1e-12).unwrap();
-        let at = sent[..reached]
-            .iter()
-            .rposition(|(c, _)| (c - before).amax() < 1e-12)
-            .unwrap();
-        let reached = reached - at;
-        let steps = (bound / (vmax[1] * PERIOD)).ceil() as usize;
-        assert!(reached <= steps + 1, "{reached} steps to the arm, {steps} expected");
-        assert!(worst_share(&sent, &vmax) <= 1.0 + 1e-9);
+        // From the command's lead back to the arm within the time of a ramp up and down at
+        // the acceleration limit, plus braking from the speed the command had: no jump, no
+        // dawdling.
+        let at = sent.iter().position(|(c, _)| (c - before).amax() < 1e-12).unwrap();
+        let reached = sent[at..].iter().position(|(c, _)| (c - q).amax() < 1e-12).unwrap();
+        let a = GuardParams::default().max_acceleration_rad_s2;
+        let steps = ((2.0 * (2.0 * bound / a).sqrt() + vmax[1] / a) / PERIOD).ceil() as usize + 2;
+        assert!(reached <= steps, "{reached} steps to the arm, at most {steps} expected");
+        let (speed, accel) = worst_shares(&sent, &vmax);
+        assert!(speed <= 1.0 + 1e-9 && accel <= 1.0 + 1e-6, "{speed} {accel}");
         let (sent, code, before) = play(Fault::ClockForward, &lead);
         assert_eq!(code, "CLOCK_FORWARD");
         let at = sent.iter().position(|(c, _)| (c - before).amax() < 1e-12).unwrap();
-        // Held at the last command until the start (40 steps after the fault).
-        assert!(sent[at..at + 40].iter().all(|(c, _)| (c - before).amax() < 1e-12));
+        // Braked to rest within the acceleration limit, then held there until the start
+        // (40 steps after the fault).
+        let stop = (vmax.amax() / (a * PERIOD)).ceil() as usize + 2;
+        let stood = rests(&sent, at, stop, 40 - stop);
+        assert!(stood.is_some(), "did not come to rest in {stop} steps");
     }
 }

@@ -53,6 +53,11 @@ pub enum HoldReason {
         /// Joint index (0-based).
         joint: usize,
     },
+    /// The command would change a joint's speed faster than its acceleration limit allows.
+    AccelerationLimit {
+        /// Joint index (0-based).
+        joint: usize,
+    },
     /// The kinematics failed.
     Kinematics(Arc<str>),
     /// The measured joints are too far from the last command (the arm does not follow:
@@ -135,6 +140,7 @@ impl HoldReason {
             HoldReason::NonFiniteCommand => "NON_FINITE_COMMAND",
             HoldReason::PositionLimit { .. } => "POSITION_LIMIT",
             HoldReason::VelocityLimit { .. } => "VELOCITY_LIMIT",
+            HoldReason::AccelerationLimit { .. } => "ACCELERATION_LIMIT",
             HoldReason::Kinematics(_) => "KINEMATICS",
             HoldReason::TrackingError { .. } => "TRACKING_ERROR",
             HoldReason::AlignmentStall { .. } => "ALIGNMENT_STALL",
@@ -149,7 +155,7 @@ impl HoldReason {
     }
 
     /// Every code, for documentation and tests.
-    pub const CODES: [&'static str; 22] = [
+    pub const CODES: [&'static str; 23] = [
         "NO_JOINT_STATE",
         "STALE_JOINT_STATE",
         "NON_FINITE_JOINT_STATE",
@@ -162,6 +168,7 @@ impl HoldReason {
         "NON_FINITE_COMMAND",
         "POSITION_LIMIT",
         "VELOCITY_LIMIT",
+        "ACCELERATION_LIMIT",
         "KINEMATICS",
         "TRACKING_ERROR",
         "ALIGNMENT_STALL",
@@ -193,6 +200,9 @@ impl fmt::Display for HoldReason {
             }
             HoldReason::VelocityLimit { joint } => {
                 write!(f, "command would exceed the velocity limit of joint {}", joint + 1)
+            }
+            HoldReason::AccelerationLimit { joint } => {
+                write!(f, "command would exceed the acceleration limit of joint {}", joint + 1)
             }
             HoldReason::Kinematics(s) => write!(f, "kinematics: {s}"),
             HoldReason::TrackingError { joint, error } => write!(
@@ -266,6 +276,7 @@ mod tests {
             HoldReason::NonFiniteCommand,
             HoldReason::PositionLimit { joint: 0 },
             HoldReason::VelocityLimit { joint: 0 },
+            HoldReason::AccelerationLimit { joint: 0 },
             HoldReason::Kinematics("x".into()),
             HoldReason::TrackingError { joint: 0, error: 0.2 },
             HoldReason::AlignmentStall {

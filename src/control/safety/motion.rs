@@ -18,9 +18,11 @@
 //!    acceleration changes by at most the jerk limit per step;
 //! 4. the joint step is corrected by the damped least-squares solution of
 //!    `J (Δq' - Δq) = v' dt - δ` (the smallest joint change that gives the limited twist, so
-//!    the SQP's null-space motion, e.g. off the joint limits, is kept), and scaled back
-//!    into the step box where the correction leaves it (the twist keeps its direction and
-//!    only slows).
+//!    the SQP's null-space motion, e.g. off the joint limits, is kept), and brought back
+//!    into the step box where the correction leaves it (scaled from the previous command,
+//!    keeping the twist's direction, where the box holds it; from the SQP's command, solved
+//!    in the box, where the acceleration limit keeps a moving joint off it, then within the
+//!    tip's speed limits: `into_box`).
 //!
 //! Its state is the commanded twist of the last step and its rate; it starts at rest, and
 //! every run and every resume from a hold starts at rest (the arm is still then). One
@@ -128,23 +130,67 @@ fn shape(d: Vector3<f64>, left: f64, v: Vector3<f64>, a: Vector3<f64>, b: Block,
     cap(v + a_new * dt, b.speed)
 }
 
-/// `prev + s (to - prev)` with the largest `s` in [0, 1] that keeps it in `[lo, hi]` (so
-/// that the limited twist keeps its direction and only slows), then clamped (where `prev`
-/// itself is outside the box, e.g. behind a lagging arm's lead bound).
-fn into_box(prev: &JointVector, to: &JointVector, lo: &JointVector, hi: &JointVector) -> JointVector {
-    let step = to - prev;
+/// `base + s (to - base)` with the largest `s` in [0, 1] that keeps it in `[lo, hi]`, then
+/// clamped: the limited step brought into the guard's step box. `base` is `prev` where the
+/// box holds it (every joint slow enough for its acceleration limit to allow a stop at
+/// once), so that a step cut by the speed limits keeps its direction and only slows; where
+/// the acceleration limit keeps a moving joint off `prev`, `base` is the SQP's own command
+/// `sqp` (solved inside the box), so that as much of the limiter's correction is kept as
+/// the box allows, and the result is then drawn towards the box's point nearest `prev`
+/// (every joint braking as hard as its acceleration limit allows) as far as the tip's speed
+/// limits need ([`within_speed`]). Scaling from `prev` there gave the braking edge at every step (the
+/// arm crawled), and scaling from the box's centre coasted the arm on its old velocity;
+/// both left most 1 kHz soak cycles held or timed out (the box at 1 kHz is 1/100 of its
+/// width at 100 Hz).
+fn into_box(
+    (prev, sqp, to): (&JointVector, &JointVector, &JointVector),
+    (lo, hi): (&JointVector, &JointVector),
+    speed: impl Fn(&JointVector) -> bool,
+) -> JointVector {
+    let inside = (0..prev.len()).all(|i| prev[i] >= lo[i] && prev[i] <= hi[i]);
+    let base = if inside {
+        *prev
+    } else {
+        sqp.zip_zip_map(lo, hi, |q, l, h| q.clamp(l, h))
+    };
+    let step = to - base;
     let mut s = 1.0f64;
     for i in 0..step.len() {
         let room = if step[i] > 0.0 {
-            hi[i] - prev[i]
+            hi[i] - base[i]
         } else {
-            lo[i] - prev[i]
+            lo[i] - base[i]
         };
         if step[i] != 0.0 {
             s = s.min((room / step[i]).max(0.0));
         }
     }
-    (prev + step * s).zip_zip_map(lo, hi, |q, l, h| q.clamp(l, h))
+    let out = (base + step * s).zip_zip_map(lo, hi, |q, l, h| q.clamp(l, h));
+    if inside {
+        out
+    } else {
+        within_speed(&prev.zip_zip_map(lo, hi, |q, l, h| q.clamp(l, h)), &out, speed)
+    }
+}
+
+/// `brake + l (out - brake)` with the largest `l` in [0, 1] (to 1/1024) for which `ok`
+/// holds (the tip's speed limits: a convex set), `out` itself where it holds; `brake`, every
+/// joint braking as hard as it may, where nothing else does.
+fn within_speed(brake: &JointVector, out: &JointVector, ok: impl Fn(&JointVector) -> bool) -> JointVector {
+    let centre = brake;
+    if ok(out) {
+        return *out;
+    }
+    let (mut lo, mut hi) = (0.0f64, 1.0f64);
+    for _ in 0..10 {
+        let mid = 0.5 * (lo + hi);
+        if ok(&(centre + (out - centre) * mid)) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    centre + (out - centre) * lo
 }
 
 /// The limiter's state: the last commanded tip twist and its rate.
@@ -213,7 +259,13 @@ impl MotionLimiter {
         } else {
             *cmd
         };
-        let out = into_box(prev, &out, lo, hi);
+        let (linear, angular) = (lim.max_speed_m_s * dt, lim.max_angular_speed_rad_s * dt);
+        let speed_ok = |q: &JointVector| {
+            let d = jac * (q - prev);
+            let part = |i: usize| Vector3::new(d[i], d[i + 1], d[i + 2]).norm();
+            part(0) <= linear * (1.0 + 1e-9) && part(3) <= angular * (1.0 + 1e-9)
+        };
+        let out = into_box((prev, cmd, &out), (lo, hi), speed_ok);
         let out = if out.iter().all(|x| x.is_finite()) { out } else { *prev };
         // The state follows what is commanded (after the box), so the next step's limits
         // are measured from it.

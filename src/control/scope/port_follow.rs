@@ -20,7 +20,7 @@
 //! docking axis a since DONE (p0: the controller's filtered estimate at DONE) less what
 //! tilting about the fulcrum adds there (u the estimated axis, s_f the fulcrum's depth), is
 //! low-passed at `cutoff_hz` on each fresh estimate and cut to ±`max_offset_m`. While the
-//! surgeon steers (a command, even a zero one: the dead-man pressed), the law's port and
+//! surgeon steers (a command, even a zero one: the dead-man pressed; not a withdrawal), the law's port and
 //! fulcrum move with a part of it, a g o (`gain` g), at most `max_speed_m_s`; while no command
 //! comes they stay (the scope holds still: the pivot's stillness target), and when commands resume
 //! they catch up at `max_speed_m_s`. A missing, stale, non-finite or old-stamped estimate

@@ -39,6 +39,10 @@ pub struct ControllerNodeParams {
     pub tip_frame: String,
     /// Joint command out (to the driver; never published in a dry run).
     pub command_topic: String,
+    /// Every command also goes out here as a `sensor_msgs/JointState` stamped with its
+    /// control step's time and numbered as the command is (the command's own stamp is 0):
+    /// the guard's clock, for audits, bags and plots. Not in a dry run.
+    pub command_joints_topic: String,
     /// Dry run: the commands go to `preview_topic` (same type) instead of `command_topic`,
     /// the controller steers a ghost arm at its own commands ([`ghost`]), and the ghost's
     /// joints go out on `preview_joint_states_topic` (for a second robot_state_publisher).

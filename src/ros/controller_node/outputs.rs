@@ -59,6 +59,8 @@ pub struct LoopSnapshot {
 struct Outputs {
     trajectory: Option<rosrust::Publisher<convert::AsStamped>>,
     multiarray: Option<rosrust::Publisher<std_msgs::Float64MultiArray>>,
+    /// Each command again, stamped with its step's time (`None` in a dry run).
+    command_joints: Option<rosrust::Publisher<sensor_msgs::JointState>>,
     status: rosrust::Publisher<trocar_docking::DockingStatus>,
     f_ext: rosrust::Publisher<geometry_msgs::WrenchStamped>,
     markers: rosrust::Publisher<visualization_msgs::MarkerArray>,
@@ -99,6 +101,11 @@ impl Outputs {
         Ok(Self {
             trajectory,
             multiarray,
+            command_joints: if p.dry_run {
+                None
+            } else {
+                Some(rosrust::publish(&p.command_joints_topic, 100).map_err(ros_err)?)
+            },
             status: rosrust::publish(&p.status_topic, 10).map_err(ros_err)?,
             f_ext: rosrust::publish(&p.f_ext_topic, 10).map_err(ros_err)?,
             markers: rosrust::publish(&p.markers_topic, 2).map_err(ros_err)?,
@@ -124,6 +131,12 @@ impl Outputs {
         };
         if let Err(e) = r {
             rosrust::ros_err!("cannot publish the command: {e}");
+        }
+        if let Some(c) = &self.command_joints {
+            // Numbered by its own publisher in step with the command's (one each per command).
+            let mut m = convert::joint_state(stamp, &p.joint_names, q, &JointVector::zeros());
+            m.effort.clear();
+            let _ = c.send(m);
         }
     }
 
