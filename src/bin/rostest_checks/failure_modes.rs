@@ -30,6 +30,7 @@
 //! holds and re-anchors included, against the guard's speed and acceleration limits
 //! ([`crate::command_audit`]).
 
+use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -82,8 +83,12 @@ struct Seen {
     last: Option<JointVector>,
     /// Largest |command - measured| on any joint since the last [`Plant::clear`], rad.
     max_lead: f64,
-    /// When the lead first reached its bound since the last clear.
-    saturated_at: Option<Instant>,
+    /// The number of the first command since the last clear whose lead reached the
+    /// not-following watch ([`LEAD_WATCH_FRACTION`] of the bound).
+    saturated_seq: Option<u32>,
+    /// The controller's step time of each command, by number (its stamped copy), newest
+    /// last, at most [`STAMPS_KEPT`]; never cleared.
+    stamps: VecDeque<(u32, f64)>,
     /// Largest step between consecutive commands since the last clear, rad.
     max_step: f64,
     /// Largest |command - measured| of the first command after the last clear, rad.
@@ -100,8 +105,8 @@ impl Seen {
         let lead = (cmd - measured).amax();
         self.max_lead = self.max_lead.max(lead);
         // The guard's not-following watch runs from a quarter of the bound.
-        if lead >= LEAD_WATCH_FRACTION * lead_bound && self.saturated_at.is_none() {
-            self.saturated_at = Some(Instant::now());
+        if lead >= LEAD_WATCH_FRACTION * lead_bound && self.saturated_seq.is_none() {
+            self.saturated_seq = Some(seq);
         }
         if let Some(prev) = self.last {
             self.max_step = self.max_step.max((cmd - prev).amax());
@@ -113,7 +118,24 @@ impl Seen {
         self.last = Some(*cmd);
         self.commands += 1;
     }
+
+    /// Record the stamped copy `q` of command `seq`, its step at `stamp` (s).
+    fn copy(&mut self, seq: u32, stamp: f64, q: &JointVector) {
+        self.audit.copy(seq, stamp, q);
+        if self.stamps.len() == STAMPS_KEPT {
+            self.stamps.pop_front();
+        }
+        self.stamps.push_back((seq, stamp));
+    }
+
+    /// The controller's step time of command `seq`, if its copy came.
+    fn stamp_of(&self, seq: u32) -> Option<f64> {
+        self.stamps.iter().find(|(s, _)| *s == seq).map(|(_, t)| *t)
+    }
 }
+
+/// Command step times kept: 20 s at 100 Hz.
+const STAMPS_KEPT: usize = 2000;
 
 /// The played arm: state shared with its publishing thread and the command subscriber.
 struct Plant {
@@ -241,9 +263,7 @@ impl Plant {
             let names = ::trocar_docking::kinematics::joint_names();
             rosrust::subscribe(&p.command_joints_topic, 1000, move |m: sensor_msgs::JointState| {
                 if let Ok(q) = convert::joint_positions("command copy", &m, &names) {
-                    lock(&seen)
-                        .audit
-                        .copy(m.header.seq, convert::seconds(m.header.stamp), &q);
+                    lock(&seen).copy(m.header.seq, convert::seconds(m.header.stamp), &q);
                 }
             })
             .map_err(e)?
@@ -283,6 +303,7 @@ impl Plant {
             commands: s.commands,
             last: s.last,
             audit: s.audit.clone(),
+            stamps: std::mem::take(&mut s.stamps),
             ..Seen::default()
         };
     }
@@ -469,6 +490,18 @@ fn no_motion_until_start(
 pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
     let plant = Plant::start(p, 1.0, false, false)?;
     let (status, _sub) = start_moving(p)?;
+    // The first HOLD's step time, from every status (the latest one may be steps later).
+    let first_hold = Arc::new(Mutex::new(None));
+    let _holds = {
+        let first_hold = first_hold.clone();
+        rosrust::subscribe(&p.status_topic, 1000, move |s: trocar_docking::DockingStatus| {
+            let mut h = lock(&first_hold);
+            if s.phase == "HOLD" && h.is_none() {
+                *h = Some(convert::seconds(s.header.stamp));
+            }
+        })
+        .map_err(|e| e.to_string())?
+    };
     plant.clear();
     plant.set(|m| m.blocked = true);
     let blocked_at = Instant::now();
@@ -476,7 +509,7 @@ pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
         s.phase == "HOLD"
     })
     .map_err(|e| format!("{e}; the command led by {:.2} deg", plant.seen().max_lead.to_degrees()))?;
-    let held_at = Instant::now();
+    let held_after = blocked_at.elapsed().as_secs_f64();
     std::thread::sleep(Duration::from_millis(200));
     let seen = plant.seen();
     if held.hold_code != "ARM_NOT_FOLLOWING" {
@@ -494,13 +527,20 @@ pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
             p.max_lead_deg
         ));
     }
-    let Some(led_at) = seen.saturated_at else {
+    let Some(led) = seen.saturated_seq else {
         return Err("HOLD, but the command never led the blocked arm by a quarter of its bound".into());
     };
-    let delay = held_at.saturating_duration_since(led_at).as_secs_f64();
+    // Both ends on the controller's clock (the step of the command, the step of the hold),
+    // as the guard times its watch: a host that delays the plant's or this node's threads
+    // does not move them.
+    let led_at = seen
+        .stamp_of(led)
+        .ok_or_else(|| format!("no stamped copy of command {led}, the first to lead by a quarter of the bound"))?;
+    let hold_at = (*lock(&first_hold)).ok_or("HOLD seen, but no HOLD status recorded")?;
+    let delay = hold_at - led_at;
     if delay > p.max_hold_delay_s {
         return Err(format!(
-            "HOLD {delay:.3} s after the command led by a quarter of its bound (bound {} s)",
+            "HOLD {delay:.3} s after the command led by a quarter of its bound (bound {} s, the controller's clock)",
             p.max_hold_delay_s
         ));
     }
@@ -509,9 +549,8 @@ pub fn blocked_arm(p: &CheckParams) -> Result<String, String> {
     let rest = no_motion_until_start(p, &plant, &status, "ARM_NOT_FOLLOWING")?;
     let speed = plant.seen().audit.verdict("ARM_NOT_FOLLOWING")?;
     Ok(format!(
-        "lead at most {:.3} deg; HOLD {:.3} s after blocking, {delay:.3} s after the lead reached a quarter of its bound; {rest}; {speed}",
+        "lead at most {:.3} deg; HOLD seen {held_after:.3} s after blocking (wall clock), {delay:.3} s after the lead reached a quarter of its bound (the controller's clock); {rest}; {speed}",
         seen.max_lead.to_degrees(),
-        held_at.duration_since(blocked_at).as_secs_f64()
     ))
 }
 
