@@ -232,6 +232,19 @@ impl Supervisor {
         }
     }
 
+    /// The goal is reached but the depth is not known well enough: INSERT -> HOLD for
+    /// `reason` (DEPTH_UNCERTAIN), latched; `start` resumes as DONE (the surgeon accepts the
+    /// depth).
+    pub fn depth_uncertain(&mut self, reason: HoldReason) {
+        if self.phase == Phase::Insert {
+            self.phase = Phase::Hold;
+            self.resume = Phase::Done;
+            self.latched = true;
+            self.reason = Some(reason);
+            self.note = None;
+        }
+    }
+
     /// The goal is reached: INSERT -> DONE. `note` says how, when not plainly at the goal;
     /// the reason of any earlier hold is cleared.
     pub fn goal_reached(&mut self, note: Option<Seated>) {
@@ -339,6 +352,22 @@ mod tests {
         s.clear_hold();
         assert!(s.start().unwrap_err().contains("surgeon"));
         assert_eq!(Phase::Aborted.as_str(), "ABORTED");
+        // At the goal with the depth uncertain: a latched hold that start resumes as DONE.
+        let mut s = Supervisor::new();
+        s.start().unwrap();
+        s.tare_done();
+        s.approach_reached();
+        s.depth_uncertain(HoldReason::DepthUncertain {
+            uncertainty_m: 0.005,
+            tolerance_m: 0.002,
+            basis: crate::control::docking::depth::DepthBasis::Estimate,
+        });
+        assert_eq!((s.phase(), s.is_latched()), (Phase::Hold, true));
+        assert_eq!(s.reason().map(HoldReason::code), Some("DEPTH_UNCERTAIN"));
+        s.clear_hold();
+        assert_eq!(s.phase(), Phase::Hold, "only the surgeon accepts the depth");
+        s.start().unwrap();
+        assert_eq!(s.phase(), Phase::Done, "start accepts it: DONE");
         // Holding in IDLE keeps IDLE.
         let mut s = Supervisor::new();
         s.hold(HoldReason::NoJointState, false);

@@ -206,6 +206,7 @@ impl Cycle {
             Phase::Done if self.docked => "docked",
             Phase::Done => "false_done",
             Phase::Aborted | Phase::Idle => "aborted",
+            _ if self.latched && self.hold_code == "DEPTH_UNCERTAIN" => "depth_uncertain",
             _ if self.latched => "held",
             _ => "timeout",
         }

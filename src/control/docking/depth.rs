@@ -1,0 +1,650 @@
+//! The tip's depth along the insertion axis: refined where the shaft meets the cannula's
+//! seal, and how well it is known, so that DONE is reported only when the depth is.
+//!
+//! **Why.** The trocar estimate comes through the hand-eye calibration, whose error moves the
+//! estimated port, and so the goal, along the axis by up to `hand_eye_error_m` plus
+//! `camera_lever_m` times `hand_eye_error_deg` (2 mm + 0.3 m x 1 deg = 7.2 mm as shipped).
+//! Across the axis the port itself guides the shaft; along it nothing does, and a DONE judged
+//! on the estimate alone can be millimetres short or deep.
+//!
+//! **The seal's onset** (docs/controller.md, Depth at the seal). A cannula's seal grips the
+//! shaft once the tip passes it, at the trocar's seal depth `seal_depth_m` below the port.
+//! Until the lip breaks away it sticks to the shaft (a stiff pre-sliding spring: the
+//! reset-integrator friction model, Haessig & Friedland 1991), so for that while the tip
+//! stays at the seal's depth in the trocar, whatever the trocar does; after it, kinetic
+//! friction (1.5 N and more) resists the insertion for as long as the shaft slides. The
+//! controller takes as the onset a rise of the axial force resisting the insertion by
+//! `onset_force_n` over its level before (following a fall at once, a rise with a 0.2 s
+//! low-pass), at least twice the rise of the force across the axis (the seal acts along the
+//! axis; the funnel's and the bore's contact before it push across it as much or more), that
+//! then holds
+//! for `confirm_s` (the bore's contact rises and falls again), dated back by the force
+//! estimate's lag (the torques' and the estimate's low-pass time constants: a first-order
+//! chain delays a ramp by the sum of its time constants). Each trocar pose captured within
+//! `stick_window_s` after the onset then measures the estimate's error along the axis: the
+//! tip's depth in that raw pose, with the tip where it was at the pose's capture stamp (a
+//! short history of the measured tip: the camera's latency and the filter play no part),
+//! less the seal's depth and half the lip's travel `seal_lip_travel_m` (the lip deflects with
+//! the shaft from nothing to its breakaway while it sticks). Their mean d moves the goal to `insertion_depth_m` + d on the
+//! estimated axis. A d larger than the calibration's bound is not something the calibration
+//! explains (another trocar, a seal at another depth, a force that was not the seal): it is
+//! refused and named, and the goal stays.
+//!
+//! **The uncertainty** (a bound of about two standard deviations), root sum of squares of:
+//! - before a refinement: the calibration's bound (above);
+//! - after one: the seal's own term `seal_uncertainty_m` (the lip's travel while it sticks,
+//!   the onset's dating), the raw poses' noise at the onset (2 sigma over the root of their
+//!   count), and the hand-eye's rotation error times the tip's travel since (the camera moves
+//!   with the arm, so the error the refinement removed drifts by that much);
+//! - always: the estimate's noise along the axis now, 2 sigma of the filtered estimate from the
+//!   spread of each new trocar pose about the filtered one ([`DepthEstimate::observe_pose`]);
+//!   a first-order filter of time constant tau keeps T / (2 tau) of the variance of white
+//!   noise sampled every T.
+//!
+//! DONE needs it within `tolerance_m`; otherwise the controller holds, DEPTH_UNCERTAIN, with the
+//! figure and its basis. Nothing allocates: the histories are fixed arrays.
+
+use std::fmt;
+
+use nalgebra::{Point3, Vector2, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::geometry::InsertionAxis;
+use crate::signal::exp_smoothing;
+use crate::validate;
+
+/// Parameters (`depth:` in `config/controller.yaml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(remote = "Self", deny_unknown_fields)]
+pub struct DepthParams {
+    /// The trocar's seal below the port's top face along the axis, m (0: no seal, no
+    /// refinement).
+    pub seal_depth_m: f64,
+    /// How far the seal's lip travels with the shaft before it breaks away, m: while it
+    /// sticks the tip is this much deeper than the seal at most, half of it on average.
+    pub seal_lip_travel_m: f64,
+    /// The rise of the axial force over its level before that marks the seal's onset, N.
+    pub onset_force_n: f64,
+    /// How long the rise must hold to be the seal's, s.
+    pub confirm_s: f64,
+    /// The trocar poses captured this long after the onset measure the depth, s (the lip
+    /// sticks to the shaft for about that long).
+    pub stick_window_s: f64,
+    /// The seal's own uncertainty, m (2 sigma).
+    pub seal_uncertainty_m: f64,
+    /// The hand-eye calibration's translation error bound, m.
+    pub hand_eye_error_m: f64,
+    /// ... and its rotation error bound, deg.
+    pub hand_eye_error_deg: f64,
+    /// The camera's distance to the port while docking, m: the lever of the rotation error.
+    pub camera_lever_m: f64,
+    /// DONE only while the depth's uncertainty is within this, m.
+    pub tolerance_m: f64,
+}
+
+crate::shipped_defaults!(DepthParams, crate::config::CONTROLLER, ["depth"]);
+
+impl DepthParams {
+    /// Check ranges; the error names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        validate::non_negative("depth.seal_depth_m", self.seal_depth_m)?;
+        validate::non_negative("depth.seal_lip_travel_m", self.seal_lip_travel_m)?;
+        validate::positive("depth.onset_force_n", self.onset_force_n)?;
+        validate::positive_at_most("depth.stick_window_s", self.stick_window_s, 1.0)?;
+        if !(self.confirm_s.is_finite() && self.confirm_s >= self.stick_window_s && self.confirm_s <= 2.0) {
+            return Err(format!(
+                "depth.confirm_s ({}) must be within depth.stick_window_s ({}) and 2 s",
+                self.confirm_s, self.stick_window_s
+            ));
+        }
+        validate::non_negative("depth.seal_uncertainty_m", self.seal_uncertainty_m)?;
+        validate::non_negative("depth.hand_eye_error_m", self.hand_eye_error_m)?;
+        validate::in_range("depth.hand_eye_error_deg", self.hand_eye_error_deg, 0.0, 45.0)?;
+        validate::non_negative("depth.camera_lever_m", self.camera_lever_m)?;
+        validate::positive("depth.tolerance_m", self.tolerance_m)?;
+        Ok(())
+    }
+
+    /// The calibration's bound on the estimate's error along the axis, m.
+    pub fn calibration_bound(&self) -> f64 {
+        self.hand_eye_error_m + self.camera_lever_m * self.hand_eye_error_deg.to_radians()
+    }
+}
+
+/// What the depth rests on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DepthBasis {
+    /// The trocar estimate alone (the seal not met yet, or no seal).
+    Estimate,
+    /// Refined at the seal: the estimate put the tip `correction` m deeper than it was.
+    Seal {
+        /// The goal's shift along the estimated axis, m.
+        correction: f64,
+    },
+    /// The seal was met `correction` m from where the estimate put it, more than the
+    /// calibration's `bound` explains: refused, the estimate alone.
+    Refused {
+        /// The refused shift, m.
+        correction: f64,
+        /// The calibration's bound, m.
+        bound: f64,
+    },
+}
+
+impl fmt::Display for DepthBasis {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            DepthBasis::Estimate => write!(f, "the seal was not felt: the depth rests on the trocar estimate"),
+            DepthBasis::Seal { correction } => write!(f, "refined at the seal by {:+.1} mm", correction * 1e3),
+            DepthBasis::Refused { correction, bound } => write!(
+                f,
+                "the seal was felt {:+.1} mm from where the trocar estimate puts it, more than the hand-eye calibration's {:.1} mm explain: refused (check the calibration and the trocar's seal depth)",
+                correction * 1e3,
+                bound * 1e3
+            ),
+        }
+    }
+}
+
+/// The time constant of the force's level before the onset as it rises, s: long against the
+/// seal's rise (tens of milliseconds), short against the force estimate's drift as the arm
+/// moves; it follows a fall at once.
+const LEVEL_TIME_CONSTANT_S: f64 = 0.2;
+
+/// The seal's force is along the axis: its rise is at least this many times the rise of the
+/// force across it (in the realistic world the force along is 3-6 times the force across at
+/// the seal, at most 1.6 times at the funnel's and the bore's contact before it, seeds 11 and
+/// 103; a cone's or a cylinder's wall pushes across the axis at least as much as along it,
+/// friction at 0.3 of that). Rises, not levels: a scope pressed steadily against the bore
+/// (without force feedback) still shows the seal's rise.
+const SEAL_AXIAL_RATIO: f64 = 2.0;
+
+/// How many tip positions the history keeps, at least [`TIP_SPACING_S`] apart (2.56 s at
+/// 100 Hz, 0.64 s at 1 kHz).
+const TIP_CAPACITY: usize = 256;
+
+/// The smallest interval between two positions of the tip history, s.
+const TIP_SPACING_S: f64 = 0.0025;
+
+/// How many raw trocar poses are kept (2 s at 15 Hz, 0.32 s at 100 Hz).
+const POSE_CAPACITY: usize = 32;
+
+/// How many poses the noise's running mean square weighs (about 2 s at 15 Hz).
+const NOISE_WINDOW: u32 = 30;
+
+/// A fixed-capacity history, oldest first; a push into a full one drops the oldest.
+#[derive(Debug, Clone, PartialEq)]
+struct History<T: Copy + Default, const N: usize> {
+    items: [T; N],
+    len: usize,
+}
+
+impl<T: Copy + Default, const N: usize> Default for History<T, N> {
+    fn default() -> Self {
+        Self {
+            items: [T::default(); N],
+            len: 0,
+        }
+    }
+}
+
+impl<T: Copy + Default, const N: usize> History<T, N> {
+    fn push(&mut self, x: T) {
+        if self.len == N {
+            self.items.copy_within(1.., 0);
+            self.len -= 1;
+        }
+        self.items[self.len] = x;
+        self.len += 1;
+    }
+
+    fn as_slice(&self) -> &[T] {
+        &self.items[..self.len]
+    }
+}
+
+/// A raw trocar pose: capture stamp, port, unit axis.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct Pose {
+    stamp: f64,
+    port: Point3<f64>,
+    direction: Vector3<f64>,
+}
+
+/// A rise of the force that may be the seal's onset.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Candidate {
+    /// The onset, dated back by the force estimate's lag, s.
+    t_on: f64,
+    /// The force's level before it, along and across the axis, N.
+    level: Vector2<f64>,
+    /// The tip's depth on the estimated axis then, m.
+    depth: f64,
+}
+
+/// The depth's state over one docking run (`Default`: a new run).
+#[derive(Debug, Clone, PartialEq)]
+pub struct DepthEstimate {
+    tips: History<(f64, Point3<f64>), TIP_CAPACITY>,
+    poses: History<Pose, POSE_CAPACITY>,
+    /// The force's level along and across the axis (None: not in the seal's depth range), N.
+    level: Option<Vector2<f64>>,
+    candidate: Option<Candidate>,
+    /// The search is over (refined, refused, or past the seal).
+    over: bool,
+    basis: DepthBasis,
+    /// The tip's depth on the estimated axis at the onset (for the drift since), m.
+    onset_depth: f64,
+    /// 2 sigma of the onset's mean of raw poses, m.
+    onset_noise: f64,
+    /// Mean square of each new trocar pose's distance from the filtered one along the axis, m².
+    innovation_ms: f64,
+    /// How many poses it holds (its weight grows to a window's worth).
+    noise_poses: u32,
+    /// Mean interval between the poses, s.
+    pose_period: f64,
+}
+
+impl Default for DepthEstimate {
+    fn default() -> Self {
+        Self {
+            tips: History::default(),
+            poses: History::default(),
+            level: None,
+            candidate: None,
+            over: false,
+            basis: DepthBasis::Estimate,
+            onset_depth: f64::NAN,
+            onset_noise: 0.0,
+            innovation_ms: 0.0,
+            noise_poses: 0,
+            pose_period: 0.0,
+        }
+    }
+}
+
+/// The controller's filters the depth depends on.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Filters {
+    /// The force estimate's lag behind the force, s.
+    pub force_lag: f64,
+    /// The trocar filter's time constant along the axis, s (0: unfiltered).
+    pub depth_tau: f64,
+}
+
+/// The depth's report: what the status carries.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct DepthReport {
+    /// The goal's shift along the estimated axis, m (0 unless refined).
+    pub correction: f64,
+    /// The depth's uncertainty, m (about 2 sigma); in the report at the goal, plus the tip's
+    /// distance from the goal depth on the estimate (the DONE gate's figure).
+    pub uncertainty: f64,
+    /// What it rests on.
+    pub basis: DepthBasis,
+}
+
+impl DepthEstimate {
+    /// The goal's shift along the estimated axis, m (0 unless refined at the seal).
+    pub fn correction(&self) -> f64 {
+        match self.basis {
+            DepthBasis::Seal { correction } => correction,
+            _ => 0.0,
+        }
+    }
+
+    /// What the depth rests on.
+    pub fn basis(&self) -> DepthBasis {
+        self.basis
+    }
+
+    /// A new raw trocar pose (`port`, unit `direction`, captured at `stamp`) and the filtered
+    /// estimate's port `filtered` after it. A pose no newer than the last is ignored.
+    pub fn observe_pose(&mut self, port: &Point3<f64>, direction: &Vector3<f64>, filtered: &Point3<f64>, stamp: f64) {
+        let last = self.poses.as_slice().last().map(|p| p.stamp);
+        let e = (port - filtered).dot(direction);
+        if last.is_some_and(|t| stamp <= t) || !(e.is_finite() && stamp.is_finite()) {
+            return;
+        }
+        self.noise_poses = (self.noise_poses + 1).min(NOISE_WINDOW);
+        let w = 1.0 / f64::from(self.noise_poses);
+        self.innovation_ms += (e * e - self.innovation_ms) * w;
+        if let Some(t) = last {
+            let gap = stamp - t;
+            self.pose_period = if self.pose_period > 0.0 {
+                self.pose_period + (gap - self.pose_period) * w
+            } else {
+                gap
+            };
+        }
+        self.poses.push(Pose {
+            stamp,
+            port: *port,
+            direction: *direction,
+        });
+    }
+
+    /// 2 sigma of the filtered estimate along the axis, m, for a filter of time constant
+    /// `tau` s (0: unfiltered).
+    pub fn noise(&self, tau: f64) -> f64 {
+        let keep = if tau > 0.0 && self.pose_period > 0.0 {
+            (self.pose_period / (2.0 * tau)).min(1.0)
+        } else {
+            1.0
+        };
+        2.0 * (self.innovation_ms * keep).sqrt()
+    }
+
+    /// One INSERT step at time `now` (the clock of the poses' stamps): the estimated `axis`,
+    /// the measured `tip`, the force estimate on the tip `f` (N, base frame).
+    pub fn update(
+        &mut self,
+        p: &DepthParams,
+        axis: &InsertionAxis,
+        tip: &Point3<f64>,
+        f: &Vector3<f64>,
+        now: f64,
+        filters: Filters,
+    ) {
+        if self
+            .tips
+            .as_slice()
+            .last()
+            .is_none_or(|(t, _)| now >= t + TIP_SPACING_S)
+        {
+            self.tips.push((now, *tip));
+        }
+        // The force resisting the insertion, and the force across the axis.
+        let force = Vector2::new(-f.dot(&axis.direction), axis.across(f).norm());
+        if self.over || p.seal_depth_m <= 0.0 || !force.iter().all(|x| x.is_finite()) || !axis.is_finite() {
+            return;
+        }
+        // Whether a rise over `level` is the seal's: along the axis, where a funnel's or a
+        // bore's contact pushes across it as much or more.
+        let rise = |level: Vector2<f64>| {
+            let r = force - level;
+            r.x >= p.onset_force_n && r.x >= SEAL_AXIAL_RATIO * r.y.max(0.0)
+        };
+        let depth = axis.depth_of(tip);
+        // Twice the calibration's bound: a seal met farther off than the bound is still
+        // seen, and refused by name.
+        let reach = 2.0 * p.calibration_bound() + p.seal_uncertainty_m;
+        if let Some(c) = self.candidate {
+            if !rise(c.level) {
+                // It fell back, or grew across the axis: not the seal (the bore's contact); the
+                // level goes on from before.
+                self.candidate = None;
+                self.level = Some(c.level);
+            } else if now - c.t_on >= p.confirm_s {
+                self.over = true;
+                self.refine(p, &c);
+            }
+            return;
+        }
+        if depth > p.seal_depth_m + reach {
+            // Past every depth the seal could be at: no refinement.
+            self.over = true;
+            return;
+        }
+        if depth < p.seal_depth_m - reach {
+            self.level = None;
+            return;
+        }
+        match self.level {
+            Some(level) if rise(level) => {
+                self.candidate = Some(Candidate {
+                    t_on: now - filters.force_lag,
+                    level,
+                    depth,
+                });
+            }
+            Some(level) => {
+                // Down at once, up slowly: a contact before the seal that lets go leaves the
+                // level where the force fell to.
+                let dt = self.tips.as_slice().iter().rev().nth(1).map_or(0.0, |(t, _)| now - t);
+                let up = level + (force - level) * exp_smoothing(dt, LEVEL_TIME_CONSTANT_S);
+                self.level = Some(up.inf(&force));
+            }
+            None => self.level = Some(force),
+        }
+    }
+
+    /// The tip's position at `t`, interpolated in the history (None outside it).
+    fn tip_at(&self, t: f64) -> Option<Point3<f64>> {
+        let h = self.tips.as_slice();
+        let k = h.iter().position(|(ti, _)| *ti >= t)?;
+        let (t1, p1) = h[k];
+        if k == 0 {
+            return (t1 == t).then_some(p1);
+        }
+        let (t0, p0) = h[k - 1];
+        let w = (t - t0) / (t1 - t0);
+        Some(p0 + (p1 - p0) * w)
+    }
+
+    /// The basis from the raw poses captured within the stick window after the onset `c`.
+    fn refine(&mut self, p: &DepthParams, c: &Candidate) {
+        let (mut sum, mut n) = (0.0, 0u32);
+        for pose in self.poses.as_slice() {
+            if pose.stamp < c.t_on || pose.stamp > c.t_on + p.stick_window_s {
+                continue;
+            }
+            if let Some(tip) = self.tip_at(pose.stamp) {
+                sum += (tip - pose.port).dot(&pose.direction);
+                n += 1;
+            }
+        }
+        if n == 0 {
+            return;
+        }
+        let correction = sum / f64::from(n) - p.seal_depth_m - 0.5 * p.seal_lip_travel_m;
+        let bound = p.calibration_bound();
+        self.basis = if correction.abs() <= bound {
+            DepthBasis::Seal { correction }
+        } else {
+            DepthBasis::Refused { correction, bound }
+        };
+        self.onset_depth = c.depth;
+        // The raw poses' noise: the filtered estimate's, before its filter.
+        self.onset_noise = self.noise(0.0) / f64::from(n).sqrt();
+    }
+
+    /// The depth's uncertainty now, m, with the tip at `depth` on the estimated axis and the
+    /// filter's time constant `tau` along the axis.
+    pub fn report(&self, p: &DepthParams, depth: f64, tau: f64) -> DepthReport {
+        let now = self.noise(tau);
+        let rss = |a: f64, b: f64, c: f64, d: f64| (a * a + b * b + c * c + d * d).sqrt();
+        let uncertainty = match self.basis {
+            DepthBasis::Seal { .. } => {
+                let drift = p.hand_eye_error_deg.to_radians() * (depth - self.onset_depth).abs();
+                rss(p.seal_uncertainty_m, self.onset_noise, drift, now)
+            }
+            DepthBasis::Estimate | DepthBasis::Refused { .. } => rss(
+                p.hand_eye_error_m,
+                p.camera_lever_m * p.hand_eye_error_deg.to_radians(),
+                now,
+                0.0,
+            ),
+        };
+        DepthReport {
+            correction: self.correction(),
+            uncertainty: if uncertainty.is_finite() {
+                uncertainty
+            } else {
+                f64::INFINITY
+            },
+            basis: self.basis,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+    /// The estimated axis: the port at `e` along +z (the estimate `e` deeper than the truth,
+    /// whose port is at the origin).
+    fn axis(e: f64) -> InsertionAxis {
+        InsertionAxis::from_pose(&Isometry3::from_parts(
+            Translation3::new(0.0, 0.0, e),
+            UnitQuaternion::identity(),
+        ))
+    }
+
+    const FILTERS: Filters = Filters {
+        force_lag: 0.013,
+        depth_tau: 0.2,
+    };
+
+    /// A docking along z at 30 mm/s from 5 mm before the port, 100 Hz, with trocar poses at
+    /// 15 Hz (captured 40 ms before they arrive, `e` too deep, alternately +-`noise` along
+    /// the axis): the tip sticks in the seal for 0.1 s (2 N along the axis), then slides
+    /// against 1.5 N; with `bump`, the funnel pushes 1.5 N along and 1.2 N across from 6 to
+    /// 9 mm deep. Returns the estimate when the tip is 30 mm past the estimated port.
+    fn dock(p: &DepthParams, e: f64, noise: f64, seal: bool, bump: bool) -> DepthEstimate {
+        let mut d = DepthEstimate::default();
+        let (dt, v) = (0.01, 0.03);
+        let (mut z, mut stuck_until, mut frame) = (-0.005, None::<f64>, 0u32);
+        let mut captured: Vec<(f64, f64)> = vec![];
+        let a = axis(e);
+        for k in 0..3000 {
+            let t = k as f64 * dt;
+            // The seal grips at its depth (plus half the lip's travel while it sticks).
+            if seal && stuck_until.is_none() && z >= p.seal_depth_m {
+                stuck_until = Some(t + 0.1);
+            }
+            let sticking = stuck_until.is_some_and(|u| t < u);
+            if !sticking {
+                z += v * dt;
+            }
+            let tip = Point3::new(
+                0.0,
+                0.0,
+                if sticking {
+                    p.seal_depth_m + 0.5 * p.seal_lip_travel_m
+                } else {
+                    z
+                },
+            );
+            // Poses: captured every 1/15 s, delivered 40 ms later.
+            if t >= f64::from(frame) / 15.0 {
+                captured.push((t, if frame % 2 == 0 { noise } else { -noise }));
+                frame += 1;
+            }
+            while let Some(&(stamp, n)) = captured.first().filter(|(s, _)| *s + 0.04 <= t + 1e-9) {
+                captured.remove(0);
+                d.observe_pose(&Point3::new(0.0, 0.0, e + n), &Vector3::z(), &a.port, stamp);
+            }
+            let f = match (seal && stuck_until.is_some(), sticking) {
+                (true, true) => Vector3::new(0.0, 0.0, -2.0),
+                (true, false) => Vector3::new(0.0, 0.0, -1.5),
+                _ if bump && (0.006..0.009).contains(&z) => Vector3::new(1.2, 0.0, -1.5),
+                _ => Vector3::new(0.05, 0.0, -0.05),
+            };
+            d.update(p, &a, &tip, &f, t, FILTERS);
+            if a.depth_of(&tip) >= 0.03 + d.correction() {
+                break;
+            }
+        }
+        d
+    }
+
+    #[test]
+    fn the_seal_measures_the_estimate_s_error_along_the_axis() {
+        let p = DepthParams::default();
+        for e in [-0.004, -0.0015, 0.0, 0.002, 0.005] {
+            let d = dock(&p, e, 0.0, true, true);
+            match d.basis() {
+                // The estimate `e` too deep puts the tip `e` shallower: the goal moves by -e.
+                DepthBasis::Seal { correction } => assert!((correction + e).abs() < 2e-4, "{e}: {correction}"),
+                b => panic!("{e}: {b:?}"),
+            }
+            let r = d.report(&p, 0.03, FILTERS.depth_tau);
+            assert!(
+                r.uncertainty < p.tolerance_m && r.uncertainty >= p.seal_uncertainty_m,
+                "{r:?}"
+            );
+        }
+        // Pose noise +-0.5 mm: the onset's poses average it, and the uncertainty counts it.
+        let quiet = dock(&p, 0.002, 0.0, true, false).report(&p, 0.03, 0.2).uncertainty;
+        let d = dock(&p, 0.002, 0.0005, true, false);
+        assert!((d.correction() + 0.002).abs() < 6e-4, "{}", d.correction());
+        let noisy = d.report(&p, 0.03, 0.2).uncertainty;
+        assert!(noisy > quiet + 2e-4, "{noisy} {quiet}");
+    }
+
+    #[test]
+    fn no_seal_leaves_the_calibration_s_uncertainty_and_a_far_seal_is_refused() {
+        let p = DepthParams::default();
+        // No seal, the funnel's bump only (across the axis: not a seal).
+        let d = dock(&p, 0.002, 0.0, false, true);
+        assert_eq!(d.basis(), DepthBasis::Estimate);
+        let r = d.report(&p, 0.03, 0.2);
+        let cal = p
+            .hand_eye_error_m
+            .hypot(p.camera_lever_m * p.hand_eye_error_deg.to_radians());
+        assert!(
+            (r.uncertainty - cal).abs() < 1e-9 && r.uncertainty > p.tolerance_m,
+            "{r:?}"
+        );
+        assert_eq!(r.correction, 0.0);
+        // A seal 9 mm from where the estimate puts it: more than the 7.2 mm bound.
+        let d = dock(&p, -0.009, 0.0, true, false);
+        match d.basis() {
+            DepthBasis::Refused { correction, bound } => {
+                assert!((correction - 0.009).abs() < 2e-4 && (bound - p.calibration_bound()).abs() < 1e-12);
+                assert!(d.basis().to_string().contains("refused"));
+            }
+            b => panic!("{b:?}"),
+        }
+        assert_eq!(d.correction(), 0.0, "a refused correction moves nothing");
+        assert!(d.report(&p, 0.03, 0.2).uncertainty > p.tolerance_m);
+        // A seal at 0 depth: no refinement.
+        let off = DepthParams {
+            seal_depth_m: 0.0,
+            ..p.clone()
+        };
+        assert_eq!(dock(&off, 0.002, 0.0, true, false).basis(), DepthBasis::Estimate);
+        // Without a hand-eye error the estimate's noise alone is the uncertainty.
+        let exact = DepthParams {
+            hand_eye_error_m: 0.0,
+            hand_eye_error_deg: 0.0,
+            ..p
+        };
+        let r = dock(&exact, 0.0, 0.0003, false, false).report(&exact, 0.03, 0.2);
+        assert!(r.uncertainty > 0.0 && r.uncertainty < 0.5e-3, "{r:?}");
+    }
+
+    #[test]
+    fn a_rise_that_falls_back_is_not_the_seal() {
+        let p = DepthParams::default();
+        let a = axis(0.0);
+        let mut d = DepthEstimate::default();
+        // 1 N along the axis for 0.1 s at the seal's depth (shorter than confirm_s), then
+        // nothing: no onset; the tip passes every depth the seal could be at.
+        for k in 0..400 {
+            let t = k as f64 * 0.01;
+            let tip = Point3::new(0.0, 0.0, 0.005 + 0.0001 * k as f64);
+            d.observe_pose(&a.port, &Vector3::z(), &a.port, t);
+            let f = if (1.0..1.1).contains(&t) { -1.0 } else { 0.0 };
+            d.update(&p, &a, &tip, &Vector3::new(0.0, 0.0, f), t, FILTERS);
+        }
+        assert_eq!(d.basis(), DepthBasis::Estimate);
+    }
+
+    #[test]
+    fn bad_parameters_are_named() {
+        assert!(DepthParams::default().validate().is_ok());
+        let bad = DepthParams {
+            confirm_s: 0.01,
+            ..Default::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("confirm_s"));
+        let bad = DepthParams {
+            tolerance_m: f64::NAN,
+            ..Default::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("tolerance_m"));
+    }
+}
