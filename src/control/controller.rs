@@ -41,7 +41,7 @@ use super::safety::guarded::{CommandSource, Guarded, StepContext};
 use super::safety::motion::MotionLimiter;
 use super::scope::pivot::{live_command, Pivot, PivotParams};
 use super::sqp::{CostWeights, LimitAvoidance, PivotCost, SqpSolver, Targets};
-use super::supervisor::{Phase, Supervisor};
+use super::supervisor::{DoneNote, Phase, Supervisor};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
 use crate::signal::{StreamLowPass, TrackingFilter};
 
@@ -236,6 +236,8 @@ pub struct OptimalController {
     sqp: SqpSolver,
     run: RunState,
     torques: TorqueFilter,
+    /// A dry run: the arm is a ghost ([`Controller::set_dry_run`]).
+    dry_run: bool,
 }
 
 impl Controller {
@@ -250,6 +252,15 @@ impl Controller {
         guard.set_force_stop(law.params.guard.force_stop_n);
         Ok(())
     }
+
+    /// A dry run (`dry_run`): the arm the controller steers is a ghost that follows its
+    /// commands and touches nothing, so it never meets the seal and the tip's depth is never
+    /// verified. Where a docking would hold at the goal, DEPTH_UNCERTAIN, the dry run ends
+    /// DONE with the note DEPTH_UNVERIFIED (the figure and its basis), so the rehearsal
+    /// ends and says what the docking would do there.
+    pub fn set_dry_run(&mut self, dry_run: bool) {
+        self.parts_mut().0.dry_run = dry_run;
+    }
 }
 
 impl OptimalController {
@@ -262,6 +273,7 @@ impl OptimalController {
             params,
             sqp,
             run: RunState::default(),
+            dry_run: false,
         })
     }
 
@@ -666,7 +678,9 @@ impl OptimalController {
                         optical_axis,
                         force: f,
                     };
-                    r.seated.update(&p.seated, axis, goal_depth, &state, dt).map(Some)
+                    r.seated
+                        .update(&p.seated, axis, goal_depth, &state, dt)
+                        .map(|s| Some(DoneNote::Seated(s)))
                 };
                 if let Some(note) = reached {
                     // DONE only while the depth is known within the tolerance.
@@ -679,6 +693,13 @@ impl OptimalController {
                     r.depth_report = Some(report);
                     if report.uncertainty <= d.tolerance_m {
                         r.supervisor.goal_reached(note);
+                    } else if self.dry_run {
+                        // The ghost never meets the seal: the rehearsal ends, saying so.
+                        r.supervisor.goal_reached(Some(DoneNote::DepthUnverified {
+                            uncertainty_m: report.uncertainty,
+                            tolerance_m: d.tolerance_m,
+                            basis: report.basis,
+                        }));
                     } else {
                         r.supervisor.depth_uncertain(HoldReason::DepthUncertain {
                             uncertainty_m: report.uncertainty,

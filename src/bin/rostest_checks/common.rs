@@ -37,8 +37,8 @@ pub struct CheckParams {
     pub call_start: bool,
     /// For `stale_hold`: the hold's code (`hold_code` of the status) must be this.
     pub hold_code: String,
-    /// For `docking`: the status `hold_code` at DONE must be this ('' = anything, e.g.
-    /// `SEATED`).
+    /// For `docking`, `dry_run`: the status `hold_code` at DONE must be this ('' = anything,
+    /// e.g. `SEATED`, `DEPTH_UNVERIFIED`).
     pub done_code: String,
     /// `stale_hold`, `bad_input`: how long the command must stay still once held, s.
     pub hold_observe: f64,

@@ -236,6 +236,17 @@ pub fn wait_for_end(
     })
 }
 
+/// At DONE, the status's code must be `done_code` (unless that is empty).
+pub fn check_done_code(p: &CheckParams, done: &trocar_docking::DockingStatus) -> Result<(), String> {
+    if !p.done_code.is_empty() && done.hold_code != p.done_code {
+        return Err(format!(
+            "DONE, but its code '{}' ({}) is not '{}'",
+            done.hold_code, done.hold_reason, p.done_code
+        ));
+    }
+    Ok(())
+}
+
 /// Start the controller (unless the launch does) and wait for DONE within the time limit;
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
@@ -276,12 +287,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             p.max_force, done.metric_m
         ));
     }
-    if !p.done_code.is_empty() && done.hold_code != p.done_code {
-        return Err(format!(
-            "DONE, but its code '{}' ({}) is not '{}'",
-            done.hold_code, done.hold_reason, p.done_code
-        ));
-    }
+    check_done_code(p, &done)?;
     // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::docking::seated`).
     let mut note = if done.hold_reason.is_empty() {
         String::new()

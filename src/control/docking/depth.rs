@@ -114,8 +114,11 @@ impl DepthParams {
 /// What the depth rests on.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum DepthBasis {
-    /// The trocar estimate alone (the seal not met yet, or no seal).
+    /// The trocar estimate alone (the seal not met yet, or not felt).
     Estimate,
+    /// The trocar estimate alone: the trocar has no seal (`seal_depth_m` 0), nothing along
+    /// the axis to refine it.
+    NoSeal,
     /// Refined at the seal: the estimate put the tip `correction` m deeper than it was.
     Seal {
         /// The goal's shift along the estimated axis, m.
@@ -135,6 +138,10 @@ impl fmt::Display for DepthBasis {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
             DepthBasis::Estimate => write!(f, "the seal was not felt: the depth rests on the trocar estimate"),
+            DepthBasis::NoSeal => write!(
+                f,
+                "the trocar has no seal to feel (depth.seal_depth_m 0): the depth rests on the trocar estimate"
+            ),
             DepthBasis::Seal { correction } => write!(f, "refined at the seal by {:+.1} mm", correction * 1e3),
             DepthBasis::Refused { correction, bound } => write!(
                 f,
@@ -159,23 +166,34 @@ const LEVEL_TIME_CONSTANT_S: f64 = 0.2;
 /// (without force feedback) still shows the seal's rise.
 const SEAL_AXIAL_RATIO: f64 = 2.0;
 
-/// How many tip positions the history keeps, at least [`TIP_SPACING_S`] apart (2.56 s at
-/// 100 Hz, 0.64 s at 1 kHz).
-const TIP_CAPACITY: usize = 256;
+/// How many tip positions the history keeps, at least [`TIP_SPACING_S`] apart: 2.56 s at
+/// any control rate, more than the onset's `confirm_s` (2 s at most) and the stick window
+/// after it, so that every pose of the window still finds the tip at its capture stamp.
+const TIP_CAPACITY: usize = 1024;
 
 /// The smallest interval between two positions of the tip history, s.
 const TIP_SPACING_S: f64 = 0.0025;
 
-/// How many raw trocar poses are kept (2 s at 15 Hz, 0.32 s at 100 Hz).
-const POSE_CAPACITY: usize = 32;
+/// How many raw trocar poses are kept, at least [`POSE_SPACING_S`] apart: 2.56 s at any
+/// pose rate (more at a camera's 15-100 Hz), so that the poses of the stick window are still
+/// there when the onset is confirmed `confirm_s` (2 s at most) after it, however fast the
+/// poses come (a stream of 1 kHz kept 32 ms of them and lost the window).
+const POSE_CAPACITY: usize = 512;
+
+/// The smallest interval between two poses of the history, s (200 Hz: every pose of a
+/// camera at up to 100 Hz, with its jitter); every pose still counts in the noise.
+const POSE_SPACING_S: f64 = 0.005;
 
 /// How many poses the noise's running mean square weighs (about 2 s at 15 Hz).
 const NOISE_WINDOW: u32 = 30;
 
-/// A fixed-capacity history, oldest first; a push into a full one drops the oldest.
+/// A fixed-capacity ring of samples, oldest first; a push into a full one overwrites the
+/// oldest (nothing moves, nothing allocates).
 #[derive(Debug, Clone, PartialEq)]
 struct History<T: Copy + Default, const N: usize> {
     items: [T; N],
+    /// Where the oldest is.
+    start: usize,
     len: usize,
 }
 
@@ -183,6 +201,7 @@ impl<T: Copy + Default, const N: usize> Default for History<T, N> {
     fn default() -> Self {
         Self {
             items: [T::default(); N],
+            start: 0,
             len: 0,
         }
     }
@@ -191,15 +210,25 @@ impl<T: Copy + Default, const N: usize> Default for History<T, N> {
 impl<T: Copy + Default, const N: usize> History<T, N> {
     fn push(&mut self, x: T) {
         if self.len == N {
-            self.items.copy_within(1.., 0);
-            self.len -= 1;
+            self.items[self.start] = x;
+            self.start = (self.start + 1) % N;
+        } else {
+            self.items[(self.start + self.len) % N] = x;
+            self.len += 1;
         }
-        self.items[self.len] = x;
-        self.len += 1;
     }
 
-    fn as_slice(&self) -> &[T] {
-        &self.items[..self.len]
+    /// The `k`-th oldest.
+    fn get(&self, k: usize) -> Option<T> {
+        (k < self.len).then(|| self.items[(self.start + k) % N])
+    }
+
+    fn last(&self) -> Option<T> {
+        self.len.checked_sub(1).and_then(|k| self.get(k))
+    }
+
+    fn iter(&self) -> impl Iterator<Item = T> + '_ {
+        (0..self.len).map(move |k| self.items[(self.start + k) % N])
     }
 }
 
@@ -243,6 +272,8 @@ pub struct DepthEstimate {
     noise_poses: u32,
     /// Mean interval between the poses, s.
     pose_period: f64,
+    /// The newest pose's capture stamp, s (kept in the history or not).
+    last_pose: Option<f64>,
 }
 
 impl Default for DepthEstimate {
@@ -259,6 +290,7 @@ impl Default for DepthEstimate {
             innovation_ms: 0.0,
             noise_poses: 0,
             pose_period: 0.0,
+            last_pose: None,
         }
     }
 }
@@ -299,9 +331,10 @@ impl DepthEstimate {
     }
 
     /// A new raw trocar pose (`port`, unit `direction`, captured at `stamp`) and the filtered
-    /// estimate's port `filtered` after it. A pose no newer than the last is ignored.
+    /// estimate's port `filtered` after it. A pose no newer than the last is ignored; one
+    /// less than [`POSE_SPACING_S`] after the last kept one counts in the noise only.
     pub fn observe_pose(&mut self, port: &Point3<f64>, direction: &Vector3<f64>, filtered: &Point3<f64>, stamp: f64) {
-        let last = self.poses.as_slice().last().map(|p| p.stamp);
+        let last = self.last_pose;
         let e = (port - filtered).dot(direction);
         if last.is_some_and(|t| stamp <= t) || !(e.is_finite() && stamp.is_finite()) {
             return;
@@ -317,11 +350,14 @@ impl DepthEstimate {
                 gap
             };
         }
-        self.poses.push(Pose {
-            stamp,
-            port: *port,
-            direction: *direction,
-        });
+        self.last_pose = Some(stamp);
+        if self.poses.last().is_none_or(|p| stamp >= p.stamp + POSE_SPACING_S) {
+            self.poses.push(Pose {
+                stamp,
+                port: *port,
+                direction: *direction,
+            });
+        }
     }
 
     /// 2 sigma of the filtered estimate along the axis, m, for a filter of time constant
@@ -348,7 +384,6 @@ impl DepthEstimate {
     ) {
         if self
             .tips
-            .as_slice()
             .last()
             .is_none_or(|(t, _)| now >= t + TIP_SPACING_S)
         {
@@ -356,7 +391,11 @@ impl DepthEstimate {
         }
         // The force resisting the insertion, and the force across the axis.
         let force = Vector2::new(-f.dot(&axis.direction), axis.across(f).norm());
-        if self.over || p.seal_depth_m <= 0.0 || !force.iter().all(|x| x.is_finite()) || !axis.is_finite() {
+        if p.seal_depth_m <= 0.0 {
+            self.basis = DepthBasis::NoSeal;
+            self.over = true;
+        }
+        if self.over || !force.iter().all(|x| x.is_finite()) || !axis.is_finite() {
             return;
         }
         // Whether a rise over `level` is the seal's: along the axis, where a funnel's or a
@@ -401,7 +440,12 @@ impl DepthEstimate {
             Some(level) => {
                 // Down at once, up slowly: a contact before the seal that lets go leaves the
                 // level where the force fell to.
-                let dt = self.tips.as_slice().iter().rev().nth(1).map_or(0.0, |(t, _)| now - t);
+                let dt = self
+                    .tips
+                    .len
+                    .checked_sub(2)
+                    .and_then(|k| self.tips.get(k))
+                    .map_or(0.0, |(t, _)| now - t);
                 let up = level + (force - level) * exp_smoothing(dt, LEVEL_TIME_CONSTANT_S);
                 self.level = Some(up.inf(&force));
             }
@@ -411,13 +455,13 @@ impl DepthEstimate {
 
     /// The tip's position at `t`, interpolated in the history (None outside it).
     fn tip_at(&self, t: f64) -> Option<Point3<f64>> {
-        let h = self.tips.as_slice();
-        let k = h.iter().position(|(ti, _)| *ti >= t)?;
-        let (t1, p1) = h[k];
+        let h = &self.tips;
+        let k = h.iter().position(|(ti, _)| ti >= t)?;
+        let (t1, p1) = h.get(k)?;
         if k == 0 {
             return (t1 == t).then_some(p1);
         }
-        let (t0, p0) = h[k - 1];
+        let (t0, p0) = h.get(k - 1)?;
         let w = (t - t0) / (t1 - t0);
         Some(p0 + (p1 - p0) * w)
     }
@@ -425,7 +469,7 @@ impl DepthEstimate {
     /// The basis from the raw poses captured within the stick window after the onset `c`.
     fn refine(&mut self, p: &DepthParams, c: &Candidate) {
         let (mut sum, mut n) = (0.0, 0u32);
-        for pose in self.poses.as_slice() {
+        for pose in self.poses.iter() {
             if pose.stamp < c.t_on || pose.stamp > c.t_on + p.stick_window_s {
                 continue;
             }
@@ -459,7 +503,7 @@ impl DepthEstimate {
                 let drift = p.hand_eye_error_deg.to_radians() * (depth - self.onset_depth).abs();
                 rss(p.seal_uncertainty_m, self.onset_noise, drift, now)
             }
-            DepthBasis::Estimate | DepthBasis::Refused { .. } => rss(
+            DepthBasis::Estimate | DepthBasis::NoSeal | DepthBasis::Refused { .. } => rss(
                 p.hand_eye_error_m,
                 p.camera_lever_m * p.hand_eye_error_deg.to_radians(),
                 now,
@@ -503,6 +547,11 @@ mod tests {
     /// against 1.5 N; with `bump`, the funnel pushes 1.5 N along and 1.2 N across from 6 to
     /// 9 mm deep. Returns the estimate when the tip is 30 mm past the estimated port.
     fn dock(p: &DepthParams, e: f64, noise: f64, seal: bool, bump: bool) -> DepthEstimate {
+        dock_at(p, e, noise, (seal, bump), (15.0, 0.04))
+    }
+
+    /// [`dock`] with the poses at `hz`, each arriving `latency` s after its capture.
+    fn dock_at(p: &DepthParams, e: f64, noise: f64, (seal, bump): (bool, bool), (hz, latency): (f64, f64)) -> DepthEstimate {
         let mut d = DepthEstimate::default();
         let (dt, v) = (0.01, 0.03);
         let (mut z, mut stuck_until, mut frame) = (-0.005, None::<f64>, 0u32);
@@ -527,12 +576,13 @@ mod tests {
                     z
                 },
             );
-            // Poses: captured every 1/15 s, delivered 40 ms later.
-            if t >= f64::from(frame) / 15.0 {
-                captured.push((t, if frame % 2 == 0 { noise } else { -noise }));
+            // Poses: captured every 1 / hz s (within the step), delivered `latency` s later.
+            while f64::from(frame) / hz < t + dt - 1e-9 {
+                let stamp = f64::from(frame) / hz;
+                captured.push((stamp, if frame % 2 == 0 { noise } else { -noise }));
                 frame += 1;
             }
-            while let Some(&(stamp, n)) = captured.first().filter(|(s, _)| *s + 0.04 <= t + 1e-9) {
+            while let Some(&(stamp, n)) = captured.first().filter(|(s, _)| *s + latency <= t + 1e-9) {
                 captured.remove(0);
                 d.observe_pose(&Point3::new(0.0, 0.0, e + n), &Vector3::z(), &a.port, stamp);
             }
@@ -600,12 +650,17 @@ mod tests {
         }
         assert_eq!(d.correction(), 0.0, "a refused correction moves nothing");
         assert!(d.report(&p, 0.03, 0.2).uncertainty > p.tolerance_m);
-        // A seal at 0 depth: no refinement.
+        // A trocar declared without a seal (`seal_depth_m` 0): nothing refines the depth, the
+        // calibration's uncertainty stays, and the basis says why.
         let off = DepthParams {
             seal_depth_m: 0.0,
             ..p.clone()
         };
-        assert_eq!(dock(&off, 0.002, 0.0, true, false).basis(), DepthBasis::Estimate);
+        let d = dock(&off, 0.002, 0.0, true, false);
+        assert_eq!(d.basis(), DepthBasis::NoSeal);
+        assert!(d.basis().to_string().contains("no seal"), "{}", d.basis());
+        let r = d.report(&off, 0.03, 0.2);
+        assert!((r.uncertainty - cal).abs() < 1e-9 && r.correction == 0.0, "{r:?}");
         // Without a hand-eye error the estimate's noise alone is the uncertainty.
         let exact = DepthParams {
             hand_eye_error_m: 0.0,
@@ -614,6 +669,24 @@ mod tests {
         };
         let r = dock(&exact, 0.0, 0.0003, false, false).report(&exact, 0.03, 0.2);
         assert!(r.uncertainty > 0.0 && r.uncertainty < 0.5e-3, "{r:?}");
+    }
+
+    /// Poses at any rate: at 1 kHz (a flood of poses, 32 of them in 32 ms) the poses of the
+    /// stick window are still there when the onset is confirmed `confirm_s` later, and the
+    /// depth is refined as at a camera's 15 or 100 Hz; the uncertainty stays within the
+    /// tolerance.
+    #[test]
+    fn the_seal_is_felt_whatever_the_pose_rate() {
+        let p = DepthParams::default();
+        for (hz, latency) in [(15.0, 0.04), (100.0, 0.02), (1000.0, 0.0), (1000.0, 0.04)] {
+            let d = dock_at(&p, 0.003, 0.0, (true, false), (hz, latency));
+            match d.basis() {
+                DepthBasis::Seal { correction } => assert!((correction + 0.003).abs() < 2e-4, "{hz} Hz: {correction}"),
+                b => panic!("{hz} Hz, {latency} s: {b:?}"),
+            }
+            let r = d.report(&p, 0.03, FILTERS.depth_tau);
+            assert!(r.uncertainty <= p.tolerance_m, "{hz} Hz: {r:?}");
+        }
     }
 
     #[test]
@@ -631,6 +704,17 @@ mod tests {
             d.update(&p, &a, &tip, &Vector3::new(0.0, 0.0, f), t, FILTERS);
         }
         assert_eq!(d.basis(), DepthBasis::Estimate);
+    }
+
+    #[test]
+    fn the_history_keeps_the_newest_in_order() {
+        let mut h = History::<u32, 4>::default();
+        assert_eq!((h.last(), h.get(0)), (None, None));
+        for k in 0..6 {
+            h.push(k);
+        }
+        assert_eq!(h.iter().collect::<Vec<_>>(), vec![2, 3, 4, 5]);
+        assert_eq!((h.get(0), h.last(), h.get(4)), (Some(2), Some(5), None));
     }
 
     #[test]
