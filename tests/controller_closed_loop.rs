@@ -107,7 +107,9 @@ fn a_depth_nothing_verified_holds_a_docking_and_ends_a_dry_run_as_unverified() {
     let mut no_seal = shipped.clone();
     no_seal.depth.seal_depth_m = 0.0;
     let d = &shipped.depth;
-    let estimate_alone = d.hand_eye_error_m.hypot(d.camera_lever_m * d.hand_eye_error_deg.to_radians());
+    let estimate_alone = d
+        .hand_eye_error_m
+        .hypot(d.camera_lever_m * d.hand_eye_error_deg.to_radians());
     assert!(estimate_alone > d.tolerance_m);
     for (params, dry_run, phase, code, basis) in [
         (&shipped, false, Phase::Hold, "DEPTH_UNCERTAIN", "the seal was not felt"),
@@ -128,12 +130,18 @@ fn a_depth_nothing_verified_holds_a_docking_and_ends_a_dry_run_as_unverified() {
             }
         };
         let text = out.reason_text().unwrap_or_default();
-        let what = format!("dry run {dry_run}, seal depth {}: {:?} {text}", params.depth.seal_depth_m, out.phase);
+        let what = format!(
+            "dry run {dry_run}, seal depth {}: {:?} {text}",
+            params.depth.seal_depth_m, out.phase
+        );
         assert_eq!((out.phase, out.reason_code()), (phase, code), "{what}");
         assert!(text.contains(basis), "{what}");
         // The figure: the estimate's bound, plus the tip's distance from the goal depth.
         let u = c.depth().unwrap().uncertainty;
-        assert!(u >= estimate_alone && u < estimate_alone + params.goal_tolerance_m, "{what}: {u}");
+        assert!(
+            u >= estimate_alone && u < estimate_alone + params.goal_tolerance_m,
+            "{what}: {u}"
+        );
         assert!(text.contains(&format!("+-{:.1} mm", u * 1e3)), "{what}");
         if dry_run {
             assert!(text.contains("dry run: nothing was inserted"), "{what}");
@@ -146,7 +154,11 @@ fn a_depth_nothing_verified_holds_a_docking_and_ends_a_dry_run_as_unverified() {
             }
             c.start().unwrap();
             let out = c.step(&kin, &fresh_input((k + 101) as f64 * params.dt_s, q, trocar));
-            assert_eq!((out.phase, out.reason_code()), (Phase::Done, ""), "start accepts the depth: {what}");
+            assert_eq!(
+                (out.phase, out.reason_code()),
+                (Phase::Done, ""),
+                "start accepts the depth: {what}"
+            );
         }
     }
 }

@@ -382,11 +382,7 @@ impl DepthEstimate {
         now: f64,
         filters: Filters,
     ) {
-        if self
-            .tips
-            .last()
-            .is_none_or(|(t, _)| now >= t + TIP_SPACING_S)
-        {
+        if self.tips.last().is_none_or(|(t, _)| now >= t + TIP_SPACING_S) {
             self.tips.push((now, *tip));
         }
         // The force resisting the insertion, and the force across the axis.
@@ -551,7 +547,13 @@ mod tests {
     }
 
     /// [`dock`] with the poses at `hz`, each arriving `latency` s after its capture.
-    fn dock_at(p: &DepthParams, e: f64, noise: f64, (seal, bump): (bool, bool), (hz, latency): (f64, f64)) -> DepthEstimate {
+    fn dock_at(
+        p: &DepthParams,
+        e: f64,
+        noise: f64,
+        (seal, bump): (bool, bool),
+        (hz, latency): (f64, f64),
+    ) -> DepthEstimate {
         let mut d = DepthEstimate::default();
         let (dt, v) = (0.01, 0.03);
         let (mut z, mut stuck_until, mut frame) = (-0.005, None::<f64>, 0u32);
