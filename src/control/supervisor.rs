@@ -207,6 +207,9 @@ impl Supervisor {
                 self.phase = Phase::Hold;
                 self.latched = latched;
             }
+            // A latched hold keeps its reason: a passing one (a stale input) must not hide
+            // what only a start ends (the status would name the stale input, latched).
+            Phase::Hold if self.latched && !latched => return,
             Phase::Hold => self.latched |= latched,
             _ => {}
         }
@@ -414,6 +417,12 @@ mod tests {
         });
         assert_eq!((s.phase(), s.is_latched()), (Phase::Hold, true));
         assert_eq!(s.reason().map(HoldReason::code), Some("DEPTH_UNCERTAIN"));
+        s.hold(HoldReason::StaleTorques { age: 0.2 }, false);
+        assert_eq!(
+            s.reason().map(HoldReason::code),
+            Some("DEPTH_UNCERTAIN"),
+            "a passing hold does not hide the latched one"
+        );
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Hold, "only the surgeon accepts the depth");
         s.start().unwrap();
