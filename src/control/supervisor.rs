@@ -398,6 +398,13 @@ mod tests {
             Some("FORCE_LIMIT"),
             "and keeps its reason"
         );
+        s.hold(HoldReason::StaleTorques { age: 0.2 }, false);
+        assert_eq!(
+            s.reason().map(HoldReason::code),
+            Some("FORCE_LIMIT"),
+            "a passing hold (a stale input) does not hide the latched one"
+        );
+        assert!(s.is_latched());
         s.start().unwrap();
         assert_eq!(s.phase(), Phase::Insert);
         s.abort("surgeon");
@@ -417,12 +424,6 @@ mod tests {
         });
         assert_eq!((s.phase(), s.is_latched()), (Phase::Hold, true));
         assert_eq!(s.reason().map(HoldReason::code), Some("DEPTH_UNCERTAIN"));
-        s.hold(HoldReason::StaleTorques { age: 0.2 }, false);
-        assert_eq!(
-            s.reason().map(HoldReason::code),
-            Some("DEPTH_UNCERTAIN"),
-            "a passing hold does not hide the latched one"
-        );
         s.clear_hold();
         assert_eq!(s.phase(), Phase::Hold, "only the surgeon accepts the depth");
         s.start().unwrap();

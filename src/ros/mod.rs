@@ -32,6 +32,7 @@ pub mod pacer;
 pub mod params;
 pub mod preflight;
 pub mod reconfigure;
+pub mod sim_lockstep;
 pub mod sim_node;
 pub mod stats;
 pub mod topics;

@@ -146,6 +146,13 @@ struct Topics {
     right: Option<(String, String, ImageKind)>,
 }
 
+/// The image subscribers' queue: a second of images at 15 Hz. The checks count every image
+/// (its rate, and STEREO pairs each left image with a right one of its stamp); a two-deep
+/// queue lost images whenever a busy host delayed the callbacks (STEREO read 8 of 15 paired
+/// on a 2-core host with one busy process beside the rostests), which the checks then read as
+/// the camera's fault.
+const IMAGE_QUEUE: usize = 15;
+
 /// Subscribe `topic`, handing each message to `f` with the collection.
 fn watch<T: rosrust::Message>(
     topic: &str,
@@ -164,7 +171,7 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
         Some((image, info, kind)) => {
             let kind = *kind;
             vec![
-                watch(image, 2, seen, |s, m: sensor_msgs::Image| {
+                watch(image, IMAGE_QUEUE, seen, |s, m: sensor_msgs::Image| {
                     s.right_stamps.push(convert::seconds(m.header.stamp));
                 })?,
                 watch(info, 2, seen, move |s, m: sensor_msgs::CameraInfo| {
@@ -201,7 +208,7 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
                 Err(e) => s.pose_error = Some(e.to_string()),
             },
         )?,
-        watch(&t.image, 2, seen, |s, m: sensor_msgs::Image| {
+        watch(&t.image, IMAGE_QUEUE, seen, |s, m: sensor_msgs::Image| {
             let t = convert::seconds(m.header.stamp);
             s.image_ages.push(convert::seconds(rosrust::now()) - t);
             s.images.add(t);

@@ -18,6 +18,7 @@ use super::msgs::{
     diagnostic_msgs, geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs,
 };
 use super::params;
+use super::sim_lockstep::{CommandLockstep, GIVE_UP};
 use super::topics;
 use super::trajectory::{Outcome, StreamCounts, TrajectoryController};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
@@ -59,6 +60,11 @@ pub struct SimNodeParams {
     pub real_time_factor: f64,
     /// Publish `/clock` (set with `/use_sim_time`).
     pub publish_clock: bool,
+    /// With `publish_clock`: the simulated clock runs at most this far (s) past the last
+    /// command received, then waits for the next one ([`super::sim_lockstep`]), so that a
+    /// controller starved of the processor on a busy host slows the simulation instead of
+    /// meeting an arm that stood still; 0 = off (the clock never waits for the controller).
+    pub command_lockstep_s: f64,
     /// Random seed of the simulation (noise, trocar placement).
     pub seed: u64,
     /// Joint states out.
@@ -795,6 +801,8 @@ struct ArmCommand {
     first_motion: Option<f64>,
     /// Commands taken from the queue this step (its own buffer: no allocation per step).
     taken: std::collections::VecDeque<CommandPoint>,
+    /// The clock in lockstep with the commands (`command_lockstep_s`).
+    lockstep: CommandLockstep,
 }
 
 impl ArmCommand {
@@ -822,6 +830,7 @@ impl ArmCommand {
             max_lead: 0.0,
             first_motion: None,
             taken: std::collections::VecDeque::with_capacity(COMMAND_QUEUE),
+            lockstep: CommandLockstep::new(if p.publish_clock { p.command_lockstep_s } else { 0.0 }),
         })
     }
 
@@ -834,10 +843,42 @@ impl ArmCommand {
         }
     }
 
+    /// Before the clock advances past simulated time `t`: in lockstep, wait (wall time) for
+    /// the controller's next command when the last one is more than `command_lockstep_s` old;
+    /// returns the wall time waited (the pace's origin moves on by it).
+    fn await_command(&mut self, queue: &CommandQueue, t: f64) -> Duration {
+        if !self.lockstep.must_wait(t) {
+            return Duration::ZERO;
+        }
+        let start = Instant::now();
+        let got = loop {
+            // A poisoned queue (its subscriber panicked) cannot bring a command: run free.
+            if queue.lock().map(|q| !q.is_empty()).unwrap_or(false) {
+                break true;
+            }
+            if start.elapsed() >= GIVE_UP || !rosrust::is_ok() {
+                break false;
+            }
+            std::thread::sleep(Duration::from_micros(200));
+        };
+        let waited = start.elapsed();
+        self.lockstep.waited(waited, got);
+        if !got {
+            rosrust::ros_warn!(
+                "lbr_med_sim: no command for {:.1} s of wall time: the clock runs on without the controller until its next command",
+                waited.as_secs_f64()
+            );
+        }
+        waited
+    }
+
     /// Judge the commands arrived since the last step (simulated ROS time `now`, s).
     fn take(&mut self, queue: &CommandQueue, world: &SimWorld) {
         if let Ok(mut q) = queue.lock() {
             std::mem::swap(&mut *q, &mut self.taken);
+        }
+        if !self.taken.is_empty() {
+            self.lockstep.arrived(world.time());
         }
         while let Some(c) = self.taken.pop_front() {
             // A point the arm would refuse never reaches the controller.
@@ -886,18 +927,23 @@ impl ArmCommand {
         if self.log.due(now) && n.moving > 0 {
             rosrust::ros_info!(
                 "lbr_med_sim: {} trajectory messages, {} moving, {} dropped ({} moving), {} late (the arm held at \
-                 the previous point); smallest lead over the next update {:.1} ms; largest command lead {:.2} deg",
+                 the previous point); smallest lead over the next update {:.1} ms; largest command lead {:.2} deg; \
+                 the clock waited for the controller {} times, {:.2} s in all",
                 n.messages,
                 n.moving,
                 n.dropped,
                 n.dropped_moving,
                 n.late,
                 n.min_lead_s * 1e3,
-                self.max_lead.to_degrees()
+                self.max_lead.to_degrees(),
+                self.lockstep.waits().0,
+                self.lockstep.waits().1.as_secs_f64()
             );
         }
         if self.diagnostics.due(now) {
-            let _ = self.diagnostics_out.send(stream_diagnostics(stamp, &n, &self.judges));
+            let _ = self
+                .diagnostics_out
+                .send(stream_diagnostics(stamp, &n, &self.judges, self.lockstep.waits()));
         }
     }
 }
@@ -916,6 +962,7 @@ fn stream_diagnostics(
     stamp: rosrust::Time,
     n: &StreamCounts,
     judges: &[(f64, TrajectoryController)],
+    (waits, waited): (u64, Duration),
 ) -> diagnostic_msgs::DiagnosticArray {
     let kv = |key: &str, value: String| diagnostic_msgs::KeyValue { key: key.into(), value };
     let level = if n.dropped_moving > 0 {
@@ -940,6 +987,8 @@ fn stream_diagnostics(
                 kv("dropped_moving", n.dropped_moving.to_string()),
                 kv("late", n.late.to_string()),
                 kv("min_lead_ms", format!("{:.3}", n.min_lead_s * 1e3)),
+                kv("lockstep_waits", waits.to_string()),
+                kv("lockstep_waited_s", format!("{:.3}", waited.as_secs_f64())),
             ]
             .into_iter()
             .chain(
@@ -967,6 +1016,7 @@ fn check_clocks(p: &SimNodeParams) -> Result<(), NodeError> {
         return Err(NodeError::Invalid(format!("real_time_factor = {}", p.real_time_factor)));
     }
     crate::validate::in_range("camera_stamp_offset_s", p.camera_stamp_offset_s, -60.0, 60.0)?;
+    crate::validate::in_range("command_lockstep_s", p.command_lockstep_s, 0.0, 1.0)?;
     if p.camera_stamp_offset_s != 0.0 {
         rosrust::ros_warn!(
             "lbr_med_sim: the camera's stamps are {:+.0} ms off the simulator's clock (camera_stamp_offset_s, a test's camera clock offset)",
@@ -1021,6 +1071,7 @@ pub fn run() -> Result<(), NodeError> {
         } else {
             convert::seconds(rosrust::now())
         };
+        wall0 += arm.await_command(&command, world.time());
         arm.step(&command, &mut world, now);
         if let Err(e) = world.step(dt) {
             return Err(NodeError::Invalid(format!("simulation stopped: {e}")));
