@@ -26,7 +26,7 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::docking::depth::{DepthEstimate, DepthReport, Filters};
+use super::docking::depth::{AxisFilter, DepthEstimate, DepthReport, Filters};
 use super::docking::geometry::{pose_is_finite, InsertionAxis};
 use super::docking::goal_window::GoalWindow;
 use super::docking::metrics::ForceMetric;
@@ -153,12 +153,14 @@ fn force_estimate_lag(p: &ControllerParams) -> f64 {
     p.torque_filter_time_constant_s + estimate
 }
 
-/// The time constant of the trocar filter along the axis, s.
-fn depth_filter_time_constant(p: &ControllerParams) -> f64 {
+/// The trocar filter along the axis ([`OptimalController::filtered_trocar`]).
+fn axis_filter(p: &ControllerParams) -> AxisFilter {
     if p.trocar_depth_filter_time_constant_s > 0.0 {
-        p.trocar_depth_filter_time_constant_s
+        AxisFilter::Tracking(p.trocar_depth_filter_time_constant_s)
+    } else if p.trocar_filter_time_constant_s > 0.0 {
+        AxisFilter::FirstOrder(p.trocar_filter_time_constant_s)
     } else {
-        p.trocar_filter_time_constant_s
+        AxisFilter::None
     }
 }
 
@@ -335,8 +337,8 @@ impl OptimalController {
         if self.run.trocar_filtered.is_some_and(|(_, t)| stamp > t) {
             self.run.depth.observe_pose(
                 &Point3::from(pose.translation.vector),
-                &(pose.rotation * Vector3::z()),
                 &Point3::from(out.translation.vector),
+                &(out.rotation * Vector3::z()),
                 stamp,
             );
         }
@@ -686,7 +688,7 @@ impl OptimalController {
                     // DONE only while the depth is known within the tolerance.
                     let d = &p.depth;
                     let depth = axis.depth_of(&tip_p);
-                    let mut report = r.depth.report(d, depth, depth_filter_time_constant(p));
+                    let mut report = r.depth.report(d, depth, axis_filter(p));
                     // The bound on the tip's distance from the goal depth: where it is on the
                     // estimate (the seated test allows millimetres) and how well that is known.
                     report.uncertainty += (depth - goal_depth).abs();
@@ -902,11 +904,11 @@ impl OptimalController {
             let p = &self.params;
             let filters = Filters {
                 force_lag: force_estimate_lag(p),
-                depth_tau: depth_filter_time_constant(p),
+                axis: axis_filter(p),
             };
             let r = &mut self.run;
             r.depth.update(&p.depth, &axis, &tip_p, &f, input.now, filters);
-            r.depth_report = Some(r.depth.report(&p.depth, axis.depth_of(&tip_p), filters.depth_tau));
+            r.depth_report = Some(r.depth.report(&p.depth, axis.depth_of(&tip_p), filters.axis));
         }
         let (weights, point) = self.phase_target(&axis, tip_p, f, goal_depth, dt);
         let (cmd, report) = self.solve(kin, ctx, &arm, AxisTargets { axis, point, reference }, &weights, None);
