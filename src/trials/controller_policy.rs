@@ -242,7 +242,9 @@ mod tests {
                     policy.clarabel_allocations
                 );
                 eprintln!("{what}");
-                assert_eq!(r.outcome, Outcome::Docked, "{what}");
+                // It goes on to the goal: DONE, or held there on the depth's uncertainty (the
+                // depth gate's own business: control::docking::depth).
+                assert!(matches!(r.outcome, Outcome::Docked | Outcome::DepthUncertain), "{what}");
                 assert!(policy.solver_failures >= 10, "{what}");
                 assert_eq!(policy.allocating_steps, 0, "{what}");
             }
