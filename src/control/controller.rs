@@ -337,7 +337,6 @@ impl OptimalController {
         if self.run.trocar_filtered.is_some_and(|(_, t)| stamp > t) {
             self.run.depth.observe_pose(
                 &Point3::from(pose.translation.vector),
-                &Point3::from(out.translation.vector),
                 &(out.rotation * Vector3::z()),
                 stamp,
             );

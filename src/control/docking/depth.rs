@@ -283,17 +283,17 @@ pub struct DepthEstimate {
     onset_depth: f64,
     /// 2 sigma of the onset's mean of raw poses, m.
     onset_noise: f64,
-    /// Mean square of each new trocar pose's distance from the filtered one along the axis, m².
-    innovation_ms: f64,
-    /// Mean square of each new trocar pose's step from the one before along the axis, m²
-    /// (the noise where no filter leaves a residual).
-    step_ms: f64,
+    /// The raw poses' variance along the axis, m²: a running mean over [`NOISE_WINDOW`]
+    /// poses ([`DepthEstimate::observe_pose`]).
+    pose_var: f64,
     /// How many poses it holds (its weight grows to a window's worth).
     noise_poses: u32,
     /// Mean interval between the poses, s.
     pose_period: f64,
-    /// The newest pose's capture stamp and raw port, s and m (kept in the history or not).
+    /// The newest pose's capture stamp and raw port, s and m (kept in the history or not),
+    /// and the one before.
     last_pose: Option<(f64, Point3<f64>)>,
+    before_last: Option<(f64, Point3<f64>)>,
 }
 
 impl Default for DepthEstimate {
@@ -307,11 +307,11 @@ impl Default for DepthEstimate {
             basis: DepthBasis::Estimate,
             onset_depth: f64::NAN,
             onset_noise: 0.0,
-            innovation_ms: 0.0,
-            step_ms: 0.0,
+            pose_var: 0.0,
             noise_poses: 0,
             pose_period: 0.0,
             last_pose: None,
+            before_last: None,
         }
     }
 }
@@ -393,28 +393,39 @@ impl DepthEstimate {
         self.basis
     }
 
-    /// A new trocar pose captured at `stamp`: its raw port `raw`, and the filtered estimate
-    /// after it (`port`, unit axis `direction`). A pose no newer than the last is ignored;
-    /// one less than [`POSE_SPACING_S`] after the last kept one counts in the noise only.
-    pub fn observe_pose(&mut self, raw: &Point3<f64>, port: &Point3<f64>, direction: &Vector3<f64>, stamp: f64) {
+    /// A new trocar pose captured at `stamp`: its raw port `raw`, and the unit axis
+    /// `direction` of the filtered estimate after it. A pose no newer than the last is
+    /// ignored; one less than [`POSE_SPACING_S`] after the last kept one counts in the noise
+    /// only.
+    ///
+    /// The noise: each pose's distance along the axis from the line through its two
+    /// neighbours, r = z1 - ((1 - w) z0 + w z2), w = (t1 - t0) / (t2 - t0), holds
+    /// (1 + w^2 + (1 - w)^2) sigma^2 of white noise (3/2 at a steady rate), and of the
+    /// port's own motion only its curvature: a 4 mm breathing at 0.3 Hz, poses at 15 Hz,
+    /// 0.03 mm. (The distance from the filtered estimate holds the filter's lag behind the
+    /// breathing too: up to ~0.5 mm with the tracking filter's tau of 0.2 s.)
+    pub fn observe_pose(&mut self, raw: &Point3<f64>, direction: &Vector3<f64>, stamp: f64) {
         let last = self.last_pose;
-        let e = (raw - port).dot(direction);
-        if last.is_some_and(|(t, _)| stamp <= t) || !(e.is_finite() && stamp.is_finite()) {
+        let finite = stamp.is_finite() && raw.iter().chain(direction.iter()).all(|x| x.is_finite());
+        if last.is_some_and(|(t, _)| stamp <= t) || !finite {
             return;
         }
-        self.noise_poses = (self.noise_poses + 1).min(NOISE_WINDOW);
-        let w = 1.0 / f64::from(self.noise_poses);
-        self.innovation_ms += (e * e - self.innovation_ms) * w;
-        if let Some((t, before)) = last {
-            let step = (raw - before).dot(direction);
-            self.step_ms += (step * step - self.step_ms) * w;
+        if let (Some((t0, z0)), Some((t1, z1))) = (self.before_last, last) {
+            let w = (t1 - t0) / (stamp - t0);
+            let r = (z1 - (z0 + (raw - z0) * w)).dot(direction);
+            let var = r * r / (1.0 + w * w + (1.0 - w) * (1.0 - w));
+            self.noise_poses = (self.noise_poses + 1).min(NOISE_WINDOW);
+            self.pose_var += (var - self.pose_var) / f64::from(self.noise_poses);
+        }
+        if let Some((t, _)) = last {
             let gap = stamp - t;
             self.pose_period = if self.pose_period > 0.0 {
-                self.pose_period + (gap - self.pose_period) * w
+                self.pose_period + (gap - self.pose_period) / f64::from(NOISE_WINDOW)
             } else {
                 gap
             };
         }
+        self.before_last = last;
         self.last_pose = Some((stamp, *raw));
         if self.poses.last().is_none_or(|p| stamp >= p.stamp + POSE_SPACING_S) {
             self.poses.push(Pose {
@@ -425,26 +436,11 @@ impl DepthEstimate {
         }
     }
 
-    /// The variance of one raw pose along the axis, m², from the spread of each pose about
-    /// the estimate `filter` made of it: that distance keeps 1 - 2g + V of the poses' white
-    /// noise ([`AxisFilter::noise_gains`]; the estimate holds g of the pose's own noise).
-    /// Where that share vanishes (no filter), from the steps between poses: 2 sigma^2 of
-    /// white noise, and the port's motion with it.
-    fn pose_variance(&self, filter: AxisFilter) -> f64 {
-        let (g, v) = filter.noise_gains(self.pose_period);
-        let share = 1.0 - 2.0 * g + v;
-        if share > 1e-3 {
-            self.innovation_ms / share
-        } else {
-            0.5 * self.step_ms
-        }
-    }
-
     /// 2 sigma of the estimate along the axis through `filter`, m: V of the poses' variance
     /// ([`AxisFilter::noise_gains`]).
     pub fn noise(&self, filter: AxisFilter) -> f64 {
         let (_, v) = filter.noise_gains(self.pose_period);
-        2.0 * (self.pose_variance(filter) * v).sqrt()
+        2.0 * (self.pose_var * v).sqrt()
     }
 
     /// One INSERT step at time `now` (the clock of the poses' stamps): the estimated `axis`,
@@ -468,7 +464,7 @@ impl DepthEstimate {
             self.over = true;
         }
         if let Some(c) = self.candidate.filter(|c| c.confirmed) {
-            self.measure(p, &c, now, filters.axis);
+            self.measure(p, &c, now);
             return;
         }
         if self.over || !force.iter().all(|x| x.is_finite()) || !axis.is_finite() {
@@ -493,7 +489,7 @@ impl DepthEstimate {
             } else if now - c.t_on >= p.confirm_s {
                 let c = Candidate { confirmed: true, ..c };
                 self.candidate = Some(c);
-                self.measure(p, &c, now, filters.axis);
+                self.measure(p, &c, now);
             }
             return;
         }
@@ -533,8 +529,8 @@ impl DepthEstimate {
 
     /// The seal's onset `c` confirmed: measured once the estimates span its stick window
     /// ([`DepthEstimate::refine`]), while the tip history still holds it.
-    fn measure(&mut self, p: &DepthParams, c: &Candidate, now: f64, filter: AxisFilter) {
-        if self.refine(p, c, filter) || now - c.t_on >= TIP_HISTORY_S {
+    fn measure(&mut self, p: &DepthParams, c: &Candidate, now: f64) {
+        if self.refine(p, c) || now - c.t_on >= TIP_HISTORY_S {
             self.over = true;
             self.candidate = None;
         }
@@ -562,7 +558,7 @@ impl DepthEstimate {
     /// the line by 0.01 mm); their mean less `seal_depth_m` and half the lip's travel is the
     /// estimate's error d along the axis. False while the newest pose is older than the
     /// window's end (the camera's latency): then it waits.
-    fn refine(&mut self, p: &DepthParams, c: &Candidate, filter: AxisFilter) -> bool {
+    fn refine(&mut self, p: &DepthParams, c: &Candidate) -> bool {
         let end = c.t_on + p.stick_window_s;
         if self.poses.last().is_none_or(|q| q.stamp < end) {
             return false;
@@ -600,7 +596,7 @@ impl DepthEstimate {
         };
         self.onset_depth = c.depth;
         let squares: f64 = share.iter().map(|c| (c / n) * (c / n)).sum();
-        self.onset_noise = 2.0 * (self.pose_variance(filter) * squares).sqrt();
+        self.onset_noise = 2.0 * (self.pose_var * squares).sqrt();
         true
     }
 
@@ -662,14 +658,15 @@ mod tests {
     /// 9 mm deep. Returns the estimate when the tip is 30 mm past the estimated port (and 25
     /// mm past the true one).
     fn dock(p: &DepthParams, e: f64, noise: f64, seal: bool, bump: bool) -> DepthEstimate {
-        dock_at(p, e, noise, (seal, bump), (15.0, 0.04))
+        dock_at(p, e, (noise, 5), (seal, bump), (15.0, 0.04))
     }
 
-    /// [`dock`] with the poses at `hz`, each arriving `latency` s after its capture.
+    /// [`dock`] with the poses at `hz`, each arriving `latency` s after its capture, the
+    /// noise drawn from `seed`.
     fn dock_at(
         p: &DepthParams,
         e: f64,
-        noise: f64,
+        (noise, seed): (f64, u64),
         (seal, bump): (bool, bool),
         (hz, latency): (f64, f64),
     ) -> DepthEstimate {
@@ -678,8 +675,7 @@ mod tests {
         let (mut z, mut stuck_until, mut frame) = (-0.005, None::<f64>, 0u32);
         let mut captured: Vec<(f64, f64)> = vec![];
         let a = axis(e);
-        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
-        let mut track = TrackingFilter::<1>::new(0.2, 0.5);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
         for k in 0..3000 {
             let t = k as f64 * dt;
             // The seal grips at its depth (plus half the lip's travel while it sticks).
@@ -707,13 +703,7 @@ mod tests {
             }
             while let Some(&(stamp, n)) = captured.first().filter(|(s, _)| *s + latency <= t + 1e-9) {
                 captured.remove(0);
-                let filtered = track.update(stamp, &nalgebra::Vector1::new(e + n)).x;
-                d.observe_pose(
-                    &Point3::new(0.0, 0.0, e + n),
-                    &Point3::new(0.0, 0.0, filtered),
-                    &Vector3::z(),
-                    stamp,
-                );
+                d.observe_pose(&Point3::new(0.0, 0.0, e + n), &Vector3::z(), stamp);
             }
             let f = match (seal && stuck_until.is_some(), sticking) {
                 (true, true) => Vector3::new(0.0, 0.0, -2.0),
@@ -745,15 +735,20 @@ mod tests {
                 "{r:?}"
             );
         }
-        // Pose noise of sigma 0.5 mm: the estimate carries 0.6 of it (2 sigma 0.6 mm), and
-        // the uncertainty counts it.
+        // Pose noise of sigma 0.5 mm, ten draws: the uncertainty counts it (about 1.4 mm
+        // against 1.04 mm without), and the refined depth is within it.
         let quiet = dock(&p, 0.002, 0.0, true, false)
             .report(&p, 0.03, FILTERS.axis)
             .uncertainty;
-        let d = dock(&p, 0.002, 0.0005, true, false);
-        assert!((d.correction() + 0.002).abs() < 6e-4, "{}", d.correction());
-        let noisy = d.report(&p, 0.03, FILTERS.axis).uncertainty;
-        assert!(noisy > quiet + 2e-4, "{noisy} {quiet}");
+        let mut over = 0;
+        for seed in 1..=10 {
+            let d = dock_at(&p, 0.002, (0.0005, seed), (true, false), (15.0, 0.04));
+            let noisy = d.report(&p, 0.03, FILTERS.axis).uncertainty;
+            let err = (d.correction() + 0.002).abs();
+            assert!(err < noisy, "seed {seed}: {err} {noisy}");
+            over += usize::from(noisy > quiet + 2e-4);
+        }
+        assert!(over >= 8, "{over} of 10");
     }
 
     #[test]
@@ -821,7 +816,7 @@ mod tests {
             (1000.0, 0.0),
             (1000.0, 0.04),
         ] {
-            let d = dock_at(&p, 0.003, 0.0, (true, false), (hz, latency));
+            let d = dock_at(&p, 0.003, (0.0, 5), (true, false), (hz, latency));
             match d.basis() {
                 DepthBasis::Seal { correction } => assert!((correction + 0.003).abs() < 2e-4, "{hz} Hz: {correction}"),
                 b => panic!("{hz} Hz, {latency} s: {b:?}"),
@@ -833,13 +828,14 @@ mod tests {
 
     /// The noise term against a simulation of the filters: white noise of sigma 1 mm at 15
     /// and 100 Hz through the tracking filter and the first-order one: the filtered estimate
-    /// keeps V of the noise's variance ([`AxisFilter::noise_gains`]), and the term recovers
-    /// 2 sigma sqrt(V) from the poses' spread about it (T / (2 tau), the first-order rule,
-    /// read 0.17 at 15 Hz where the tracking filter keeps 0.36).
+    /// keeps V of the noise's variance ([`AxisFilter::noise_gains`]), and the term is
+    /// 2 sigma sqrt(V) (T / (2 tau), the first-order rule, read 0.17 at 15 Hz where the
+    /// tracking filter keeps 0.36); on a port breathing 4 mm at 0.3 Hz too (the noise is
+    /// judged apart from the port's motion).
     #[test]
     fn the_noise_term_is_the_filter_s_noise_gain() {
         let sigma = 0.001;
-        for hz in [15.0, 100.0] {
+        for (hz, breathing) in [(15.0, 0.0), (100.0, 0.0), (15.0, 0.004)] {
             let period = 1.0 / hz;
             for filter in [AxisFilter::Tracking(0.2), AxisFilter::FirstOrder(0.1)] {
                 let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
@@ -849,12 +845,13 @@ mod tests {
                 let (mut kept, mut term, mut n) = (0.0, 0.0, 0.0);
                 for k in 0..40_000 {
                     let t = f64::from(k) * period;
-                    let z = sigma * rng.sample::<f64, _>(StandardNormal);
+                    let noise = sigma * rng.sample::<f64, _>(StandardNormal);
                     let y = match filter {
-                        AxisFilter::Tracking(_) => track.update(t, &nalgebra::Vector1::new(z)).x,
-                        _ => *first.insert(first.map_or(z, |y| y + (z - y) * rc_weight(period, 0.1))),
+                        AxisFilter::Tracking(_) => track.update(t, &nalgebra::Vector1::new(noise)).x,
+                        _ => *first.insert(first.map_or(noise, |y| y + (noise - y) * rc_weight(period, 0.1))),
                     };
-                    d.observe_pose(&Point3::new(0.0, 0.0, z), &Point3::new(0.0, 0.0, y), &Vector3::z(), t);
+                    let port = breathing * (2.0 * std::f64::consts::PI * 0.3 * t).sin();
+                    d.observe_pose(&Point3::new(0.0, 0.0, port + noise), &Vector3::z(), t);
                     if k >= 200 {
                         kept += y * y;
                         term += (0.5 * d.noise(filter)).powi(2);
@@ -865,7 +862,10 @@ mod tests {
                 let kept = kept / n / (sigma * sigma);
                 assert!((kept / v - 1.0).abs() < 0.05, "{hz} Hz {filter:?}: kept {kept}, V {v}");
                 let term = term / n / (sigma * sigma);
-                assert!((term / v - 1.0).abs() < 0.05, "{hz} Hz {filter:?}: term {term}, V {v}");
+                assert!(
+                    (term / v - 1.0).abs() < 0.05,
+                    "{hz} Hz {breathing} {filter:?}: term {term}, V {v}"
+                );
             }
         }
         let (_, v) = AxisFilter::Tracking(0.2).noise_gains(1.0 / 15.0);
@@ -883,7 +883,7 @@ mod tests {
         for k in 0..400 {
             let t = k as f64 * 0.01;
             let tip = Point3::new(0.0, 0.0, 0.005 + 0.0001 * k as f64);
-            d.observe_pose(&a.port, &a.port, &Vector3::z(), t);
+            d.observe_pose(&a.port, &Vector3::z(), t);
             let f = if (1.0..1.1).contains(&t) { -1.0 } else { 0.0 };
             d.update(&p, &a, &tip, &Vector3::new(0.0, 0.0, f), t, FILTERS);
         }
