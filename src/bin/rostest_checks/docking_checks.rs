@@ -236,6 +236,30 @@ pub fn wait_for_end(
     })
 }
 
+/// [`wait_for_end`]; with `accept_depth_uncertain`, a hold DEPTH_UNCERTAIN at the goal on
+/// the way is accepted once by `~start` (the surgeon's acceptance), and its status returned
+/// (the docking's M and time up to it: the status after the start counts from the start).
+fn wait_for_end_accepting(
+    p: &CheckParams,
+    status: &Latest<trocar_docking::DockingStatus>,
+) -> Result<(trocar_docking::DockingStatus, Option<trocar_docking::DockingStatus>), String> {
+    if !p.accept_depth_uncertain {
+        return wait_for_end(p, status).map(|d| (d, None));
+    }
+    let held = wait_for(p.time_limit, || {
+        status.get().filter(|s| {
+            s.phase == "DONE" || s.phase == "ABORTED" || (s.phase == "HOLD" && s.hold_code == "DEPTH_UNCERTAIN")
+        })
+    });
+    match held {
+        Some(s) if s.phase == "HOLD" => {
+            trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
+            wait_for_end(p, status).map(|d| (d, Some(s)))
+        }
+        _ => wait_for_end(p, status).map(|d| (d, None)),
+    }
+}
+
 /// At DONE, the status's code must be `done_code` (unless that is empty).
 pub fn check_done_code(p: &CheckParams, done: &trocar_docking::DockingStatus) -> Result<(), String> {
     if !p.done_code.is_empty() && done.hold_code != p.done_code {
@@ -266,7 +290,11 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
     }
     let t0 = Instant::now();
-    let done = wait_for_end(p, &status)?;
+    let (mut done, accepted) = wait_for_end_accepting(p, &status)?;
+    if let Some(held) = &accepted {
+        done.metric_m = done.metric_m.max(held.metric_m);
+        done.elapsed += held.elapsed;
+    }
     if done.phase != "DONE" {
         let fmax = seen.lock().map(|m| m.max_force).unwrap_or(f64::NAN);
         return Err(format!(
@@ -294,6 +322,12 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     } else {
         format!("; {}", done.hold_reason)
     };
+    if let Some(held) = accepted {
+        note.push_str(&format!(
+            "; held DEPTH_UNCERTAIN after {:.2} s ({}), accepted by ~start",
+            held.elapsed, held.hold_reason
+        ));
+    }
     if let Some(insert) = insert {
         note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }
