@@ -237,14 +237,15 @@ pub fn wait_for_end(
 }
 
 /// [`wait_for_end`]; with `accept_depth_uncertain`, a hold DEPTH_UNCERTAIN at the goal on
-/// the way is accepted once by `~start` (the surgeon's acceptance), and its status returned
-/// (the docking's M and time up to it: the status after the start counts from the start).
+/// the way is accepted once by `~start` (the surgeon's acceptance): the end's status with the
+/// docking's M and time before the hold counted (the status after the start counts from the
+/// start), and a note of the hold.
 fn wait_for_end_accepting(
     p: &CheckParams,
     status: &Latest<trocar_docking::DockingStatus>,
-) -> Result<(trocar_docking::DockingStatus, Option<trocar_docking::DockingStatus>), String> {
+) -> Result<(trocar_docking::DockingStatus, String), String> {
     if !p.accept_depth_uncertain {
-        return wait_for_end(p, status).map(|d| (d, None));
+        return wait_for_end(p, status).map(|d| (d, String::new()));
     }
     let held = wait_for(p.time_limit, || {
         status.get().filter(|s| {
@@ -254,9 +255,16 @@ fn wait_for_end_accepting(
     match held {
         Some(s) if s.phase == "HOLD" => {
             trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
-            wait_for_end(p, status).map(|d| (d, Some(s)))
+            let mut done = wait_for_end(p, status)?;
+            done.metric_m = done.metric_m.max(s.metric_m);
+            done.elapsed += s.elapsed;
+            let note = format!(
+                "; held DEPTH_UNCERTAIN after {:.2} s ({}), accepted by ~start",
+                s.elapsed, s.hold_reason
+            );
+            Ok((done, note))
         }
-        _ => wait_for_end(p, status).map(|d| (d, None)),
+        _ => wait_for_end(p, status).map(|d| (d, String::new())),
     }
 }
 
@@ -290,11 +298,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
     }
     let t0 = Instant::now();
-    let (mut done, accepted) = wait_for_end_accepting(p, &status)?;
-    if let Some(held) = &accepted {
-        done.metric_m = done.metric_m.max(held.metric_m);
-        done.elapsed += held.elapsed;
-    }
+    let (done, accepted) = wait_for_end_accepting(p, &status)?;
     if done.phase != "DONE" {
         let fmax = seen.lock().map(|m| m.max_force).unwrap_or(f64::NAN);
         return Err(format!(
@@ -322,12 +326,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
     } else {
         format!("; {}", done.hold_reason)
     };
-    if let Some(held) = accepted {
-        note.push_str(&format!(
-            "; held DEPTH_UNCERTAIN after {:.2} s ({}), accepted by ~start",
-            held.elapsed, held.hold_reason
-        ));
-    }
+    note.push_str(&accepted);
     if let Some(insert) = insert {
         note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }
