@@ -20,26 +20,28 @@
 //! then holds
 //! for `confirm_s` (the bore's contact rises and falls again), dated back by the force
 //! estimate's lag (the torques' and the estimate's low-pass time constants: a first-order
-//! chain delays a ramp by the sum of its time constants). Each trocar pose captured within
-//! `stick_window_s` after the onset then measures the estimate's error along the axis: the
-//! tip's depth in that raw pose, with the tip where it was at the pose's capture stamp (a
-//! short history of the measured tip: the camera's latency and the filter play no part),
-//! less the seal's depth and half the lip's travel `seal_lip_travel_m` (the lip deflects with
-//! the shaft from nothing to its breakaway while it sticks). Their mean d moves the goal to `insertion_depth_m` + d on the
-//! estimated axis. A d larger than the calibration's bound is not something the calibration
-//! explains (another trocar, a seal at another depth, a force that was not the seal): it is
-//! refused and named, and the goal stays.
+//! chain delays a ramp by the sum of its time constants). The stick window, `stick_window_s`
+//! after the onset, then measures the estimate's error along the axis at the control rate:
+//! at each step within it the tip's depth on the raw trocar pose of that instant,
+//! interpolated between the poses captured around it (by capture stamp: the camera's latency
+//! and the filter play no part, and any pose rate with a pose on each side of the window
+//! serves), less the seal's depth and half the lip's travel `seal_lip_travel_m` (the lip
+//! deflects with the shaft from nothing to its breakaway while it sticks). Their mean d moves
+//! the goal to `insertion_depth_m` + d on the estimated axis. A d larger than the calibration's
+//! bound and the pose source's own error along the axis (`pose_axial_error_m`) is not
+//! something they explain (another trocar, a seal at another depth, a force that was not the
+//! seal): it is refused and named, and the goal stays.
 //!
 //! **The uncertainty** (a bound of about two standard deviations), root sum of squares of:
 //! - before a refinement: the calibration's bound (above);
 //! - after one: the seal's own term `seal_uncertainty_m` (the lip's travel while it sticks,
-//!   the onset's dating), the raw poses' noise at the onset (2 sigma over the root of their
-//!   count), and the hand-eye's rotation error times the tip's travel since (the camera moves
+//!   the onset's dating), the raw poses' noise in the window's mean (2 sigma times the root
+//!   of the sum of the squares of each pose's share), and the hand-eye's rotation error times the tip's travel since (the camera moves
 //!   with the arm, so the error the refinement removed drifts by that much);
-//! - always: the estimate's noise along the axis now, 2 sigma of the filtered estimate from the
-//!   spread of each new trocar pose about the filtered one ([`DepthEstimate::observe_pose`]);
-//!   a first-order filter of time constant tau keeps T / (2 tau) of the variance of white
-//!   noise sampled every T.
+//! - always: the estimate's noise along the axis now, 2 sigma of the filtered estimate: the
+//!   poses' sigma from each pose's distance to the line through its neighbours
+//!   ([`DepthEstimate::observe_pose`]), times the root of the share V of white noise's
+//!   variance the controller's filter keeps ([`AxisFilter::noise_gains`]).
 //!
 //! DONE needs it within `tolerance_m`; otherwise the controller holds, DEPTH_UNCERTAIN, with the
 //! figure and its basis. Nothing allocates: the histories are fixed arrays.
@@ -281,7 +283,7 @@ pub struct DepthEstimate {
     basis: DepthBasis,
     /// The tip's depth on the estimated axis at the onset (for the drift since), m.
     onset_depth: f64,
-    /// 2 sigma of the onset's mean of raw poses, m.
+    /// 2 sigma of the noise in the stick window's mean of raw poses, m.
     onset_noise: f64,
     /// The raw poses' variance along the axis, m²: a running mean over [`NOISE_WINDOW`]
     /// poses ([`DepthEstimate::observe_pose`]).
