@@ -288,7 +288,7 @@ fn run_json(s: &RunSetup, r: &[ArmReport], ratio: Option<(f64, f64)>) -> serde_j
         .collect();
     serde_json::json!({
         "protocol": s.protocol.name(),
-        "controller": crate::trials::policy::controller_params(&s.controller, ff),
+        "controller": crate::trials::policy::controller_params(&s.controller, &s.cfg, ff),
         "world": {"sim": &s.cfg.sim, "trial": &s.cfg.trial, "policy": s.cfg.policy},
         "m_ratio_no_ff_over_ff": ratio.map(|r| r.0),
         "m_true_ratio_no_ff_over_ff": ratio.map(|r| r.1),

@@ -26,6 +26,7 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
+use super::docking::depth::{AxisFilter, DepthEstimate, DepthReport, Filters};
 use super::docking::geometry::{pose_is_finite, InsertionAxis};
 use super::docking::goal_window::GoalWindow;
 use super::docking::metrics::ForceMetric;
@@ -40,7 +41,7 @@ use super::safety::guarded::{CommandSource, Guarded, StepContext};
 use super::safety::motion::MotionLimiter;
 use super::scope::pivot::{live_command, Pivot, PivotParams};
 use super::sqp::{CostWeights, LimitAvoidance, PivotCost, SqpSolver, Targets};
-use super::supervisor::{Phase, Supervisor};
+use super::supervisor::{DoneNote, Phase, Supervisor};
 use crate::kinematics::{Jacobian, JointLimits, JointVector, Kinematics};
 use crate::signal::{StreamLowPass, TrackingFilter};
 
@@ -86,6 +87,10 @@ struct RunState {
     /// Time spent at the stand-off point without the alignment, s.
     stalled_for: f64,
     seated: SeatedCheck,
+    /// The tip's depth: refined at the seal, and its uncertainty.
+    depth: DepthEstimate,
+    /// The depth's report of the last INSERT step.
+    depth_report: Option<DepthReport>,
     /// The tip-to-goal error and the alignment angle, averaged over windows in INSERT.
     goal_window: GoalWindow,
     /// The commanded tip motion, for its limits.
@@ -135,13 +140,31 @@ struct AxisTargets {
 /// joint servo reaches a stopped command about that late). With the shipped values
 /// 5 + 8 + 10 + 20 = 43 ms.
 fn force_stop_lead(p: &ControllerParams) -> f64 {
+    force_estimate_lag(p) + p.dt_s + p.scope.arm_lag_s
+}
+
+/// The lag of the force estimate behind the tip's force, s: the torques' low-pass and the
+/// estimate's first-order low-pass (a first-order chain delays a ramp by the sum of its time
+/// constants); the part of [`force_stop_lead`] that is the estimate's.
+fn force_estimate_lag(p: &ControllerParams) -> f64 {
     let fc = p.admittance.filter_cutoff_hz;
     let estimate = if fc > 0.0 {
         1.0 / (2.0 * std::f64::consts::PI * fc)
     } else {
         0.0
     };
-    p.torque_filter_time_constant_s + estimate + p.dt_s + p.scope.arm_lag_s
+    p.torque_filter_time_constant_s + estimate
+}
+
+/// The trocar filter along the axis ([`OptimalController::filtered_trocar`]).
+fn axis_filter(p: &ControllerParams) -> AxisFilter {
+    if p.trocar_depth_filter_time_constant_s > 0.0 {
+        AxisFilter::Tracking(p.trocar_depth_filter_time_constant_s)
+    } else if p.trocar_filter_time_constant_s > 0.0 {
+        AxisFilter::FirstOrder(p.trocar_filter_time_constant_s)
+    } else {
+        AxisFilter::None
+    }
 }
 
 /// The docking controller, guarded: what the nodes, the trials and the tests run.
@@ -162,6 +185,12 @@ impl Guarded<OptimalController> {
     /// The force metric so far.
     pub fn metric(&self) -> &ForceMetric {
         &self.source().run.metric
+    }
+
+    /// The tip's depth as the last INSERT step knew it (its correction at the seal and its
+    /// uncertainty); None before INSERT.
+    pub fn depth(&self) -> Option<DepthReport> {
+        self.source().run.depth_report
     }
 }
 
@@ -212,6 +241,8 @@ pub struct OptimalController {
     sqp: SqpSolver,
     run: RunState,
     torques: TorqueFilter,
+    /// A dry run: the arm is a ghost ([`Controller::set_dry_run`]).
+    dry_run: bool,
 }
 
 impl Controller {
@@ -226,6 +257,15 @@ impl Controller {
         guard.set_force_stop(law.params.guard.force_stop_n);
         Ok(())
     }
+
+    /// A dry run (`dry_run`): the arm the controller steers is a ghost that follows its
+    /// commands and touches nothing, so it never meets the seal and the tip's depth is never
+    /// verified. Where a docking would hold at the goal, DEPTH_UNCERTAIN, the dry run ends
+    /// DONE with the note DEPTH_UNVERIFIED (the figure and its basis), so the rehearsal
+    /// ends and says what the docking would do there.
+    pub fn set_dry_run(&mut self, dry_run: bool) {
+        self.parts_mut().0.dry_run = dry_run;
+    }
 }
 
 impl OptimalController {
@@ -238,6 +278,7 @@ impl OptimalController {
             params,
             sqp,
             run: RunState::default(),
+            dry_run: false,
         })
     }
 
@@ -295,6 +336,13 @@ impl OptimalController {
             let tracked = track.update(stamp, &pose.translation.vector);
             let axis = out.rotation * Vector3::z();
             out.translation.vector += axis * axis.dot(&(tracked - out.translation.vector));
+        }
+        if self.run.trocar_filtered.is_some_and(|(_, t)| stamp > t) {
+            self.run.depth.observe_pose(
+                &Point3::from(pose.translation.vector),
+                &(out.rotation * Vector3::z()),
+                stamp,
+            );
         }
         self.run.trocar_filtered = Some((out, stamp));
         out
@@ -478,6 +526,7 @@ impl OptimalController {
         axis: &InsertionAxis,
         tip: Point3<f64>,
         f: Vector3<f64>,
+        goal_depth: f64,
         dt: f64,
     ) -> (CostWeights, Point3<f64>) {
         let p = &self.params;
@@ -518,7 +567,7 @@ impl OptimalController {
             let s_tip = axis.depth_of(&tip);
             let r = &mut self.run;
             r.insert_depth = (r.insert_depth + speed * dt)
-                .min(p.insertion_depth_m)
+                .min(goal_depth)
                 .min(s_tip.max(r.insert_depth) + 0.005);
             let t = axis.point_at(r.insert_depth);
             r.target = Some(t);
@@ -598,7 +647,8 @@ impl OptimalController {
     }
 
     /// Phase transitions, judged on the measured tip.
-    fn transitions(&mut self, axis: &InsertionAxis, goal: Point3<f64>, tip: &Isometry3<f64>, f: Vector3<f64>, dt: f64) {
+    fn transitions(&mut self, axis: &InsertionAxis, goal_depth: f64, tip: &Isometry3<f64>, f: Vector3<f64>, dt: f64) {
+        let goal = axis.point_at(goal_depth);
         let p = &self.params;
         let tip_p = Point3::from(tip.translation.vector);
         let optical_axis = tip.rotation * Vector3::z();
@@ -629,17 +679,42 @@ impl OptimalController {
                     .goal_window
                     .add(p.goal_window_s, tip_p - goal, angle, dt)
                     .is_some_and(|(e, g)| e < p.goal_tolerance_m && g < p.goal_angle_tolerance_deg.to_radians());
-                if at_goal {
-                    r.supervisor.goal_reached(None);
+                let reached = if at_goal {
+                    Some(None)
                 } else {
                     let state = TipState {
                         tip: tip_p,
                         optical_axis,
                         force: f,
                     };
-                    let seated = r.seated.update(&p.seated, axis, p.insertion_depth_m, &state, dt);
-                    if let Some(s) = seated {
-                        r.supervisor.goal_reached(Some(s));
+                    r.seated
+                        .update(&p.seated, axis, goal_depth, &state, dt)
+                        .map(|s| Some(DoneNote::Seated(s)))
+                };
+                if let Some(note) = reached {
+                    // DONE only while the depth is known within the tolerance.
+                    let d = &p.depth;
+                    let depth = axis.depth_of(&tip_p);
+                    let mut report = r.depth.report(d, depth, axis_filter(p));
+                    // The bound on the tip's distance from the goal depth: where it is on the
+                    // estimate (the seated test allows millimetres) and how well that is known.
+                    report.uncertainty += (depth - goal_depth).abs();
+                    r.depth_report = Some(report);
+                    if report.uncertainty <= d.tolerance_m {
+                        r.supervisor.goal_reached(note);
+                    } else if self.dry_run {
+                        // The ghost never meets the seal: the rehearsal ends, saying so.
+                        r.supervisor.goal_reached(Some(DoneNote::DepthUnverified {
+                            uncertainty_m: report.uncertainty,
+                            tolerance_m: d.tolerance_m,
+                            basis: report.basis,
+                        }));
+                    } else {
+                        r.supervisor.depth_uncertain(HoldReason::DepthUncertain {
+                            uncertainty_m: report.uncertainty,
+                            tolerance_m: d.tolerance_m,
+                            basis: report.basis,
+                        });
                     }
                 }
             }
@@ -810,7 +885,8 @@ impl OptimalController {
         }
         let trocar = self.trocar_pose(input, &arm, ctx.guard)?;
         let axis = InsertionAxis::from_pose(&trocar);
-        let goal = axis.point_at(self.params.insertion_depth_m);
+        let goal_depth = self.params.insertion_depth_m + self.run.depth.correction();
+        let goal = axis.point_at(goal_depth);
         let tip_p = Point3::from(arm.tip.translation.vector);
         if let (Phase::Approach, Some(t)) = (self.run.supervisor.phase(), input.tau_ext) {
             let pose = (&arm.jac, &arm.tip.rotation);
@@ -834,10 +910,21 @@ impl OptimalController {
         let f = self.run.admittance.force();
         let x = self.run.admittance.step(&self.params.admittance, axis.across(&f), dt);
         let reference = tip_p + x;
-        let (weights, point) = self.phase_target(&axis, tip_p, f, dt);
+        if phase == Phase::Insert && !retreating {
+            // The seal's onset along the axis, from the force resisting the insertion.
+            let p = &self.params;
+            let filters = Filters {
+                force_lag: force_estimate_lag(p),
+                axis: axis_filter(p),
+            };
+            let r = &mut self.run;
+            r.depth.update(&p.depth, &axis, &tip_p, &f, input.now, filters);
+            r.depth_report = Some(r.depth.report(&p.depth, axis.depth_of(&tip_p), filters.axis));
+        }
+        let (weights, point) = self.phase_target(&axis, tip_p, f, goal_depth, dt);
         let (cmd, report) = self.solve(kin, ctx, &arm, AxisTargets { axis, point, reference }, &weights, None);
         self.run.last_command = Some(cmd);
-        self.transitions(&axis, goal, &arm.tip, f, dt);
+        self.transitions(&axis, goal_depth, &arm.tip, f, dt);
         let mut out = self.output(Some(cmd), Some(arm.tip), Some(goal));
         out.solve = Some(report);
         out.reference = Some(reference);

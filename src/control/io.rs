@@ -4,11 +4,10 @@
 
 use nalgebra::{Isometry3, Point3, Vector3};
 
-use super::docking::seated::Seated;
 use super::safety::hold::HoldReason;
 use super::scope::command::{PivotReport, ScopeCommand};
 use super::sqp::{CostTerms, SqpStatus};
-use super::supervisor::Phase;
+use super::supervisor::{DoneNote, Phase};
 use crate::kinematics::JointVector;
 
 /// A value with the time it was measured, s (same clock as [`ControlInput::now`]).
@@ -123,7 +122,7 @@ pub struct ControlOutput {
     /// Reason of the last hold or abort.
     pub hold: Option<HoldReason>,
     /// How DONE was reached, when not plainly at the goal.
-    pub note: Option<Seated>,
+    pub note: Option<DoneNote>,
     /// The SQP's report, when it ran this step.
     pub solve: Option<SolveReport>,
     /// Filtered tip force estimate, base frame, N.
@@ -169,12 +168,12 @@ impl ControlOutput {
         }
     }
 
-    /// The stable code of [`ControlOutput::reason_text`]: the hold's code, `SEATED` for a
-    /// DONE reached by the seated test, `""` for none.
+    /// The stable code of [`ControlOutput::reason_text`]: the hold's code, the note's at DONE
+    /// (`SEATED`, `DEPTH_UNVERIFIED`: [`DoneNote::code`]), `""` for none.
     pub fn reason_code(&self) -> &'static str {
         match (&self.hold, &self.note) {
             (Some(h), _) => h.code(),
-            (None, Some(_)) => "SEATED",
+            (None, Some(n)) => n.code(),
             (None, None) => "",
         }
     }

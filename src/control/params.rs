@@ -3,6 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::docking::depth::DepthParams;
 use super::docking::seated::SeatedParams;
 use super::force::admittance::AdmittanceParams;
 use super::force::tare::TareParams;
@@ -54,6 +55,9 @@ pub struct ControllerParams {
     /// DONE also for a scope seated in the port beside a biased trocar estimate; see
     /// [`super::docking::seated`].
     pub seated: SeatedParams,
+    /// The tip's depth: refined at the seal, and DONE only while known; see
+    /// [`super::docking::depth`].
+    pub depth: DepthParams,
     /// Time constant of a first-order filter on the trocar pose, s (0 = none).
     pub trocar_filter_time_constant_s: f64,
     /// Time constant of the second-order tracking filter on the trocar position along its
@@ -114,6 +118,7 @@ impl ControllerParams {
         validate::positive("goal_angle_tolerance_deg", self.goal_angle_tolerance_deg)?;
         validate::non_negative("goal_window_s", self.goal_window_s)?;
         self.seated.validate()?;
+        self.depth.validate()?;
         validate::non_negative("trocar_filter_time_constant_s", self.trocar_filter_time_constant_s)?;
         validate::non_negative(
             "trocar_depth_filter_time_constant_s",
@@ -161,6 +166,7 @@ mod tests {
         p.validate().unwrap();
         assert_eq!(p, ControllerParams::default());
         assert_eq!(p.seated, SeatedParams::default());
+        assert_eq!(p.depth, DepthParams::default());
         assert_eq!(p.tare, TareParams::default());
         assert_eq!(p.admittance, AdmittanceParams::default());
         assert_eq!(p.guard, GuardParams::default());

@@ -8,8 +8,57 @@
 
 use std::fmt;
 
+use super::docking::depth::DepthBasis;
 use super::docking::seated::Seated;
 use super::safety::hold::HoldReason;
+
+/// How DONE was reached, when not plainly at the goal with the depth known: what the status
+/// shows the surgeon beside DONE.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum DoneNote {
+    /// Seated in the port beside a biased trocar estimate ([`crate::control::docking::seated`]).
+    Seated(Seated),
+    /// A dry run (the ghost arm: nothing was inserted) at the goal, with the tip's depth not
+    /// known within the tolerance: where a docking would hold DEPTH_UNCERTAIN
+    /// ([`crate::control::docking::depth`]), the rehearsal ends DONE and says so.
+    DepthUnverified {
+        /// The depth's uncertainty, m (about 2 sigma).
+        uncertainty_m: f64,
+        /// The tolerance it passed, m.
+        tolerance_m: f64,
+        /// What the depth rests on.
+        basis: DepthBasis,
+    },
+}
+
+impl DoneNote {
+    /// The stable code of the status at DONE (`hold_code`).
+    pub fn code(&self) -> &'static str {
+        match self {
+            Self::Seated(_) => "SEATED",
+            Self::DepthUnverified { .. } => "DEPTH_UNVERIFIED",
+        }
+    }
+}
+
+impl fmt::Display for DoneNote {
+    /// The DONE reason shown to the surgeon (formatted where it is shown, not in the loop).
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Self::Seated(s) => s.fmt(f),
+            Self::DepthUnverified {
+                uncertainty_m,
+                tolerance_m,
+                basis,
+            } => write!(
+                f,
+                "dry run: nothing was inserted and the tip's depth was not verified (known only to +-{:.1} mm, over the {:.1} mm tolerance: {basis}); a docking would hold here, DEPTH_UNCERTAIN, for the surgeon to check it",
+                uncertainty_m * 1e3,
+                tolerance_m * 1e3
+            ),
+        }
+    }
+}
 
 /// The phase of a docking run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, serde::Serialize)]
@@ -68,7 +117,7 @@ pub struct Supervisor {
     resume: Phase,
     latched: bool,
     reason: Option<HoldReason>,
-    note: Option<Seated>,
+    note: Option<DoneNote>,
 }
 
 impl Default for Supervisor {
@@ -101,7 +150,7 @@ impl Supervisor {
     }
 
     /// How DONE was reached, when not plainly at the goal (see [`Supervisor::goal_reached`]).
-    pub fn note(&self) -> Option<Seated> {
+    pub fn note(&self) -> Option<DoneNote> {
         self.note
     }
 
@@ -235,9 +284,22 @@ impl Supervisor {
         }
     }
 
+    /// The goal is reached but the depth is not known well enough: INSERT -> HOLD for
+    /// `reason` (DEPTH_UNCERTAIN), latched; `start` resumes as DONE (the surgeon accepts the
+    /// depth).
+    pub fn depth_uncertain(&mut self, reason: HoldReason) {
+        if self.phase == Phase::Insert {
+            self.phase = Phase::Hold;
+            self.resume = Phase::Done;
+            self.latched = true;
+            self.reason = Some(reason);
+            self.note = None;
+        }
+    }
+
     /// The goal is reached: INSERT -> DONE. `note` says how, when not plainly at the goal;
     /// the reason of any earlier hold is cleared.
-    pub fn goal_reached(&mut self, note: Option<Seated>) {
+    pub fn goal_reached(&mut self, note: Option<DoneNote>) {
         if self.phase == Phase::Insert {
             self.phase = Phase::Done;
             self.reason = None;
@@ -274,9 +336,10 @@ mod tests {
             angle_deg: 0.1,
             lateral_force: 0.2,
         };
-        s.goal_reached(Some(seated));
+        s.goal_reached(Some(DoneNote::Seated(seated)));
         assert_eq!(s.phase(), Phase::Done);
-        assert_eq!(s.note(), Some(seated));
+        assert_eq!(s.note(), Some(DoneNote::Seated(seated)));
+        assert_eq!(s.note().map(|n| n.code()), Some("SEATED"));
         assert_eq!(s.reason(), None, "DONE clears the old hold's reason");
         assert!(s.start().is_err());
         s.retract().unwrap();
@@ -349,6 +412,22 @@ mod tests {
         s.clear_hold();
         assert!(s.start().unwrap_err().contains("surgeon"));
         assert_eq!(Phase::Aborted.as_str(), "ABORTED");
+        // At the goal with the depth uncertain: a latched hold that start resumes as DONE.
+        let mut s = Supervisor::new();
+        s.start().unwrap();
+        s.tare_done();
+        s.approach_reached();
+        s.depth_uncertain(HoldReason::DepthUncertain {
+            uncertainty_m: 0.005,
+            tolerance_m: 0.002,
+            basis: crate::control::docking::depth::DepthBasis::Estimate,
+        });
+        assert_eq!((s.phase(), s.is_latched()), (Phase::Hold, true));
+        assert_eq!(s.reason().map(HoldReason::code), Some("DEPTH_UNCERTAIN"));
+        s.clear_hold();
+        assert_eq!(s.phase(), Phase::Hold, "only the surgeon accepts the depth");
+        s.start().unwrap();
+        assert_eq!(s.phase(), Phase::Done, "start accepts it: DONE");
         // Holding in IDLE keeps IDLE.
         let mut s = Supervisor::new();
         s.hold(HoldReason::NoJointState, false);

@@ -85,6 +85,9 @@ pub struct ArmSummary {
     pub paper_success_rate: f64,
     /// Trials whose DONE the truth contradicts (a failure class of its own).
     pub false_done: usize,
+    /// Trials that reached the goal and held there, DEPTH_UNCERTAIN, instead of DONE (not
+    /// docked).
+    pub depth_uncertain: usize,
     /// M from the true contact force over every trial, N (the headline).
     pub m_true_all: Stats,
     /// M from the true contact force, N (successful trials).
@@ -141,6 +144,7 @@ impl ArmSummary {
             paper_successes,
             paper_success_rate: rate(paper_successes),
             false_done: r.iter().filter(|x| x.outcome == Outcome::FalseDone).count(),
+            depth_uncertain: r.iter().filter(|x| x.outcome == Outcome::DepthUncertain).count(),
             m_true_all: Stats::of(r.iter().map(|x| x.m_true)),
             m_true: Stats::of(ok.iter().map(|x| x.m_true)),
             m_est: Stats::of(ok.iter().map(|x| x.m_est)),

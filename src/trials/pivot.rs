@@ -320,7 +320,8 @@ pub struct PivotSession {
 
 impl PivotSession {
     /// A fresh world of `seed` and a started controller (`controller`, stepped at its `dt_s`);
-    /// steps until DONE or `timeout_s`. `Ok(Err(why))`: not DONE.
+    /// steps until DONE or `timeout_s`, accepting a DEPTH_UNCERTAIN hold at the goal as the
+    /// surgeon does (start). `Ok(Err(why))`: not DONE.
     pub fn dock(
         sim: &SimParams,
         controller: &ControllerParams,
@@ -341,7 +342,14 @@ impl PivotSession {
         lp.ctrl.start()?;
         let mut last = Phase::Idle;
         while lp.world.time() < timeout_s && last != Phase::Done {
-            last = lp.tick(None).map_err(|e| e.to_string())?.phase;
+            let out = lp.tick(None).map_err(|e| e.to_string())?;
+            last = out.phase;
+            if out.reason_code() == "DEPTH_UNCERTAIN" {
+                // At the goal with the depth uncertain: the surgeon checks it in the
+                // endoscope's view and accepts it (DONE), as docs/controller.md says; what
+                // follows DONE is what is measured here.
+                lp.ctrl.start()?;
+            }
         }
         Ok(if last == Phase::Done {
             Ok(lp)

@@ -24,6 +24,9 @@ use crate::sim::{check_range, SimError, SimWorld};
 
 pub use crate::control::docking::metrics::PAPER_CODE_SCALE;
 
+/// The hold code of a policy at its goal that does not know the tip's depth well enough.
+const DEPTH_UNCERTAIN: &str = "DEPTH_UNCERTAIN";
+
 /// What a policy answers at a control tick.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Action {
@@ -102,6 +105,9 @@ pub enum Outcome {
     FalseDone,
     /// The policy held, latched (only an operator resumes it).
     Held,
+    /// The policy reached its goal but held there, DEPTH_UNCERTAIN, instead of DONE: it does
+    /// not know the tip's depth within the tolerance (not docked, whatever the truth).
+    DepthUncertain,
     /// The timeout passed first.
     Timeout,
     /// The contact force exceeded the abort threshold.
@@ -119,6 +125,7 @@ impl Outcome {
             Self::Docked => "docked",
             Self::FalseDone => "false_done",
             Self::Held => "held",
+            Self::DepthUncertain => "depth_uncertain",
             Self::Timeout => "timeout",
             Self::ForceAbort => "force_abort",
             Self::PolicyAbort => "policy_abort",
@@ -172,7 +179,8 @@ pub struct TrialResult {
     pub paper_success: bool,
     /// When the paper's test first held, s (NaN: never).
     pub paper_time_s: f64,
-    /// At DONE, the true tip's distance from the goal depth along the true axis, m (NaN: no DONE).
+    /// At DONE (or the hold DEPTH_UNCERTAIN), the true tip's distance from the goal depth
+    /// along the true axis, m (NaN: neither).
     pub done_depth_error_m: f64,
     /// At DONE, the true tip's distance from the true axis, m (NaN: no DONE).
     pub done_radial_m: f64,
@@ -371,6 +379,16 @@ fn end_of_tick(world: &SimWorld, p: &TrialParams, action: &Action, t: f64, end: 
     if let Some(why) = &action.aborted {
         end.outcome = Outcome::PolicyAbort;
         return Some(why.clone());
+    }
+    if action.latched && action.hold_code == Some(DEPTH_UNCERTAIN) {
+        // Not docked, whatever the truth; the truth is recorded to judge the gate.
+        let (truth, _) = judge_done(world, p);
+        end.done = Some(truth);
+        end.outcome = Outcome::DepthUncertain;
+        return Some(format!(
+            "held at the goal, depth uncertain; the true tip {:.1} mm from the goal depth",
+            truth.depth_error_m * 1e3
+        ));
     }
     if action.latched {
         end.outcome = Outcome::Held;

@@ -39,9 +39,13 @@ pub struct CheckParams {
     pub call_start: bool,
     /// For `stale_hold`: the hold's code (`hold_code` of the status) must be this.
     pub hold_code: String,
-    /// For `docking`: the status `hold_code` at DONE must be this ('' = anything, e.g.
-    /// `SEATED`).
+    /// For `docking`, `dry_run`: the status `hold_code` at DONE must be this ('' = anything,
+    /// e.g. `SEATED`, `DEPTH_UNVERIFIED`).
     pub done_code: String,
+    /// `docking`: a hold DEPTH_UNCERTAIN at the goal is accepted once by `~start`, as the
+    /// surgeon does after checking the depth in the endoscope's view, and DONE expected
+    /// after it (false: that hold fails the docking).
+    pub accept_depth_uncertain: bool,
     /// `stale_hold`, `bad_input`: how long the command must stay still once held, s.
     pub hold_observe: f64,
     /// `bad_input`: the largest accepted motion of a joint (the arm's, the command's) once
@@ -195,6 +199,7 @@ impl Default for CheckParams {
             call_start: true,
             hold_code: "STALE_TROCAR_POSE".into(),
             done_code: String::new(),
+            accept_depth_uncertain: false,
             hold_observe: 1.0,
             max_hold_motion_deg: 0.01,
             min_status: 10,

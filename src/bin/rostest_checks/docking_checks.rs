@@ -236,6 +236,49 @@ pub fn wait_for_end(
     })
 }
 
+/// [`wait_for_end`]; with `accept_depth_uncertain`, a hold DEPTH_UNCERTAIN at the goal on
+/// the way is accepted once by `~start` (the surgeon's acceptance): the end's status with the
+/// docking's M and time before the hold counted (the status after the start counts from the
+/// start), and a note of the hold.
+fn wait_for_end_accepting(
+    p: &CheckParams,
+    status: &Latest<trocar_docking::DockingStatus>,
+) -> Result<(trocar_docking::DockingStatus, String), String> {
+    if !p.accept_depth_uncertain {
+        return wait_for_end(p, status).map(|d| (d, String::new()));
+    }
+    let held = wait_for(p.time_limit, || {
+        status.get().filter(|s| {
+            s.phase == "DONE" || s.phase == "ABORTED" || (s.phase == "HOLD" && s.hold_code == "DEPTH_UNCERTAIN")
+        })
+    });
+    match held {
+        Some(s) if s.phase == "HOLD" => {
+            trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
+            let mut done = wait_for_end(p, status)?;
+            done.metric_m = done.metric_m.max(s.metric_m);
+            done.elapsed += s.elapsed;
+            let note = format!(
+                "; held DEPTH_UNCERTAIN after {:.2} s ({}), accepted by ~start",
+                s.elapsed, s.hold_reason
+            );
+            Ok((done, note))
+        }
+        _ => wait_for_end(p, status).map(|d| (d, String::new())),
+    }
+}
+
+/// At DONE, the status's code must be `done_code` (unless that is empty).
+pub fn check_done_code(p: &CheckParams, done: &trocar_docking::DockingStatus) -> Result<(), String> {
+    if !p.done_code.is_empty() && done.hold_code != p.done_code {
+        return Err(format!(
+            "DONE, but its code '{}' ({}) is not '{}'",
+            done.hold_code, done.hold_reason, p.done_code
+        ));
+    }
+    Ok(())
+}
+
 /// Start the controller (unless the launch does) and wait for DONE within the time limit;
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
@@ -255,7 +298,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
     }
     let t0 = Instant::now();
-    let done = wait_for_end(p, &status)?;
+    let (done, accepted) = wait_for_end_accepting(p, &status)?;
     if done.phase != "DONE" {
         let fmax = seen.lock().map(|m| m.max_force).unwrap_or(f64::NAN);
         return Err(format!(
@@ -276,18 +319,14 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
             p.max_force, done.metric_m
         ));
     }
-    if !p.done_code.is_empty() && done.hold_code != p.done_code {
-        return Err(format!(
-            "DONE, but its code '{}' ({}) is not '{}'",
-            done.hold_code, done.hold_reason, p.done_code
-        ));
-    }
+    check_done_code(p, &done)?;
     // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::docking::seated`).
     let mut note = if done.hold_reason.is_empty() {
         String::new()
     } else {
         format!("; {}", done.hold_reason)
     };
+    note.push_str(&accepted);
     if let Some(insert) = insert {
         note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }

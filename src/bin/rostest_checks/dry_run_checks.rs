@@ -6,7 +6,7 @@ use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::msgs::{sensor_msgs, trajectory_msgs, trocar_docking};
 
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
-use crate::docking_checks::wait_for_end;
+use crate::docking_checks::{check_done_code, wait_for_end};
 
 /// The joints of a JointState in the controller's order, if it has them all.
 fn joints(m: &sensor_msgs::JointState) -> Option<JointVector> {
@@ -23,7 +23,9 @@ fn real_motion_deg(first: &JointVector, now: &Latest<sensor_msgs::JointState>) -
     Ok((q - first).amax().to_degrees())
 }
 
-/// Start the controller in a dry run and wait for DONE; judge: no command on the driver's
+/// Start the controller in a dry run and wait for DONE; judge: its code `done_code` (the
+/// ghost never meets the seal: DEPTH_UNVERIFIED, the DONE that says the depth was not
+/// verified, where a docking would hold DEPTH_UNCERTAIN), no command on the driver's
 /// topic, at least `min_commands` on the preview topic, the ghost's joints the last
 /// preview command, the real arm still within `max_hold_motion_deg`, the ghost's tip at
 /// the goal.
@@ -43,6 +45,7 @@ pub fn dry_run(p: &CheckParams) -> Result<String, String> {
     if done.phase != "DONE" {
         return Err(format!("ABORTED: {}", done.hold_reason));
     }
+    check_done_code(p, &done)?;
     // Let the last commands arrive.
     std::thread::sleep(std::time::Duration::from_millis(500));
     if driver.count() > 0 {
@@ -79,8 +82,10 @@ pub fn dry_run(p: &CheckParams) -> Result<String, String> {
         ));
     }
     Ok(format!(
-        "the ghost DONE in {:.2} s, tip {:.2} mm from the goal, M = {:.2} N; {} preview commands, none to the driver; \
+        "the ghost DONE ({}: {}) in {:.2} s, tip {:.2} mm from the goal, M = {:.2} N; {} preview commands, none to the driver; \
          the real arm moved {moved:.4} deg",
+        done.hold_code,
+        done.hold_reason,
         done.elapsed,
         done.tip_to_goal * 1e3,
         done.metric_m,

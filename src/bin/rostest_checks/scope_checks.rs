@@ -268,10 +268,7 @@ fn dock(p: &CheckParams) -> Result<(), String> {
     if p.call_start {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
     }
-    let s = wait_for(p.time_limit, || {
-        status.get().filter(|s| s.phase == "DONE" || s.phase == "ABORTED")
-    })
-    .ok_or_else(|| format!("not DONE after {} s: {:?}", p.time_limit, status.get().map(|s| s.phase)))?;
+    let s = crate::docking_checks::wait_for_end(p, &status)?;
     if s.phase != "DONE" {
         return Err(format!("docking ABORTED: {}", s.hold_reason));
     }

@@ -5,6 +5,8 @@
 use std::fmt;
 use std::sync::Arc;
 
+use crate::control::docking::depth::DepthBasis;
+
 /// Why the controller holds (or stopped). Cloning never allocates (texts are shared).
 #[derive(Debug, Clone, PartialEq)]
 pub enum HoldReason {
@@ -121,6 +123,17 @@ pub enum HoldReason {
         /// Whether the joint names arrived in another order.
         names_reordered: bool,
     },
+    /// At the goal, but the tip's depth is not known within the docking's tolerance
+    /// ([`crate::control::docking::depth`]): held there, latched, instead of DONE; `start`
+    /// accepts the depth (DONE).
+    DepthUncertain {
+        /// The depth's uncertainty, m (about 2 sigma).
+        uncertainty_m: f64,
+        /// The tolerance it passed, m.
+        tolerance_m: f64,
+        /// What the depth rests on.
+        basis: DepthBasis,
+    },
 }
 
 impl HoldReason {
@@ -151,11 +164,12 @@ impl HoldReason {
             HoldReason::ClockBack { .. } => "CLOCK_BACK",
             HoldReason::ClockForward { .. } => "CLOCK_FORWARD",
             HoldReason::DriverRestart { .. } => "DRIVER_RESTART",
+            HoldReason::DepthUncertain { .. } => "DEPTH_UNCERTAIN",
         }
     }
 
     /// Every code, for documentation and tests.
-    pub const CODES: [&'static str; 23] = [
+    pub const CODES: [&'static str; 24] = [
         "NO_JOINT_STATE",
         "STALE_JOINT_STATE",
         "NON_FINITE_JOINT_STATE",
@@ -179,6 +193,7 @@ impl HoldReason {
         "CLOCK_BACK",
         "CLOCK_FORWARD",
         "DRIVER_RESTART",
+        "DEPTH_UNCERTAIN",
     ];
 }
 
@@ -251,6 +266,16 @@ impl fmt::Display for HoldReason {
                 "the joint states restarted (stamps {stamp_jump_s:+.3} s{}): driver restarted? start again",
                 if *names_reordered { ", names in another order" } else { "" }
             ),
+            HoldReason::DepthUncertain {
+                uncertainty_m,
+                tolerance_m,
+                basis,
+            } => write!(
+                f,
+                "at the goal, but the tip's depth is known only to +-{:.1} mm (over the {:.1} mm tolerance): {basis}; check the depth in the endoscope's view, then start to accept it (DONE), or abort",
+                uncertainty_m * 1e3,
+                tolerance_m * 1e3
+            ),
         }
     }
 }
@@ -296,6 +321,11 @@ mod tests {
             HoldReason::DriverRestart {
                 stamp_jump_s: -3.0,
                 names_reordered: true,
+            },
+            HoldReason::DepthUncertain {
+                uncertainty_m: 0.0056,
+                tolerance_m: 0.002,
+                basis: DepthBasis::Estimate,
             },
         ]
     }

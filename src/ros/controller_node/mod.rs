@@ -263,6 +263,7 @@ pub fn run() -> Result<(), NodeError> {
     cp.force_feedback = p.force_feedback;
     let mut controller = Controller::new(cp.clone(), kin.limits().clone())
         .map_err(|e| NodeError::Invalid(format!("controller: {e}")))?;
+    controller.set_dry_run(p.dry_run);
     let (inputs, _subs) = inputs::subscribe(&p)?;
     let (client, server) = handover::requests::<Request, Reply>(8);
     let _preflight = preflight_services(&p, &kin, &client)?;
