@@ -6,6 +6,7 @@ use trocar_docking::kinematics::lbr::{LbrModel, ToolParams};
 use trocar_docking::kinematics::{JointLimits, Kinematics, LbrKinematics};
 use trocar_docking::trials::batch::{run_arm, ArmReport};
 use trocar_docking::trials::config::{load_controller, SimConfig};
+use trocar_docking::trials::run::Outcome;
 
 fn kin() -> Result<Arc<dyn Kinematics>, String> {
     LbrKinematics::from_model(LbrModel::Med7, &ToolParams::default())
@@ -54,7 +55,20 @@ fn force_feedback_lowers_contact_forces() {
     let ff = run(&cfg, true, 2);
     let m = |r: &ArmReport| r.trials.iter().map(|t| t.m_true).sum::<f64>();
     let peak = |r: &ArmReport| r.summary.max_force_true_n;
-    assert!(no_ff.summary.successes >= 5 && ff.summary.successes >= 5);
+    // Both arms go the whole way in: DONE, or held at the goal on the depth's uncertainty
+    // (the paper world's pose noise; control::docking::depth), so M covers whole insertions.
+    let inserted = |r: &ArmReport| {
+        r.trials
+            .iter()
+            .filter(|t| matches!(t.outcome, Outcome::Docked | Outcome::DepthUncertain))
+            .count()
+    };
+    assert!(
+        inserted(&no_ff) >= 5 && inserted(&ff) >= 5,
+        "inserted without FF {}, with {}",
+        inserted(&no_ff),
+        inserted(&ff)
+    );
     assert!(
         m(&ff) < 0.7 * m(&no_ff),
         "M with FF {} vs without {}",

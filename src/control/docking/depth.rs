@@ -768,9 +768,9 @@ mod tests {
             "{r:?}"
         );
         assert_eq!(r.correction, 0.0);
-        // A seal 13 mm from where the estimate puts it: more than the 7.2 mm of the
-        // calibration and the pose's own 4 mm.
-        assert!((p.refusal_bound() - 0.0112).abs() < 1e-4, "{}", p.refusal_bound());
+        // A seal 13 mm from where the estimate puts it: more than the 7.2 mm of the shipped
+        // calibration (2 mm + 1 deg x 0.3 m; the pose's own error 0 as shipped).
+        assert!((p.refusal_bound() - 0.0072).abs() < 1e-4, "{}", p.refusal_bound());
         let d = dock(&p, -0.013, 0.0, true, false);
         match d.basis() {
             DepthBasis::Refused { correction, bound } => {
