@@ -279,6 +279,38 @@ pub fn check_done_code(p: &CheckParams, done: &trocar_docking::DockingStatus) ->
     Ok(())
 }
 
+/// A DONE the surgeon can trust: unless a dry run's (`DEPTH_UNVERIFIED`) or one the test
+/// accepted from a `DEPTH_UNCERTAIN` hold, the status at DONE must carry the tip's depth known
+/// within the controller's own `depth.tolerance_m` (its parameter, as the node loaded it).
+/// Returns the depth's note for the success line.
+fn check_done_depth(p: &CheckParams, done: &trocar_docking::DockingStatus, accepted: bool) -> Result<String, String> {
+    let key = format!("{}/controller/depth/tolerance_m", p.controller);
+    let tolerance: f64 = rosrust::param(&key)
+        .ok_or_else(|| format!("bad name {key}"))?
+        .get()
+        .map_err(|e| format!("{key}: {e}"))?;
+    judge_done_depth(done, accepted, tolerance)
+}
+
+/// [`check_done_depth`]'s rule, for `tolerance` m.
+fn judge_done_depth(done: &trocar_docking::DockingStatus, accepted: bool, tolerance: f64) -> Result<String, String> {
+    let text = format!(
+        "{} {:+.1} mm, known to +-{:.1} mm",
+        done.depth_basis,
+        done.depth_correction * 1e3,
+        done.depth_uncertainty * 1e3
+    );
+    let verified = done.depth_uncertainty <= tolerance && !done.depth_basis.is_empty();
+    if verified || accepted || done.hold_code == "DEPTH_UNVERIFIED" {
+        Ok(format!("; depth {text}"))
+    } else {
+        Err(format!(
+            "DONE, but the status's depth ({text}) is not known within the {:.1} mm tolerance",
+            tolerance * 1e3
+        ))
+    }
+}
+
 /// Start the controller (unless the launch does) and wait for DONE within the time limit;
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
@@ -320,6 +352,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         ));
     }
     check_done_code(p, &done)?;
+    let depth = check_done_depth(p, &done, !accepted.is_empty())?;
     // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::docking::seated`).
     let mut note = if done.hold_reason.is_empty() {
         String::new()
@@ -327,6 +360,7 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         format!("; {}", done.hold_reason)
     };
     note.push_str(&accepted);
+    note.push_str(&depth);
     if let Some(insert) = insert {
         note.push_str(&insert.judge(p.max_tip_rms_speed)?);
     }
@@ -501,4 +535,37 @@ pub fn stale_hold(p: &CheckParams) -> Result<String, String> {
         return Err(format!("left HOLD on its own: phase {}", s.phase));
     }
     Ok(format!("HOLD: {}", held.hold_reason))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn done(basis: &str, uncertainty: f64, code: &str) -> trocar_docking::DockingStatus {
+        trocar_docking::DockingStatus {
+            phase: "DONE".into(),
+            hold_code: code.into(),
+            depth_basis: basis.into(),
+            depth_correction: 0.0004,
+            depth_uncertainty: uncertainty,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_done_passes_only_with_its_depth_known_within_the_tolerance() {
+        let ok = judge_done_depth(&done("SEAL", 0.0015, ""), false, 0.002).unwrap();
+        assert!(ok.contains("SEAL +0.4 mm") && ok.contains("+-1.5 mm"), "{ok}");
+        for bad in [
+            done("SEAL", 0.0021, ""),
+            done("ESTIMATE", f64::NAN, ""),
+            done("", 0.001, ""),
+        ] {
+            let e = judge_done_depth(&bad, false, 0.002).unwrap_err();
+            assert!(e.contains("not known within the 2.0 mm tolerance"), "{e}");
+        }
+        // A hold the surgeon accepted, and a dry run's DONE, say what they are.
+        assert!(judge_done_depth(&done("NO_SEAL", 0.0021, ""), true, 0.002).is_ok());
+        assert!(judge_done_depth(&done("ESTIMATE", 0.006, "DEPTH_UNVERIFIED"), false, 0.002).is_ok());
+    }
 }

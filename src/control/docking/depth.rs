@@ -147,6 +147,18 @@ pub enum DepthBasis {
     },
 }
 
+impl DepthBasis {
+    /// A stable code for the status and tools: `ESTIMATE`, `NO_SEAL`, `SEAL`, `REFUSED`.
+    pub fn code(&self) -> &'static str {
+        match self {
+            DepthBasis::Estimate => "ESTIMATE",
+            DepthBasis::NoSeal => "NO_SEAL",
+            DepthBasis::Seal { .. } => "SEAL",
+            DepthBasis::Refused { .. } => "REFUSED",
+        }
+    }
+}
+
 impl fmt::Display for DepthBasis {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {

@@ -242,6 +242,7 @@ fn control_loop(
         records.push(StepRecord {
             stamp,
             trocar: input.trocar.map(|t| t.value),
+            depth: controller.depth(),
             ages_ms: (age(input.trocar.map(|t| t.stamp)), age(input.joints.map(|j| j.stamp))),
             elapsed: st.start_time.map_or(0.0, |t0| now - t0),
             fault,

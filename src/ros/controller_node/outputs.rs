@@ -14,6 +14,7 @@ use std::time::Duration;
 use nalgebra::{Isometry3, Point3};
 
 use super::ControllerNodeParams;
+use crate::control::docking::depth::DepthReport;
 use crate::control::ControlOutput;
 use crate::kinematics::JointVector;
 use crate::ros::convert;
@@ -32,6 +33,8 @@ pub struct StepRecord {
     pub out: ControlOutput,
     /// The trocar pose the step used.
     pub trocar: Option<Isometry3<f64>>,
+    /// The tip's depth as the controller knows it (None before INSERT).
+    pub depth: Option<DepthReport>,
     /// The first input fault at this step.
     pub fault: Option<FaultText>,
     /// Seconds since start.
@@ -284,6 +287,9 @@ fn status_msg(frame: &str, r: &StepRecord, s: &LoopSnapshot) -> trocar_docking::
         scope_limit: pivot
             .and_then(|p| p.limit)
             .map_or_else(String::new, |l| l.code().to_string()),
+        depth_correction: r.depth.map_or(0.0, |d| d.correction),
+        depth_uncertainty: r.depth.map_or(f64::NAN, |d| d.uncertainty),
+        depth_basis: r.depth.map_or("", |d| d.basis.code()).to_string(),
     }
 }
 
@@ -337,6 +343,7 @@ mod tests {
             stamp: convert::ros_time(10.0),
             out,
             trocar: None,
+            depth: None,
             fault: None,
             elapsed: 1.0,
             ages_ms: (0.0, 0.0),
@@ -379,5 +386,31 @@ mod tests {
         let s = status_msg("lbr_link_0", &record(out(None)), &LoopSnapshot::default());
         assert!(s.fulcrum.x.is_nan() && s.shaft_to_fulcrum.is_nan() && s.lateral_force.is_nan());
         assert_eq!(s.scope_limit, "");
+    }
+
+    #[test]
+    fn the_status_carries_the_depth_and_what_it_rests_on() {
+        use crate::control::docking::depth::DepthBasis;
+        let s = status_msg("lbr_link_0", &record(out(None)), &LoopSnapshot::default());
+        assert!(s.depth_uncertainty.is_nan() && s.depth_correction == 0.0 && s.depth_basis.is_empty());
+        let mut r = record(ControlOutput::empty(Phase::Done));
+        r.depth = Some(DepthReport {
+            correction: 0.0031,
+            uncertainty: 0.0015,
+            basis: DepthBasis::Seal { correction: 0.0031 },
+        });
+        let s = status_msg("lbr_link_0", &r, &LoopSnapshot::default());
+        assert_eq!((s.depth_correction, s.depth_uncertainty), (0.0031, 0.0015));
+        assert_eq!(s.depth_basis, "SEAL");
+        r.depth = Some(DepthReport {
+            correction: 0.0,
+            uncertainty: 0.0056,
+            basis: DepthBasis::Refused {
+                correction: 0.013,
+                bound: 0.0072,
+            },
+        });
+        let s = status_msg("lbr_link_0", &r, &LoopSnapshot::default());
+        assert_eq!((s.depth_basis.as_str(), s.depth_correction), ("REFUSED", 0.0));
     }
 }
