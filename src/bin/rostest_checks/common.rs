@@ -46,6 +46,10 @@ pub struct CheckParams {
     /// surgeon does after checking the depth in the endoscope's view, and DONE expected
     /// after it (false: that hold fails the docking).
     pub accept_depth_uncertain: bool,
+    /// `docking`: as `accept_depth_uncertain`, but only a hold whose depth rests on a seal
+    /// met and refused (`depth_basis` REFUSED: farther off the estimate than the calibration
+    /// explains); a seal never felt still fails the docking.
+    pub accept_refused_seal: bool,
     /// `stale_hold`, `bad_input`: how long the command must stay still once held, s.
     pub hold_observe: f64,
     /// `bad_input`: the largest accepted motion of a joint (the arm's, the command's) once
@@ -200,6 +204,7 @@ impl Default for CheckParams {
             hold_code: "STALE_TROCAR_POSE".into(),
             done_code: String::new(),
             accept_depth_uncertain: false,
+            accept_refused_seal: false,
             hold_observe: 1.0,
             max_hold_motion_deg: 0.01,
             min_status: 10,

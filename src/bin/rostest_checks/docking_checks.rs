@@ -236,20 +236,24 @@ pub fn wait_for_end(
     })
 }
 
-/// [`wait_for_end`]; with `accept_depth_uncertain`, a hold DEPTH_UNCERTAIN at the goal on
-/// the way is accepted once by `~start` (the surgeon's acceptance): the end's status with the
-/// docking's M and time before the hold counted (the status after the start counts from the
-/// start), and a note of the hold.
+/// [`wait_for_end`]; with `accept_depth_uncertain` (or `accept_refused_seal`, for a hold on a
+/// refused seal only), a hold DEPTH_UNCERTAIN at the goal on the way is accepted once by
+/// `~start` (the surgeon's acceptance): the end's status with the docking's M and time before
+/// the hold counted (the status after the start counts from the start), and a note of the
+/// hold.
 fn wait_for_end_accepting(
     p: &CheckParams,
     status: &Latest<trocar_docking::DockingStatus>,
 ) -> Result<(trocar_docking::DockingStatus, String), String> {
-    if !p.accept_depth_uncertain {
+    if !p.accept_depth_uncertain && !p.accept_refused_seal {
         return wait_for_end(p, status).map(|d| (d, String::new()));
     }
+    let acceptable = |s: &trocar_docking::DockingStatus| p.accept_depth_uncertain || s.depth_basis == "REFUSED";
     let held = wait_for(p.time_limit, || {
         status.get().filter(|s| {
-            s.phase == "DONE" || s.phase == "ABORTED" || (s.phase == "HOLD" && s.hold_code == "DEPTH_UNCERTAIN")
+            s.phase == "DONE"
+                || s.phase == "ABORTED"
+                || (s.phase == "HOLD" && s.hold_code == "DEPTH_UNCERTAIN" && acceptable(s))
         })
     });
     match held {
