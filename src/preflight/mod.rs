@@ -22,6 +22,12 @@ use crate::control::force::tare::TareParams;
 use crate::kinematics::{Kinematics, N_JOINTS};
 use crate::sim::scenario::Scenario;
 
+/// How long a right image may trail its left one on the wire before the left image counts
+/// as unpaired in `STEREO`, s: the two images travel on two topics, and the newest left
+/// images of a window may still wait for theirs (the rostests' image latency reached p99
+/// 150 ms at 15 Hz on a busy 2-core host, 2026-12-07).
+pub const STEREO_IN_FLIGHT_S: f64 = 0.25;
+
 pub mod camera_clock;
 pub use camera_clock::{CameraClock, CameraClockTolerance};
 
@@ -594,13 +600,19 @@ fn stereo(obs: &Observations, lim: &Limits) -> Check {
         Some(Ok(b)) => Ok(*b),
     };
     let skew = crate::vision::STEREO_MAX_SKEW_S;
-    // From the first right image on (its subscriber may connect after the left one's).
+    // From the first right image on (its subscriber may connect after the left one's), to
+    // the last: left images newer than the newest right one are still in flight on the
+    // other topic while that is within STEREO_IN_FLIGHT_S of the newest left image (a right
+    // stream that stopped earlier counts against it).
     let first = r.stamps.iter().copied().fold(f64::INFINITY, f64::min);
+    let last = r.stamps.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let newest = c.image_stamps.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let in_flight = |t: f64| newest - last <= STEREO_IN_FLIGHT_S && t > last + skew;
     let left: Vec<f64> = c
         .image_stamps
         .iter()
         .copied()
-        .filter(|t| r.stamps.is_empty() || *t >= first - skew)
+        .filter(|t| r.stamps.is_empty() || (*t >= first - skew && !in_flight(*t)))
         .collect();
     let paired = left
         .iter()

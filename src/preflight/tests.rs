@@ -368,6 +368,15 @@ fn the_stereo_check_wants_a_right_image_with_nearly_every_left_one_and_a_baselin
     let (c, _) = stereo(&with_right(paired[4..].to_vec(), b.clone()));
     assert_eq!(c.verdict, Verdict::Pass, "{c}");
     assert!(c.detail.contains("12 of 12"), "{c}");
+    // The last two right images still on the wire (the newest right 0.13 s before the newest
+    // left): those two left images are not judged yet. A right stream that stopped half-way
+    // (0.53 s before the newest left image) fails.
+    let (c, _) = stereo(&with_right(paired[..14].to_vec(), b.clone()));
+    assert_eq!(c.verdict, Verdict::Pass, "{c}");
+    assert!(c.detail.contains("14 of 14"), "{c}");
+    let (c, f) = stereo(&with_right(paired[..8].to_vec(), b.clone()));
+    assert_eq!(f, vec!["STEREO"]);
+    assert!(c.detail.contains("8 of 16"), "{c}");
     // One of 16 missing passes (the rate tolerance, 10 %); one in three missing fails, and
     // it fails STEREO alone.
     let mut one_lost = paired.clone();

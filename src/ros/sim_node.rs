@@ -33,6 +33,12 @@ use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions,
 
 use super::node::{ros_err, CommandType, NodeError};
 
+/// The simulated camera's publisher queue, per subscriber (rosrust drops the oldest message of
+/// a connection whose queue is full): 4 frames, 0.27 s at 15 Hz, so that a subscriber whose
+/// reading thread is starved for a few frames (the preflight's STEREO pairing on a busy host)
+/// still gets every left and right image; a subscriber's own queue keeps it fresh.
+const CAMERA_QUEUE: usize = 4;
+
 /// Parameters of the node (its private namespace; `config/lbr_med_sim.yaml`, whose values,
 /// built in, are the defaults: [`crate::config::LBR_MED_SIM`]).
 #[derive(Debug, Clone, serde::Deserialize)]
@@ -477,12 +483,14 @@ impl SimCamera {
                 .render(&model, &marker.check_pose())
                 .map_err(|e| invalid("render", &e))?;
         }
-        let pub_img = rosrust::publish::<sensor_msgs::Image>(&p.image_topic, 2).map_err(ros_err)?;
-        let pub_info = rosrust::publish::<sensor_msgs::CameraInfo>(&p.camera_info_topic, 2).map_err(ros_err)?;
+        let pub_img = rosrust::publish::<sensor_msgs::Image>(&p.image_topic, CAMERA_QUEUE).map_err(ros_err)?;
+        let pub_info =
+            rosrust::publish::<sensor_msgs::CameraInfo>(&p.camera_info_topic, CAMERA_QUEUE).map_err(ros_err)?;
         let right = match scene.right_camera() {
             Some(_) => Some((
-                rosrust::publish::<sensor_msgs::Image>(&p.right_image_topic, 2).map_err(ros_err)?,
-                rosrust::publish::<sensor_msgs::CameraInfo>(&p.right_camera_info_topic, 2).map_err(ros_err)?,
+                rosrust::publish::<sensor_msgs::Image>(&p.right_image_topic, CAMERA_QUEUE).map_err(ros_err)?,
+                rosrust::publish::<sensor_msgs::CameraInfo>(&p.right_camera_info_topic, CAMERA_QUEUE)
+                    .map_err(ros_err)?,
             )),
             None => None,
         };
