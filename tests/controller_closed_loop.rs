@@ -446,3 +446,51 @@ fn the_controller_low_passes_every_raw_torque_sample() {
     assert!((newest[4] - expected).norm() < 1e-9 * full.norm(), "{:?}", newest[4]);
     assert!((newest[4] - every[4]).norm() > 0.5 * full.norm());
 }
+
+/// The DONE gate judges on for `depth.gate_wait_s` after its first failure, then holds: with
+/// the shipped gate and no seal felt (the figure is the calibration's ~5.4 mm, over the 2 mm
+/// tolerance at every step), a docking holds DEPTH_UNCERTAIN the wait after the step at which
+/// no wait would have held it, in INSERT until then; a dry run's DONE, which verifies
+/// nothing, does not wait.
+#[test]
+fn the_depth_gate_judges_on_for_its_wait_then_holds() {
+    let kin = kin();
+    let (q0, trocar) = scenario(&kin, 20.0, Vector3::new(0.3, 1.0, 0.0));
+    let run = |wait_s: f64, dry_run: bool| {
+        let mut params = ControllerParams::default();
+        params.depth.gate_wait_s = wait_s;
+        let mut c = Controller::new(params.clone(), kin.limits().clone()).unwrap();
+        c.set_dry_run(dry_run);
+        c.start().unwrap();
+        let (mut q, mut k, mut phases) = (q0, 0, vec![]);
+        loop {
+            k += 1;
+            let now = k as f64 * params.dt_s;
+            let out = c.step(&kin, &fresh_input(now, q, trocar));
+            q = out.command.unwrap_or(q);
+            phases.push(out.phase);
+            if out.phase == Phase::Done || out.phase == Phase::Hold || now > 10.0 {
+                return (k, out.reason_code().to_string(), phases);
+            }
+        }
+    };
+    let (k0, code0, _) = run(0.0, false);
+    assert_eq!(code0, "DEPTH_UNCERTAIN");
+    let wait = ControllerParams::default().depth.gate_wait_s;
+    assert!(wait > 0.0, "the shipped gate waits");
+    let (k1, code1, phases) = run(wait, false);
+    assert_eq!(code1, "DEPTH_UNCERTAIN");
+    let steps = (wait / ControllerParams::default().dt_s).round() as usize;
+    assert_eq!(
+        k1,
+        k0 + steps,
+        "held {} steps after the first failure, {steps} expected",
+        k1 - k0
+    );
+    assert!(
+        phases[k0 - 1..k1 - 1].iter().all(|p| *p == Phase::Insert),
+        "inserting while the gate judges on"
+    );
+    let (kd, coded, _) = run(wait, true);
+    assert_eq!((kd, coded.as_str()), (k0, "DEPTH_UNVERIFIED"), "a dry run ends at once");
+}

@@ -91,6 +91,9 @@ struct RunState {
     depth: DepthEstimate,
     /// The depth's report of the last INSERT step.
     depth_report: Option<DepthReport>,
+    /// The DONE gate's last failing report at the goal, and how long ago the first failed, s:
+    /// the gate judges on for `depth.gate_wait_s`, then holds.
+    depth_failed: Option<(DepthReport, f64)>,
     /// The tip-to-goal error and the alignment angle, averaged over windows in INSERT.
     goal_window: GoalWindow,
     /// The commanded tip motion, for its limits.
@@ -691,40 +694,62 @@ impl OptimalController {
                         .update(&p.seated, axis, goal_depth, &state, dt)
                         .map(|s| Some(DoneNote::Seated(s)))
                 };
-                if let Some(note) = reached {
-                    // DONE only while the depth is known within the tolerance.
-                    let d = &p.depth;
-                    let depth = axis.depth_of(&tip_p);
-                    let mut report = r.depth.report(d, depth, axis_filter(p));
-                    // The bound on the tip's distance from the goal depth: where it is on the
-                    // estimate (the seated test allows millimetres) and how well that is known.
-                    report.uncertainty += (depth - goal_depth).abs();
-                    r.depth_report = Some(report);
-                    if report.uncertainty <= d.tolerance_m {
-                        r.supervisor.goal_reached(note);
-                    } else if self.dry_run {
-                        // The ghost never meets the seal: the rehearsal ends, saying so.
-                        r.supervisor.goal_reached(Some(DoneNote::DepthUnverified {
-                            uncertainty_m: report.uncertainty,
-                            tolerance_m: d.tolerance_m,
-                            basis: report.basis,
-                        }));
-                    } else {
-                        r.supervisor.depth_uncertain(HoldReason::DepthUncertain {
-                            uncertainty_m: report.uncertainty,
-                            tolerance_m: d.tolerance_m,
-                            basis: report.basis,
-                        });
-                    }
-                }
+                self.depth_gate(reached, axis.depth_of(&tip_p), goal_depth, dt);
             }
             _ => {}
         }
+        let r = &mut self.run;
         if r.supervisor.phase() != Phase::Insert {
             r.seated.reset();
         }
         if r.supervisor.phase() != phase {
             r.goal_window.reset();
+            r.depth_failed = None;
+        }
+    }
+
+    /// The DONE gate, in INSERT: with the goal `reached` this step (and the note DONE would
+    /// carry), DONE only while the depth's figure (its uncertainty plus the tip's distance
+    /// from the goal depth `goal_depth` on the estimate of this step, the tip at `depth`) is
+    /// within the tolerance;
+    /// otherwise judged on at the next steps for `depth.gate_wait_s` from the first failure,
+    /// then HOLD `DEPTH_UNCERTAIN` (a dry run ends DONE, `DEPTH_UNVERIFIED`, at once).
+    fn depth_gate(&mut self, reached: Option<Option<DoneNote>>, depth: f64, goal_depth: f64, dt: f64) {
+        let d = &self.params.depth;
+        let r = &mut self.run;
+        if let Some(note) = reached {
+            let mut report = r.depth.report(d, depth, axis_filter(&self.params));
+            report.uncertainty += (depth - goal_depth).abs();
+            r.depth_report = Some(report);
+            if report.uncertainty <= d.tolerance_m {
+                r.supervisor.goal_reached(note);
+            } else if self.dry_run {
+                // The ghost never meets the seal: the rehearsal ends, saying so.
+                r.supervisor.goal_reached(Some(DoneNote::DepthUnverified {
+                    uncertainty_m: report.uncertainty,
+                    tolerance_m: d.tolerance_m,
+                    basis: report.basis,
+                }));
+            } else {
+                // Judged again at the next steps at the goal: each pose moves the goal, and
+                // the tip follows it within ~0.1 s.
+                let waited = r.depth_failed.map_or(0.0, |(_, w)| w);
+                r.depth_failed = Some((report, waited));
+            }
+        }
+        // The wait runs from the first failure, at the goal or not.
+        if let Some((report, waited)) = r.depth_failed.filter(|_| r.supervisor.phase() == Phase::Insert) {
+            if waited >= d.gate_wait_s - 1e-9 {
+                // The status carries the figure the hold names.
+                r.depth_report = Some(report);
+                r.supervisor.depth_uncertain(HoldReason::DepthUncertain {
+                    uncertainty_m: report.uncertainty,
+                    tolerance_m: d.tolerance_m,
+                    basis: report.basis,
+                });
+            } else {
+                r.depth_failed = Some((report, waited + dt));
+            }
         }
     }
 

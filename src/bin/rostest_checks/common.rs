@@ -50,6 +50,11 @@ pub struct CheckParams {
     /// met and refused (`depth_basis` REFUSED: farther off the estimate than the calibration
     /// explains); a seal never felt still fails the docking.
     pub accept_refused_seal: bool,
+    /// `docking`: as `accept_depth_uncertain`, but only a hold whose depth was refined at the
+    /// seal (`depth_basis` SEAL) with a figure within [`SEAL_EDGE_FACTOR`] times the
+    /// controller's tolerance: the gate's caution at its edge (the seal's spread and the tip's
+    /// distance from a breathing port's goal); a seal never felt, or refused, still fails.
+    pub accept_seal_edge: bool,
     /// `stale_hold`, `bad_input`: how long the command must stay still once held, s.
     pub hold_observe: f64,
     /// `bad_input`: the largest accepted motion of a joint (the arm's, the command's) once
@@ -188,6 +193,8 @@ pub struct CheckParams {
 }
 
 impl Default for CheckParams {
+    // A table of every check's defaults, one line each: data, not logic.
+    #[allow(clippy::too_many_lines)]
     fn default() -> Self {
         Self {
             controller: "/docking_controller".into(),
@@ -205,6 +212,7 @@ impl Default for CheckParams {
             done_code: String::new(),
             accept_depth_uncertain: false,
             accept_refused_seal: false,
+            accept_seal_edge: false,
             hold_observe: 1.0,
             max_hold_motion_deg: 0.01,
             min_status: 10,

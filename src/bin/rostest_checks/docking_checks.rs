@@ -236,8 +236,9 @@ pub fn wait_for_end(
     })
 }
 
-/// [`wait_for_end`]; with `accept_depth_uncertain` (or `accept_refused_seal`, for a hold on a
-/// refused seal only), a hold DEPTH_UNCERTAIN at the goal on the way is accepted once by
+/// [`wait_for_end`]; with `accept_depth_uncertain` (or `accept_refused_seal`,
+/// `accept_seal_edge`: [`hold_acceptable`]), a hold DEPTH_UNCERTAIN at the goal on the way is
+/// accepted once by
 /// `~start` (the surgeon's acceptance): the end's status with the docking's M and time before
 /// the hold counted (the status after the start counts from the start), and a note of the
 /// hold.
@@ -245,10 +246,11 @@ fn wait_for_end_accepting(
     p: &CheckParams,
     status: &Latest<trocar_docking::DockingStatus>,
 ) -> Result<(trocar_docking::DockingStatus, String), String> {
-    if !p.accept_depth_uncertain && !p.accept_refused_seal {
+    if !p.accept_depth_uncertain && !p.accept_refused_seal && !p.accept_seal_edge {
         return wait_for_end(p, status).map(|d| (d, String::new()));
     }
-    let acceptable = |s: &trocar_docking::DockingStatus| p.accept_depth_uncertain || s.depth_basis == "REFUSED";
+    let tolerance = depth_tolerance(p)?;
+    let acceptable = |s: &trocar_docking::DockingStatus| hold_acceptable(p, s, tolerance);
     let held = wait_for(p.time_limit, || {
         status.get().filter(|s| {
             s.phase == "DONE"
@@ -272,6 +274,28 @@ fn wait_for_end_accepting(
     }
 }
 
+/// How far over the controller's depth tolerance a hold whose depth was refined at the seal
+/// may be for `accept_seal_edge`: the seal's 1 mm spread and the tip's distance from a
+/// breathing port's goal put the figure 1.1-2.2 mm in the `docking` rostest (2 mm tolerance).
+pub const SEAL_EDGE_FACTOR: f64 = 1.5;
+
+/// Whether a DEPTH_UNCERTAIN hold `s` is one the test accepts by `~start`, with the
+/// controller's depth tolerance `tolerance` m.
+fn hold_acceptable(p: &CheckParams, s: &trocar_docking::DockingStatus, tolerance: f64) -> bool {
+    p.accept_depth_uncertain
+        || (p.accept_refused_seal && s.depth_basis == "REFUSED")
+        || (p.accept_seal_edge && s.depth_basis == "SEAL" && s.depth_uncertainty <= SEAL_EDGE_FACTOR * tolerance)
+}
+
+/// The controller's own `depth.tolerance_m`, as the node loaded it, m.
+fn depth_tolerance(p: &CheckParams) -> Result<f64, String> {
+    let key = format!("{}/controller/depth/tolerance_m", p.controller);
+    rosrust::param(&key)
+        .ok_or_else(|| format!("bad name {key}"))?
+        .get()
+        .map_err(|e| format!("{key}: {e}"))
+}
+
 /// At DONE, the status's code must be `done_code` (unless that is empty).
 pub fn check_done_code(p: &CheckParams, done: &trocar_docking::DockingStatus) -> Result<(), String> {
     if !p.done_code.is_empty() && done.hold_code != p.done_code {
@@ -288,12 +312,7 @@ pub fn check_done_code(p: &CheckParams, done: &trocar_docking::DockingStatus) ->
 /// within the controller's own `depth.tolerance_m` (its parameter, as the node loaded it).
 /// Returns the depth's note for the success line.
 fn check_done_depth(p: &CheckParams, done: &trocar_docking::DockingStatus, accepted: bool) -> Result<String, String> {
-    let key = format!("{}/controller/depth/tolerance_m", p.controller);
-    let tolerance: f64 = rosrust::param(&key)
-        .ok_or_else(|| format!("bad name {key}"))?
-        .get()
-        .map_err(|e| format!("{key}: {e}"))?;
-    judge_done_depth(done, accepted, tolerance)
+    judge_done_depth(done, accepted, depth_tolerance(p)?)
 }
 
 /// [`check_done_depth`]'s rule, for `tolerance` m.
@@ -571,5 +590,35 @@ mod tests {
         // A hold the surgeon accepted, and a dry run's DONE, say what they are.
         assert!(judge_done_depth(&done("NO_SEAL", 0.0021, ""), true, 0.002).is_ok());
         assert!(judge_done_depth(&done("ESTIMATE", 0.006, "DEPTH_UNVERIFIED"), false, 0.002).is_ok());
+    }
+
+    /// Which DEPTH_UNCERTAIN holds each option accepts: any; a refused seal only; a seal met
+    /// whose figure is at the tolerance's edge only (never a seal not felt, or refused, or a
+    /// figure far over the tolerance).
+    #[test]
+    fn each_option_accepts_only_its_own_holds() {
+        let hold = |basis: &str, u: f64| trocar_docking::DockingStatus {
+            phase: "HOLD".into(),
+            hold_code: "DEPTH_UNCERTAIN".into(),
+            ..done(basis, u, "DEPTH_UNCERTAIN")
+        };
+        let with = |any: bool, refused: bool, edge: bool| CheckParams {
+            accept_depth_uncertain: any,
+            accept_refused_seal: refused,
+            accept_seal_edge: edge,
+            ..Default::default()
+        };
+        let cases = [
+            hold("SEAL", 0.0022),
+            hold("SEAL", 0.0031),
+            hold("REFUSED", 0.0056),
+            hold("ESTIMATE", 0.0056),
+        ];
+        let accepted = |p: &CheckParams| cases.iter().map(|s| hold_acceptable(p, s, 0.002)).collect::<Vec<_>>();
+        assert_eq!(accepted(&with(true, false, false)), [true, true, true, true]);
+        assert_eq!(accepted(&with(false, true, false)), [false, false, true, false]);
+        assert_eq!(accepted(&with(false, false, true)), [true, false, false, false]);
+        assert_eq!(accepted(&with(false, true, true)), [true, false, true, false]);
+        assert_eq!(accepted(&with(false, false, false)), [false, false, false, false]);
     }
 }

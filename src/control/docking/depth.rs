@@ -43,8 +43,9 @@
 //!   ([`DepthEstimate::observe_pose`]), times the root of the share V of white noise's
 //!   variance the controller's filter keeps ([`AxisFilter::noise_gains`]).
 //!
-//! DONE needs it within `tolerance_m`; otherwise the controller holds, DEPTH_UNCERTAIN, with the
-//! figure and its basis. Nothing allocates: the histories are fixed arrays.
+//! DONE needs it, plus the tip's distance from the goal depth on the estimate of that
+//! instant, within `tolerance_m`; the gate judges every step at the goal for up to
+//! `gate_wait_s`, then the controller holds, DEPTH_UNCERTAIN, with the figure and its basis. Nothing allocates: the histories are fixed arrays.
 
 use std::fmt;
 
@@ -85,6 +86,11 @@ pub struct DepthParams {
     pub pose_axial_error_m: f64,
     /// DONE only while the depth's uncertainty is within this, m.
     pub tolerance_m: f64,
+    /// At the goal with the depth's figure over the tolerance, how long the gate goes on
+    /// judging each step before it holds, s (0: hold at once). The figure holds the tip's
+    /// distance from the goal on the estimate of that instant, which each new pose moves
+    /// (the tip trails a breathing port by up to ~1 mm right after a pose).
+    pub gate_wait_s: f64,
 }
 
 crate::shipped_defaults!(DepthParams, crate::config::CONTROLLER, ["depth"]);
@@ -108,6 +114,7 @@ impl DepthParams {
         validate::non_negative("depth.camera_lever_m", self.camera_lever_m)?;
         validate::non_negative("depth.pose_axial_error_m", self.pose_axial_error_m)?;
         validate::positive("depth.tolerance_m", self.tolerance_m)?;
+        validate::in_range("depth.gate_wait_s", self.gate_wait_s, 0.0, 5.0)?;
         Ok(())
     }
 
