@@ -31,7 +31,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use crate::control::live::LiveValues;
-use crate::control::{Controller, HoldReason};
+use crate::control::{Controller, HoldReason, Phase};
 use crate::kinematics::{Kinematics, LbrKinematics, TIP_LINK};
 use crate::ros::convert;
 use crate::ros::handover::{self, OutputSender, RequestClient, RequestServer};
@@ -54,6 +54,8 @@ enum Request {
     Retract,
     /// Live-tuned values ([`crate::ros::reconfigure`]), applied between two steps.
     Reconfigure(LiveValues),
+    /// The controller's phase (`Ok`, its code), for `~start` to know a fresh docking.
+    Phase,
 }
 
 /// How long a service waits for the loop to take its request.
@@ -101,7 +103,10 @@ fn preflight_services(
     let check = reply_service("~preflight", move || preflight_reply(&pc, kc.as_ref()))?;
     let (ps, ks, client) = (p.clone(), kin.clone(), client.clone());
     let start = reply_service("~start", move || {
-        if ps.preflight_on_start {
+        // Only a docking that begins from IDLE, with the arm at rest: a start that resumes a
+        // hold or accepts the depth finds the scope in the trocar, touched by it and moved by
+        // the breathing, where the at-rest checks cannot pass (the loop checks the resume).
+        if ps.preflight_on_start && fresh_start(&client) {
             preflight_reply(&ps, ks.as_ref())?;
         }
         client
@@ -109,6 +114,14 @@ fn preflight_services(
             .unwrap_or_else(|e| Err(e.to_string()))
     })?;
     Ok([check, start])
+}
+
+/// Whether a `~start` now begins a docking (the controller IDLE, or its phase unknown: the
+/// preflight then runs), rather than resuming one.
+fn fresh_start(client: &RequestClient<Request, Reply>) -> bool {
+    client
+        .call(Request::Phase, SERVICE_TIMEOUT)
+        .map_or(true, |r| r.map_or(true, |phase| phase == Phase::Idle.as_str()))
 }
 
 /// The loop's own state besides the controller.
@@ -171,6 +184,7 @@ impl LoopState {
                 controller.set_live(&values)?;
                 Ok(format!("applied in {}", controller.phase()))
             }
+            Request::Phase => Ok(controller.phase().as_str().into()),
         }
     }
 }
@@ -324,6 +338,35 @@ pub fn run() -> Result<(), NodeError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// `~start` runs the preflight for a docking that begins from IDLE only: the loop's
+    /// phase decides (a hold resumed or a depth accepted skips it), and a loop that does not
+    /// answer runs it, as a fresh start would.
+    #[test]
+    fn the_preflight_runs_on_a_fresh_start_only() {
+        let (client, mut server) = handover::requests::<Request, Reply>(8);
+        for (phase, fresh) in [(Phase::Idle, true), (Phase::Hold, false), (Phase::Done, false)] {
+            let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let loop_side = {
+                let stop = stop.clone();
+                std::thread::spawn(move || {
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        server.serve(|r| match r {
+                            Request::Phase => Ok(phase.as_str().to_string()),
+                            _ => Err("unexpected".into()),
+                        });
+                        std::thread::sleep(Duration::from_millis(1));
+                    }
+                    server
+                })
+            };
+            assert_eq!(fresh_start(&client), fresh, "{phase}");
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            server = loop_side.join().unwrap();
+        }
+        // No loop answering: the preflight runs.
+        assert!(fresh_start(&client));
+    }
 
     #[test]
     fn a_dry_run_must_not_preview_on_the_command_topic() {

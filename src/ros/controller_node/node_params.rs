@@ -84,8 +84,9 @@ pub struct ControllerNodeParams {
     pub realtime_priority: i32,
     /// Marker sizes.
     pub markers: MarkerStyle,
-    /// Run the preflight on `~start` and refuse the start when a check fails (`autostart`
-    /// does not run it).
+    /// Run the preflight on a `~start` that begins a docking (the controller IDLE; not one
+    /// that resumes a hold) and refuse the start when a check fails (`autostart` does not
+    /// run it).
     pub preflight_on_start: bool,
     /// The preflight's settings (`~preflight`).
     pub preflight: PreflightParams,
