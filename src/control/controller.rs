@@ -711,9 +711,9 @@ impl OptimalController {
     /// The DONE gate, in INSERT: with the goal `reached` this step (and the note DONE would
     /// carry), DONE only while the depth's figure (its uncertainty plus the tip's distance
     /// from the goal depth `goal_depth` on the estimate of this step, the tip at `depth`) is
-    /// within the tolerance;
-    /// otherwise judged on at the next steps for `depth.gate_wait_s` from the first failure,
-    /// then HOLD `DEPTH_UNCERTAIN` (a dry run ends DONE, `DEPTH_UNVERIFIED`, at once).
+    /// within the tolerance; otherwise judged on at the next steps for `depth.gate_wait_s`
+    /// from the first failure, then HOLD `DEPTH_UNCERTAIN` (a dry run ends DONE,
+    /// `DEPTH_UNVERIFIED`, at once).
     fn depth_gate(&mut self, reached: Option<Option<DoneNote>>, depth: f64, goal_depth: f64, dt: f64) {
         let d = &self.params.depth;
         let r = &mut self.run;

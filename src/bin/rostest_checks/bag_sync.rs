@@ -108,11 +108,7 @@ fn play(p: &CheckParams, from: f64, duration: Option<f64>) -> Result<Player, Str
 
 /// The live controller's tare window, s (its parameter, as the node loaded it).
 fn tare_window(p: &CheckParams) -> Result<f64, String> {
-    let key = format!("{}/controller/tare/window_s", p.controller);
-    rosrust::param(&key)
-        .ok_or_else(|| format!("bad name {key}"))?
-        .get()
-        .map_err(|e| format!("{key}: {e}"))
+    crate::common::controller_param(p, "tare/window_s")
 }
 
 /// Play `p.bag` (module doc): the first part to `start_lead_s` plus the tare window before

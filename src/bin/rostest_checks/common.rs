@@ -192,6 +192,16 @@ pub struct CheckParams {
     pub start_lead_s: f64,
 }
 
+/// A parameter of the controller node's `controller` tree, as the node loaded it: `name`
+/// is its path there (`depth/tolerance_m`).
+pub fn controller_param(p: &CheckParams, name: &str) -> Result<f64, String> {
+    let key = format!("{}/controller/{name}", p.controller);
+    rosrust::param(&key)
+        .ok_or_else(|| format!("bad name {key}"))?
+        .get()
+        .map_err(|e| format!("{key}: {e}"))
+}
+
 impl Default for CheckParams {
     // A table of every check's defaults, one line each: data, not logic.
     #[allow(clippy::too_many_lines)]

@@ -238,10 +238,9 @@ pub fn wait_for_end(
 
 /// [`wait_for_end`]; with `accept_depth_uncertain` (or `accept_refused_seal`,
 /// `accept_seal_edge`: [`hold_acceptable`]), a hold DEPTH_UNCERTAIN at the goal on the way is
-/// accepted once by
-/// `~start` (the surgeon's acceptance): the end's status with the docking's M and time before
-/// the hold counted (the status after the start counts from the start), and a note of the
-/// hold.
+/// accepted once by `~start` (the surgeon's acceptance): the end's status with the docking's
+/// M and time before the hold counted (the status after the start counts from the start),
+/// and a note of the hold.
 fn wait_for_end_accepting(
     p: &CheckParams,
     status: &Latest<trocar_docking::DockingStatus>,
@@ -289,11 +288,7 @@ fn hold_acceptable(p: &CheckParams, s: &trocar_docking::DockingStatus, tolerance
 
 /// The controller's own `depth.tolerance_m`, as the node loaded it, m.
 fn depth_tolerance(p: &CheckParams) -> Result<f64, String> {
-    let key = format!("{}/controller/depth/tolerance_m", p.controller);
-    rosrust::param(&key)
-        .ok_or_else(|| format!("bad name {key}"))?
-        .get()
-        .map_err(|e| format!("{key}: {e}"))
+    crate::common::controller_param(p, "depth/tolerance_m")
 }
 
 /// At DONE, the status's code must be `done_code` (unless that is empty).

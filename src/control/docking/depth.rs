@@ -44,8 +44,9 @@
 //!   variance the controller's filter keeps ([`AxisFilter::noise_gains`]).
 //!
 //! DONE needs it, plus the tip's distance from the goal depth on the estimate of that
-//! instant, within `tolerance_m`; the gate judges every step at the goal for up to
-//! `gate_wait_s`, then the controller holds, DEPTH_UNCERTAIN, with the figure and its basis. Nothing allocates: the histories are fixed arrays.
+//! instant, within `tolerance_m`; the gate judges on for `gate_wait_s` from its first
+//! failure, then the controller holds, DEPTH_UNCERTAIN, with the figure and its basis.
+//! Nothing allocates: the histories are fixed arrays.
 
 use std::fmt;
 
