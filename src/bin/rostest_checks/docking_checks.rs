@@ -241,7 +241,7 @@ pub fn wait_for_end(
 /// accepted once by `~start` (the surgeon's acceptance): the end's status with the docking's
 /// M and time before the hold counted (the status after the start counts from the start),
 /// and a note of the hold.
-fn wait_for_end_accepting(
+pub fn wait_for_end_accepting(
     p: &CheckParams,
     status: &Latest<trocar_docking::DockingStatus>,
 ) -> Result<(trocar_docking::DockingStatus, String), String> {

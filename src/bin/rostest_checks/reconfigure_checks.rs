@@ -11,7 +11,7 @@ use ::trocar_docking::ros::convert;
 use ::trocar_docking::ros::msgs::{dynamic_reconfigure as dr, sensor_msgs, trocar_docking};
 
 use crate::common::{subscribe_latest, trigger, wait_for, CheckParams, Latest};
-use crate::docking_checks::wait_for_end;
+use crate::docking_checks::wait_for_end_accepting;
 
 /// Run `rosrun dynamic_reconfigure dynparam ARGS`: its exit status and its output (stdout
 /// then stderr).
@@ -169,7 +169,7 @@ fn reduced_speed(
     }
     let speed = TipSpeed::subscribe(&p.joint_states_topic)?;
     trigger(&format!("{node}/start"), p.startup_timeout)?;
-    let done = wait_for_end(p, status)?;
+    let (done, accepted) = wait_for_end_accepting(p, status)?;
     if done.phase != "DONE" {
         return Err(format!("the reduced-speed docking ABORTED: {}", done.hold_reason));
     }
@@ -182,7 +182,7 @@ fn reduced_speed(
         ));
     }
     Ok(format!(
-        "at reduced speed DONE in {:.1} s, the tip at most {:.1} mm/s (max_tip_speed_m_s {:.0} mm/s)",
+        "at reduced speed DONE in {:.1} s, the tip at most {:.1} mm/s (max_tip_speed_m_s {:.0} mm/s){accepted}",
         done.elapsed,
         v * 1e3,
         REDUCED_TIP_SPEED * 1e3
