@@ -164,10 +164,40 @@ fn watch<T: rosrust::Message>(
     rosrust::subscribe(topic, queue, move |m: T| f(&mut lock(&s), m)).map_err(ros_err)
 }
 
-/// Subscribe the topics; the subscribers live as long as the returned handles.
-fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscriber>, NodeError> {
+/// The subscribers, the stereo pair's right ones apart (they outlive the window: see
+/// [`RIGHT_LATE_S`]); each lives as long as its handle.
+struct Subscribers {
+    right: Vec<rosrust::Subscriber>,
+    rest: Vec<rosrust::Subscriber>,
+}
+
+/// How long (wall time) the right image's subscriber listens on after the window, for the
+/// right images of the window's left images still on the wire: on a busy 2-core host they
+/// arrived up to 0.7 s after their left images (the simulated stereo pair, whose two
+/// publishers each write to every subscriber in turn, one image of ~1 MB at a time), and
+/// STEREO read them as missing. The left images stop at the window's end.
+const RIGHT_LATE_S: f64 = 1.0;
+
+/// Wait (the left images' subscriber gone) until a right image as new as the newest left
+/// image has arrived, or [`RIGHT_LATE_S`].
+fn wait_for_late_right_images(seen: &Arc<Mutex<Seen>>) {
+    let newest = |v: &[f64]| v.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    let t0 = Instant::now();
+    while t0.elapsed().as_secs_f64() < RIGHT_LATE_S && rosrust::is_ok() {
+        {
+            let s = lock(seen);
+            if newest(&s.right_stamps) >= newest(&s.image_stamps) - crate::vision::STEREO_MAX_SKEW_S {
+                return;
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// Subscribe the topics.
+fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Subscribers, NodeError> {
     let (topic, frame) = (t.trocar_pose.clone(), t.base_frame.clone());
-    let mut subs = match &t.right {
+    let right = match &t.right {
         Some((image, info, kind)) => {
             let kind = *kind;
             vec![
@@ -181,7 +211,7 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
         }
         None => vec![],
     };
-    subs.extend([
+    let rest = vec![
         watch(
             &t.joint_states,
             topics::DRIVER_QUEUE,
@@ -223,8 +253,8 @@ fn subscribe(t: &Topics, seen: &Arc<Mutex<Seen>>) -> Result<Vec<rosrust::Subscri
                 height: m.height,
             });
         })?,
-    ]);
-    Ok(subs)
+    ];
+    Ok(Subscribers { right, rest })
 }
 
 /// The stereo baseline a right camera's CameraInfo gives (its projection's `Tx`), m, checked
@@ -403,7 +433,11 @@ pub fn run(p: &PreflightParams, node: &ControllerNodeParams, kin: &dyn Kinematic
         std::thread::sleep(Duration::from_millis(100));
     }
     std::thread::sleep(Duration::from_secs_f64(p.window_s));
-    drop(subs);
+    drop(subs.rest);
+    if !subs.right.is_empty() {
+        wait_for_late_right_images(&seen);
+    }
+    drop(subs.right);
     let (simulator, estimator) = who_runs(p, node)?;
     let camera = simulator.is_none_or(|s| s.camera);
     let s = lock(&seen);

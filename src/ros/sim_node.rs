@@ -33,10 +33,11 @@ use crate::vision::{render_marker_image, CameraModel, MarkerSpec, RenderOptions,
 
 use super::node::{ros_err, CommandType, NodeError};
 
-/// The simulated camera's publisher queue, per subscriber (rosrust drops the oldest message of
-/// a connection whose queue is full): 4 frames, 0.27 s at 15 Hz, so that a subscriber whose
-/// reading thread is starved for a few frames (the preflight's STEREO pairing on a busy host)
-/// still gets every left and right image; a subscriber's own queue keeps it fresh.
+/// The simulated camera's publisher queue (rosrust keeps one queue per publisher, whose
+/// thread writes each message to every subscriber in turn, and drops the oldest message when
+/// the queue is full): 4 frames, 0.27 s at 15 Hz, so that a subscriber whose reading thread is
+/// starved for a few frames still gets every left and right image; a subscriber's own queue
+/// keeps it fresh.
 const CAMERA_QUEUE: usize = 4;
 
 /// Parameters of the node (its private namespace; `config/lbr_med_sim.yaml`, whose values,
