@@ -550,9 +550,19 @@ impl DepthEstimate {
     }
 
     /// The seal's onset `c` confirmed: measured once the estimates span its stick window
-    /// ([`DepthEstimate::refine`]), while the tip history still holds it.
+    /// ([`DepthEstimate::refine`]), while the tip history still holds it. An onset refused
+    /// as felt shallower than the seal could be is a contact on the way in (the funnel or the
+    /// bore, pressed along the axis): the search goes on deeper, where the seal still is, and
+    /// the basis stays refused until a seal within the bound replaces it.
     fn measure(&mut self, p: &DepthParams, c: &Candidate, now: f64) {
-        if self.refine(p, c) || now - c.t_on >= TIP_HISTORY_S {
+        if self.refine(p, c) {
+            self.candidate = None;
+            if matches!(self.basis, DepthBasis::Refused { correction, .. } if correction < 0.0) {
+                self.level = None;
+            } else {
+                self.over = true;
+            }
+        } else if now - c.t_on >= TIP_HISTORY_S {
             self.over = true;
             self.candidate = None;
         }
@@ -668,6 +678,18 @@ mod tests {
         ))
     }
 
+    /// What touches the shaft before the seal.
+    #[derive(Debug, Clone, Copy, PartialEq)]
+    enum Bump {
+        None,
+        /// The funnel, 6 to 9 mm deep: 1.5 N along the axis and 1.2 N across (not the seal's
+        /// signature).
+        Funnel,
+        /// A contact pressed along the axis alone, 2 to 10 mm deep (2 N, a seal's signature,
+        /// 13 mm shallower than the seal).
+        Axial,
+    }
+
     const FILTERS: Filters = Filters {
         force_lag: 0.013,
         axis: AxisFilter::Tracking(0.2),
@@ -676,10 +698,9 @@ mod tests {
     /// A docking along z at 30 mm/s from 5 mm before the port, 100 Hz, with trocar poses at
     /// 15 Hz (captured 40 ms before they arrive, `e` too deep, with white noise of sigma
     /// `noise` along the axis, filtered by the controller's tracking filter): the tip sticks in the seal for 0.1 s (2 N along the axis), then slides
-    /// against 1.5 N; with `bump`, the funnel pushes 1.5 N along and 1.2 N across from 6 to
-    /// 9 mm deep. Returns the estimate when the tip is 30 mm past the estimated port (and 25
+    /// against 1.5 N; `bump` touches it on the way in. Returns the estimate when the tip is 30 mm past the estimated port (and 25
     /// mm past the true one).
-    fn dock(p: &DepthParams, e: f64, noise: f64, seal: bool, bump: bool) -> DepthEstimate {
+    fn dock(p: &DepthParams, e: f64, noise: f64, seal: bool, bump: Bump) -> DepthEstimate {
         dock_at(p, e, (noise, 5), (seal, bump), (15.0, 0.04))
     }
 
@@ -689,7 +710,7 @@ mod tests {
         p: &DepthParams,
         e: f64,
         (noise, seed): (f64, u64),
-        (seal, bump): (bool, bool),
+        (seal, bump): (bool, Bump),
         (hz, latency): (f64, f64),
     ) -> DepthEstimate {
         let mut d = DepthEstimate::default();
@@ -730,7 +751,8 @@ mod tests {
             let f = match (seal && stuck_until.is_some(), sticking) {
                 (true, true) => Vector3::new(0.0, 0.0, -2.0),
                 (true, false) => Vector3::new(0.0, 0.0, -1.5),
-                _ if bump && (0.006..0.009).contains(&z) => Vector3::new(1.2, 0.0, -1.5),
+                _ if bump == Bump::Funnel && (0.006..0.009).contains(&z) => Vector3::new(1.2, 0.0, -1.5),
+                _ if bump == Bump::Axial && (0.002..0.010).contains(&z) => Vector3::new(0.0, 0.0, -2.0),
                 _ => Vector3::new(0.05, 0.0, -0.05),
             };
             d.update(p, &a, &tip, &f, t, FILTERS);
@@ -745,7 +767,7 @@ mod tests {
     fn the_seal_measures_the_estimate_s_error_along_the_axis() {
         let p = DepthParams::default();
         for e in [-0.004, -0.0015, 0.0, 0.002, 0.005] {
-            let d = dock(&p, e, 0.0, true, true);
+            let d = dock(&p, e, 0.0, true, Bump::Funnel);
             match d.basis() {
                 // The estimate `e` too deep puts the tip `e` shallower: the goal moves by -e.
                 DepthBasis::Seal { correction } => assert!((correction + e).abs() < 2e-4, "{e}: {correction}"),
@@ -759,12 +781,12 @@ mod tests {
         }
         // Pose noise of sigma 0.5 mm, ten draws: the uncertainty counts it (about 1.4 mm
         // against 1.04 mm without), and the refined depth is within it.
-        let quiet = dock(&p, 0.002, 0.0, true, false)
+        let quiet = dock(&p, 0.002, 0.0, true, Bump::None)
             .report(&p, 0.03, FILTERS.axis)
             .uncertainty;
         let mut over = 0;
         for seed in 1..=10 {
-            let d = dock_at(&p, 0.002, (0.0005, seed), (true, false), (15.0, 0.04));
+            let d = dock_at(&p, 0.002, (0.0005, seed), (true, Bump::None), (15.0, 0.04));
             let noisy = d.report(&p, 0.03, FILTERS.axis).uncertainty;
             let err = (d.correction() + 0.002).abs();
             assert!(err < noisy, "seed {seed}: {err} {noisy}");
@@ -777,7 +799,7 @@ mod tests {
     fn no_seal_leaves_the_calibration_s_uncertainty_and_a_far_seal_is_refused() {
         let p = DepthParams::default();
         // No seal, the funnel's bump only (across the axis: not a seal).
-        let d = dock(&p, 0.002, 0.0, false, true);
+        let d = dock(&p, 0.002, 0.0, false, Bump::Funnel);
         assert_eq!(d.basis(), DepthBasis::Estimate);
         let r = d.report(&p, 0.03, FILTERS.axis);
         let cal = p
@@ -791,7 +813,7 @@ mod tests {
         // A seal 13 mm from where the estimate puts it: more than the 7.2 mm of the shipped
         // calibration (2 mm + 1 deg x 0.3 m; the pose's own error 0 as shipped).
         assert!((p.refusal_bound() - 0.0072).abs() < 1e-4, "{}", p.refusal_bound());
-        let d = dock(&p, -0.013, 0.0, true, false);
+        let d = dock(&p, -0.013, 0.0, true, Bump::None);
         match d.basis() {
             DepthBasis::Refused { correction, bound } => {
                 assert!((correction - 0.013).abs() < 2e-4 && (bound - p.refusal_bound()).abs() < 1e-12);
@@ -807,7 +829,7 @@ mod tests {
             seal_depth_m: 0.0,
             ..p.clone()
         };
-        let d = dock(&off, 0.002, 0.0, true, false);
+        let d = dock(&off, 0.002, 0.0, true, Bump::None);
         assert_eq!(d.basis(), DepthBasis::NoSeal);
         assert!(d.basis().to_string().contains("no seal"), "{}", d.basis());
         let r = d.report(&off, 0.03, FILTERS.axis);
@@ -818,8 +840,41 @@ mod tests {
             hand_eye_error_deg: 0.0,
             ..p
         };
-        let r = dock(&exact, 0.0, 0.0003, false, false).report(&exact, 0.03, FILTERS.axis);
+        let r = dock(&exact, 0.0, 0.0003, false, Bump::None).report(&exact, 0.03, FILTERS.axis);
         assert!(r.uncertainty > 0.0 && r.uncertainty < 0.5e-3, "{r:?}");
+    }
+
+    /// A contact pressed along the axis 13 mm before the seal (a seal's signature, shallower
+    /// than the seal could be): refused, and the search goes on to the seal itself, which
+    /// refines the depth as without the contact. With a calibration off by more than the
+    /// bound the seal itself is felt too shallow and stays refused.
+    #[test]
+    fn an_onset_felt_too_shallow_is_refused_and_the_seal_is_looked_for_deeper() {
+        let p = DepthParams::default();
+        for e in [-0.002, 0.0, 0.003] {
+            let d = dock(&p, e, 0.0, true, Bump::Axial);
+            match d.basis() {
+                DepthBasis::Seal { correction } => assert!((correction + e).abs() < 2e-4, "{e}: {correction}"),
+                b => panic!("{e}: {b:?}"),
+            }
+            assert!(d.report(&p, 0.03, FILTERS.axis).uncertainty < p.tolerance_m);
+        }
+        // The contact alone, no seal: refused, never a DONE's basis.
+        let d = dock(&p, 0.0, 0.0, false, Bump::Axial);
+        assert!(
+            matches!(d.basis(), DepthBasis::Refused { correction, .. } if correction < -0.01),
+            "{:?}",
+            d.basis()
+        );
+        assert!(d.report(&p, 0.03, FILTERS.axis).uncertainty > p.tolerance_m);
+        // The estimate 10 mm too deep: the seal is felt 10 mm shallow, refused, and nothing
+        // deeper replaces it.
+        let d = dock(&p, 0.010, 0.0, true, Bump::None);
+        assert!(
+            matches!(d.basis(), DepthBasis::Refused { correction, .. } if (correction + 0.010).abs() < 2e-4),
+            "{:?}",
+            d.basis()
+        );
     }
 
     /// Poses at any rate: at 1 kHz (a flood of poses, 32 of them in 32 ms) the poses of the
@@ -838,7 +893,7 @@ mod tests {
             (1000.0, 0.0),
             (1000.0, 0.04),
         ] {
-            let d = dock_at(&p, 0.003, (0.0, 5), (true, false), (hz, latency));
+            let d = dock_at(&p, 0.003, (0.0, 5), (true, Bump::None), (hz, latency));
             match d.basis() {
                 DepthBasis::Seal { correction } => assert!((correction + 0.003).abs() < 2e-4, "{hz} Hz: {correction}"),
                 b => panic!("{hz} Hz, {latency} s: {b:?}"),
