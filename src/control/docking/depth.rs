@@ -697,9 +697,10 @@ mod tests {
 
     /// A docking along z at 30 mm/s from 5 mm before the port, 100 Hz, with trocar poses at
     /// 15 Hz (captured 40 ms before they arrive, `e` too deep, with white noise of sigma
-    /// `noise` along the axis, filtered by the controller's tracking filter): the tip sticks in the seal for 0.1 s (2 N along the axis), then slides
-    /// against 1.5 N; `bump` touches it on the way in. Returns the estimate when the tip is 30 mm past the estimated port (and 25
-    /// mm past the true one).
+    /// `noise` along the axis, filtered by the controller's tracking filter): the tip sticks
+    /// in the seal for 0.1 s (2 N along the axis), then slides against 1.5 N; `bump` touches
+    /// it on the way in. Returns the estimate when the tip is 30 mm past the estimated port
+    /// (and 25 mm past the true one).
     fn dock(p: &DepthParams, e: f64, noise: f64, seal: bool, bump: Bump) -> DepthEstimate {
         dock_at(p, e, (noise, 5), (seal, bump), (15.0, 0.04))
     }
