@@ -12,8 +12,10 @@ GUI ?= 0
 
 .PHONY: deps build demo test lint cargo-test rostest two-machines catkin-check screenshot bench clean
 
+# The Debian packages, and beside them the crates' download and release build (they need none
+# of the packages: scripts/prebuild-crates), so that a fresh machine does both at once.
 deps:
-	@scripts/install-deps
+	@scripts/install-deps & packages=$$!; scripts/prebuild-crates; wait $$packages
 
 # The package in the catkin workspace target/catkin_ws (catkin_make: the nodes through cargo,
 # release, in the checkout's target/; the messages through genmsg); env.sh sources its devel space.
