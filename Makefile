@@ -10,7 +10,7 @@ ENV := source scripts/env.sh &&
 CARGO_FLAGS ?= --release
 GUI ?= 0
 
-.PHONY: deps build demo test lint cargo-test rostest two-machines catkin-check screenshot bench clean
+.PHONY: deps prebuild-check build demo test lint cargo-test rostest two-machines catkin-check screenshot bench clean
 
 # The Debian packages, and beside them the crates' download and release build (they need none
 # of the packages: scripts/prebuild-crates), so that a fresh machine does both at once.
@@ -45,7 +45,12 @@ two-machines: build
 catkin-check: build
 	@scripts/catkin-check
 
-test: lint cargo-test rostest two-machines catkin-check
+# The release build of the nodes, checked to find every dependency already compiled by
+# scripts/prebuild-crates (beside the packages' install), then the tests.
+prebuild-check: deps
+	@$(ENV) scripts/prebuild-crates --check
+
+test: lint prebuild-check cargo-test rostest two-machines catkin-check
 
 screenshot: build
 	@$(ENV) scripts/screenshot
