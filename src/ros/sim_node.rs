@@ -6,6 +6,7 @@
 //! directly. With `publish_clock` it owns `/clock` (for `/use_sim_time`) and can run faster
 //! or slower than real time (`real_time_factor`).
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -72,6 +73,12 @@ pub struct SimNodeParams {
     /// controller starved of the processor on a busy host slows the simulation instead of
     /// meeting an arm that stood still; 0 = off (the clock never waits for the controller).
     pub command_lockstep_s: f64,
+    /// With `publish_clock`, `camera_lockstep` and the camera as the trocar's source (not
+    /// `direct_pose_enabled`): the simulated clock runs at most this far (s) past the capture
+    /// of the newest frame the estimator answered on `trocar_pose_topic`, then waits for its
+    /// next pose ([`super::sim_lockstep`]), so that an estimator starved of the processor on
+    /// a busy host slows the simulation instead of handing the controller older poses; 0 = off.
+    pub pose_lockstep_s: f64,
     /// Random seed of the simulation (noise, trocar placement).
     pub seed: u64,
     /// Joint states out.
@@ -639,6 +646,89 @@ fn subscribe_command(p: &SimNodeParams, queue: &CommandQueue) -> Result<rosrust:
     .map_err(ros_err)
 }
 
+/// The clock in lockstep with the estimator's poses (`pose_lockstep_s`): the newest pose's
+/// capture stamp, written by the pose subscriber (f64 bits, lock-free), read by the loop.
+struct PoseLockstep {
+    newest: Arc<AtomicU64>,
+    /// The newest stamp the loop has taken (f64 bits).
+    seen: u64,
+    /// A capture stamp minus this is its simulated time (the clock's origin and the camera's
+    /// offset).
+    origin: f64,
+    lockstep: CommandLockstep,
+    /// The waits to the log, every 10 s of simulated time.
+    log: Every,
+    _sub: rosrust::Subscriber,
+}
+
+impl PoseLockstep {
+    /// The lockstep where it applies (module doc of [`super::sim_lockstep`]), else `None`.
+    fn start(p: &SimNodeParams, t0: f64) -> Result<Option<Self>, NodeError> {
+        let applies = p.publish_clock && p.camera_enabled && p.camera_lockstep && !p.direct_pose_enabled;
+        if !applies || p.pose_lockstep_s <= 0.0 {
+            return Ok(None);
+        }
+        let newest = Arc::new(AtomicU64::new(f64::NEG_INFINITY.to_bits()));
+        let write = newest.clone();
+        let sub = rosrust::subscribe(&p.trocar_pose_topic, 10, move |m: geometry_msgs::PoseStamped| {
+            let t = convert::seconds(m.header.stamp);
+            if t.is_finite() && t > f64::from_bits(write.load(Ordering::Acquire)) {
+                write.store(t.to_bits(), Ordering::Release);
+            }
+        })
+        .map_err(ros_err)?;
+        Ok(Some(Self {
+            newest,
+            seen: f64::NEG_INFINITY.to_bits(),
+            origin: t0 + p.camera_stamp_offset_s,
+            lockstep: CommandLockstep::new(p.pose_lockstep_s),
+            log: Every::new(0.1, 10.0),
+            _sub: sub,
+        }))
+    }
+
+    /// Take a newer pose, if one came: its capture is the lockstep's last arrival.
+    fn take(&mut self) {
+        let n = self.newest.load(Ordering::Acquire);
+        if n != self.seen {
+            self.seen = n;
+            self.lockstep.arrived(f64::from_bits(n) - self.origin);
+        }
+    }
+
+    /// Before the clock advances past simulated time `t`: wait (wall time) for a pose
+    /// captured within `pose_lockstep_s` of `t`, or until [`GIVE_UP`] (no pose: the marker
+    /// lost, the estimator stopped), after which the clock runs free until the next pose.
+    /// Returns the wall time waited.
+    fn await_pose(&mut self, t: f64) -> Duration {
+        self.take();
+        if !self.lockstep.must_wait(t) {
+            return Duration::ZERO;
+        }
+        let start = Instant::now();
+        let got = loop {
+            self.take();
+            if !self.lockstep.must_wait(t) {
+                break true;
+            }
+            if start.elapsed() >= GIVE_UP || !rosrust::is_ok() {
+                break false;
+            }
+            std::thread::sleep(Duration::from_micros(200));
+        };
+        let waited = start.elapsed();
+        self.lockstep.waited(waited, got);
+        if self.log.due(t) {
+            let (n, w) = self.lockstep.waits();
+            rosrust::ros_info!(
+                "lbr_med_sim: the clock waited for the estimator's pose {n} times, {:.2} s in all",
+                w.as_secs_f64()
+            );
+        }
+        waited
+    }
+}
+
 /// Fires every `period` of simulated time.
 #[derive(Debug, Clone, Copy)]
 struct Every {
@@ -1026,6 +1116,7 @@ fn check_clocks(p: &SimNodeParams) -> Result<(), NodeError> {
     }
     crate::validate::in_range("camera_stamp_offset_s", p.camera_stamp_offset_s, -60.0, 60.0)?;
     crate::validate::in_range("command_lockstep_s", p.command_lockstep_s, 0.0, 1.0)?;
+    crate::validate::in_range("pose_lockstep_s", p.pose_lockstep_s, 0.0, 1.0)?;
     if p.camera_stamp_offset_s != 0.0 {
         rosrust::ros_warn!(
             "lbr_med_sim: the camera's stamps are {:+.0} ms off the simulator's clock (camera_stamp_offset_s, a test's camera clock offset)",
@@ -1074,13 +1165,15 @@ pub fn run() -> Result<(), NodeError> {
         p.publish_clock
     );
     let mut arm = ArmCommand::new(&p, &world, t0)?;
+    let mut poses = PoseLockstep::start(&p, t0)?;
     while rosrust::is_ok() {
         let now = if p.publish_clock {
             t0 + world.time()
         } else {
             convert::seconds(rosrust::now())
         };
-        wall0 += arm.await_command(&command, world.time());
+        let t = world.time();
+        wall0 += arm.await_command(&command, t) + poses.as_mut().map_or(Duration::ZERO, |l| l.await_pose(t));
         arm.step(&command, &mut world, now);
         if let Err(e) = world.step(dt) {
             return Err(NodeError::Invalid(format!("simulation stopped: {e}")));

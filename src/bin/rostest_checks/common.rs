@@ -91,6 +91,18 @@ pub struct CheckParams {
     pub max_latency_ms: f64,
     /// `latency`: the largest accepted median of image -> command, ms.
     pub max_latency_p50_ms: f64,
+    /// `docking`: the largest accepted 99th percentile of the controller's own latency, a
+    /// trocar pose's capture to the command that used it, over the docking, ms (0 = not
+    /// checked).
+    pub max_pose_latency_p99_ms: f64,
+    /// `docking`: a node beside the test node (`__name:=` this) stopped `starve_stop_s` of
+    /// every `starve_period_s` of wall time while the docking runs, as a host too busy to
+    /// run it does ('' = none; [`crate::starve`]).
+    pub starve_node: String,
+    /// How long each stop of `starve_node` lasts, s.
+    pub starve_stop_s: f64,
+    /// How often `starve_node` is stopped, s.
+    pub starve_period_s: f64,
     /// `latency`: where to write the run's figures as one JSON object ('' = nowhere), for
     /// `scripts/measure-latency`.
     pub json_out: String,
@@ -240,6 +252,10 @@ impl Default for CheckParams {
             camera_rate_hz: 30.0,
             max_latency_ms: 10.0,
             max_latency_p50_ms: 10.0,
+            max_pose_latency_p99_ms: 0.0,
+            starve_node: String::new(),
+            starve_stop_s: 0.2,
+            starve_period_s: 0.6,
             json_out: String::new(),
             max_lead_deg: 2.0,
             max_hold_delay_s: 0.2,
@@ -306,6 +322,7 @@ impl CheckParams {
         validate::period_of_rate("camera_rate_hz", self.camera_rate_hz)?;
         validate::positive("max_latency_ms", self.max_latency_ms)?;
         validate::positive("max_latency_p50_ms", self.max_latency_p50_ms)?;
+        validate::non_negative("max_pose_latency_p99_ms", self.max_pose_latency_p99_ms)?;
         validate::positive("max_lead_deg", self.max_lead_deg)?;
         validate::positive("max_hold_delay_s", self.max_hold_delay_s)?;
         validate::positive("max_step_deg", self.max_step_deg)?;

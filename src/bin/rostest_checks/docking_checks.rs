@@ -329,6 +329,37 @@ fn judge_done_depth(done: &trocar_docking::DockingStatus, accepted: bool, tolera
     }
 }
 
+/// The docking's end against the bounds: DONE (not ABORTED), M, the peak force `fmax`, and
+/// the controller's pose latency where bounded.
+fn check_done_bounds(p: &CheckParams, done: &trocar_docking::DockingStatus, fmax: f64) -> Result<(), String> {
+    if done.phase != "DONE" {
+        return Err(format!(
+            "failure: ABORTED after {:.2} s: {} (M = {:.2} N, max force {:.2} N)",
+            done.elapsed, done.hold_reason, done.metric_m, fmax
+        ));
+    }
+    if done.metric_m.is_nan() || done.metric_m > p.max_metric_m {
+        return Err(format!(
+            "M = {:.2} N above the bound {:.2} N",
+            done.metric_m, p.max_metric_m
+        ));
+    }
+    if fmax.is_nan() || fmax > p.max_force {
+        return Err(format!(
+            "peak force {fmax:.2} N above the bound {:.2} N (M = {:.2} N)",
+            p.max_force, done.metric_m
+        ));
+    }
+    let late = done.latency_p99_ms.is_nan() || done.latency_p99_ms > p.max_pose_latency_p99_ms;
+    if p.max_pose_latency_p99_ms > 0.0 && late {
+        return Err(format!(
+            "latency trocar->command p99 {:.1} ms above the bound {:.1} ms (the poses reached the controller late)",
+            done.latency_p99_ms, p.max_pose_latency_p99_ms
+        ));
+    }
+    Ok(())
+}
+
 /// Start the controller (unless the launch does) and wait for DONE within the time limit;
 /// M must stay under the bound, and the phase never ABORTED.
 pub fn docking(p: &CheckParams) -> Result<String, String> {
@@ -348,27 +379,11 @@ pub fn docking(p: &CheckParams) -> Result<String, String> {
         trigger(&format!("{}/start", p.controller), p.startup_timeout)?;
     }
     let t0 = Instant::now();
+    let starved = crate::starve::Starver::for_params(p)?;
     let (done, accepted) = wait_for_end_accepting(p, &status)?;
-    if done.phase != "DONE" {
-        let fmax = seen.lock().map(|m| m.max_force).unwrap_or(f64::NAN);
-        return Err(format!(
-            "failure: ABORTED after {:.2} s: {} (M = {:.2} N, max force {:.2} N)",
-            done.elapsed, done.hold_reason, done.metric_m, fmax
-        ));
-    }
-    if done.metric_m.is_nan() || done.metric_m > p.max_metric_m {
-        return Err(format!(
-            "M = {:.2} N above the bound {:.2} N",
-            done.metric_m, p.max_metric_m
-        ));
-    }
+    drop(starved);
     let fmax = seen.lock().map(|m| m.max_force).unwrap_or(f64::NAN);
-    if fmax.is_nan() || fmax > p.max_force {
-        return Err(format!(
-            "peak force {fmax:.2} N above the bound {:.2} N (M = {:.2} N)",
-            p.max_force, done.metric_m
-        ));
-    }
+    check_done_bounds(p, &done, fmax)?;
     check_done_code(p, &done)?;
     let depth = check_done_depth(p, &done, !accepted.is_empty())?;
     // How DONE was reached, when not plainly at the goal (see `trocar_docking::control::docking::seated`).

@@ -21,6 +21,7 @@ mod reconfigure_checks;
 mod replay_checks;
 mod replay_faults;
 mod scope_checks;
+mod starve;
 mod tf_checks;
 
 use ::trocar_docking::ros::params;
