@@ -29,7 +29,7 @@
 //! and a bound, free before the first pose and after [`GIVE_UP`] without one (the marker
 //! lost, hidden, or the estimator stopped), engaged again by the next pose.
 
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 /// How long (wall time) the clock waits for a silent controller before it runs free: longer
 /// than a busy host starves a process (tens of milliseconds), short enough that a node that
@@ -88,6 +88,26 @@ impl CommandLockstep {
         }
     }
 
+    /// Wait (wall time) until `ready()`, polling every 200 us, or for [`GIVE_UP`] at most (or
+    /// until `running()` turns false: the node shutting down); the wait is counted, and one
+    /// that ends without `ready()` lets the clock run free. Returns the wall time waited and
+    /// whether `ready()` ended it.
+    pub fn wait_until(&mut self, mut ready: impl FnMut() -> bool, running: impl Fn() -> bool) -> (Duration, bool) {
+        let start = Instant::now();
+        let got = loop {
+            if ready() {
+                break true;
+            }
+            if start.elapsed() >= GIVE_UP || !running() {
+                break false;
+            }
+            std::thread::sleep(Duration::from_micros(200));
+        };
+        let waited = start.elapsed();
+        self.waited(waited, got);
+        (waited, got)
+    }
+
     /// Whether the clock runs free of a silent controller.
     pub fn free(&self) -> bool {
         self.free
@@ -130,6 +150,27 @@ mod tests {
         l.arrived(5.0);
         assert!(!l.free() && l.must_wait(5.1), "the next command engages it again");
         assert_eq!(l.waits(), (2, Duration::from_millis(4) + GIVE_UP));
+    }
+
+    #[test]
+    fn a_wait_ends_when_the_stream_is_ready_or_gives_up_and_runs_free() {
+        let mut l = CommandLockstep::new(0.03);
+        l.arrived(1.0);
+        let mut polls = 0;
+        let (_, got) = l.wait_until(
+            || {
+                polls += 1;
+                polls == 3
+            },
+            || true,
+        );
+        assert!(got && polls == 3 && !l.free(), "ready on the third poll");
+        let (waited, got) = l.wait_until(|| false, || false);
+        assert!(
+            !got && waited < GIVE_UP && l.free(),
+            "shutting down: no wait for GIVE_UP, and free"
+        );
+        assert_eq!(l.waits().0, 2);
     }
 
     #[test]

@@ -19,7 +19,7 @@ use super::msgs::{
     diagnostic_msgs, geometry_msgs, lbr_msgs, rosgraph_msgs, sensor_msgs, std_msgs, trajectory_msgs, visualization_msgs,
 };
 use super::params;
-use super::sim_lockstep::{CommandLockstep, GIVE_UP};
+use super::sim_lockstep::CommandLockstep;
 use super::topics;
 use super::trajectory::{Outcome, StreamCounts, TrajectoryController};
 use crate::kinematics::lbr::{LbrModel, ToolParams};
@@ -655,6 +655,8 @@ struct PoseLockstep {
     /// A capture stamp minus this is its simulated time (the clock's origin and the camera's
     /// offset).
     origin: f64,
+    /// `pose_lockstep_s`.
+    bound_s: f64,
     lockstep: CommandLockstep,
     /// The waits to the log, every 10 s of simulated time.
     log: Every,
@@ -681,6 +683,7 @@ impl PoseLockstep {
             newest,
             seen: f64::NEG_INFINITY.to_bits(),
             origin: t0 + p.camera_stamp_offset_s,
+            bound_s: p.pose_lockstep_s,
             lockstep: CommandLockstep::new(p.pose_lockstep_s),
             log: Every::new(0.1, 10.0),
             _sub: sub,
@@ -697,7 +700,7 @@ impl PoseLockstep {
     }
 
     /// Before the clock advances past simulated time `t`: wait (wall time) for a pose
-    /// captured within `pose_lockstep_s` of `t`, or until [`GIVE_UP`] (no pose: the marker
+    /// captured within `pose_lockstep_s` of `t`, or until [`GIVE_UP`](super::sim_lockstep::GIVE_UP) (no pose: the marker
     /// lost, the estimator stopped), after which the clock runs free until the next pose.
     /// Returns the wall time waited.
     fn await_pose(&mut self, t: f64) -> Duration {
@@ -705,19 +708,15 @@ impl PoseLockstep {
         if !self.lockstep.must_wait(t) {
             return Duration::ZERO;
         }
-        let start = Instant::now();
-        let got = loop {
+        let (newest, origin, bound) = (&self.newest, self.origin, self.bound_s);
+        let fresh = || t - (f64::from_bits(newest.load(Ordering::Acquire)) - origin) <= bound;
+        let (waited, got) = self.lockstep.wait_until(fresh, rosrust::is_ok);
+        if got {
             self.take();
-            if !self.lockstep.must_wait(t) {
-                break true;
-            }
-            if start.elapsed() >= GIVE_UP || !rosrust::is_ok() {
-                break false;
-            }
-            std::thread::sleep(Duration::from_micros(200));
-        };
-        let waited = start.elapsed();
-        self.lockstep.waited(waited, got);
+        } else {
+            // Free until a pose newer than those seen in the wait.
+            self.seen = self.newest.load(Ordering::Acquire);
+        }
         if self.log.due(t) {
             let (n, w) = self.lockstep.waits();
             rosrust::ros_info!(
@@ -949,19 +948,9 @@ impl ArmCommand {
         if !self.lockstep.must_wait(t) {
             return Duration::ZERO;
         }
-        let start = Instant::now();
-        let got = loop {
-            // A poisoned queue (its subscriber panicked) cannot bring a command: run free.
-            if queue.lock().map(|q| !q.is_empty()).unwrap_or(false) {
-                break true;
-            }
-            if start.elapsed() >= GIVE_UP || !rosrust::is_ok() {
-                break false;
-            }
-            std::thread::sleep(Duration::from_micros(200));
-        };
-        let waited = start.elapsed();
-        self.lockstep.waited(waited, got);
+        // A poisoned queue (its subscriber panicked) cannot bring a command: run free.
+        let arrived = || queue.lock().map(|q| !q.is_empty()).unwrap_or(false);
+        let (waited, got) = self.lockstep.wait_until(arrived, rosrust::is_ok);
         if !got {
             rosrust::ros_warn!(
                 "lbr_med_sim: no command for {:.1} s of wall time: the clock runs on without the controller until its next command",
